@@ -1,0 +1,22 @@
+"""What travels between artrack processes: messages, key expressions, the wire codec.
+
+This package depends on pydantic and numpy only, so any client can use it alone.
+Importing it registers every message type with the codec.
+"""
+
+from protocol.codec import DecodeError, decode, encode, to_json
+from protocol.detections import BlobDetections, Keypoints, MarkerDetections
+from protocol.keys import Keys
+from protocol.maps import PointCloud
+from protocol.message import Header, Message, message_type, message_types
+from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
+from protocol.sensors import CameraInfo, Image, RegionOfInterest
+from protocol.spatial import FrameTransform, Transform
+from protocol.system import ErrorReport, NodeStats, StreamStats
+
+__all__ = [
+    "BlobDetections", "CameraInfo", "DecodeError", "ErrorReport", "FrameTransform", "GroundTruth",
+    "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message", "NodeStats", "PointCloud",
+    "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies", "RigidBody", "StreamStats",
+    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
+]

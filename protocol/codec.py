@@ -1,0 +1,207 @@
+"""Wire codec: messages to payload bytes and back.
+
+Two payload layouts, chosen by the message class:
+
+* Messages without array fields travel as one UTF-8 JSON object whose first two keys are
+  ``"schema"`` and ``"version"``, followed by the message's fields. Any JSON library can
+  read them; stock MCAP readers decode them with the exported JSON Schema.
+* Messages with array fields travel as a *frame*::
+
+      offset 0   b"ARTK"                      magic
+      offset 4   u8  layout version (1), 3 zero bytes
+      offset 8   u32 little-endian length L of the JSON header
+      offset 12  JSON header (L bytes): {"schema", "version", the other fields,
+                 each array field as {"dtype", "shape", "offset"}}
+      then       zero padding, and each array's raw little-endian bytes, C order,
+                 starting at its ``offset`` (a multiple of 64 from the payload start)
+
+  Decoding wraps the payload's own buffer: arrays are read-only numpy views into it,
+  no copy, no base64, no pickle.
+
+Every failure to decode (garbage, truncation, unknown schema, wrong version, a field that
+does not validate) raises :class:`DecodeError` and nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import numpy as np
+
+from protocol.arrays import WIRE_DTYPES
+from protocol.message import Message, message_type
+
+MAGIC = b"ARTK"
+LAYOUT_VERSION = 1
+ALIGN = 64
+_PREAMBLE = struct.Struct("<4sB3xI")
+
+MEDIA_JSON = "application/json"
+MEDIA_FRAME = "application/vnd.artrack.frame"
+
+
+class DecodeError(ValueError):
+    """A payload that cannot be turned into a message; ``schema`` is set when it was readable."""
+
+    def __init__(self, reason: str, schema: str | None = None, size: int | None = None):
+        self.reason = reason
+        self.schema = schema
+        self.size = size
+        what = f"{schema} payload" if schema else "payload"
+        where = f" ({size} bytes)" if size is not None else ""
+        super().__init__(f"cannot decode {what}{where}: {reason}")
+
+
+def is_frame(cls: type[Message]) -> bool:
+    """True when ``cls`` travels as a binary frame (it has array fields)."""
+    return bool(cls.ARRAY_FIELDS)
+
+
+def media_type(cls: type[Message]) -> str:
+    """The payload's media type: ``MEDIA_JSON`` or ``MEDIA_FRAME``."""
+    return MEDIA_FRAME if is_frame(cls) else MEDIA_JSON
+
+
+def _prefix(cls: type[Message]) -> str:
+    return f'{{"schema":{json.dumps(cls.SCHEMA)},"version":{cls.VERSION}'
+
+
+def encode(message: Message) -> bytes:
+    """Serialise ``message`` to payload bytes (JSON or frame, by its class)."""
+    cls = type(message)
+    if not is_frame(cls):
+        body = message.model_dump_json()
+        return (_prefix(cls) + "," + body[1:]).encode()
+    arrays = [(name, _wire(getattr(message, name))) for name in cls.ARRAY_FIELDS]
+    fields = message.model_dump_json(exclude=set(cls.ARRAY_FIELDS))
+    head = _prefix(cls) + "," + fields[1:-1] + ("," if len(fields) > 2 else "")
+    # Array offsets depend on the header's length and the header holds the offsets:
+    # lay out after a first guess and move the arrays back until the header fits.
+    start = _align(_PREAMBLE.size + len(head) + 64)
+    while True:
+        descriptors, offsets, offset = {}, [], start
+        for name, wire in arrays:
+            descriptors[name] = {"dtype": wire.dtype.name, "shape": list(wire.shape), "offset": offset}
+            offsets.append(offset)
+            offset = _align(offset + wire.nbytes)
+        header = (head + json.dumps(descriptors, separators=(",", ":"))[1:]).encode()
+        if _PREAMBLE.size + len(header) <= start:
+            break
+        start = _align(_PREAMBLE.size + len(header))
+    parts: list[bytes | memoryview] = [_PREAMBLE.pack(MAGIC, LAYOUT_VERSION, len(header)), header]
+    position = _PREAMBLE.size + len(header)
+    for (_, wire), at in zip(arrays, offsets, strict=True):
+        parts.append(bytes(at - position))
+        parts.append(wire.data.cast("B") if wire.nbytes else b"")
+        position = at + wire.nbytes
+    return b"".join(parts)
+
+
+def _wire(array: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(array.astype(WIRE_DTYPES[array.dtype.name], copy=False))
+
+
+def _align(n: int) -> int:
+    return (n + ALIGN - 1) // ALIGN * ALIGN
+
+
+def decode(payload: bytes | bytearray | memoryview) -> Message:
+    """Turn payload bytes into the message they encode; raise DecodeError on any fault.
+
+    Array fields of the result are read-only views into ``payload``.
+    """
+    size = len(payload)
+    try:
+        if bytes(payload[:4]) == MAGIC:
+            return _decode_frame(payload)
+        return _decode_json(payload)
+    except DecodeError:
+        raise
+    except Exception as exc:  # any other fault of a hostile payload becomes a DecodeError
+        raise DecodeError(f"{type(exc).__name__}: {exc}", size=size) from exc
+
+
+def _lookup(document: Any, size: int, *, framed: bool) -> tuple[type[Message], dict[str, Any]]:
+    if not isinstance(document, dict):
+        raise DecodeError("not a JSON object", size=size)
+    schema, version = document.pop("schema", None), document.pop("version", None)
+    if not isinstance(schema, str):
+        raise DecodeError('no "schema" name', size=size)
+    cls = message_type(schema)
+    if cls is None:
+        raise DecodeError(f"unknown schema {schema!r}", schema=schema, size=size)
+    if version != cls.VERSION:
+        raise DecodeError(f"version {version!r} is not understood (this build reads version {cls.VERSION})",
+                          schema=schema, size=size)
+    if framed != is_frame(cls):
+        layout = "frame" if framed else "JSON"
+        raise DecodeError(f"sent as {layout}, but this schema travels the other way", schema=schema, size=size)
+    return cls, document
+
+
+def _validate(cls: type[Message], document: dict[str, Any], size: int) -> Message:
+    try:
+        return cls.model_validate(document)
+    except ValueError as exc:  # pydantic.ValidationError is a ValueError
+        raise DecodeError(str(exc).replace("\n", "; "), schema=cls.SCHEMA, size=size) from exc
+
+
+def _decode_json(payload: bytes | bytearray | memoryview) -> Message:
+    size = len(payload)
+    try:
+        document = json.loads(bytes(payload) if isinstance(payload, memoryview) else payload)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DecodeError(f"neither an artrack frame nor JSON ({exc})", size=size) from exc
+    cls, document = _lookup(document, size, framed=False)
+    return _validate(cls, document, size)
+
+
+def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
+    size = len(payload)
+    if size < _PREAMBLE.size:
+        raise DecodeError("truncated frame preamble", size=size)
+    _, layout, header_len = _PREAMBLE.unpack_from(payload, 0)
+    if layout != LAYOUT_VERSION:
+        raise DecodeError(f"frame layout {layout} is not understood (this build reads {LAYOUT_VERSION})", size=size)
+    end = _PREAMBLE.size + header_len
+    if end > size:
+        raise DecodeError(f"frame header needs {end} bytes, payload has {size}", size=size)
+    cls, document = _lookup(json.loads(bytes(payload[_PREAMBLE.size : end])), size, framed=True)
+    for name in cls.ARRAY_FIELDS:
+        document[name] = _view(payload, document.get(name), name, end, cls.SCHEMA)
+    return _validate(cls, document, size)
+
+
+def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str) -> np.ndarray:
+    size = len(payload)
+
+    def fail(reason: str) -> DecodeError:
+        return DecodeError(f"array {name!r}: {reason}", schema=schema, size=size)
+
+    if not isinstance(descriptor, dict):
+        raise fail("missing descriptor")
+    dtype, shape, offset = descriptor.get("dtype"), descriptor.get("shape"), descriptor.get("offset")
+    if dtype not in WIRE_DTYPES:
+        raise fail(f"dtype {dtype!r} not allowed")
+    if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape) or len(shape) > 8:
+        raise fail(f"bad shape {shape!r}")
+    if not isinstance(offset, int) or offset < header_end:
+        raise fail(f"bad offset {offset!r}")
+    count = int(np.prod(shape, dtype=object))
+    nbytes = count * WIRE_DTYPES[dtype].itemsize
+    if offset + nbytes > size:
+        raise fail(f"needs bytes {offset}..{offset + nbytes}, payload ends at {size}")
+    array = np.frombuffer(payload, dtype=WIRE_DTYPES[dtype], count=count, offset=offset)
+    return array.reshape(shape).astype(np.dtype(dtype), copy=False)
+
+
+def to_json(message: Message, max_array_elements: int | None = None) -> dict[str, Any]:
+    """A JSON-ready dict of ``message`` with its schema and version (for echo, export, logs).
+
+    Arrays with more than ``max_array_elements`` elements are summarised as dtype and shape.
+    """
+    context = {"max_array_elements": max_array_elements} if max_array_elements is not None else None
+    return {"schema": message.SCHEMA, "version": message.VERSION,
+            **message.model_dump(mode="json", context=context)}

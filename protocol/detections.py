@@ -1,0 +1,88 @@
+"""Per-frame detections in pixel coordinates of the source image.
+
+Every detection message keeps the header of the image it was found in. Arrays are
+aligned on their first axis: row ``i`` of every array describes detection ``i``. A frame
+with nothing found still gets a message with zero rows, so consumers know it was seen.
+"""
+
+from __future__ import annotations
+
+from pydantic import model_validator
+
+from protocol.arrays import ndarray
+from protocol.message import Message
+
+
+def _same_rows(message: Message, *names: str) -> None:
+    rows = {name: len(getattr(message, name)) for name in names}
+    if len(set(rows.values())) > 1:
+        raise ValueError(f"arrays must have the same number of rows: {rows}")
+
+
+class MarkerDetections(Message):
+    """Square fiducial markers (ArUco / AprilTag) found in one image.
+
+    ``corners``: (N, 4, 2) float32 px, in the order top-left, top-right, bottom-right,
+    bottom-left of the marker as printed (OpenCV's order). ``quality``: (N,) float32,
+    higher is better (the detector's decision margin or equivalent). ``side_m``: (N,)
+    float32, each marker's configured side length in metres (0 when unknown).
+    """
+
+    SCHEMA = "artrack.MarkerDetections"
+    VERSION = 1
+
+    dictionary: str
+    ids: ndarray("int32", (None,))
+    corners: ndarray("float32", (None, 4, 2))
+    quality: ndarray("float32", (None,))
+    side_m: ndarray("float32", (None,))
+
+    @model_validator(mode="after")
+    def _aligned(self) -> MarkerDetections:
+        _same_rows(self, "ids", "corners", "quality", "side_m")
+        return self
+
+
+class BlobDetections(Message):
+    """Bright or dark blobs (IR sphere reflections) found in one image.
+
+    ``centers``: (N, 2) float32 px; ``radii``: (N,) float32 px; ``intensity``: (N,) float32,
+    the blob's mean grey level.
+    """
+
+    SCHEMA = "artrack.BlobDetections"
+    VERSION = 1
+
+    centers: ndarray("float32", (None, 2))
+    radii: ndarray("float32", (None,))
+    intensity: ndarray("float32", (None,))
+
+    @model_validator(mode="after")
+    def _aligned(self) -> BlobDetections:
+        _same_rows(self, "centers", "radii", "intensity")
+        return self
+
+
+class Keypoints(Message):
+    """Image features with optional descriptors.
+
+    ``points``: (N, 2) float32 px; ``sizes``, ``angles`` (deg, OpenCV's convention),
+    ``responses``: (N,) float32; ``descriptors``: (N, D) uint8 for binary descriptors
+    (ORB: D = 32) or float32 (SIFT: D = 128), (N, 0) when none were computed.
+    ``descriptor_type`` names the extractor (``"ORB"``, ``"SIFT"``, ``""``).
+    """
+
+    SCHEMA = "artrack.Keypoints"
+    VERSION = 1
+
+    descriptor_type: str = ""
+    points: ndarray("float32", (None, 2))
+    sizes: ndarray("float32", (None,))
+    angles: ndarray("float32", (None,))
+    responses: ndarray("float32", (None,))
+    descriptors: ndarray(("uint8", "float32"), (None, None))
+
+    @model_validator(mode="after")
+    def _aligned(self) -> Keypoints:
+        _same_rows(self, "points", "sizes", "angles", "responses", "descriptors")
+        return self

@@ -1,0 +1,128 @@
+"""Key expressions: the one place where artrack's Zenoh key strings are built.
+
+Layout, for namespace ``ar`` and rig ``rig0``::
+
+    ar/rig0/<camera>/image            Image            frames of one camera
+    ar/rig0/<camera>/camera_info      CameraInfo       its calibration, published with frames
+    ar/rig0/<camera>/calibration      (queryable)      the same, on request
+    ar/rig0/<camera>/truth            GroundTruth      exact poses of synthetic / mocap sources
+    ar/rig0/<camera>/{markers,blobs,keypoints}         detections in that camera's images
+    ar/rig0/<camera>/echo             Image            frames relayed by the echo node
+    ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
+    ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
+    ar/rig0/map                       PointCloud       SLAM / triangulated points
+    ar/rig0/node/<name>               (liveliness)     present while the node runs
+    ar/rig0/node/<name>/stats         NodeStats        published every stats period
+    ar/rig0/node/<name>/state         (queryable)      NodeStats on request
+    ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
+
+The namespace may hold several segments (``site/lab1``); names are made of letters,
+digits, ``_``, ``-`` and ``.``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
+def check_name(value: str, what: str, *, segments: bool = False) -> str:
+    """Return ``value`` if it is a valid key segment (or ``/``-joined segments); raise ValueError."""
+    parts = value.split("/") if segments else [value]
+    if not value or not all(_NAME.fullmatch(p) for p in parts):
+        allowed = "letters, digits, '_', '-', '.'" + (" and '/' between segments" if segments else "")
+        raise ValueError(f"{what} {value!r} is not a valid key name (use {allowed})")
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one rig under one namespace."""
+
+    namespace: str = "ar"
+    rig: str = "rig0"
+
+    def __post_init__(self) -> None:
+        check_name(self.namespace, "namespace", segments=True)
+        check_name(self.rig, "rig")
+
+    @property
+    def prefix(self) -> str:
+        return f"{self.namespace}/{self.rig}"
+
+    def camera(self, camera: str, stream: str) -> str:
+        return f"{self.prefix}/{check_name(camera, 'camera')}/{stream}"
+
+    def image(self, camera: str) -> str:
+        return self.camera(camera, "image")
+
+    def camera_info(self, camera: str) -> str:
+        return self.camera(camera, "camera_info")
+
+    def calibration(self, camera: str) -> str:
+        return self.camera(camera, "calibration")
+
+    def truth(self, camera: str) -> str:
+        return self.camera(camera, "truth")
+
+    def markers(self, camera: str) -> str:
+        return self.camera(camera, "markers")
+
+    def blobs(self, camera: str) -> str:
+        return self.camera(camera, "blobs")
+
+    def keypoints(self, camera: str) -> str:
+        return self.camera(camera, "keypoints")
+
+    def echo(self, camera: str) -> str:
+        return self.camera(camera, "echo")
+
+    def pose(self, target: str) -> str:
+        return f"{self.prefix}/pose/{check_name(target, 'target', segments=True)}"
+
+    def poses(self) -> str:
+        """Every pose of the rig."""
+        return f"{self.prefix}/pose/**"
+
+    def bodies(self) -> str:
+        return f"{self.prefix}/bodies"
+
+    def map(self) -> str:
+        return f"{self.prefix}/map"
+
+    def node(self, name: str) -> str:
+        """The node's liveliness token."""
+        return f"{self.prefix}/node/{check_name(name, 'node name')}"
+
+    def stats(self, name: str) -> str:
+        return f"{self.node(name)}/stats"
+
+    def state(self, name: str) -> str:
+        return f"{self.node(name)}/state"
+
+    def errors(self, name: str) -> str:
+        return f"{self.node(name)}/errors"
+
+    def everything(self) -> str:
+        """Every key of this rig."""
+        return f"{self.prefix}/**"
+
+    def all_nodes(self) -> str:
+        """Liveliness tokens of every node in the namespace, any rig."""
+        return f"{self.namespace}/*/node/*"
+
+    def all_states(self) -> str:
+        """State queryables of every node in the namespace, any rig."""
+        return f"{self.namespace}/*/node/*/state"
+
+    def all_stats(self) -> str:
+        return f"{self.namespace}/*/node/*/stats"
+
+    def split_node(self, key: str) -> tuple[str, str]:
+        """``(rig, node name)`` of a node key (token, stats or state) in this namespace."""
+        rest = key.removeprefix(self.namespace + "/").split("/")
+        if not key.startswith(self.namespace + "/") or len(rest) < 3 or rest[1] != "node":
+            raise ValueError(f"{key!r} is not a node key under {self.namespace!r}")
+        return rest[0], rest[2]

@@ -1,0 +1,129 @@
+"""Looking at a running system: which nodes are up, and what flows on a key."""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from typing import TextIO
+
+import zenoh
+
+from protocol.codec import DecodeError, decode, to_json
+from protocol.keys import Keys
+from protocol.system import NodeStats
+from services.runtime.pubsub import Inbox, Received, Role
+
+
+def live_nodes(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tuple[str, str]]:
+    """``(rig, name)`` of every node holding a liveliness token in the namespace.
+
+    Listens for ``timeout_s``: a session that has just opened learns of existing tokens
+    only as its links come up, so a one-shot query right after opening can miss them.
+    """
+    found: set[tuple[str, str]] = set()
+    lock = threading.Lock()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        node = keys.split_node(str(sample.key_expr))
+        with lock:
+            (found.add if sample.kind == zenoh.SampleKind.PUT else found.discard)(node)
+
+    subscriber = session.liveliness().declare_subscriber(keys.all_nodes(), on_token, history=True)
+    try:
+        time.sleep(timeout_s)
+    finally:
+        subscriber.undeclare()
+    with lock:
+        return sorted(found)
+
+
+def node_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], NodeStats]:
+    """The NodeStats every reachable node answers on its state queryable."""
+    states = {}
+    for reply in session.get(keys.all_states(), timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        try:
+            stats = decode(reply.ok.payload.to_bytes())
+        except DecodeError:
+            continue
+        if isinstance(stats, NodeStats):
+            states[keys.split_node(str(reply.ok.key_expr))] = stats
+    return states
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], NodeStats]) -> str:
+    """A table of nodes with their health figures."""
+    header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "DECODE_ERR", "P50(ms)", "P99(ms)")
+    rows = [header]
+    for rig, name in nodes:
+        s = states.get((rig, name))
+        if s is None:
+            rows.append((rig, name, "?", "-", "-", "-", "-", "-", "-", "-", "-"))
+            continue
+        rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
+                     str(s.dropped), str(s.decode_errors), _ms(s.processing_ms_p50), _ms(s.processing_ms_p99)))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
+
+
+def resolve_key(keys: Keys, key: str) -> str:
+    """A key as given when it starts with the namespace, else relative to the rig prefix."""
+    return key if key.startswith(keys.namespace + "/") else f"{keys.prefix}/{key}"
+
+
+def echo(session: zenoh.Session, key: str, *, count: int = 0, timeout_s: float | None = None,
+         max_array_elements: int | None = 16) -> Iterator[dict]:
+    """Decoded messages on ``key`` as JSON-ready dicts with ``key`` and ``received_ns``, in order.
+
+    Undecodable payloads yield ``{"key", "error"}``. Stops after ``count`` messages (0 = no
+    limit) or when nothing arrives for ``timeout_s``.
+    """
+    errors: list[tuple[str, DecodeError]] = []
+    inbox = Inbox(session, key, None, Role.RESULT, on_decode_error=lambda k, e: errors.append((k, e)))
+    seen = 0
+    idle_since = time.monotonic()
+    try:
+        while count == 0 or seen < count:
+            received: Received | None = inbox.recv(0.2)
+            while errors:
+                bad_key, error = errors.pop(0)
+                idle_since = time.monotonic()
+                yield {"key": bad_key, "error": str(error)}
+            if received is None:
+                if timeout_s is not None and time.monotonic() - idle_since > timeout_s:
+                    return
+                continue
+            idle_since = time.monotonic()
+            seen += 1
+            yield {"key": received.key, "received_ns": received.received_ns,
+                   **to_json(received.message, max_array_elements)}
+    finally:
+        inbox.close()
+
+
+def print_json_lines(records: Iterator[dict], out: TextIO = sys.stdout) -> int:
+    """Write each record as one JSON line, flushing as they come; return how many."""
+    n = 0
+    for record in records:
+        out.write(json.dumps(record) + "\n")
+        out.flush()
+        n += 1
+    return n
+
+
+def wait_for_nodes(session: zenoh.Session, keys: Keys, names: set[str], timeout_s: float) -> set[str]:
+    """Wait until every node in ``names`` (of this rig) is live; return those that are."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        live = {name for rig, name in live_nodes(session, keys, 0.3) if rig == keys.rig}
+        if names <= live or time.monotonic() > deadline:
+            return live & names
+        time.sleep(0.1)

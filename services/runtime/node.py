@@ -1,0 +1,212 @@
+"""A node: one process's presence on the bus, its inputs, outputs and health.
+
+A node body is a short loop over its inputs::
+
+    def run(node: Node, params: Params) -> None:
+        frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME)
+        out = node.publisher(node.keys.echo(params.camera), Image, Role.FRAME)
+        for image in node.inputs(frames):
+            out.put(image)
+
+While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
+list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``,
+answers the same on the ``keys.state(name)`` queryable, and reports inputs it had to skip
+(``report``) on ``keys.errors(name)``. ``run_node`` adds SIGINT/SIGTERM handling: the loop
+ends within a poll period (0.1 s) and everything is undeclared and closed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Literal, TypeVar
+
+import zenoh
+
+from protocol.codec import DecodeError, encode
+from protocol.message import Header, Message
+from protocol.system import ErrorReport, NodeStats
+from services.runtime.bus import BusConfig, BusError, open_session
+from services.runtime.pubsub import Inbox, Publisher, Role
+from services.runtime.stats import LatencyWindow, StreamCounter
+
+M = TypeVar("M", bound=Message)
+
+POLL_S = 0.1
+REPORT_EVERY_S = 1.0
+
+
+class Node:
+    """A named participant on the bus (see the module docstring)."""
+
+    def __init__(self, name: str, kind: str, bus: BusConfig, *, stats_period_s: float = 1.0):
+        self.name = name
+        self.kind = kind
+        self.bus = bus
+        self.keys = bus.keys
+        self.log = logging.getLogger(f"artrack.{kind}")
+        self._stop = threading.Event()
+        self._wake = threading.Condition()
+        self._started = time.monotonic()
+        self._inboxes: list[Inbox] = []
+        self._publishers: list[Publisher] = []
+        self._processing = LatencyWindow()
+        self._processed = 0
+        self._stats_seq = 0
+        self._state: Literal["starting", "running", "stopping"] = "starting"
+        self._errors: dict[tuple[str, str], int] = {}
+        self._last_report: dict[tuple[str, str], float] = {}
+        self._stats_period_s = stats_period_s
+        self.session = open_session(bus)
+        try:
+            self._token = self.session.liveliness().declare_token(self.keys.node(name))
+            self._stats_pub = Publisher(self.session, self.keys.stats(name), NodeStats, Role.STATUS)
+            self._errors_pub = Publisher(self.session, self.keys.errors(name), ErrorReport, Role.STATUS)
+            self._queryable = self.session.declare_queryable(self.keys.state(name), self._on_state_query)
+        except Exception:
+            self.session.close()
+            raise
+        self._stats_thread = threading.Thread(target=self._stats_loop, name=f"{name}-stats", daemon=True)
+        self._stats_thread.start()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def running(self) -> bool:
+        return not self._stop.is_set()
+
+    def stop(self) -> None:
+        """Ask the node's loops to end (safe from signal handlers and other threads)."""
+        self._stop.set()
+        with self._wake:
+            self._wake.notify_all()
+
+    def wait(self, seconds: float) -> bool:
+        """Sleep up to ``seconds``, waking early when stopped; return whether still running."""
+        if seconds > 0:
+            self._stop.wait(seconds)
+        return self.running
+
+    def publisher(self, key: str, cls: type[M], role: Role = Role.RESULT) -> Publisher[M]:
+        publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"))
+        self._publishers.append(publisher)
+        return publisher
+
+    def inbox(self, key: str, cls: type[M] | None, role: Role = Role.FRAME, depth: int | None = None) -> Inbox[M]:
+        inbox = Inbox(self.session, key, cls, role, depth=depth, counter=StreamCounter(key, "in"),
+                      on_decode_error=self._on_decode_error, wake=self._wake)
+        self._inboxes.append(inbox)
+        return inbox
+
+    def inputs(self, *inboxes: Inbox[M]) -> Iterator[M]:
+        """Messages from ``inboxes`` (taken in turn) until the node stops.
+
+        The time between handing out a message and being asked for the next one is the
+        node's processing time for it.
+        """
+        self._state = "running"
+        turn = 0
+        while self.running:
+            received = None
+            for i in range(len(inboxes)):
+                received = inboxes[(turn + i) % len(inboxes)].take()
+                if received is not None:
+                    turn = (turn + i + 1) % len(inboxes)
+                    break
+            if received is None:
+                with self._wake:
+                    if self.running and not any(inbox.pending() for inbox in inboxes):
+                        self._wake.wait(POLL_S)
+                continue
+            started = time.perf_counter()
+            yield received.message
+            self.processed(time.perf_counter() - started)
+
+    def processed(self, seconds: float) -> None:
+        """Count one processed input that took ``seconds`` (sources call this per frame)."""
+        self._state = "running"
+        self._processed += 1
+        self._processing.add(seconds)
+
+    def report(self, kind: str, detail: str, key: str = "") -> None:
+        """Count a skipped input; log and publish an ErrorReport at most once a second per kind and key."""
+        slot = (kind, key)
+        count = self._errors.get(slot, 0) + 1
+        self._errors[slot] = count
+        now = time.monotonic()
+        if now - self._last_report.get(slot, -REPORT_EVERY_S) < REPORT_EVERY_S:
+            return
+        self._last_report[slot] = now
+        self.log.warning("%s on %s (%d so far): %s", kind, key or "-", count, detail)
+        self._errors_pub.put(ErrorReport(header=Header(stamp_ns=time.time_ns()), node=self.name,
+                                         kind=kind, detail=detail, key=key, count=count))
+
+    def _on_decode_error(self, key: str, error: DecodeError) -> None:
+        self.report("decode_error", str(error), key)
+
+    def stats(self) -> NodeStats:
+        """The node's health now."""
+        inputs = [inbox.counter.snapshot() for inbox in self._inboxes]
+        outputs = [pub.counter.snapshot() for pub in self._publishers]
+        p50, p99 = self._processing.percentiles_ms(50, 99)
+        self._stats_seq += 1
+        return NodeStats(
+            header=Header(stamp_ns=time.time_ns(), seq=self._stats_seq),
+            node=self.name, kind=self.kind, host=socket.gethostname(), pid=os.getpid(),
+            state=self._state if self.running else "stopping",
+            uptime_s=time.monotonic() - self._started,
+            received=sum(s.messages for s in inputs), published=sum(s.messages for s in outputs),
+            processed=self._processed, dropped=sum(s.dropped for s in inputs),
+            decode_errors=sum(s.decode_errors for s in inputs),
+            processing_ms_p50=p50, processing_ms_p99=p99, streams=tuple(inputs + outputs),
+        )
+
+    def _stats_loop(self) -> None:
+        while not self._stop.wait(self._stats_period_s):
+            try:
+                self._stats_pub.put(self.stats())
+            except zenoh.ZError as exc:  # the session is closing under us
+                self.log.debug("stats not published: %s", exc)
+
+    def _on_state_query(self, query: zenoh.Query) -> None:
+        query.reply(self.keys.state(self.name), encode(self.stats()))
+
+    def close(self) -> None:
+        """Stop, undeclare everything and close the session (well within 2 s)."""
+        self.stop()
+        self._stats_thread.join(timeout=1.0)
+        for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub]:
+            entity.close()
+        self._queryable.undeclare()
+        self._token.undeclare()
+        self.session.close()
+
+
+def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None]) -> int:
+    """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code."""
+    log = logging.getLogger(f"artrack.{kind}")
+    try:
+        node = Node(name, kind, bus)
+    except BusError as exc:
+        log.error("%s", exc)
+        return 2
+    with node:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: node.stop())
+        log.info("node %s (%s) up on %s, pid %d", name, kind, node.keys.prefix, os.getpid())
+        try:
+            body(node)
+        except Exception:
+            log.exception("node %s failed", name)
+            return 1
+    log.info("node %s stopped", name)
+    return 0

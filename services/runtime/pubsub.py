@@ -1,0 +1,177 @@
+"""Typed publishing and subscribing on top of the wire codec.
+
+Streams have a role that sets their Zenoh quality of service and their queueing:
+
+* ``FRAME`` (images): priority DATA, congestion DROP. Subscribers keep only the newest
+  ``depth`` payloads (latest-wins); every replaced payload is counted as dropped.
+* ``RESULT`` (poses, detections): priority DATA_HIGH and express, so frames can never stall
+  them; congestion BLOCK, so the publisher waits rather than drop. Subscribers queue up to
+  ``depth`` (default 10 000) in order; should a consumer fall that far behind, the oldest
+  are dropped, counted and logged, never silently.
+* ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
+
+Payloads are decoded on the consumer's thread, not in Zenoh's callback, so the callback
+only copies bytes into a bounded queue. A payload that fails to decode is counted, handed
+to ``on_decode_error`` and skipped.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Generic, TypeVar
+
+import zenoh
+
+from protocol.codec import DecodeError, decode, encode, media_type
+from protocol.message import Message
+from services.runtime.stats import StreamCounter
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
+
+
+class Role(StrEnum):
+    FRAME = "frame"
+    RESULT = "result"
+    STATUS = "status"
+
+
+_QOS = {
+    Role.FRAME: {"priority": zenoh.Priority.DATA, "congestion_control": zenoh.CongestionControl.DROP,
+                 "express": False},
+    Role.RESULT: {"priority": zenoh.Priority.DATA_HIGH, "congestion_control": zenoh.CongestionControl.BLOCK,
+                  "express": True},
+    Role.STATUS: {"priority": zenoh.Priority.DATA_LOW, "congestion_control": zenoh.CongestionControl.DROP,
+                  "express": False},
+}
+
+DEFAULT_DEPTH = {Role.FRAME: 1, Role.RESULT: 10_000, Role.STATUS: 100}
+
+
+class Publisher(Generic[M]):
+    """Publishes messages of one type on one key."""
+
+    def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
+                 counter: StreamCounter | None = None):
+        self.key = key
+        self.cls = cls
+        self.role = role
+        self.counter = counter or StreamCounter(key, "out")
+        encoding = zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA)
+        self._publisher = session.declare_publisher(key, encoding=encoding, **_QOS[role])
+
+    def put(self, message: M) -> None:
+        if not isinstance(message, self.cls):
+            raise TypeError(f"{self.key} carries {self.cls.__name__}, not {type(message).__name__}")
+        self._publisher.put(encode(message))
+        self.counter.count(messages=1)
+
+    def matched(self) -> bool:
+        """True while at least one subscriber matches this key."""
+        return self._publisher.matching_status.matching
+
+    def close(self) -> None:
+        self._publisher.undeclare()
+
+
+@dataclass(frozen=True)
+class Received(Generic[M]):
+    """A decoded message with the key it came on and its arrival time (``time.time_ns()``)."""
+
+    key: str
+    message: M
+    received_ns: int
+
+
+class Inbox(Generic[M]):
+    """Messages arriving on a key expression, queued by role, decoded when taken.
+
+    ``cls`` restricts the inbox to one message type (anything else counts as a decode
+    error); ``None`` accepts every artrack message. ``wake`` lets several inboxes share one
+    condition so a consumer can wait on all of them at once.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, cls: type[M] | None, role: Role, *,
+                 depth: int | None = None, counter: StreamCounter | None = None,
+                 on_decode_error: Callable[[str, DecodeError], None] | None = None,
+                 wake: threading.Condition | None = None):
+        self.key = key
+        self.cls = cls
+        self.role = role
+        self.depth = depth or DEFAULT_DEPTH[role]
+        self.counter = counter or StreamCounter(key, "in")
+        self.wake = wake or threading.Condition()
+        self._on_decode_error = on_decode_error
+        self._queue: deque[tuple[str, bytes, int]] = deque()
+        self._latest: Received[M] | None = None
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        with self.wake:
+            dropped = len(self._queue) >= self.depth
+            if dropped:
+                self._queue.popleft()
+            self._queue.append(item)
+            self.wake.notify_all()
+        self.counter.count(messages=1, dropped=int(dropped))
+        if dropped and self.role is not Role.FRAME:
+            log.warning("%s: consumer %d messages behind, dropped the oldest", self.key, self.depth)
+
+    def pending(self) -> int:
+        """Payloads waiting to be taken."""
+        return len(self._queue)
+
+    def take(self) -> Received[M] | None:
+        """The oldest queued message, decoded; None when the queue is empty.
+
+        Payloads that fail to decode are counted and skipped.
+        """
+        while True:
+            with self.wake:
+                if not self._queue:
+                    return None
+                key, payload, received_ns = self._queue.popleft()
+            try:
+                message = decode(payload)
+                if self.cls is not None and not isinstance(message, self.cls):
+                    raise DecodeError(f"expected {self.cls.SCHEMA} on this key", schema=message.SCHEMA,
+                                      size=len(payload))
+            except DecodeError as error:
+                self.counter.count(decode_errors=1)
+                if self._on_decode_error is not None:
+                    self._on_decode_error(key, error)
+                continue
+            self._latest = Received(key, message, received_ns)
+            return self._latest
+
+    def recv(self, timeout_s: float | None = None) -> Received[M] | None:
+        """Wait up to ``timeout_s`` (forever when None) for a message; None on timeout."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            received = self.take()
+            if received is not None:
+                return received
+            with self.wake:
+                if self._queue:
+                    continue
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                self.wake.wait(remaining)
+
+    def latest(self) -> Received[M] | None:
+        """Drain the queue and return the newest valid message seen so far (kept between calls)."""
+        while self.take() is not None:
+            pass
+        return self._latest
+
+    def close(self) -> None:
+        self._subscriber.undeclare()

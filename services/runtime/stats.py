@@ -1,0 +1,83 @@
+"""Counters and timing windows behind every node's ``NodeStats``."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.system import StreamStats
+
+
+@dataclass
+class StreamCounter:
+    """Thread-safe counts for one subscribed or published key."""
+
+    key: str
+    direction: str
+    messages: int = 0
+    dropped: int = 0
+    decode_errors: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _rate: RateMeter = field(default_factory=lambda: RateMeter(), repr=False)
+
+    def count(self, *, messages: int = 0, dropped: int = 0, decode_errors: int = 0) -> None:
+        with self._lock:
+            self.messages += messages
+            self.dropped += dropped
+            self.decode_errors += decode_errors
+            if messages:
+                self._rate.tick(messages)
+
+    def snapshot(self) -> StreamStats:
+        with self._lock:
+            return StreamStats(key=self.key, direction=self.direction, messages=self.messages,
+                               dropped=self.dropped, decode_errors=self.decode_errors,
+                               rate_hz=self._rate.rate())
+
+
+class RateMeter:
+    """Events per second over a sliding window of ``window_s`` seconds (not thread-safe)."""
+
+    def __init__(self, window_s: float = 2.0):
+        self.window_s = window_s
+        self._events: deque[tuple[float, int]] = deque()
+
+    def tick(self, n: int = 1) -> None:
+        now = time.monotonic()
+        self._events.append((now, n))
+        self._trim(now)
+
+    def rate(self) -> float:
+        now = time.monotonic()
+        self._trim(now)
+        return sum(n for _, n in self._events) / self.window_s
+
+    def _trim(self, now: float) -> None:
+        while self._events and now - self._events[0][0] > self.window_s:
+            self._events.popleft()
+
+
+class LatencyWindow:
+    """The last ``size`` durations (seconds), with percentiles in milliseconds. Thread-safe."""
+
+    def __init__(self, size: int = 1000):
+        self._values: deque[float] = deque(maxlen=size)
+        self._lock = threading.Lock()
+
+    def add(self, seconds: float) -> None:
+        with self._lock:
+            self._values.append(seconds)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def percentiles_ms(self, *qs: float) -> tuple[float | None, ...]:
+        with self._lock:
+            if not self._values:
+                return tuple(None for _ in qs)
+            values = np.fromiter(self._values, dtype=np.float64) * 1e3
+        return tuple(float(v) for v in np.percentile(values, qs))
