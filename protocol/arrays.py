@@ -22,6 +22,18 @@ WIRE_DTYPES: dict[str, np.dtype] = {
 }
 """Dtypes that may travel, by name; all are little-endian on the wire."""
 
+_NAMES: dict[np.dtype, str] = {
+    np.dtype(name).newbyteorder(order): name for name in WIRE_DTYPES for order in "<>="
+}
+
+
+def dtype_name(dtype: np.dtype) -> str | None:
+    """The wire name of ``dtype`` (either byte order), or None when it may not travel.
+
+    A dict look-up: ``dtype.name`` costs microseconds, which matters per frame.
+    """
+    return _NAMES.get(dtype)
+
 ARRAY_DESCRIPTOR_SCHEMA: dict[str, Any] = {
     "type": "object",
     "description": "Raw array stored after the JSON header: dtype (little-endian), shape, byte offset.",
@@ -47,10 +59,12 @@ class ArraySpec:
     def check(self, value: Any) -> np.ndarray:
         """Return ``value`` as an ndarray of an allowed dtype and shape, or raise ValueError."""
         array = value if isinstance(value, np.ndarray) else np.asarray(value)
-        if array.dtype.name not in self.dtypes:
+        if dtype_name(array.dtype) not in self.dtypes:
             if isinstance(value, np.ndarray) or len(self.dtypes) != 1:
-                raise ValueError(f"dtype {array.dtype.name} not in {list(self.dtypes)}")
+                raise ValueError(f"dtype {array.dtype} not in {list(self.dtypes)}")
             array = array.astype(self.dtypes[0])
+        if not array.dtype.isnative:
+            array = array.astype(array.dtype.newbyteorder("="))
         if not any(_shape_fits(array.shape, shape) for shape in self.shapes):
             wanted = " or ".join(_shape_text(s) for s in self.shapes)
             raise ValueError(f"shape {tuple(array.shape)} does not fit {wanted}")
@@ -59,7 +73,7 @@ class ArraySpec:
     def serialize(self, array: np.ndarray, info: SerializationInfo) -> Any:
         limit = (info.context or {}).get("max_array_elements") if info.context else None
         if limit is not None and array.size > limit:
-            return {"dtype": array.dtype.name, "shape": list(array.shape)}
+            return {"dtype": dtype_name(array.dtype), "shape": list(array.shape)}
         return array.tolist()
 
 

@@ -25,18 +25,20 @@ does not validate) raises :class:`DecodeError` and nothing else.
 from __future__ import annotations
 
 import json
+import math
 import struct
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
-from protocol.arrays import WIRE_DTYPES
+from protocol.arrays import WIRE_DTYPES, dtype_name
 from protocol.message import Message, message_type
 
 MAGIC = b"ARTK"
 LAYOUT_VERSION = 1
 ALIGN = 64
-_PREAMBLE = struct.Struct("<4sB3xI")
+_PREAMBLE = struct.Struct("<4sB3sI")
 
 MEDIA_JSON = "application/json"
 MEDIA_FRAME = "application/vnd.artrack.frame"
@@ -83,14 +85,14 @@ def encode(message: Message) -> bytes:
     while True:
         descriptors, offsets, offset = {}, [], start
         for name, wire in arrays:
-            descriptors[name] = {"dtype": wire.dtype.name, "shape": list(wire.shape), "offset": offset}
+            descriptors[name] = {"dtype": dtype_name(wire.dtype), "shape": list(wire.shape), "offset": offset}
             offsets.append(offset)
             offset = _align(offset + wire.nbytes)
         header = (head + json.dumps(descriptors, separators=(",", ":"))[1:]).encode()
         if _PREAMBLE.size + len(header) <= start:
             break
         start = _align(_PREAMBLE.size + len(header))
-    parts: list[bytes | memoryview] = [_PREAMBLE.pack(MAGIC, LAYOUT_VERSION, len(header)), header]
+    parts: list[bytes | memoryview] = [_PREAMBLE.pack(MAGIC, LAYOUT_VERSION, bytes(3), len(header)), header]
     position = _PREAMBLE.size + len(header)
     for (_, wire), at in zip(arrays, offsets, strict=True):
         parts.append(bytes(at - position))
@@ -100,7 +102,7 @@ def encode(message: Message) -> bytes:
 
 
 def _wire(array: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(array.astype(WIRE_DTYPES[array.dtype.name], copy=False))
+    return np.ascontiguousarray(array.astype(WIRE_DTYPES[dtype_name(array.dtype)], copy=False))
 
 
 def _align(n: int) -> int:
@@ -132,7 +134,7 @@ def _lookup(document: Any, size: int, *, framed: bool) -> tuple[type[Message], d
     cls = message_type(schema)
     if cls is None:
         raise DecodeError(f"unknown schema {schema!r}", schema=schema, size=size)
-    if version != cls.VERSION:
+    if isinstance(version, bool) or version != cls.VERSION:
         raise DecodeError(f"version {version!r} is not understood (this build reads version {cls.VERSION})",
                           schema=schema, size=size)
     if framed != is_frame(cls):
@@ -144,8 +146,9 @@ def _lookup(document: Any, size: int, *, framed: bool) -> tuple[type[Message], d
 def _validate(cls: type[Message], document: dict[str, Any], size: int) -> Message:
     try:
         return cls.model_validate(document)
-    except ValueError as exc:  # pydantic.ValidationError is a ValueError
-        raise DecodeError(str(exc).replace("\n", "; "), schema=cls.SCHEMA, size=size) from exc
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or '(message)'}: {e['msg']}" for e in exc.errors())
+        raise DecodeError(problems, schema=cls.SCHEMA, size=size) from exc
 
 
 def _decode_json(payload: bytes | bytearray | memoryview) -> Message:
@@ -162,9 +165,11 @@ def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
     size = len(payload)
     if size < _PREAMBLE.size:
         raise DecodeError("truncated frame preamble", size=size)
-    _, layout, header_len = _PREAMBLE.unpack_from(payload, 0)
+    _, layout, reserved, header_len = _PREAMBLE.unpack_from(payload, 0)
     if layout != LAYOUT_VERSION:
         raise DecodeError(f"frame layout {layout} is not understood (this build reads {LAYOUT_VERSION})", size=size)
+    if reserved != bytes(3):
+        raise DecodeError(f"reserved preamble bytes must be zero, got {reserved.hex()}", size=size)
     end = _PREAMBLE.size + header_len
     if end > size:
         raise DecodeError(f"frame header needs {end} bytes, payload has {size}", size=size)
@@ -189,11 +194,12 @@ def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str
         raise fail(f"bad shape {shape!r}")
     if not isinstance(offset, int) or offset < header_end:
         raise fail(f"bad offset {offset!r}")
-    count = int(np.prod(shape, dtype=object))
+    count = math.prod(shape)
     nbytes = count * WIRE_DTYPES[dtype].itemsize
     if offset + nbytes > size:
         raise fail(f"needs bytes {offset}..{offset + nbytes}, payload ends at {size}")
     array = np.frombuffer(payload, dtype=WIRE_DTYPES[dtype], count=count, offset=offset)
+    array.flags.writeable = False  # frombuffer over a bytearray is writable; messages are not
     return array.reshape(shape).astype(np.dtype(dtype), copy=False)
 
 

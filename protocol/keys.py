@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Annotated
+
+from pydantic import AfterValidator
 
 _NAME = re.compile(r"[A-Za-z0-9_.\-]+")
 
@@ -35,6 +38,10 @@ def check_name(value: str, what: str, *, segments: bool = False) -> str:
         allowed = "letters, digits, '_', '-', '.'" + (" and '/' between segments" if segments else "")
         raise ValueError(f"{what} {value!r} is not a valid key name (use {allowed})")
     return value
+
+
+KeyName = Annotated[str, AfterValidator(lambda value: check_name(value, "name"))]
+"""A str field that must be one valid key segment (camera, node, rig names)."""
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ class Header(BaseModel):
     frame, so consumers can join results to frames and measure end-to-end latency.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     stamp_ns: int = Field(ge=0)
     frame_id: str = ""
@@ -39,9 +39,12 @@ class Header(BaseModel):
 
 
 class Struct(BaseModel):
-    """A frozen part of a message (no header, no schema of its own)."""
+    """A frozen part of a message (no header, no schema of its own).
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    Float fields refuse NaN and infinities: JSON cannot carry them (arrays can, as raw bytes).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class Message(Struct):

@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from protocol.arrays import ndarray
+from protocol.arrays import dtype_name, ndarray
 from protocol.message import Message, Struct
 from protocol.spatial import Transform
 
@@ -39,10 +39,10 @@ class Image(Message):
     def _layout_matches(self) -> Image:
         dtype, channels = _LAYOUT[self.encoding]
         found = 1 if self.data.ndim == 2 else self.data.shape[2]
-        if self.data.dtype.name != dtype or found != channels:
+        if dtype_name(self.data.dtype) != dtype or found != channels:
             raise ValueError(
                 f"encoding {self.encoding} needs {dtype} with {channels} channel(s), "
-                f"got {self.data.dtype.name} with {found}"
+                f"got {self.data.dtype} with {found}"
             )
         return self
 

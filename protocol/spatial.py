@@ -9,6 +9,7 @@ garbage). Conversions to matrices live in ``services.geometry``; the protocol ho
 from __future__ import annotations
 
 import math
+import sys
 
 from pydantic import field_validator
 
@@ -39,6 +40,8 @@ class Transform(Struct):
         norm = math.sqrt(sum(v * v for v in value))
         if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
             raise ValueError(f"rotation quaternion (x, y, z, w) must have unit norm, got {norm:.6g}")
+        if abs(norm - 1.0) <= 4 * sys.float_info.epsilon:  # already unit: dividing again would move it
+            return value
         x, y, z, w = (v / norm for v in value)
         return (x, y, z, w)
 

@@ -33,8 +33,11 @@ def _bus_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _bus(args: argparse.Namespace, **base: object) -> BusConfig:
-    overrides = {**base, "connect": tuple(args.connect or ()), "listen": tuple(args.listen or ()),
-                 "mode": args.mode, "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig}
+    """Bus settings: environment, then ``base`` (a pipeline's ``[bus]``), then command-line options."""
+    given = {"connect": tuple(args.connect or ()), "listen": tuple(args.listen or ()), "mode": args.mode,
+             "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig}
+    # Only options actually given may override ``base``: an unset option must not erase a pipeline value.
+    overrides = {**base, **{k: v for k, v in given.items() if v is not None and v != ()}}
     return BusConfig.from_env(**overrides)
 
 

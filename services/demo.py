@@ -28,6 +28,11 @@ STARTUP_TIMEOUT_S = 30.0
 QUIET_END_S = 2.0
 
 
+def echo_depth(fps: float) -> int:
+    """Frames the demo's echo node may queue: about two seconds' worth."""
+    return max(1, min(1000, round(2 * fps)))
+
+
 def run_demo(bus: BusConfig, frames: int, fps: float, out: TextIO = sys.stdout) -> int:
     """Run the demo; return 0 when every frame made it through, 1 otherwise."""
     keys = bus.keys
@@ -41,7 +46,9 @@ def run_demo(bus: BusConfig, frames: int, fps: float, out: TextIO = sys.stdout) 
         supervisor = Supervisor([
             ProcessSpec("cam", node_command("capture", "cam", {"camera": CAMERA, "frames": frames, "fps": fps,
                                                                "wait_for_subscriber": True}), env),
-            ProcessSpec("echo", node_command("echo", "echo", {"camera": CAMERA}), env),
+            # The demo counts every frame, so the relay queues ~2 s of frames instead of keeping only
+            # the newest: a busy machine's scheduling stalls must not show up as losses.
+            ProcessSpec("echo", node_command("echo", "echo", {"camera": CAMERA, "depth": echo_depth(fps)}), env),
         ])
         supervisor.start()
         print(f"demo: nodes 'cam' (capture, synthetic:pattern) and 'echo' on {keys.prefix}; "

@@ -8,11 +8,11 @@ made (``time.time_ns()``) and numbered from 0; its CameraInfo shares the header.
 from __future__ import annotations
 
 import time
-
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.sensors import CameraInfo, Image
 from services.capture.pattern import DEFAULT_K, render_pattern
@@ -29,7 +29,7 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     source: Literal["synthetic:pattern"] = "synthetic:pattern"
-    camera: str = "cam0"
+    camera: KeyName = "cam0"
     fps: float = Field(default=30.0, gt=0, le=1000)
     frames: int = Field(default=0, ge=0, description="stop after this many frames; 0 = run until stopped")
     width: int = Field(default=640, ge=32, le=8192)

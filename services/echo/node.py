@@ -6,23 +6,26 @@ re-encodes it and publishes it, which makes two process hops observable end to e
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
+from protocol.keys import KeyName
 from protocol.sensors import Image
 from services.runtime.node import Node
 from services.runtime.pubsub import Role
 
 
 class Params(BaseModel):
-    """Which camera to relay."""
+    """Which camera to relay, and how many frames its input may hold."""
 
     model_config = ConfigDict(extra="forbid")
 
-    camera: str = "cam0"
+    camera: KeyName = "cam0"
+    depth: int = Field(default=1, ge=1, le=1000,
+                       description="frames queued while busy; 1 = latest-wins, more rides out stalls")
 
 
 def run(node: Node, params: Params) -> None:
-    frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME)
+    frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     out = node.publisher(node.keys.echo(params.camera), Image, Role.FRAME)
     for image in node.inputs(frames):
         out.put(image)

@@ -97,6 +97,8 @@ class BusConfig(BaseModel):
             values["rig"] = env["ARTRACK_RIG"]
         if env.get("ARTRACK_ROUTER_AUTOSTART"):
             values["autostart_router"] = env["ARTRACK_ROUTER_AUTOSTART"] not in ("0", "false", "no")
+        if env.get("ARTRACK_ROUTER_WAIT_S"):
+            values["router_wait_s"] = env["ARTRACK_ROUTER_WAIT_S"]
         values.update({k: v for k, v in overrides.items() if v is not None and v != ()})
         return cls.model_validate(values)
 
@@ -109,6 +111,7 @@ class BusConfig(BaseModel):
             "ARTRACK_NAMESPACE": self.namespace,
             "ARTRACK_RIG": self.rig,
             "ARTRACK_ROUTER_AUTOSTART": "1" if self.autostart_router else "0",
+            "ARTRACK_ROUTER_WAIT_S": repr(self.router_wait_s),
             "ZENOH_CONFIG": str(self.zenoh_config) if self.zenoh_config else "",
         }
         return env

@@ -32,12 +32,13 @@ from protocol.codec import DecodeError, encode
 from protocol.message import Header, Message
 from protocol.system import ErrorReport, NodeStats
 from services.runtime.bus import BusConfig, BusError, open_session
-from services.runtime.pubsub import Inbox, Publisher, Role
+from services.runtime.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.runtime.stats import LatencyWindow, StreamCounter
 
 M = TypeVar("M", bound=Message)
 
 POLL_S = 0.1
+LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
 
 
@@ -54,7 +55,8 @@ class Node:
         self._wake = threading.Condition()
         self._started = time.monotonic()
         self._inboxes: list[Inbox] = []
-        self._publishers: list[Publisher] = []
+        self._publishers: list[Publisher | RawPublisher] = []
+        self._tracked: list[StreamCounter] = []
         self._processing = LatencyWindow()
         self._processed = 0
         self._stats_seq = 0
@@ -101,6 +103,18 @@ class Node:
         self._publishers.append(publisher)
         return publisher
 
+    def raw_publisher(self, key: str, role: Role, encoding: zenoh.Encoding) -> RawPublisher:
+        """A publisher of already encoded payloads (replay), counted in the node's stats."""
+        publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"))
+        self._publishers.append(publisher)
+        return publisher
+
+    def track(self, counter: StreamCounter) -> StreamCounter:
+        """Count a stream the body serves with its own Zenoh entities (the recorder's raw
+        subscribers) in the node's stats, by the counter's direction."""
+        self._tracked.append(counter)
+        return counter
+
     def inbox(self, key: str, cls: type[M] | None, role: Role = Role.FRAME, depth: int | None = None) -> Inbox[M]:
         inbox = Inbox(self.session, key, cls, role, depth=depth, counter=StreamCounter(key, "in"),
                       on_decode_error=self._on_decode_error, wake=self._wake)
@@ -131,6 +145,15 @@ class Node:
             yield received.message
             self.processed(time.perf_counter() - started)
 
+    def linger(self, seconds: float = LINGER_S) -> None:
+        """Stay up a moment after a job's last message while anyone subscribes to an output.
+
+        Large payloads travel between local processes through the sender's shared memory;
+        a sender that exits at once can take its last messages with it.
+        """
+        if any(publisher.matched() for publisher in self._publishers):
+            self.wait(seconds)
+
     def processed(self, seconds: float) -> None:
         """Count one processed input that took ``seconds`` (sources call this per frame)."""
         self._state = "running"
@@ -155,8 +178,9 @@ class Node:
 
     def stats(self) -> NodeStats:
         """The node's health now."""
-        inputs = [inbox.counter.snapshot() for inbox in self._inboxes]
-        outputs = [pub.counter.snapshot() for pub in self._publishers]
+        tracked = [counter.snapshot() for counter in self._tracked]
+        inputs = [inbox.counter.snapshot() for inbox in self._inboxes] + [s for s in tracked if s.direction == "in"]
+        outputs = [pub.counter.snapshot() for pub in self._publishers] + [s for s in tracked if s.direction == "out"]
         p50, p99 = self._processing.percentiles_ms(50, 99)
         self._stats_seq += 1
         return NodeStats(
@@ -208,5 +232,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None])
         except Exception:
             log.exception("node %s failed", name)
             return 1
+        if node.running:
+            node.linger()
     log.info("node %s stopped", name)
     return 0

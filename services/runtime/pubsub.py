@@ -55,22 +55,21 @@ _QOS = {
 DEFAULT_DEPTH = {Role.FRAME: 1, Role.RESULT: 10_000, Role.STATUS: 100}
 
 
-class Publisher(Generic[M]):
-    """Publishes messages of one type on one key."""
+class RawPublisher:
+    """Publishes payloads that are already encoded (a recording's bytes, untouched) on one key.
 
-    def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
+    ``role`` sets the QoS; ``encoding`` is the Zenoh encoding to announce.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, role: Role, encoding: zenoh.Encoding,
                  counter: StreamCounter | None = None):
         self.key = key
-        self.cls = cls
         self.role = role
         self.counter = counter or StreamCounter(key, "out")
-        encoding = zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA)
         self._publisher = session.declare_publisher(key, encoding=encoding, **_QOS[role])
 
-    def put(self, message: M) -> None:
-        if not isinstance(message, self.cls):
-            raise TypeError(f"{self.key} carries {self.cls.__name__}, not {type(message).__name__}")
-        self._publisher.put(encode(message))
+    def put(self, payload: bytes) -> None:
+        self._publisher.put(payload)
         self.counter.count(messages=1)
 
     def matched(self) -> bool:
@@ -79,6 +78,29 @@ class Publisher(Generic[M]):
 
     def close(self) -> None:
         self._publisher.undeclare()
+
+
+class Publisher(Generic[M]):
+    """Publishes messages of one type on one key (encoded here, then sent raw)."""
+
+    def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
+                 counter: StreamCounter | None = None):
+        self.key = key
+        self.cls = cls
+        self.role = role
+        self.raw = RawPublisher(session, key, role, zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA), counter)
+        self.counter = self.raw.counter
+
+    def put(self, message: M) -> None:
+        if not isinstance(message, self.cls):
+            raise TypeError(f"{self.key} carries {self.cls.__name__}, not {type(message).__name__}")
+        self.raw.put(encode(message))
+
+    def matched(self) -> bool:
+        return self.raw.matched()
+
+    def close(self) -> None:
+        self.raw.close()
 
 
 @dataclass(frozen=True)
@@ -111,6 +133,7 @@ class Inbox(Generic[M]):
         self._on_decode_error = on_decode_error
         self._queue: deque[tuple[str, bytes, int]] = deque()
         self._latest: Received[M] | None = None
+        self._warned_at = -1.0
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -122,8 +145,10 @@ class Inbox(Generic[M]):
             self._queue.append(item)
             self.wake.notify_all()
         self.counter.count(messages=1, dropped=int(dropped))
-        if dropped and self.role is not Role.FRAME:
-            log.warning("%s: consumer %d messages behind, dropped the oldest", self.key, self.depth)
+        if dropped and self.role is not Role.FRAME and time.monotonic() - self._warned_at > 1.0:
+            self._warned_at = time.monotonic()
+            log.warning("%s: consumer %d messages behind, dropping the oldest (%d dropped so far)",
+                        self.key, self.depth, self.counter.dropped)
 
     def pending(self) -> int:
         """Payloads waiting to be taken."""

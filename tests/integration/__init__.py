@@ -1,0 +1,1 @@
+"""Integration tests: real artrack processes talking over a real Zenoh router on loopback."""

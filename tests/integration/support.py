@@ -1,0 +1,87 @@
+"""Small helpers shared by the integration tests (fixtures live in ``tests/conftest.py``)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
+
+HERE = Path(__file__).resolve().parent
+PROBE = HERE / "busprobe.py"
+START_S = 20.0
+"""Deadline for a process to come up and be seen on the bus (generous: CI shares its cores)."""
+
+
+def wait_until(probe: Callable[[], T], timeout_s: float, what: str, interval_s: float = 0.05) -> T:
+    """Poll ``probe`` until it returns something truthy and return that; fail naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = probe()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what} (last: {value!r})")
+        time.sleep(interval_s)
+
+
+def published(proc) -> int | None:
+    """How many messages the bus probe ``proc`` says it published; None until it has said so."""
+    for line in proc.stdout.splitlines():
+        if '"published"' in line:
+            return json.loads(line)["published"]
+    assert proc.poll() is None, f"the probe exited before publishing:\n{proc.describe()}"
+    return None
+
+
+def pid_alive(pid: int) -> bool:
+    """True while ``pid`` names a process that has not exited (a zombie counts as exited)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    state = next((line.split()[1] for line in status.splitlines() if line.startswith("State:")), "")
+    return state != "Z"
+
+
+def probe_argv(*args: str) -> list[str]:
+    """Command line of the bus probe helper (``busprobe.py``)."""
+    return [sys.executable, str(PROBE), *args]
+
+
+def json_lines(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def live_names(session, keys) -> set[str]:
+    """Names of the nodes of ``keys.rig`` holding a liveliness token now."""
+    from services.observe import live_nodes
+
+    return {name for rig, name in live_nodes(session, keys, 0.3) if rig == keys.rig}
+
+
+def states(session, keys) -> dict:
+    """``{node name: NodeStats}`` answered on the state queryables of ``keys.rig``."""
+    from services.observe import node_states
+
+    return {name: s for (rig, name), s in node_states(session, keys, 2.0).items() if rig == keys.rig}
+
+
+def start_node(procs, kind: str, name: str, **params):
+    """``artrack node KIND --name NAME --params JSON`` on the test's bus."""
+    return procs.artrack("node", kind, "--name", name, "--params", json.dumps(params), name=name)
+
+
+def wait_live(session, keys, names: set[str], procs_to_check=()) -> None:
+    """Wait until every node in ``names`` holds its token (failing early when a process died)."""
+
+    def ready() -> bool:
+        for proc in procs_to_check:
+            assert proc.poll() is None, f"a process exited early:\n{proc.describe()}"
+        return names <= live_names(session, keys)
+
+    wait_until(ready, START_S, f"nodes {sorted(names)} to be live")

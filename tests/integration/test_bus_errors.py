@@ -1,0 +1,67 @@
+"""A process that cannot reach the bus says so in one line, naming the endpoint, and exits non-zero.
+
+Zenoh's client mode fails at once when no router answers; peer mode keeps retrying in the
+background by design (a peer may be the first one up), so the failure is tested in client mode.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from .support import START_S, wait_live, wait_until
+
+pytestmark = pytest.mark.integration
+
+COMMANDS = {
+    "node": ["node", "echo", "--name", "e1"],
+    "list": ["list", "--timeout", "0.5"],
+    "echo": ["echo", "cam0/image", "--count", "1", "--timeout", "5"],
+    "demo": ["demo", "--frames", "5"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_client_with_no_router_fails_with_one_clear_line(procs, unused_endpoint, command):
+    dead = unused_endpoint
+    started = time.monotonic()
+    done = procs.run(*COMMANDS[command], "--mode", "client", "--connect", dead, timeout=30)
+    took = time.monotonic() - started
+    assert done.poll() not in (None, 0), done.describe()
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one error line:\n{done.stderr}"
+    assert "ERROR" in lines[0] and dead in lines[0] and "client" in lines[0], lines[0]
+    assert "Traceback" not in done.stderr
+    assert done.stdout == ""
+    assert took < 15, f"took {took:.1f} s to give up"
+
+
+def test_missing_zenoh_config_file_is_named(procs, tmp_path):
+    missing = tmp_path / "nowhere.json5"
+    done = procs.run("list", "--zenoh-config", str(missing), timeout=30)
+    assert done.poll() not in (None, 0), done.describe()
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and str(missing) in lines[0] and "does not exist" in lines[0], done.stderr
+
+
+def test_peer_started_before_its_router_joins_once_the_router_is_up(bus, procs, unused_endpoint):
+    """Peer mode does not fail when the router is missing: it runs alone and connects when one appears."""
+    import zenoh
+
+    from services.runtime.bus import open_session
+    from services.runtime.router import router_config
+
+    node = procs.artrack("node", "echo", "--name", "early", env={"ARTRACK_CONNECT": unused_endpoint})
+    wait_until(lambda: "node early (echo) up" in node.stderr, START_S, "the node to run without a router")
+    assert node.poll() is None, node.describe()
+    config = bus.config.model_copy(update={"connect": (unused_endpoint,)})
+    router = zenoh.open(router_config((unused_endpoint,), (), None))
+    try:
+        session = open_session(config)
+        try:
+            wait_live(session, config.keys, {"early"}, [node])
+        finally:
+            session.close()
+    finally:
+        router.close()

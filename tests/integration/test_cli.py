@@ -1,0 +1,109 @@
+"""The ``artrack`` command line against real nodes on a private router."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from services.cli import parser
+
+from .support import START_S, json_lines, live_names, start_node, states, wait_live, wait_until
+
+pytestmark = pytest.mark.integration
+
+SMALL_CAMERA = {"camera": "cam0", "fps": 20, "width": 64, "height": 48}
+
+
+def _subcommands() -> list[str]:
+    action = next(a for a in parser()._actions if a.dest == "command")
+    return sorted(action.choices)
+
+
+def test_help_lists_every_subcommand():
+    done = subprocess.run([sys.executable, "-m", "services.cli", "--help"], capture_output=True, text=True,
+                          timeout=30)
+    assert done.returncode == 0, done.stderr
+    names = _subcommands()
+    assert {"up", "router", "list", "echo", "demo", "node"} <= set(names)
+    for name in names:
+        assert re.search(rf"^\s+{name}\s+\S", done.stdout, re.MULTILINE), f"`artrack --help` does not list {name}"
+
+
+def test_list_shows_the_running_nodes_with_kind_and_pid(bus, procs, session):
+    cam = start_node(procs, "capture", "cam", **SMALL_CAMERA)
+    echo = start_node(procs, "echo", "relay", camera="cam0")
+    wait_live(session, bus.keys, {"cam", "relay"}, [cam, echo])
+    listed = procs.run("list", "--timeout", "1.5")
+    assert listed.poll() == 0, listed.describe()
+    rows = {}
+    for line in listed.stdout.splitlines()[1:]:
+        rig, name, kind, pid, *_ = line.split()
+        rows[name] = (rig, kind, int(pid))
+    assert rows == {"cam": (bus.rig, "capture", cam.pid), "relay": (bus.rig, "echo", echo.pid)}, listed.stdout
+    assert listed.stdout.split()[:3] == ["RIG", "NODE", "KIND"]
+
+
+def test_list_says_when_no_node_is_up(bus, procs):
+    listed = procs.run("list", "--timeout", "0.5")
+    assert listed.poll() == 0, listed.describe()
+    assert listed.stdout == ""
+    assert "no artrack nodes are up" in listed.stderr
+
+
+def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
+    cam = start_node(procs, "capture", "cam", **SMALL_CAMERA)
+    wait_live(session, bus.keys, {"cam"}, [cam])
+
+    images = procs.run("echo", "cam0/image", "--count", "3", "--timeout", str(START_S))
+    assert images.poll() == 0, images.describe()
+    lines = json_lines(images.stdout)
+    assert len(lines) == 3, images.stdout
+    for line in lines:
+        assert line["key"] == bus.keys.image("cam0")
+        assert (line["schema"], line["version"]) == ("artrack.Image", 1)
+        assert line["encoding"] == "mono8"
+        assert line["data"] == {"dtype": "uint8", "shape": [48, 64]}  # large arrays are summarised
+        assert line["header"]["frame_id"] == "cam0" and line["header"]["stamp_ns"] > 0
+    seqs = [line["header"]["seq"] for line in lines]
+    assert seqs == sorted(set(seqs))
+
+    infos = procs.run("echo", bus.keys.camera_info("cam0"), "--count", "2", "--timeout", str(START_S))
+    assert infos.poll() == 0, infos.describe()
+    lines = json_lines(infos.stdout)
+    assert len(lines) == 2, infos.stdout
+    for line in lines:
+        assert (line["schema"], line["width"], line["height"]) == ("artrack.CameraInfo", 64, 48)
+        assert len(line["k"]) == 9 and line["k"][8] == 1.0
+
+
+def test_demo_receives_every_frame(bus, procs):
+    demo = procs.run("demo", "--frames", "60", "--connect", bus.endpoint, timeout=60)
+    assert demo.poll() == 0, demo.describe()
+    summary = dict(re.findall(r"^\s*([a-z /0-9]+):\s+(.*)$", demo.stdout, re.MULTILINE))
+    assert summary["frames published"] == "60", demo.stdout
+    assert summary["frames received"] == f"60 on {bus.keys.echo('cam0')}", demo.stdout
+    assert summary["lost / dropped"] == "0 / 0", demo.stdout
+    assert summary["in order"] == "yes", demo.stdout
+    assert summary["nodes seen"] == "cam, echo", demo.stdout
+
+
+@pytest.mark.parametrize("kind, params", [("echo", {"camera": "cam0"}), ("capture", SMALL_CAMERA)])
+def test_node_stops_within_2s_on_sigterm_and_leaves_the_bus(bus, procs, session, kind, params):
+    node = start_node(procs, kind, "n1", **params)
+    wait_live(session, bus.keys, {"n1"}, [node])
+    wait_until(lambda: "n1" in states(session, bus.keys), START_S, "the node to answer its state query")
+    started = time.monotonic()
+    os.kill(node.pid, signal.SIGTERM)
+    code = node.wait(10)
+    took = time.monotonic() - started
+    assert code == 0, node.describe()
+    assert took < 2.0, f"{kind} node took {took:.2f} s to stop on SIGTERM"
+    assert "node n1 stopped" in node.stderr
+    wait_until(lambda: "n1" not in live_names(session, bus.keys), 5, "the node's liveliness token to go")
+    assert "n1" not in states(session, bus.keys)

@@ -1,0 +1,139 @@
+"""``artrack up``: a pipeline runs as processes, dead nodes come back, SIGTERM ends it all."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.sensors import Image
+from services.runtime.pubsub import Inbox, Role
+
+from .support import START_S, live_names, pid_alive, states, wait_live, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def _pipeline(bus, *, autostart: bool = False) -> str:
+    return f"""
+[bus]
+rig = "{bus.rig}"
+connect = ["{bus.endpoint}"]
+autostart_router = {str(autostart).lower()}
+
+[nodes.cam]
+kind = "capture"
+camera = "cam0"
+fps = 20
+width = 64
+height = 48
+
+[nodes.echo]
+kind = "echo"
+camera = "cam0"
+"""
+
+
+def _parent(pid: int) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat.rsplit(")", 1)[1].split()[1])
+
+
+def _fresh_frame(inbox: Inbox, after_ns: int) -> bool:
+    """True once a message that arrived after ``after_ns`` (time.time_ns) was taken from ``inbox``."""
+    received = inbox.recv(0.2)
+    return received is not None and received.received_ns > after_ns
+
+
+def test_up_runs_restarts_and_stops_a_pipeline(bus, procs, session, tmp_path):
+    keys = bus.keys
+    path = tmp_path / "pipeline.toml"
+    path.write_text(_pipeline(bus))
+    echoed = Inbox(session, keys.echo("cam0"), Image, Role.FRAME)
+    # The bus comes from the file's [bus] table alone: the launcher's environment does not name it.
+    launcher = procs.artrack("up", str(path), env={"ARTRACK_CONNECT": None, "ARTRACK_RIG": None})
+
+    wait_live(session, keys, {"cam", "echo"}, [launcher])
+    first = wait_until(lambda: (s := states(session, keys)).keys() >= {"cam", "echo"} and s,
+                       START_S, "both nodes to answer their state query")
+    pids = {name: first[name].pid for name in ("cam", "echo")}
+    assert all(_parent(pid) == launcher.pid for pid in pids.values()), "nodes are not the launcher's children"
+    assert (first["cam"].kind, first["echo"].kind) == ("capture", "echo")
+    wait_until(lambda: _fresh_frame(echoed, 0), START_S, "frames on the echo key")
+
+    # kill -9 the echo node: the launcher restarts it and frames flow through it again.
+    os.kill(pids["echo"], signal.SIGKILL)
+    wait_until(lambda: not pid_alive(pids["echo"]), 5, "the killed node to be gone")
+    again = wait_until(lambda: (s := states(session, keys)).get("echo") and s["echo"].pid != pids["echo"] and s,
+                       START_S, "the echo node to come back with a new pid")
+    new_echo = again["echo"].pid
+    restarted_ns = time.time_ns()  # the old echo is dead: frames arriving from now on are relayed by the new one
+    assert _parent(new_echo) == launcher.pid
+    assert again["cam"].pid == pids["cam"], "the capture node should not have been touched"
+    assert "echo" in live_names(session, keys)
+    wait_until(lambda: _fresh_frame(echoed, restarted_ns), START_S, "frames on the echo key after the restart")
+    wait_until(lambda: (s := states(session, keys).get("echo")) and s.pid == new_echo and s.published > 0,
+               START_S, "the restarted echo node to count what it relayed")
+    assert "echo exited with signal 9" in launcher.stderr
+
+    # SIGTERM the launcher: it stops within 2 s and nothing it started is left.
+    started = time.monotonic()
+    launcher.popen.send_signal(signal.SIGTERM)
+    code = launcher.wait(10)
+    took = time.monotonic() - started
+    assert code == 0, launcher.describe()
+    assert took < 2.0, f"the launcher took {took:.2f} s to stop"
+    seen = [launcher.pid, *pids.values(), new_echo]
+    assert [pid for pid in seen if pid_alive(pid)] == [], f"left running: {seen}"
+    wait_until(lambda: not live_names(session, keys), 5, "the nodes' liveliness tokens to go")
+
+
+# Each bad file has a valid node first: a launcher that started nodes before validating would start it.
+BAD_PIPELINES = {
+    "unknown kind": ('[nodes.echo]\nkind = "echo"\n\n[nodes.track]\nkind = "teleport"\n',
+                     ["nodes.track", "unknown node kind 'teleport'"]),
+    "bad parameter value": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam]\nkind = "capture"\nfps = -5\n',
+                            ["nodes.cam.fps", "greater than 0"]),
+    "unknown parameter": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam]\nkind = "capture"\nfsp = 30\n',
+                          ["nodes.cam.fsp", "Extra inputs are not permitted"]),
+    "bad toml": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam\nkind = "capture"\n', ["not valid TOML", "line 4"]),
+    "unknown top-level key": ('[nodes.echo]\nkind = "echo"\n\n[extras]\nanswer = 42\n',
+                              ["extras", "Extra inputs are not permitted"]),
+    "unknown bus key": ('[bus]\nrigg = "x"\n\n[nodes.echo]\nkind = "echo"\n', ["bus.rigg"]),
+    "no nodes": ('[bus]\nrig = "x"\n', ["nodes", "Field required"]),
+}
+
+SPY = """\
+import os
+if os.environ.get("ARTRACK_SPY_DIR"):
+    with open("/proc/self/cmdline", "rb") as f:
+        cmd = f.read().replace(b"\\0", b" ")
+    with open(os.path.join(os.environ["ARTRACK_SPY_DIR"], str(os.getpid())), "wb") as f:
+        f.write(cmd)
+"""
+
+
+@pytest.mark.parametrize("case", sorted(BAD_PIPELINES))
+def test_bad_pipeline_is_refused_before_anything_starts(bus, procs, tmp_path, case):
+    text, expected = BAD_PIPELINES[case]
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    # A sitecustomize that records the command line of every Python process started below.
+    spy, seen = tmp_path / "spy", tmp_path / "seen"
+    spy.mkdir()
+    seen.mkdir()
+    (spy / "sitecustomize.py").write_text(SPY)
+    done = procs.run("up", str(path), timeout=30, env={"PYTHONPATH": str(spy), "ARTRACK_SPY_DIR": str(seen)})
+
+    assert done.poll() not in (None, 0)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one error line, got:\n{done.stderr}"
+    assert "ERROR" in lines[0] and str(path) in lines[0]
+    for text in expected:
+        assert text in lines[0], f"{text!r} missing from: {lines[0]}"
+    assert done.stdout == ""
+    started = [p.read_text() for p in seen.iterdir()]
+    assert len(started) == 1 and " up " in started[0], f"processes started: {started}"

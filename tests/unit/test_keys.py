@@ -1,0 +1,103 @@
+"""Key expressions: the layout every process agrees on, and the names it refuses."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol.keys import Keys, check_name
+
+names = st.from_regex(r"[A-Za-z0-9_.\-]{1,12}", fullmatch=True)
+
+LAYOUT = [
+    (lambda k: k.image("cam0"), "ar/rig0/cam0/image"),
+    (lambda k: k.camera_info("cam0"), "ar/rig0/cam0/camera_info"),
+    (lambda k: k.calibration("cam0"), "ar/rig0/cam0/calibration"),
+    (lambda k: k.truth("cam0"), "ar/rig0/cam0/truth"),
+    (lambda k: k.markers("cam0"), "ar/rig0/cam0/markers"),
+    (lambda k: k.blobs("cam0"), "ar/rig0/cam0/blobs"),
+    (lambda k: k.keypoints("cam0"), "ar/rig0/cam0/keypoints"),
+    (lambda k: k.echo("cam0"), "ar/rig0/cam0/echo"),
+    (lambda k: k.pose("marker-7"), "ar/rig0/pose/marker-7"),
+    (lambda k: k.pose("body/wand"), "ar/rig0/pose/body/wand"),
+    (lambda k: k.poses(), "ar/rig0/pose/**"),
+    (lambda k: k.bodies(), "ar/rig0/bodies"),
+    (lambda k: k.map(), "ar/rig0/map"),
+    (lambda k: k.node("detect_0"), "ar/rig0/node/detect_0"),
+    (lambda k: k.stats("detect_0"), "ar/rig0/node/detect_0/stats"),
+    (lambda k: k.state("detect_0"), "ar/rig0/node/detect_0/state"),
+    (lambda k: k.errors("detect_0"), "ar/rig0/node/detect_0/errors"),
+    (lambda k: k.everything(), "ar/rig0/**"),
+    (lambda k: k.all_nodes(), "ar/*/node/*"),
+    (lambda k: k.all_states(), "ar/*/node/*/state"),
+    (lambda k: k.all_stats(), "ar/*/node/*/stats"),
+]
+
+
+@pytest.mark.parametrize(("build", "expected"), LAYOUT, ids=[key for _, key in LAYOUT])
+def test_default_layout(build, expected: str):
+    assert build(Keys()) == expected
+
+
+def test_namespace_may_hold_several_segments():
+    keys = Keys(namespace="site/lab1", rig="stereo.A")
+    assert keys.prefix == "site/lab1/stereo.A"
+    assert keys.image("left") == "site/lab1/stereo.A/left/image"
+    assert keys.all_nodes() == "site/lab1/*/node/*"
+
+
+BAD_NAMES = ["", "a/b", "*", "**", "cam*", "$*", "a$b", "a b", "a?b", "a#b", "ü", "cam\n"]
+BAD_SEGMENTS = ["", "/", "a/", "/a", "a//b", "a/*", "a/**/b", "a/$x", "a b/c"]
+
+
+@pytest.mark.parametrize("name", BAD_NAMES)
+def test_invalid_single_names_are_refused(name: str):
+    keys = Keys()
+    for build, what in [(keys.image, "camera"), (keys.node, "node name"), (lambda n: Keys(rig=n), "rig")]:
+        with pytest.raises(ValueError, match=f"{what} .* is not a valid key name") as caught:
+            build(name)
+        assert repr(name) in str(caught.value)
+
+
+@pytest.mark.parametrize("name", BAD_SEGMENTS + [n for n in BAD_NAMES if n != "a/b"])
+def test_invalid_segmented_names_are_refused(name: str):
+    with pytest.raises(ValueError, match="namespace .* is not a valid key name"):
+        Keys(namespace=name)
+    with pytest.raises(ValueError, match="target .* is not a valid key name"):
+        Keys().pose(name)
+
+
+def test_error_says_what_is_allowed():
+    with pytest.raises(ValueError, match="use letters, digits, '_', '-', '.' and '/' between segments"):
+        check_name("a//b", "namespace", segments=True)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(min_size=1, max_size=12).filter(lambda s: any(not (c.isascii() and (c.isalnum() or c in "_.-"))
+                                                             for c in s)))
+def test_any_name_with_a_character_outside_the_set_is_refused(name: str):
+    with pytest.raises(ValueError):
+        check_name(name, "name")
+
+
+@settings(max_examples=200, deadline=None)
+@given(namespace=st.lists(names, min_size=1, max_size=3).map("/".join), rig=names, node=names)
+def test_split_node_inverts_node_keys(namespace: str, rig: str, node: str):
+    keys = Keys(namespace=namespace, rig=rig)
+    for key in (keys.node(node), keys.stats(node), keys.state(node), keys.errors(node)):
+        assert keys.split_node(key) == (rig, node)
+
+
+def test_split_node_reads_other_rigs_of_the_namespace():
+    assert Keys().split_node("ar/rig7/node/tracker/stats") == ("rig7", "tracker")
+
+
+NOT_NODE_KEYS = ["ar/rig0/cam0/image", "ar/rig0/node", "other/rig0/node/x", "arx/rig0/node/x", "ar", "",
+                 "rig0/node/x"]
+
+
+@pytest.mark.parametrize("key", NOT_NODE_KEYS)
+def test_split_node_refuses_other_keys(key: str):
+    with pytest.raises(ValueError, match="is not a node key under 'ar'"):
+        Keys().split_node(key)

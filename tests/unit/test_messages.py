@@ -1,0 +1,322 @@
+"""Message validation: what each message type accepts and refuses, registry, JSON views."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from pydantic import ValidationError
+from strategies import quaternions
+
+from protocol import (
+    BlobDetections,
+    CameraInfo,
+    Header,
+    Image,
+    Keypoints,
+    MarkerDetections,
+    Message,
+    NodeStats,
+    PointCloud,
+    Pose,
+    PoseQuality,
+    Transform,
+    message_type,
+    to_json,
+)
+
+HEADER = Header(stamp_ns=1_700_000_000_000_000_000, frame_id="cam0", seq=3)
+K = (500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0)
+
+
+def f32(*shape: int) -> np.ndarray:
+    return np.zeros(shape, np.float32)
+
+
+# --- header, immutability, registry ---
+
+
+def test_header_refuses_negative_stamp_and_seq():
+    with pytest.raises(ValidationError, match="stamp_ns"):
+        Header(stamp_ns=-1)
+    with pytest.raises(ValidationError, match="seq"):
+        Header(stamp_ns=0, seq=-1)
+
+
+def test_messages_are_frozen_and_refuse_unknown_fields():
+    pose = Pose(header=HEADER, child_frame_id="marker/7")
+    with pytest.raises(ValidationError, match="frozen"):
+        pose.child_frame_id = "marker/8"
+    with pytest.raises(ValidationError, match="Extra inputs are not permitted"):
+        Pose(header=HEADER, child_frame_id="marker/7", colour="red")
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_float_fields_refuse_values_json_cannot_carry(value: float):
+    with pytest.raises(ValidationError, match="processing_ms_p50"):
+        NodeStats(header=HEADER, node="n", kind="k", host="h", pid=1, uptime_s=1.0, processing_ms_p50=value)
+    with pytest.raises(ValidationError, match="reprojection_rms_px"):
+        PoseQuality(reprojection_rms_px=value)
+    with pytest.raises(ValidationError, match="d.0"):
+        CameraInfo(header=HEADER, width=640, height=480, k=K, d=(value, 0.0, 0.0, 0.0))
+
+
+def test_registry_finds_classes_by_schema_name():
+    assert message_type("artrack.Pose") is Pose
+    assert message_type("artrack.Nope") is None
+
+
+def test_a_second_class_with_a_taken_schema_name_is_refused():
+    with pytest.raises(TypeError, match="'artrack.Pose' already registered"):
+
+        class Impostor(Message):
+            SCHEMA = "artrack.Pose"
+            VERSION = 1
+
+    assert message_type("artrack.Pose") is Pose
+
+
+def test_a_schema_without_a_version_is_refused():
+    with pytest.raises(TypeError, match="must set VERSION"):
+
+        class Unversioned(Message):
+            SCHEMA = "test.Unversioned"
+
+    assert message_type("test.Unversioned") is None
+
+
+# --- Image ---
+
+
+@pytest.mark.parametrize(
+    ("encoding", "data"),
+    [
+        ("mono8", np.zeros((2, 3), np.uint8)),
+        ("mono16", np.zeros((2, 3), np.uint16)),
+        ("bgr8", np.zeros((2, 3, 3), np.uint8)),
+        ("bgra8", np.zeros((2, 3, 4), np.uint8)),
+    ],
+)
+def test_image_accepts_matching_encoding(encoding: str, data: np.ndarray):
+    image = Image(header=HEADER, encoding=encoding, data=data)
+    assert (image.height, image.width) == (2, 3)
+
+
+@pytest.mark.parametrize(
+    ("encoding", "data", "expected"),
+    [
+        ("mono8", np.zeros((2, 3), np.uint16), "mono8 needs uint8 with 1 channel(s), got uint16 with 1"),
+        ("mono16", np.zeros((2, 3), np.uint8), "encoding mono16 needs uint16"),
+        ("bgr8", np.zeros((2, 3), np.uint8), "encoding bgr8 needs uint8 with 3 channel(s), got uint8 with 1"),
+        ("bgr8", np.zeros((2, 3, 4), np.uint8), "got uint8 with 4"),
+        ("bgra8", np.zeros((2, 3, 3), np.uint8), "got uint8 with 3"),
+        ("mono8", np.zeros((2, 3, 2), np.uint8), "does not fit (N, N) or (N, N, 3) or (N, N, 4)"),
+        ("mono8", np.zeros(6, np.uint8), "does not fit"),
+        ("mono8", np.zeros((2, 3), np.int32), "dtype int32 not in ['uint8', 'uint16']"),
+        ("mono8", [[0, 1], [2, 3]], "dtype int64 not in"),  # a list is not guessed into one of two dtypes
+        ("rgb8", np.zeros((2, 3, 3), np.uint8), "encoding"),
+    ],
+)
+def test_image_refuses_mismatched_layout(encoding: str, data: object, expected: str):
+    with pytest.raises(ValidationError) as caught:
+        Image(header=HEADER, encoding=encoding, data=data)
+    assert expected in str(caught.value)
+
+
+def test_arrays_are_held_in_native_byte_order():
+    big_endian = np.arange(6, dtype=">u2").reshape(2, 3)
+    image = Image(header=HEADER, encoding="mono16", data=big_endian)
+    assert image.data.dtype == np.dtype(np.uint16)
+    assert image.data.tolist() == big_endian.tolist()
+
+
+# --- CameraInfo ---
+
+DISTORTION = [
+    ("plumb_bob", 0, True),
+    ("plumb_bob", 4, True),
+    ("plumb_bob", 5, True),
+    ("plumb_bob", 8, False),
+    ("plumb_bob", 3, False),
+    ("rational_polynomial", 8, True),
+    ("rational_polynomial", 5, False),
+    ("equidistant", 4, True),
+    ("equidistant", 5, False),
+    ("equidistant", 0, False),
+]
+
+
+@pytest.mark.parametrize(("model", "count", "valid"), DISTORTION)
+def test_camera_info_distortion_count_follows_model(model: str, count: int, valid: bool):
+    def build() -> CameraInfo:
+        return CameraInfo(header=HEADER, width=640, height=480, k=K, distortion_model=model,
+                          d=(0.01,) * count)
+
+    if valid:
+        assert len(build().d) == count
+    else:
+        with pytest.raises(ValidationError, match=f"{model} takes .* distortion coefficients, got {count}"):
+            build()
+
+
+@pytest.mark.parametrize(
+    "k",
+    [
+        (0.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0),
+        (500.0, 0.0, 320.0, 0.0, -500.0, 240.0, 0.0, 0.0, 1.0),
+        (500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 2.0),
+    ],
+)
+def test_camera_info_refuses_a_bad_camera_matrix(k: tuple[float, ...]):
+    with pytest.raises(ValidationError, match="fx, fy > 0 and k\\[8\\] = 1"):
+        CameraInfo(header=HEADER, width=640, height=480, k=k)
+
+
+@pytest.mark.parametrize(("width", "height"), [(0, 480), (640, 0), (-1, 480)])
+def test_camera_info_refuses_empty_images(width: int, height: int):
+    with pytest.raises(ValidationError):
+        CameraInfo(header=HEADER, width=width, height=height, k=K)
+
+
+# --- Transform and Pose ---
+
+
+def test_transform_normalises_a_nearly_unit_quaternion():
+    transform = Transform(rotation=(0.0, 0.0, 0.6 * 1.0005, 0.8 * 1.0005))
+    assert transform.rotation == pytest.approx((0.0, 0.0, 0.6, 0.8), abs=1e-15)
+    assert math.hypot(*transform.rotation) == pytest.approx(1.0, abs=1e-15)
+
+
+@settings(max_examples=200, deadline=None)
+@given(quaternions())
+def test_transform_normalisation_is_idempotent(rotation: tuple[float, float, float, float]):
+    once = Transform(rotation=rotation).rotation
+    assert Transform(rotation=once).rotation == once
+
+
+@pytest.mark.parametrize(
+    "rotation", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.01), (1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.99)]
+)
+def test_transform_refuses_a_non_unit_quaternion(rotation: tuple[float, ...]):
+    with pytest.raises(ValidationError, match="rotation quaternion \\(x, y, z, w\\) must have unit norm"):
+        Transform(rotation=rotation)
+
+
+def test_transform_refuses_non_finite_numbers():
+    with pytest.raises(ValidationError, match="translation"):
+        Transform(translation=(0.0, math.inf, 0.0))
+    with pytest.raises(ValidationError, match="rotation"):
+        Transform(rotation=(math.nan, 0.0, 0.0, 1.0))
+
+
+def test_transform_defaults_to_identity():
+    assert Transform() == Transform(translation=(0, 0, 0), rotation=(0, 0, 0, 1))
+
+
+@pytest.mark.parametrize("covariance", [None, tuple(float(i) for i in range(36))])
+def test_pose_accepts_no_covariance_or_a_6x6_one(covariance: tuple[float, ...] | None):
+    assert Pose(header=HEADER, child_frame_id="body/wand", covariance=covariance).covariance == covariance
+
+
+@pytest.mark.parametrize("covariance", [(), (0.0,) * 6, (0.0,) * 35, (0.0,) * 37])
+def test_pose_refuses_a_covariance_that_is_not_6x6(covariance: tuple[float, ...]):
+    with pytest.raises(ValidationError, match="covariance must hold 36 finite numbers"):
+        Pose(header=HEADER, child_frame_id="body/wand", covariance=covariance)
+
+
+# --- detections ---
+
+
+def markers(n_ids: int = 2, n_corners: int = 2, n_quality: int = 2, n_sides: int = 2) -> MarkerDetections:
+    return MarkerDetections(header=HEADER, dictionary="DICT_4X4_50", ids=np.arange(n_ids, dtype=np.int32),
+                            corners=f32(n_corners, 4, 2), quality=f32(n_quality), side_m=f32(n_sides))
+
+
+def test_detections_with_zero_rows_are_valid():
+    assert len(markers(0, 0, 0, 0).ids) == 0
+    assert len(BlobDetections(header=HEADER, centers=f32(0, 2), radii=f32(0), intensity=f32(0)).radii) == 0
+
+
+@pytest.mark.parametrize("counts", [(3, 2, 2, 2), (2, 3, 2, 2), (2, 2, 1, 2), (2, 2, 2, 0)])
+def test_marker_detections_refuse_mismatched_rows(counts: tuple[int, int, int, int]):
+    with pytest.raises(ValidationError, match="arrays must have the same number of rows"):
+        markers(*counts)
+
+
+def test_marker_ids_given_as_a_list_become_int32():
+    detections = MarkerDetections(header=HEADER, dictionary="", ids=[7, 9], corners=f32(2, 4, 2),
+                                  quality=f32(2), side_m=f32(2))
+    assert detections.ids.dtype == np.int32
+    assert detections.ids.tolist() == [7, 9]
+
+
+def test_marker_corners_refuse_a_wrong_shape():
+    with pytest.raises(ValidationError, match=r"shape \(2, 3, 2\) does not fit \(N, 4, 2\)"):
+        MarkerDetections(header=HEADER, dictionary="", ids=np.arange(2, dtype=np.int32), corners=f32(2, 3, 2),
+                         quality=f32(2), side_m=f32(2))
+
+
+def test_blob_detections_refuse_mismatched_rows():
+    with pytest.raises(ValidationError, match="same number of rows"):
+        BlobDetections(header=HEADER, centers=f32(3, 2), radii=f32(3), intensity=f32(2))
+
+
+@pytest.mark.parametrize("descriptors", [np.zeros((2, 32), np.uint8), f32(2, 128), f32(2, 0)])
+def test_keypoints_take_binary_float_or_no_descriptors(descriptors: np.ndarray):
+    keypoints = Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
+                          descriptors=descriptors)
+    assert keypoints.descriptors.dtype == descriptors.dtype
+
+
+def test_keypoints_refuse_mismatched_descriptor_rows():
+    with pytest.raises(ValidationError, match="same number of rows"):
+        Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
+                  descriptors=np.zeros((3, 32), np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("ids", "colors", "valid"), [(4, 4, True), (4, 0, True), (3, 4, False), (4, 2, False)]
+)
+def test_point_cloud_needs_an_id_per_point_and_a_colour_per_point_or_none(ids: int, colors: int, valid: bool):
+    def build() -> PointCloud:
+        return PointCloud(header=HEADER, points=f32(4, 3), ids=np.arange(ids),
+                          colors=np.zeros((colors, 3), np.uint8))
+
+    if valid:
+        assert len(build().points) == 4
+    else:
+        with pytest.raises(ValidationError, match="4 points need as many ids"):
+            build()
+
+
+# --- JSON views ---
+
+
+def test_to_json_lists_arrays_and_names_schema_and_version():
+    image = Image(header=HEADER, encoding="mono8", data=np.arange(6, dtype=np.uint8).reshape(2, 3))
+    view = to_json(image)
+    assert list(view)[:2] == ["schema", "version"]
+    assert view == {"schema": "artrack.Image", "version": 1, "encoding": "mono8",
+                    "header": {"stamp_ns": 1_700_000_000_000_000_000, "frame_id": "cam0", "seq": 3},
+                    "data": [[0, 1, 2], [3, 4, 5]]}
+
+
+@pytest.mark.parametrize(("limit", "summarised"), [(None, False), (6, False), (5, True), (0, True)])
+def test_to_json_summarises_arrays_larger_than_the_limit(limit: int | None, summarised: bool):
+    image = Image(header=HEADER, encoding="mono8", data=np.zeros((2, 3), np.uint8))
+    data = to_json(image, max_array_elements=limit)["data"]
+    assert data == ({"dtype": "uint8", "shape": [2, 3]} if summarised else [[0, 0, 0], [0, 0, 0]])
+
+
+def test_to_json_summarises_each_array_on_its_own():
+    cloud = PointCloud(header=HEADER, points=f32(4, 3), ids=np.arange(4), colors=np.zeros((0, 3), np.uint8))
+    view = to_json(cloud, max_array_elements=4)
+    assert view["points"] == {"dtype": "float32", "shape": [4, 3]}
+    assert view["ids"] == [0, 1, 2, 3]
+    assert view["colors"] == []
+
+
+def test_to_json_writes_enums_as_their_values():
+    assert to_json(Pose(header=HEADER, child_frame_id="marker/7"))["state"] == "tracking"
