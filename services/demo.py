@@ -44,7 +44,7 @@ def run_demo(bus: BusConfig, frames: int, fps: float, out: TextIO = sys.stdout) 
         inbox = Inbox(session, keys.echo(CAMERA), Image, Role.FRAME, depth=1024)
         env = bus.to_env()
         supervisor = Supervisor([
-            ProcessSpec("cam", node_command("capture", "cam", {"camera": CAMERA, "frames": frames, "fps": fps,
+            ProcessSpec("cam", node_command("capture", "cam", {"cameras": [CAMERA], "frames": frames, "fps": fps,
                                                                "wait_for_subscriber": True}), env),
             # The demo counts every frame, so the relay queues ~2 s of frames instead of keeping only
             # the newest: a busy machine's scheduling stalls must not show up as losses.

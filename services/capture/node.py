@@ -1,61 +1,208 @@
-"""Capture node: publishes Image + CameraInfo frames from a source at a steady pace.
+"""Capture node: publishes Image + CameraInfo (+ GroundTruth) frames from sources named by URI.
 
-Until the full capture service lands, the one source is the moving test pattern
-(``services.capture.pattern``). Every frame is stamped with the wall-clock time it was
-made (``time.time_ns()``) and numbered from 0; its CameraInfo shares the header.
+Every camera has its own keys (``<camera>/image``, ``/camera_info``, ``/truth``); the
+frames of one instant share one header (stamp, sequence), whichever camera they come
+from. Several URIs make a rig: their frames are taken in step, one from each.
+
+Timing: with ``fps`` the node paces frames at that rate; without, it follows the source's
+own timing (a video's timestamps, a TUM list, a scene's clock), devices pace themselves,
+and image folders without times go at 30 fps. Stamps are the wall-clock time of capture
+(``stamps = "wall"``) or the source's own time (``"source"``, for evaluating against a
+data set's ground truth). CameraInfo comes from ``calib`` files (ROS camera_info YAML,
+one per camera), else from the source (synthetic scenes know theirs); a camera with
+neither publishes no CameraInfo, and trackers report it uncalibrated.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Literal
+from pathlib import Path
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from protocol.keys import KeyName
 from protocol.message import Header
+from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
-from services.capture.pattern import DEFAULT_K, render_pattern
-from services.runtime.node import Node
+from services.capture.calibration import read_camera_info
+from services.capture.sources import FrameFault, Source, SourceError, SourceFrame, check_uri, open_source
+from services.runtime.convert import camera_info, frame_transforms
+from services.runtime.node import Node, NodeError
 from services.runtime.pubsub import Role
 
 SETTLE_S = 0.3
 """Pause after the first subscriber appears, so its own outputs reach their subscribers too."""
+UNTIMED_FPS = 30.0
+
+_ENCODINGS = {(np.dtype(np.uint8), 1): "mono8", (np.dtype(np.uint16), 1): "mono16",
+              (np.dtype(np.uint8), 3): "bgr8", (np.dtype(np.uint8), 4): "bgra8"}
+
+
+def _as_tuple(value: Any) -> Any:
+    return (value,) if isinstance(value, str | Path) else value
 
 
 class Params(BaseModel):
-    """Settings of a pattern source."""
+    """Settings of a capture node."""
 
     model_config = ConfigDict(extra="forbid")
 
-    source: Literal["synthetic:pattern"] = "synthetic:pattern"
-    camera: KeyName = "cam0"
-    fps: float = Field(default=30.0, gt=0, le=1000)
-    frames: int = Field(default=0, ge=0, description="stop after this many frames; 0 = run until stopped")
-    width: int = Field(default=640, ge=32, le=8192)
-    height: int = Field(default=480, ge=32, le=8192)
+    source: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
+        default=("synthetic:pattern",), min_length=1,
+        description="camera:N, video:PATH, images:DIR or synthetic:SCENE; several make a rig")
+    cameras: Annotated[tuple[KeyName, ...], BeforeValidator(_as_tuple)] = Field(
+        default=(), description="camera names; default: the scene's own, else cam0, cam1, ...")
+    fps: float | None = Field(default=None, gt=0, le=1000, description="pace; default: the source's own timing")
+    frames: int = Field(default=0, ge=0, description="stop after this many frames; 0 = until the source ends")
+    loop: bool = Field(default=False, description="start finite sources over when they end")
+    calib: Annotated[tuple[Path, ...], BeforeValidator(_as_tuple)] = Field(
+        default=(), description="ROS camera_info YAML per camera")
+    scene: dict[str, Any] = Field(default_factory=dict, description="options of a synthetic scene")
+    stamps: Literal["wall", "source"] = "wall"
     wait_for_subscriber: bool = Field(
         default=False, description="hold the first frame until something subscribes to the images")
 
+    @field_validator("source")
+    @classmethod
+    def _uris(cls, uris: tuple[str, ...]) -> tuple[str, ...]:
+        for uri in uris:
+            check_uri(uri)
+        return uris
+
+
+class Rig:
+    """The opened sources of a capture node, their camera names and calibration."""
+
+    def __init__(self, params: Params):
+        self.sources: list[Source] = []
+        try:
+            for uri in params.source:
+                self.sources.append(open_source(uri, frames=params.frames, scene_options=params.scene))
+        except SourceError:
+            self.close()
+            raise
+        own = [name for source in self.sources for name in source.camera_names]
+        if params.cameras and len(params.cameras) != len(own):
+            raise SourceError(f"{len(params.cameras)} camera names given for {len(own)} cameras")
+        if len(self.sources) > 1 and not params.cameras:
+            own = [f"cam{i}" for i in range(len(own))]
+        self.names = list(params.cameras or own)
+        self.renames = [dict(zip(source.camera_names, names, strict=True))
+                        for source, names in zip(self.sources, self._split(self.names), strict=True)]
+        known = {rename[name]: model for source, rename in zip(self.sources, self.renames, strict=True)
+                 for name, model in source.calibration.items()}
+        if params.calib and len(params.calib) != len(self.names):
+            raise SourceError(f"{len(params.calib)} calibration files given for {len(self.names)} cameras")
+        for name, path in zip(self.names, params.calib, strict=False):
+            known[name] = read_camera_info(path)
+        self.calibration = known
+
+    def _split(self, names: list[str]) -> list[list[str]]:
+        out, at = [], 0
+        for source in self.sources:
+            out.append(names[at: at + len(source.camera_names)])
+            at += len(source.camera_names)
+        return out
+
+    def instants(self):
+        """Frames of every source taken in step: lists of SourceFrame | FrameFault, one per source."""
+        return zip(*(source.frames() for source in self.sources), strict=False)
+
+    def close(self) -> None:
+        for source in self.sources:
+            source.close()
+
 
 def run(node: Node, params: Params) -> None:
-    images = node.publisher(node.keys.image(params.camera), Image, Role.FRAME)
-    infos = node.publisher(node.keys.camera_info(params.camera), CameraInfo, Role.RESULT)
+    try:
+        rig = Rig(params)
+    except (SourceError, ValueError) as exc:
+        raise NodeError(str(exc)) from exc
+    try:
+        _publish(node, params, rig)
+    finally:
+        rig.close()
+
+
+def _publish(node: Node, params: Params, rig: Rig) -> None:
+    keys = node.keys
+    images = {name: node.publisher(keys.image(name), Image, Role.FRAME) for name in rig.names}
+    infos = {name: node.publisher(keys.camera_info(name), CameraInfo) for name in rig.calibration}
+    truths = {name: node.publisher(keys.truth(name), GroundTruth)
+              for source, rename in zip(rig.sources, rig.renames, strict=True)
+              if source.uri.startswith("synthetic:") for name in rename.values()}
     if params.wait_for_subscriber:
-        while node.running and not images.matched():
+        while node.running and not any(p.matched() for p in images.values()):
             node.wait(0.02)
         node.wait(SETTLE_S)
-    period = 1.0 / params.fps
-    next_at = time.monotonic()
-    index = 0
-    while node.running and (params.frames == 0 or index < params.frames):
-        started = time.perf_counter()
-        header = Header(stamp_ns=time.time_ns(), frame_id=params.camera, seq=index)
-        images.put(Image(header=header, encoding="mono8",
-                         data=render_pattern(index, params.width, params.height)))
-        infos.put(CameraInfo(header=header, width=params.width, height=params.height, k=DEFAULT_K,
-                             d=(0.0, 0.0, 0.0, 0.0, 0.0)))
-        node.processed(time.perf_counter() - started)
-        index += 1
-        next_at += period
-        node.wait(next_at - time.monotonic())
+    seq = 0
+    while node.running and (params.frames == 0 or seq < params.frames):
+        clock = _Pacer(params.fps)
+        for instant in rig.instants():
+            if not node.running or (params.frames and seq >= params.frames):
+                break
+            faults = [f for f in instant if isinstance(f, FrameFault)]
+            for source, fault in zip(rig.sources, instant, strict=True):
+                if isinstance(fault, FrameFault):
+                    node.report("frame_fault", f"frame {fault.index}: {fault.reason}", source.uri)
+            if faults:
+                continue
+            clock.wait_for(node, instant[0].time_s, untimed=not _live(rig))
+            started = time.perf_counter()
+            header_stamp = _stamp(params, instant[0])
+            for frame, rename in zip(instant, rig.renames, strict=True):
+                _publish_frame(frame, rename, header_stamp, seq, images, infos, truths, rig)
+            node.processed(time.perf_counter() - started)
+            seq += 1
+        if not params.loop:
+            break
+
+
+def _live(rig: Rig) -> bool:
+    return any(source.uri.startswith("camera:") for source in rig.sources)
+
+
+def _stamp(params: Params, frame: SourceFrame) -> int:
+    if params.stamps == "source" and frame.time_s is not None:
+        return round(frame.time_s * 1e9)
+    return time.time_ns()
+
+
+def _publish_frame(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: int, images, infos, truths,
+                   rig: Rig) -> None:
+    for own_name, image in frame.images.items():
+        name = rename[own_name]
+        header = Header(stamp_ns=stamp, frame_id=name, seq=seq)
+        encoding = _ENCODINGS[(image.dtype, image.shape[2] if image.ndim == 3 else 1)]
+        images[name].put(Image(header=header, encoding=encoding, data=image))
+        if name in infos:
+            infos[name].put(camera_info(header, rig.calibration[name]))
+        if name in truths:
+            truths[name].put(GroundTruth(header=header, transforms=frame_transforms(frame.truth.get(own_name, []))))
+
+
+class _Pacer:
+    """Sleeps so frames leave at ``fps``, or at the source's own pace (its frame times)."""
+
+    def __init__(self, fps: float | None):
+        self.period = None if fps is None else 1.0 / fps
+        self.start_wall: float | None = None
+        self.start_source: float | None = None
+        self.count = 0
+
+    def wait_for(self, node: Node, time_s: float | None, untimed: bool) -> None:
+        now = time.monotonic()
+        if self.start_wall is None:
+            self.start_wall, self.start_source = now, time_s
+        if self.period is not None:
+            due = self.start_wall + self.count * self.period
+        elif time_s is not None and self.start_source is not None:
+            due = self.start_wall + (time_s - self.start_source)
+        elif untimed:
+            due = self.start_wall + self.count / UNTIMED_FPS
+        else:
+            due = now
+        self.count += 1
+        node.wait(due - now)

@@ -42,6 +42,13 @@ LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
 
 
+class NodeError(RuntimeError):
+    """A node cannot do its job (a missing camera, a bad file): the message says what and why.
+
+    ``run_node`` logs it as one line, without a traceback, and exits with code 2.
+    """
+
+
 class Node:
     """A named participant on the bus (see the module docstring)."""
 
@@ -229,6 +236,9 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None])
         log.info("node %s (%s) up on %s, pid %d", name, kind, node.keys.prefix, os.getpid())
         try:
             body(node)
+        except NodeError as exc:
+            log.error("node %s: %s", name, exc)
+            return 2
         except Exception:
             log.exception("node %s failed", name)
             return 1

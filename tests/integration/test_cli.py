@@ -17,7 +17,7 @@ from .support import START_S, json_lines, live_names, start_node, states, wait_l
 
 pytestmark = pytest.mark.integration
 
-SMALL_CAMERA = {"camera": "cam0", "fps": 20, "width": 64, "height": 48}
+SMALL_CAMERA = {"cameras": ["cam0"], "fps": 20, "scene": {"width": 64, "height": 64}}
 
 
 def _subcommands() -> list[str]:
@@ -68,7 +68,7 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
         assert line["key"] == bus.keys.image("cam0")
         assert (line["schema"], line["version"]) == ("artrack.Image", 1)
         assert line["encoding"] == "mono8"
-        assert line["data"] == {"dtype": "uint8", "shape": [48, 64]}  # large arrays are summarised
+        assert line["data"] == {"dtype": "uint8", "shape": [64, 64]}  # large arrays are summarised
         assert line["header"]["frame_id"] == "cam0" and line["header"]["stamp_ns"] > 0
     seqs = [line["header"]["seq"] for line in lines]
     assert seqs == sorted(set(seqs))
@@ -78,7 +78,7 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
     lines = json_lines(infos.stdout)
     assert len(lines) == 2, infos.stdout
     for line in lines:
-        assert (line["schema"], line["width"], line["height"]) == ("artrack.CameraInfo", 64, 48)
+        assert (line["schema"], line["width"], line["height"]) == ("artrack.CameraInfo", 64, 64)
         assert len(line["k"]) == 9 and line["k"][8] == 1.0
 
 

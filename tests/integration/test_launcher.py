@@ -26,10 +26,9 @@ autostart_router = {str(autostart).lower()}
 
 [nodes.cam]
 kind = "capture"
-camera = "cam0"
+cameras = ["cam0"]
 fps = 20
-width = 64
-height = 48
+scene = {{ width = 64, height = 64 }}
 
 [nodes.echo]
 kind = "echo"

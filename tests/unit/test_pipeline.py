@@ -24,7 +24,7 @@ namespace = "site/lab1"
 
 [nodes.cam]
 kind = "capture"
-camera = "left"
+cameras = ["left"]
 fps = 15
 restart = false
 
@@ -53,7 +53,7 @@ def test_pipeline_is_read_with_bus_nodes_and_params(tmp_path):
     assert spec.bus == {"rig": "demo", "namespace": "site/lab1"}
     assert list(spec.nodes) == ["cam", "relay"]
     cam, relay = spec.nodes["cam"], spec.nodes["relay"]
-    assert (cam.kind, cam.restart, cam.params) == ("capture", False, {"camera": "left", "fps": 15})
+    assert (cam.kind, cam.restart, cam.params) == ("capture", False, {"cameras": ["left"], "fps": 15})
     assert (relay.kind, relay.restart, relay.params) == ("echo", True, {"camera": "left"})
 
 
@@ -63,7 +63,7 @@ def test_processes_run_each_node_with_its_params_and_the_bus(tmp_path):
     cam, relay = processes(spec, bus)
     assert (cam.name, cam.restart, relay.name, relay.restart) == ("cam", False, "relay", True)
     assert cam.argv[:3] == (sys.executable, "-m", "services.cli")
-    params = json.dumps({"camera": "left", "fps": 15})
+    params = json.dumps({"cameras": ["left"], "fps": 15})
     assert cam.argv[3:] == ("node", "capture", "--name", "cam", "--params", params)
     assert BusConfig.from_env(cam.env) == bus
     assert bus.keys.image("left") == "site/lab1/demo/left/image"

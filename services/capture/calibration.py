@@ -1,0 +1,94 @@
+"""Camera calibration files in the ROS ``camera_info`` YAML layout, read and written.
+
+The layout (what ``camera_calibration`` and ``camera_info_manager`` write)::
+
+    image_width: 640
+    image_height: 480
+    camera_name: cam0
+    camera_matrix: {rows: 3, cols: 3, data: [fx, 0, cx, 0, fy, cy, 0, 0, 1]}
+    distortion_model: plumb_bob
+    distortion_coefficients: {rows: 1, cols: 5, data: [k1, k2, p1, p2, k3]}
+    rectification_matrix: {rows: 3, cols: 3, data: [...]}
+    projection_matrix: {rows: 3, cols: 4, data: [...]}
+
+artrack adds an optional ``T_rig_camera`` (4x4, same ``{rows, cols, data}`` form) for
+cameras of a multi-camera rig.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from services.geometry.camera import CameraModel
+
+
+class CalibrationError(ValueError):
+    """A calibration file that cannot be used; the message names the file and the field."""
+
+
+def _matrix(document: dict, field: str, rows: int, cols: int, path: Path, required: bool = True) -> np.ndarray | None:
+    entry = document.get(field)
+    if entry is None:
+        if required:
+            raise CalibrationError(f"{path}: missing {field}")
+        return None
+    data = entry.get("data") if isinstance(entry, dict) else None
+    if not isinstance(data, list) or not all(isinstance(v, int | float) for v in data):
+        raise CalibrationError(f"{path}: {field}.data must be a list of numbers")
+    if cols is None:
+        return np.asarray(data, dtype=np.float64)
+    if len(data) != rows * cols:
+        raise CalibrationError(f"{path}: {field} needs {rows * cols} numbers, has {len(data)}")
+    return np.asarray(data, dtype=np.float64).reshape(rows, cols)
+
+
+def read_camera_info(path: Path) -> CameraModel:
+    """Read a ROS camera_info YAML file (plumb_bob distortion) into a CameraModel."""
+    try:
+        document = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(document, dict):
+        raise CalibrationError(f"{path}: not a camera_info mapping")
+    for field in ("image_width", "image_height"):
+        if not isinstance(document.get(field), int) or document[field] <= 0:
+            raise CalibrationError(f"{path}: {field} must be a positive integer")
+    model = document.get("distortion_model", "plumb_bob")
+    if model != "plumb_bob":
+        raise CalibrationError(f"{path}: distortion_model {model!r} is not supported (plumb_bob only)")
+    K = _matrix(document, "camera_matrix", 3, 3, path)
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+        raise CalibrationError(f"{path}: camera_matrix must have fx, fy > 0 and a final 1")
+    dist = _matrix(document, "distortion_coefficients", 1, None, path, required=False)
+    dist = np.zeros(5) if dist is None else dist
+    if len(dist) not in (0, 4, 5):
+        raise CalibrationError(f"{path}: plumb_bob takes 4 or 5 distortion coefficients, has {len(dist)}")
+    T = _matrix(document, "T_rig_camera", 4, 4, path, required=False)
+    return CameraModel(
+        name=str(document.get("camera_name") or Path(path).stem),
+        width=document["image_width"], height=document["image_height"], K=K,
+        dist=np.pad(dist, (0, 5 - len(dist))), T_rig_camera=np.eye(4) if T is None else T,
+    )
+
+
+def write_camera_info(path: Path, camera: CameraModel) -> None:
+    """Write ``camera`` as a ROS camera_info YAML file."""
+    P = np.hstack([camera.K, np.zeros((3, 1))])
+
+    def block(M: np.ndarray) -> dict:
+        M = np.atleast_2d(M)
+        return {"rows": M.shape[0], "cols": M.shape[1], "data": [float(v) for v in M.ravel()]}
+
+    document = {
+        "image_width": camera.width, "image_height": camera.height, "camera_name": camera.name,
+        "camera_matrix": block(camera.K), "distortion_model": "plumb_bob",
+        "distortion_coefficients": block(camera.dist.reshape(1, -1)),
+        "rectification_matrix": block(np.eye(3)), "projection_matrix": block(P),
+        "T_rig_camera": block(camera.T_rig_camera),
+    }
+    Path(path).write_text(yaml.safe_dump(document, sort_keys=False, default_flow_style=None))

@@ -1,0 +1,173 @@
+"""``ir_rig``: a calibrated multi-camera IR bar watching rigid bodies of retro-reflective spheres.
+
+World = the rig frame: origin at the middle of the bar, axes as a camera looking forward
+(x right along the bar, y down, z forward). Camera ``cam<i>`` sits on the bar at
+x = (i - (n - 1) / 2) * baseline and is toed in to look at (0, 0, convergence); its
+``T_rig_camera`` is its pose in the world. Intrinsics differ slightly between cameras and,
+unless ``distortion`` is off, each has a small plumb_bob distortion that the rendering
+goes through exactly (every pixel's ray is undistorted once, at init).
+
+Images are dark with the spheres as bright anti-aliased discs: a pixel is lit by the
+fraction of its ray's angular footprint that falls inside the sphere's silhouette cone,
+so the blob's size follows the sphere radius and depth. Bodies (see ``LAYOUTS``; their
+frame is the one the layout coordinates are written in, origin near the spheres' centroid)
+move smoothly about 1.8 to 2.6 m in front of the bar. Occlusion: time is cut into
+half-second windows; in a fraction ``occlusion_rate`` of them one sphere, chosen per
+window, is hidden from one camera (see ``occlusions``). Ground truth, listed under every
+camera: ``("world", "body/<name>", T_world_body)`` for every body.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.geometry.camera import CameraModel, intrinsics, look_at, pixel_rays, project_points
+from services.geometry.rotation import matrix_from_rotvec
+from services.geometry.se3 import invert, transform_points
+from services.geometry.trajectory import RigidPath, SinePath
+
+LAYOUTS: dict[str, np.ndarray] = {
+    "wand": np.array([[-0.065, -0.089, 0.0], [-0.012, 0.046, 0.0], [0.077, 0.043, 0.0]]),
+    "tool": np.array([[0.032, -0.046, -0.012], [0.037, 0.033, 0.035], [-0.109, -0.053, -0.003],
+                      [0.04, 0.067, -0.02]]),
+    "head": np.array([[0.062, 0.022, 0.028], [0.059, -0.017, -0.031], [-0.008, 0.057, -0.011],
+                      [-0.061, -0.1, 0.005], [-0.053, 0.038, 0.009]]),
+    "glove": np.array([[0.054, -0.03, -0.013], [0.058, -0.092, -0.012], [-0.09, -0.009, -0.033],
+                       [-0.044, 0.051, -0.018], [-0.015, 0.039, 0.041], [0.038, 0.041, 0.034]]),
+}
+"""Body name -> (N, 3) sphere centres in the body frame, metres. Within a body, spheres are at
+least 50 mm apart and no two pairwise distances are within 4 mm; no triangle of spheres of one
+body matches one of another body to within 5 mm (side by side)."""
+
+HFOV_DEG = 56.0
+BACKGROUND, SPHERE_PEAK = 12, 240
+OCCLUSION_WINDOW_S = 0.5
+BODY_DEPTH_M = 2.2
+CAMERA_PURPOSE, PATH_PURPOSE, OCCLUSION_PURPOSE = 100, 101, 102
+
+
+@dataclass(frozen=True)
+class IrRigOptions(SceneOptions):
+    """``camera_count`` cameras ``baseline`` metres apart, toed in to cross at ``convergence`` metres;
+    ``distortion``: small plumb_bob distortion (else none); ``body_count`` bodies (the first of
+    ``LAYOUTS``); ``sphere_radius``: metres; ``occlusion_rate``: fraction of half-second windows
+    with one sphere hidden from one camera."""
+
+    camera_count: int = 2
+    baseline: float = 0.3
+    convergence: float = 2.5
+    distortion: bool = True
+    body_count: int = 3
+    sphere_radius: float = 0.008
+    occlusion_rate: float = 0.25
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.check_int("camera_count", 2, 8)
+        self.check_float("baseline", 0.01, 10.0)
+        self.check_float("convergence", 0.5, 100.0)
+        self.check_bool("distortion")
+        self.check_int("body_count", 1, len(LAYOUTS))
+        self.check_float("sphere_radius", 0.001, 0.05)
+        self.check_float("occlusion_rate", 0.0, 1.0)
+
+
+class IrRigScene(SyntheticScene):
+    """Attributes: ``bodies`` (name -> (N, 3) sphere centres, body frame), ``sphere_radius`` (m);
+    ``body_poses(index)`` and ``occlusions(index)`` give a frame's truth and hidden spheres."""
+
+    name = "ir_rig"
+    Options = IrRigOptions
+
+    def __init__(self, options: IrRigOptions | None = None):
+        super().__init__(options)
+        o = self.options
+        self.sphere_radius = o.sphere_radius
+        self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
+        self.cameras = self.make_cameras()
+        self.rays = {c.name: pixel_rays(c.K, c.dist, c.width, c.height) for c in self.cameras}
+        self.T_camera_world = {c.name: invert(c.T_rig_camera) for c in self.cameras}
+        rng = scene_rng(o.seed, PATH_PURPOSE)
+        spread = np.linspace(-0.35, 0.35, o.body_count) if o.body_count > 1 else np.zeros(1)
+        self.paths = {
+            name: RigidPath(SinePath.random(rng, (x, 0.1 * (-1) ** k, BODY_DEPTH_M), (0.25, 0.2, 0.35), (4.0, 10.0)),
+                            SinePath.random(rng, (0.0, 0.0, 0.0), (0.6, 0.6, 0.8), (5.0, 12.0)),
+                            matrix_from_rotvec(rng.normal(0.0, 1.0, 3)))
+            for k, (name, x) in enumerate(zip(self.bodies, spread, strict=True))
+        }
+
+    def make_cameras(self) -> tuple[CameraModel, ...]:
+        """The bar's cameras: toed-in poses, slightly different intrinsics, small distortion."""
+        o = self.options
+        rng = scene_rng(o.seed, CAMERA_PURPOSE)
+        cameras = []
+        for i in range(o.camera_count):
+            K = intrinsics(o.width, o.height, HFOV_DEG)
+            K[[0, 1], [0, 1]] *= rng.uniform(0.99, 1.01, 2)
+            K[:2, 2] += rng.uniform(-4.0, 4.0, 2)
+            dist = (np.array([rng.uniform(-0.08, -0.04), rng.uniform(0.0, 0.02), *rng.uniform(-5e-4, 5e-4, 2), 0.0])
+                    if o.distortion else np.zeros(5))
+            eye = np.array([(i - (o.camera_count - 1) / 2) * o.baseline, 0.0, 0.0])
+            T_rig_camera = look_at(eye, (0.0, 0.0, o.convergence), (0.0, -1.0, 0.0))
+            cameras.append(CameraModel(f"cam{i}", o.width, o.height, K, dist, T_rig_camera))
+        return tuple(cameras)
+
+    def body_poses(self, index: int) -> dict[str, np.ndarray]:
+        """Body name -> (4, 4) ``T_world_body`` in frame ``index``."""
+        t = self.time_s(index)
+        return {name: path.pose(t) for name, path in self.paths.items()}
+
+    def occlusions(self, index: int) -> set[tuple[str, str, int]]:
+        """``{(camera, body, sphere index)}`` hidden in frame ``index`` (at most one sphere)."""
+        window = int(self.time_s(index) // OCCLUSION_WINDOW_S)
+        rng = scene_rng(self.options.seed, OCCLUSION_PURPOSE, window)
+        if rng.random() >= self.options.occlusion_rate:
+            return set()
+        body = list(self.bodies)[int(rng.integers(len(self.bodies)))]
+        sphere = int(rng.integers(len(self.bodies[body])))
+        return {(self.cameras[int(rng.integers(len(self.cameras)))].name, body, sphere)}
+
+    def draw(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Truth]]:
+        poses = self.body_poses(index)
+        hidden = self.occlusions(index)
+        truth = [("world", f"body/{name}", T) for name, T in poses.items()]
+        spheres = [(name, j, centre) for name, T in poses.items()
+                   for j, centre in enumerate(transform_points(T, self.bodies[name]))]
+        images = {}
+        for camera in self.cameras:
+            image = np.full((camera.height, camera.width), BACKGROUND, np.uint8)
+            visible = [(name, j, c) for name, j, c in spheres if (camera.name, name, j) not in hidden]
+            centres_cam = transform_points(self.T_camera_world[camera.name], np.array([c for _, _, c in visible]))
+            in_front = centres_cam[:, 2] > 2 * self.sphere_radius
+            pixels = project_points(centres_cam[in_front], camera.K, camera.dist)
+            for centre, pixel in zip(centres_cam[in_front], pixels, strict=True):
+                draw_sphere(image, self.rays[camera.name], centre, self.sphere_radius, pixel, camera.K[0, 0])
+            images[camera.name] = image
+        return images, {camera.name: list(truth) for camera in self.cameras}
+
+
+def draw_sphere(image: np.ndarray, rays: np.ndarray, centre_cam: np.ndarray, radius: float,
+                pixel: np.ndarray, focal_px: float) -> None:
+    """Brighten ``image`` in place where the sphere (centre (3,) camera frame, ``radius`` m) covers pixels.
+
+    ``rays``: (H, W, 3) unit pixel rays; ``pixel``: the centre's projection (a window is drawn
+    around it). Coverage ramps linearly over one pixel across the silhouette's edge.
+    """
+    distance = float(np.linalg.norm(centre_cam))
+    direction = centre_cam / distance
+    sin_radius = radius / distance
+    half = int(np.ceil(1.2 * focal_px * sin_radius)) + 2
+    h, w = image.shape
+    x0, y0 = max(int(pixel[0]) - half, 0), max(int(pixel[1]) - half, 0)
+    x1, y1 = min(int(pixel[0]) + half + 1, w), min(int(pixel[1]) + half + 1, h)
+    if x0 >= x1 or y0 >= y1:
+        return
+    window_rays = rays[y0:y1, x0:x1].astype(np.float64)
+    along = window_rays @ direction
+    sin_off_axis = np.linalg.norm(window_rays - along[..., None] * direction, axis=2)
+    coverage = np.clip((sin_radius - sin_off_axis) * focal_px + 0.5, 0.0, 1.0) * (along > 0)
+    lit = (BACKGROUND + (SPHERE_PEAK - BACKGROUND) * coverage + 0.5).astype(np.uint8)
+    np.maximum(image[y0:y1, x0:x1], lit, out=image[y0:y1, x0:x1])

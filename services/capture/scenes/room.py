@@ -1,0 +1,158 @@
+"""``room``: a textured room with boxes on the floor, seen by one camera walking around inside.
+
+World = room frame, z up: origin at the centre of the floor, x along the room's length,
+y across it; the room spans |x| <= length/2, |y| <= width/2, 0 <= z <= height. Every
+face (floor, ceiling, four walls, the visible sides and top of each box) carries its own
+procedural texture; the north wall (y = +width/2) also carries a chessboard poster
+(``CHECKER_INNER`` inner corners, ``CHECKER_SQUARE_M`` squares, see ``checker_corners``).
+
+The camera (cam0; the rig is the camera, ``T_rig_camera`` = identity, no distortion) walks
+over the free middle of the room at eye height 1.35 to 1.65 m (above every box), looking
+around with a slowly swinging heading and pitch: translation and rotation together, as a
+SLAM sequence needs. Ground truth: ``("world", "cam0", T_world_cam0)`` in every frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.capture.scenes.compositing import Face, render_faces
+from services.capture.scenes.plane import PlaneTexture, texel_from_plane
+from services.capture.scenes.texture import procedural_texture
+from services.geometry.camera import CameraModel, intrinsics, look_at
+from services.geometry.se3 import invert, make_transform, transform_points
+from services.geometry.trajectory import SinePath
+
+HFOV_DEG = 64.0
+TEXELS_PER_M = 200
+LENGTH_M, WIDTH_M, HEIGHT_M = 6.0, 5.0, 2.7
+BOXES = (
+    ((-2.1, -1.6), (0.9, 0.7, 0.9)),
+    ((2.0, -1.5), (1.0, 0.6, 0.5)),
+    ((1.9, 1.4), (0.6, 0.6, 1.0)),
+    ((-2.2, 1.5), (0.8, 0.5, 0.7)),
+)
+"""(floor centre (x, y), size (x, y, z)) of each box, metres; they are axis aligned."""
+CHECKER_INNER = (9, 6)
+CHECKER_SQUARE_M = 0.1
+CHECKER_CENTRE_M = (0.0, 1.5)
+"""Where the poster's centre is on the north wall: (x, z)."""
+BACKGROUND = 0
+UP = np.array([0.0, 0.0, 1.0])
+SIDE_NORMALS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
+TEXTURE_PURPOSE, PATH_PURPOSE = 100, 101
+
+
+@dataclass(frozen=True)
+class RoomOptions(SceneOptions):
+    """``boxes``: how many of the room's boxes to place (0 to 4)."""
+
+    boxes: int = 4
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.check_int("boxes", 0, len(BOXES))
+
+
+def face_pose(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(4, 4) ``T_world_face`` of a face at ``centre`` whose visible side faces ``normal`` (z up world).
+
+    Walls and box sides are upright (face y = world z); floors and box tops have face x = world x
+    and ceilings face x = world x seen from below.
+    """
+    normal = np.asarray(normal, dtype=np.float64)
+    if abs(normal @ UP) > 0.5:
+        x_axis = np.array([1.0, 0.0, 0.0])
+        y_axis = np.cross(normal, x_axis)
+    else:
+        x_axis, y_axis = np.cross(UP, normal), UP
+    return make_transform(np.column_stack([x_axis, y_axis, normal]), centre)
+
+
+class RoomScene(SyntheticScene):
+    """Attributes: ``faces`` (list of ``Face``, world frame) and ``checker_corners`` ((N, 3) world,
+    the poster's inner corners row by row, left to right, from its top-left one);
+    ``camera_pose(index)`` gives ``T_world_cam0``."""
+
+    name = "room"
+    Options = RoomOptions
+
+    def __init__(self, options: RoomOptions | None = None):
+        super().__init__(options)
+        o = self.options
+        rng = scene_rng(o.seed, TEXTURE_PURPOSE)
+        self.faces = []
+        for name, centre, normal, size in self.layout():
+            T_world_face = face_pose(centre, normal)
+            image = procedural_texture(rng, *(max(round(side * TEXELS_PER_M), 1) for side in size))
+            if name == "wall_north":
+                self.checker_corners = transform_points(T_world_face, paint_checker(image, size))
+            self.faces.append(Face(name, T_world_face, PlaneTexture(image, *size)))
+        path_rng = scene_rng(o.seed, PATH_PURPOSE)
+        self.eye = SinePath.random(path_rng, (0.0, 0.0, 1.5), (1.2, 0.9, 0.15), (8.0, 16.0))
+        self.heading = SinePath.random(path_rng, (0.0, -0.25), (2.5, 0.2), (14.0, 30.0))
+        """(yaw about world z from +x, pitch) in radians."""
+        self.cameras = (CameraModel("cam0", o.width, o.height, intrinsics(o.width, o.height, HFOV_DEG),
+                                    np.zeros(5), np.eye(4)),)
+
+    def layout(self) -> list[tuple[str, np.ndarray, np.ndarray, tuple[float, float]]]:
+        """(name, centre, normal of the visible side, (width, height)) of every face."""
+        lx, ly, h = LENGTH_M / 2, WIDTH_M / 2, HEIGHT_M
+        faces = [
+            ("floor", np.array([0.0, 0.0, 0.0]), UP, (LENGTH_M, WIDTH_M)),
+            ("ceiling", np.array([0.0, 0.0, h]), -UP, (LENGTH_M, WIDTH_M)),
+            ("wall_north", np.array([0.0, ly, h / 2]), np.array([0.0, -1.0, 0.0]), (LENGTH_M, h)),
+            ("wall_south", np.array([0.0, -ly, h / 2]), np.array([0.0, 1.0, 0.0]), (LENGTH_M, h)),
+            ("wall_east", np.array([lx, 0.0, h / 2]), np.array([-1.0, 0.0, 0.0]), (WIDTH_M, h)),
+            ("wall_west", np.array([-lx, 0.0, h / 2]), np.array([1.0, 0.0, 0.0]), (WIDTH_M, h)),
+        ]
+        for b, ((x, y), size) in enumerate(BOXES[:self.options.boxes]):
+            size = np.array(size)
+            middle = np.array([x, y, size[2] / 2])
+            faces.append((f"box{b}_top", middle + UP * size[2] / 2, UP, (size[0], size[1])))
+            for k, normal in enumerate(SIDE_NORMALS):
+                across = size[1] if normal[0] else size[0]
+                faces.append((f"box{b}_side{k}", middle + normal * size / 2, normal, (across, size[2])))
+        return faces
+
+    def camera_pose(self, index: int) -> np.ndarray:
+        """(4, 4) ``T_world_cam0`` of frame ``index``."""
+        t = self.time_s(index)
+        eye = self.eye(t)
+        yaw, pitch = self.heading(t)
+        direction = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+        return look_at(eye, eye + direction, UP)
+
+    def draw(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Truth]]:
+        camera = self.cameras[0]
+        T_world_cam = self.camera_pose(index)
+        image = render_faces(self.faces, camera.K, invert(T_world_cam), (camera.width, camera.height), BACKGROUND)
+        return {"cam0": image}, {"cam0": [("world", "cam0", T_world_cam)]}
+
+
+def paint_checker(image: np.ndarray, size: tuple[float, float]) -> np.ndarray:
+    """Paint the chessboard poster into the north wall's texture ``image`` (covering ``size`` metres).
+
+    Returns the poster's inner corners, (N, 3) in the wall's face frame, row by row from the top left.
+    """
+    columns, rows = CHECKER_INNER
+    square = round(CHECKER_SQUARE_M * TEXELS_PER_M)
+    poster = np.full(((rows + 3) * square, (columns + 3) * square), 255, np.uint8)
+    for r in range(rows + 1):
+        for c in range(columns + 1):
+            if (r + c) % 2 == 0:
+                poster[(r + 1) * square:(r + 2) * square, (c + 1) * square:(c + 2) * square] = 0
+    from_plane = texel_from_plane(image.shape, *size)
+    centre = from_plane @ (CHECKER_CENTRE_M[0], CHECKER_CENTRE_M[1] - HEIGHT_M / 2, 1.0)
+    # texel (i, j) spans [i - 0.5, i + 0.5]: put the poster's edges on texel edges
+    left = int(round(centre[0] + 0.5 - poster.shape[1] / 2))
+    top = int(round(centre[1] + 0.5 - poster.shape[0] / 2))
+    image[top:top + poster.shape[0], left:left + poster.shape[1]] = poster
+    c, r = np.meshgrid(np.arange(columns), np.arange(rows))
+    texels = np.stack([left + (c.ravel() + 2) * square - 0.5, top + (r.ravel() + 2) * square - 0.5,
+                       np.ones(c.size)], axis=1)
+    plane = np.linalg.solve(from_plane, texels.T).T
+    return np.column_stack([plane[:, :2], np.zeros(len(plane))])

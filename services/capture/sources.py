@@ -1,0 +1,219 @@
+"""Frame sources named by URI: cameras, video files, image folders, synthetic scenes.
+
+==========================  ==============================================================
+``camera:N``                video device N through cv2.VideoCapture
+``video:PATH``              any file OpenCV reads; frame times from the container
+``images:DIR``              sorted image files; a TUM ``rgb.txt`` or KITTI ``times.txt`` in DIR
+                            (or its parent, for KITTI) gives the frame times, and so do file
+                            names that are numbers (TUM's ``<timestamp>.png``)
+``synthetic:SCENE``         a rendered scene with exact ground truth (services.capture.scenes)
+==========================  ==============================================================
+
+A source that cannot start (no device, missing or unreadable file, empty folder) raises
+:class:`SourceError` naming it. A frame that cannot be read mid-stream comes out as a
+:class:`FrameFault` so the caller can log, count and skip it. Pure: no bus here.
+"""
+
+from __future__ import annotations
+
+import re
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.capture.scenes import make_scene
+from services.capture.scenes.base import Truth
+from services.geometry.camera import CameraModel
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
+MAX_CONSECUTIVE_FAULTS = 30
+
+
+class SourceError(RuntimeError):
+    """A source that cannot deliver frames at all; the message names it and says why."""
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One instant of a source: ``images`` and ``truth`` by camera name.
+
+    ``time_s``: the source's own time of the frame in seconds (epoch seconds for TUM lists,
+    seconds from the start for videos, KITTI times and scenes), None when it has none.
+    Images are (H, W) or (H, W, 3|4) uint8/uint16 as OpenCV reads them.
+    """
+
+    index: int
+    time_s: float | None
+    images: dict[str, np.ndarray]
+    truth: dict[str, Truth] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FrameFault:
+    """Frame ``index`` could not be read; ``reason`` says why."""
+
+    index: int
+    reason: str
+
+
+class Source(ABC):
+    """Base of every source: a URI, its cameras' names, their calibration when known."""
+
+    uri: str
+    camera_names: tuple[str, ...] = ("cam0",)
+
+    @property
+    def calibration(self) -> dict[str, CameraModel]:
+        """Calibration the source itself knows, by camera name (synthetic scenes)."""
+        return {}
+
+    @abstractmethod
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        """Frames from the start of the source, in order."""
+
+    def close(self) -> None:  # noqa: B027 - most sources hold nothing to release
+        """Release devices and files (idempotent)."""
+
+
+def _read_image(path: Path) -> np.ndarray | None:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.dtype not in (np.uint8, np.uint16) or image.ndim not in (2, 3):
+        return None
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    return image
+
+
+class ImageFolderSource(Source):
+    """Image files of a folder, in order, with times when the folder says them."""
+
+    def __init__(self, uri: str, folder: Path):
+        self.uri = uri
+        if not folder.is_dir():
+            raise SourceError(f"{uri}: no such folder")
+        self.entries = _folder_entries(folder)
+        if not self.entries:
+            raise SourceError(f"{uri}: no image files in {folder} ({', '.join(sorted(IMAGE_SUFFIXES))})")
+
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        for index, (path, time_s) in enumerate(self.entries):
+            image = _read_image(path)
+            if image is None:
+                yield FrameFault(index, f"cannot read {path}")
+                continue
+            yield SourceFrame(index, time_s, {self.camera_names[0]: image})
+
+
+def _folder_entries(folder: Path) -> list[tuple[Path, float | None]]:
+    """``(file, time_s)`` per image: from rgb.txt (TUM), times.txt (KITTI), numeric names, or none."""
+    listing = folder / "rgb.txt"
+    if listing.is_file():
+        entries = []
+        for line in listing.read_text().splitlines():
+            parts = line.split()
+            if len(parts) >= 2 and not line.lstrip().startswith("#"):
+                entries.append((folder / parts[1], float(parts[0])))
+        return entries
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    for times in (folder / "times.txt", folder.parent / "times.txt"):
+        if times.is_file():
+            values = [float(v) for v in times.read_text().split()]
+            if len(values) == len(files):
+                return list(zip(files, values, strict=True))
+    if files and all(re.fullmatch(r"\d+\.\d+", p.stem) for p in files):
+        return sorted(((p, float(p.stem)) for p in files), key=lambda e: e[1])
+    return [(p, None) for p in files]
+
+
+class VideoSource(Source):
+    """Frames of a video file or a camera device, through cv2.VideoCapture."""
+
+    def __init__(self, uri: str, target: str | int, live: bool):
+        self.uri = uri
+        self.live = live
+        self.capture = cv2.VideoCapture(target)
+        if not self.capture.isOpened():
+            self.capture.release()
+            what = f"cannot open video device {target}" if live else "OpenCV cannot read this file"
+            raise SourceError(f"{uri}: {what}")
+        self.count = -1 if live else int(self.capture.get(cv2.CAP_PROP_FRAME_COUNT))
+
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        index, faults = 0, 0
+        while self.capture.isOpened():
+            ok, image = self.capture.read()
+            if not ok:
+                if not self.live and index >= self.count:
+                    return
+                faults += 1
+                if faults > MAX_CONSECUTIVE_FAULTS:
+                    raise SourceError(f"{self.uri}: {faults} frames in a row could not be read, giving up")
+                yield FrameFault(index, "frame could not be decoded")
+                index += 1
+                continue
+            faults = 0
+            time_s = None if self.live else self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1e3
+            yield SourceFrame(index, time_s, {self.camera_names[0]: image})
+            index += 1
+
+    def close(self) -> None:
+        self.capture.release()
+
+
+class SceneSource(Source):
+    """A synthetic scene: rendered frames with exact ground truth and known calibration."""
+
+    def __init__(self, uri: str, scene_name: str, frames: int, options: dict):
+        self.uri = uri
+        try:
+            self.scene = make_scene(scene_name, **options)
+        except ValueError as exc:
+            raise SourceError(f"{uri}: {exc}") from exc
+        self.count = frames
+        self.camera_names = tuple(c.name for c in self.scene.cameras)
+
+    @property
+    def calibration(self) -> dict[str, CameraModel]:
+        return {c.name: c for c in self.scene.cameras}
+
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        index = 0
+        while self.count == 0 or index < self.count:
+            frame = self.scene.render(index)
+            yield SourceFrame(index, frame.time_s, frame.images, frame.truth)
+            index += 1
+
+
+SCHEMES = ("camera", "video", "images", "synthetic")
+
+
+def check_uri(uri: str) -> tuple[str, str]:
+    """``(scheme, rest)`` of a well-formed source URI; ValueError saying what a URI looks like otherwise."""
+    scheme, _, rest = uri.partition(":")
+    if not rest or scheme not in SCHEMES:
+        raise ValueError(f"{uri!r} is not a source URI (camera:N, video:PATH, images:DIR or synthetic:SCENE)")
+    if scheme == "camera" and not rest.isdigit():
+        raise ValueError(f"{uri!r}: the camera is a device number, e.g. camera:0")
+    return scheme, rest
+
+
+def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None) -> Source:
+    """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless)."""
+    try:
+        scheme, rest = check_uri(uri)
+    except ValueError as exc:
+        raise SourceError(str(exc)) from exc
+    if scheme == "camera":
+        return VideoSource(uri, int(rest), live=True)
+    if scheme == "video":
+        path = Path(rest).expanduser()
+        if not path.is_file():
+            raise SourceError(f"{uri}: no such file")
+        return VideoSource(uri, str(path), live=False)
+    if scheme == "images":
+        return ImageFolderSource(uri, Path(rest).expanduser())
+    return SceneSource(uri, rest, frames, scene_options or {})

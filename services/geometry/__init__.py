@@ -1,0 +1,1 @@
+"""Pure numpy/OpenCV geometry shared by every estimator; imports nothing of artrack's."""

@@ -1,0 +1,76 @@
+"""Rotations: matrices, unit quaternions (x, y, z, w) and rotation vectors.
+
+Matrices are (3, 3) float64 proper rotations. Quaternions follow the Hamilton convention
+with the scalar last, ``q = (x, y, z, w)``, the order the protocol, scipy and Rerun use;
+``q`` and ``-q`` are the same rotation, and functions here return ``w >= 0``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(4,) unit quaternion (x, y, z, w), w >= 0, of the (3, 3) rotation ``R``.
+
+    Shepperd's method: pick the largest of the four squared components to divide by,
+    so the result stays accurate near 180 degrees.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    trace = np.trace(R)
+    squares = np.array([1 + 2 * R[0, 0] - trace, 1 + 2 * R[1, 1] - trace, 1 + 2 * R[2, 2] - trace, 1 + trace])
+    i = int(np.argmax(squares))
+    q = np.empty(4)
+    q[i] = np.sqrt(max(squares[i], 0.0)) / 2
+    d = 4 * q[i]
+    if i == 3:
+        q[0], q[1], q[2] = (R[2, 1] - R[1, 2]) / d, (R[0, 2] - R[2, 0]) / d, (R[1, 0] - R[0, 1]) / d
+    else:
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[j] = (R[j, i] + R[i, j]) / d
+        q[k] = (R[k, i] + R[i, k]) / d
+        q[3] = (R[k, j] - R[j, k]) / d
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the quaternion ``q`` = (x, y, z, w) (normalised first)."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a rotation vector (axis * angle, radians), via cv2.Rodrigues."""
+    return cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]
+
+
+def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(3,) rotation vector (axis * angle, radians) of the (3, 3) rotation ``R``.
+
+    Through the quaternion, which stays accurate for tiny angles where cv2.Rodrigues
+    rounds to zero.
+    """
+    q = quaternion_from_matrix(R)
+    sin_half = np.linalg.norm(q[:3])
+    if sin_half < 1e-300:
+        return np.zeros(3)
+    return q[:3] / sin_half * 2 * np.arctan2(sin_half, q[3])
+
+
+def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (radians, in [0, pi]) of the rotation taking ``R_b`` to ``R_a``."""
+    cos = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1) / 2
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The proper rotation closest to the (3, 3) matrix ``M`` in the Frobenius norm (SVD)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt

@@ -1,0 +1,53 @@
+"""Between wire messages and the arrays the algorithms use.
+
+Nodes call these at their edges: a ``protocol.Transform`` becomes a (4, 4) ``T_a_b``
+matrix and back, a ``CameraInfo`` becomes a ``CameraModel`` (K, distortion, pose in rig)
+and back. Nothing else in artrack converts between the two by hand.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from protocol.message import Header
+from protocol.sensors import CameraInfo
+from protocol.spatial import FrameTransform, Transform
+from services.geometry.camera import CameraModel
+from services.geometry.se3 import from_quaternion_translation, to_quaternion_translation
+
+
+def matrix_from_transform(transform: Transform) -> np.ndarray:
+    """(4, 4) float64 ``T_parent_child`` of a wire transform."""
+    return from_quaternion_translation(np.array(transform.rotation), np.array(transform.translation))
+
+
+def transform_from_matrix(T: np.ndarray) -> Transform:
+    """Wire transform of a (4, 4) rigid ``T_parent_child``."""
+    q, t = to_quaternion_translation(np.asarray(T, dtype=np.float64))
+    return Transform(translation=tuple(float(v) for v in t), rotation=tuple(float(v) for v in q))
+
+
+def frame_transforms(truth: list[tuple[str, str, np.ndarray]]) -> tuple[FrameTransform, ...]:
+    """Wire form of ``(parent_frame, child_frame, T_parent_child (4, 4))`` triples."""
+    return tuple(FrameTransform(parent_frame=parent, child_frame=child, transform=transform_from_matrix(T))
+                 for parent, child, T in truth)
+
+
+def camera_info(header: Header, camera: CameraModel) -> CameraInfo:
+    """CameraInfo (plumb_bob, ROS layout) of ``camera`` under ``header``."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    P = np.hstack([K, np.zeros((3, 1))])
+    return CameraInfo(header=header, width=camera.width, height=camera.height, distortion_model="plumb_bob",
+                      d=tuple(float(v) for v in camera.dist), k=tuple(float(v) for v in K.ravel()),
+                      p=tuple(float(v) for v in P.ravel()), T_rig_camera=transform_from_matrix(camera.T_rig_camera))
+
+
+def camera_model(info: CameraInfo, name: str | None = None) -> CameraModel:
+    """CameraModel of a plumb_bob CameraInfo (``name`` defaults to the header's frame id)."""
+    if info.distortion_model != "plumb_bob":
+        raise ValueError(f"distortion model {info.distortion_model} is not supported here (plumb_bob only)")
+    dist = np.zeros(5)
+    dist[: len(info.d)] = info.d
+    return CameraModel(name=name or info.header.frame_id, width=info.width, height=info.height,
+                       K=np.array(info.k, dtype=np.float64).reshape(3, 3), dist=dist,
+                       T_rig_camera=matrix_from_transform(info.T_rig_camera))

@@ -1,0 +1,80 @@
+"""Rotations and rigid transforms, cross-checked against cv2.Rodrigues and closed forms."""
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.geometry.rotation import (
+    matrix_from_quaternion,
+    matrix_from_rotvec,
+    nearest_rotation,
+    quaternion_from_matrix,
+    rotation_angle,
+    rotvec_from_matrix,
+)
+from services.geometry.se3 import (
+    from_quaternion_translation,
+    invert,
+    make_transform,
+    to_quaternion_translation,
+    transform_points,
+)
+
+rotvecs = st.tuples(*[st.floats(-1, 1)] * 3).map(np.array).filter(lambda v: np.linalg.norm(v) > 1e-6)
+angles = st.floats(0.0, np.pi)
+
+
+def rotvec(direction: np.ndarray, angle: float) -> np.ndarray:
+    return direction / np.linalg.norm(direction) * angle
+
+
+@settings(max_examples=200, deadline=None)
+@given(rotvecs, angles)
+def test_quaternion_matches_axis_angle_closed_form(direction, angle):
+    v = rotvec(direction, angle)
+    q = quaternion_from_matrix(matrix_from_rotvec(v))
+    axis = direction / np.linalg.norm(direction)
+    expected = np.array([*(np.sin(angle / 2) * axis), np.cos(angle / 2)])
+    assert q[3] >= 0
+    assert np.allclose(q, expected, atol=1e-9) or np.allclose(q, -expected, atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(rotvecs, angles)
+def test_quaternion_round_trip_and_rodrigues_agree(direction, angle):
+    R = matrix_from_rotvec(rotvec(direction, angle))
+    assert np.allclose(matrix_from_quaternion(quaternion_from_matrix(R)), R, atol=1e-12)
+    assert np.allclose(matrix_from_rotvec(rotvec_from_matrix(R)), R, atol=1e-12)
+    if angle > 1e-3:  # below that cv2.Rodrigues rounds small rotations to zero
+        assert np.allclose(rotvec_from_matrix(R), cv2.Rodrigues(R)[0].ravel(), atol=1e-6)
+    assert rotation_angle(R, np.eye(3)) == pytest.approx(angle, abs=1e-7)
+
+
+def test_quaternion_near_half_turn_is_accurate():
+    for axis in np.eye(3):
+        R = matrix_from_rotvec(axis * (np.pi - 1e-9))
+        assert np.allclose(matrix_from_quaternion(quaternion_from_matrix(R)), R, atol=1e-12)
+
+
+def test_nearest_rotation_projects_noise_back_onto_so3():
+    rng = np.random.default_rng(0)
+    R = matrix_from_rotvec([0.3, -0.2, 0.9])
+    M = R + rng.normal(0, 1e-3, (3, 3))
+    P = nearest_rotation(M)
+    assert np.allclose(P.T @ P, np.eye(3), atol=1e-12) and np.linalg.det(P) == pytest.approx(1.0)
+    assert rotation_angle(P, R) < 2e-3
+    assert np.linalg.det(nearest_rotation(-np.eye(3))) == pytest.approx(1.0)
+
+
+def test_transform_compose_invert_and_points():
+    rng = np.random.default_rng(1)
+    T_a_b = make_transform(matrix_from_rotvec([0.1, 0.2, 0.3]), [1.0, -2.0, 0.5])
+    T_b_c = make_transform(matrix_from_rotvec([-0.4, 0.0, 0.2]), [0.0, 0.3, 2.0])
+    points_c = rng.normal(size=(10, 3))
+    points_a = transform_points(T_a_b @ T_b_c, points_c)
+    assert np.allclose(points_a, transform_points(T_a_b, transform_points(T_b_c, points_c)))
+    assert np.allclose(invert(T_a_b), np.linalg.inv(T_a_b))
+    q, t = to_quaternion_translation(T_a_b)
+    assert np.allclose(from_quaternion_translation(q, t), T_a_b)

@@ -1,0 +1,133 @@
+"""``ir_rig``: blobs sit on the projected sphere centres (through the distortion), hidden ones are gone.
+
+Blob centres are intensity-weighted centroids (background subtracted) of the connected
+components above a threshold. Only spheres inside the image and at least ``ISOLATION_PX``
+from every other sphere's projection are compared, so merged blobs do not count.
+"""
+
+import itertools
+
+import cv2
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, SPHERE_PEAK
+from services.geometry.camera import project_points
+from services.geometry.se3 import invert, transform_points
+
+INDICES = range(0, 1500, 25)
+ISOLATION_PX = 12.0
+THRESHOLD = 60
+
+
+def blob_centres(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) weighted centroids and (N,) areas (px, lit fraction summed) of the bright blobs of ``image``."""
+    count, labels = cv2.connectedComponents((image > THRESHOLD).astype(np.uint8))
+    weight = np.maximum(image.astype(np.float64) - BACKGROUND, 0.0).ravel()
+    ys, xs = np.indices(image.shape)
+    mass = np.bincount(labels.ravel(), weight, count)
+    centres = np.stack([np.bincount(labels.ravel(), weight * xs.ravel(), count),
+                        np.bincount(labels.ravel(), weight * ys.ravel(), count)], axis=1) / mass[:, None]
+    return centres[1:], mass[1:] / (SPHERE_PEAK - BACKGROUND)
+
+
+def projected_spheres(scene, camera, index):
+    """[(body, sphere, (2,) pixel, depth)] of every sphere in front of ``camera``."""
+    T_cam_world = invert(camera.T_rig_camera)
+    found = []
+    for body, T_world_body in scene.body_poses(index).items():
+        centres = transform_points(T_cam_world @ T_world_body, scene.bodies[body])
+        for j, (pixel, depth) in enumerate(zip(project_points(centres, camera.K, camera.dist), centres[:, 2],
+                                               strict=True)):
+            found.append((body, j, pixel, depth))
+    return found
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene("ir_rig")
+
+
+@pytest.fixture(scope="module")
+def matches(scene):
+    """[(hidden?, distance to the nearest blob px, blob area px, expected area px)] for isolated spheres."""
+    rows = []
+    for index in INDICES:
+        frame = scene.render(index)
+        hidden = scene.occlusions(index)
+        for camera in scene.cameras:
+            blobs, areas = blob_centres(frame.images[camera.name])
+            spheres = projected_spheres(scene, camera, index)
+            pixels = np.array([s[2] for s in spheres])
+            for body, j, pixel, depth in spheres:
+                others = np.linalg.norm(pixels - pixel, axis=1)
+                inside = np.all((pixel > 5) & (pixel < (camera.width - 6, camera.height - 6)))
+                if not inside or np.sort(others)[1] < ISOLATION_PX:
+                    continue
+                distances = np.linalg.norm(blobs - pixel, axis=1)
+                nearest = int(np.argmin(distances))
+                expected_area = np.pi * (camera.K[0, 0] * scene.sphere_radius / depth) ** 2
+                rows.append(((camera.name, body, j) in hidden, distances[nearest], areas[nearest], expected_area))
+    return rows
+
+
+def test_blob_centroids_match_projected_sphere_centres(matches):
+    errors = np.array([distance for hidden, distance, _, _ in matches if not hidden])
+    assert len(errors) > 500
+    assert np.median(errors) < 0.1 and np.max(errors) < 0.3
+
+
+def test_blob_area_follows_sphere_radius_and_depth(matches):
+    ratios = np.array([area / expected for hidden, _, area, expected in matches if not hidden])
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.05)
+    assert np.percentile(ratios, 5) > 0.85 and np.percentile(ratios, 95) < 1.15
+
+
+def test_hidden_spheres_leave_no_blob(matches):
+    hidden = [distance for is_hidden, distance, _, _ in matches if is_hidden]
+    assert len(hidden) >= 3
+    assert min(hidden) > 5.0
+
+
+def test_occlusion_hides_one_sphere_in_one_camera_now_and_then(scene):
+    hidden = [scene.occlusions(index) for index in range(0, 3000, 5)]
+    assert all(len(h) <= 1 for h in hidden)
+    assert 0.1 < np.mean([len(h) == 1 for h in hidden]) < 0.4
+    assert make_scene("ir_rig", occlusion_rate=0.0).occlusions(10) == set()
+
+
+def test_truth_lists_every_body_under_every_camera(scene):
+    frame = scene.render(7)
+    poses = scene.body_poses(7)
+    assert len(poses) == 3
+    for camera in scene.cameras:
+        assert [(p, c) for p, c, _ in frame.truth[camera.name]] == [("world", f"body/{name}") for name in poses]
+        assert all(np.array_equal(T, poses[c.split("/")[1]]) for _, c, T in frame.truth[camera.name])
+
+
+def test_layouts_are_distinct_and_unambiguous():
+    triangles = {}
+    for name, spheres in LAYOUTS.items():
+        assert 3 <= len(spheres) <= 6
+        distances = np.sort([np.linalg.norm(a - b) for a, b in itertools.combinations(spheres, 2)])
+        assert distances[0] >= 0.05 and np.diff(distances).min() >= 0.004, name
+        assert np.linalg.svd(spheres - spheres.mean(axis=0), compute_uv=False)[1] > 0.03, name
+        triangles[name] = np.array([sorted(np.linalg.norm(a - b) for a, b in itertools.combinations(t, 2))
+                                    for t in itertools.combinations(spheres, 3)])
+    for a, b in itertools.combinations(triangles, 2):
+        assert np.abs(triangles[a][:, None] - triangles[b][None]).max(axis=2).min() >= 0.005, (a, b)
+
+
+def test_rig_geometry():
+    scene = make_scene("ir_rig", camera_count=3, baseline=0.25, convergence=3.0, distortion=False)
+    assert [c.name for c in scene.cameras] == ["cam0", "cam1", "cam2"]
+    for i, camera in enumerate(scene.cameras):
+        T = camera.T_rig_camera
+        assert np.allclose(T[:3, 3], [(i - 1) * 0.25, 0, 0])
+        ray_to_convergence = np.array([0, 0, 3.0]) - T[:3, 3]
+        assert np.allclose(T[:3, 2], ray_to_convergence / np.linalg.norm(ray_to_convergence))
+        assert T[1, 1] > 0.99 and np.array_equal(camera.dist, np.zeros(5))
+    distorted = make_scene("ir_rig").cameras
+    assert all(np.abs(c.dist[:2]).max() > 0 for c in distorted)
+    assert not np.array_equal(distorted[0].K, distorted[1].K)

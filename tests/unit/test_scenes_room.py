@@ -1,0 +1,100 @@
+"""``room``: the chessboard poster lands where the ground truth projects it; boxes hide what is behind them."""
+
+import cv2
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+from services.capture.scenes.compositing import render_faces
+from services.capture.scenes.room import BOXES, CHECKER_INNER, HEIGHT_M, LENGTH_M, WIDTH_M
+from services.geometry.camera import project_points
+from services.geometry.se3 import invert, transform_points
+
+MARGIN_PX = 20
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene("room")
+
+
+def in_view(camera, points_cam: np.ndarray, margin: float) -> np.ndarray:
+    """(N,) whether each camera-frame point is in front and projects ``margin`` px inside the image."""
+    pixels = project_points(points_cam, camera.K)
+    inside = (pixels >= margin) & (pixels <= (camera.width - 1 - margin, camera.height - 1 - margin))
+    return (points_cam[:, 2] > 0.3) & inside.all(axis=1)
+
+
+def test_checker_corners_match_ground_truth(scene):
+    camera = scene.cameras[0]
+    indices = [i for i in range(0, 1500, 5) if in_view(
+        camera, transform_points(invert(scene.camera_pose(i)), scene.checker_corners), MARGIN_PX).all()]
+    assert len(indices) > 20
+    errors = []
+    for index in indices[::len(indices) // 4][:4]:
+        frame = scene.render(index)
+        found, detected = cv2.findChessboardCornersSB(frame.images["cam0"], CHECKER_INNER,
+                                                      flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        assert found, index
+        (_, _, T_world_cam), = frame.truth["cam0"]
+        expected = project_points(transform_points(invert(T_world_cam), scene.checker_corners), camera.K)
+        detected = detected.reshape(-1, 2)
+        residual = min(np.linalg.norm(detected - expected, axis=1), np.linalg.norm(detected[::-1] - expected, axis=1),
+                       key=np.median)
+        errors.extend(residual)
+    assert np.median(errors) < 0.15 and np.max(errors) < 0.6
+
+
+def test_box_hides_the_wall_behind_it(scene):
+    """Find a frame where a box side's centre is in view; that pixel must show the box, not the wall behind."""
+    camera = scene.cameras[0]
+    boxes = [f for f in scene.faces if f.name.startswith("box") and not f.name.endswith("top")]
+    checked = 0
+    for index in range(0, 900, 15):
+        T_cam_world = invert(scene.camera_pose(index))
+        for face in boxes:
+            centre_cam = transform_points(T_cam_world, face.T_world_face[:3, 3])
+            facing = face.T_world_face[:3, 2] @ (scene.camera_pose(index)[:3, 3] - face.T_world_face[:3, 3]) > 0.3
+            if not (facing and in_view(camera, centre_cam, 40)[0]):
+                continue
+            u, v = np.round(project_points(centre_cam, camera.K)[0]).astype(int)
+            window = (slice(v - 3, v + 4), slice(u - 3, u + 4))
+            rendered = scene.render(index).images["cam0"][window].astype(int)
+            size = (camera.width, camera.height)
+            box_alone = render_faces([face], camera.K, T_cam_world, size, 0)[window]
+            shell = [f for f in scene.faces if not f.name.startswith("box")]
+            behind = render_faces(shell, camera.K, T_cam_world, size, 0)[window]
+            assert np.array_equal(rendered, box_alone), (index, face.name)
+            assert np.abs(rendered - behind).mean() > 3, (index, face.name)
+            checked += 1
+    assert checked >= 5
+
+
+def test_depth_order_does_not_depend_on_face_order(scene):
+    camera = scene.cameras[0]
+    T_cam_world = invert(scene.camera_pose(120))
+    size = (camera.width, camera.height)
+    forward = render_faces(scene.faces, camera.K, T_cam_world, size, 0)
+    backward = render_faces(scene.faces[::-1], camera.K, T_cam_world, size, 0)
+    assert np.mean(forward != backward) < 0.002  # only pixels on shared edges may differ
+
+
+def test_camera_walks_inside_the_room_above_the_boxes(scene):
+    poses = np.array([scene.camera_pose(i) for i in range(0, 3000, 5)])
+    eyes = poses[:, :3, 3]
+    assert np.all(np.abs(eyes[:, 0]) < LENGTH_M / 2 - 1.0) and np.all(np.abs(eyes[:, 1]) < WIDTH_M / 2 - 1.0)
+    assert np.all(eyes[:, 2] > max(size[2] for _, size in BOXES) + 0.2) and np.all(eyes[:, 2] < HEIGHT_M - 0.5)
+    assert np.ptp(eyes[:, 0]) > 1.5 and np.ptp(eyes[:, 1]) > 1.0
+    headings = np.unwrap(np.arctan2(poses[:, 1, 2], poses[:, 0, 2]))
+    assert np.ptp(headings) > np.pi
+    steps = np.linalg.norm(np.diff(eyes, axis=0), axis=1) / 5
+    assert steps.max() < 0.05  # metres per frame at 30 fps: smooth enough to track
+
+
+def test_faces_cover_the_view_with_at_most_a_few_seam_pixels(scene):
+    camera = scene.cameras[0]
+    size = (camera.width, camera.height)
+    for index in (0, 333, 666):
+        T_cam_world = invert(scene.camera_pose(index))
+        black, white = (render_faces(scene.faces, camera.K, T_cam_world, size, background) for background in (0, 255))
+        assert np.count_nonzero(black != white) < 0.001 * black.size

@@ -1,0 +1,130 @@
+"""Frame sources: video files, image folders (plain, TUM, KITTI), scenes, and their errors."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from services.capture.calibration import CalibrationError, read_camera_info, write_camera_info
+from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source
+from services.geometry.camera import CameraModel
+
+
+def frames_of(uri: str, **kwargs) -> list:
+    source = open_source(uri, **kwargs)
+    try:
+        return list(source.frames())
+    finally:
+        source.close()
+
+
+def gradient(i: int, shape=(48, 64)) -> np.ndarray:
+    return ((np.arange(shape[0] * shape[1]).reshape(shape) + 7 * i) % 251).astype(np.uint8)
+
+
+def test_image_folder_in_name_order_without_times(tmp_path):
+    for i in (2, 0, 1):
+        cv2.imwrite(str(tmp_path / f"frame{i:03d}.png"), gradient(i))
+    frames = frames_of(f"images:{tmp_path}")
+    assert [f.index for f in frames] == [0, 1, 2] and all(f.time_s is None for f in frames)
+    for i, frame in enumerate(frames):
+        assert np.array_equal(frame.images["cam0"], gradient(i))
+
+
+def test_tum_names_and_rgb_list_give_times(tmp_path):
+    for stamp in ("1341847981.5", "1341847980.25"):
+        cv2.imwrite(str(tmp_path / f"{stamp}.png"), gradient(0))
+    assert [f.time_s for f in frames_of(f"images:{tmp_path}")] == [1341847980.25, 1341847981.5]
+    (tmp_path / "rgb.txt").write_text("# timestamp filename\n1341847981.5 1341847981.5.png\n")
+    assert [f.time_s for f in frames_of(f"images:{tmp_path}")] == [1341847981.5]
+
+
+def test_kitti_times_in_parent_folder(tmp_path):
+    images = tmp_path / "image_0"
+    images.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(images / f"{i:06d}.png"), gradient(i))
+    (tmp_path / "times.txt").write_text("0.0\n0.103\n0.206\n")
+    assert [f.time_s for f in frames_of(f"images:{images}")] == [0.0, 0.103, 0.206]
+
+
+def test_unreadable_image_mid_folder_is_a_fault_and_the_rest_flows(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), gradient(0))
+    (tmp_path / "b.png").write_bytes(b"not a png at all")
+    cv2.imwrite(str(tmp_path / "c.png"), gradient(2))
+    frames = frames_of(f"images:{tmp_path}")
+    assert isinstance(frames[1], FrameFault) and "b.png" in frames[1].reason
+    assert [type(f) for f in frames] == [SourceFrame, FrameFault, SourceFrame]
+
+
+def test_video_file_frames_and_times(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for i in range(5):
+        writer.write(cv2.cvtColor(gradient(20 * i), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    frames = frames_of(f"video:{path}")
+    assert len(frames) == 5
+    assert [round(f.time_s, 3) for f in frames] == [0.0, 0.1, 0.2, 0.3, 0.4]
+    grey = cv2.cvtColor(frames[3].images["cam0"], cv2.COLOR_BGR2GRAY)
+    assert np.abs(grey.astype(int) - gradient(60)).mean() < 6  # MJPG is lossy
+
+
+def test_synthetic_scene_frames_carry_truth_and_calibration():
+    source = open_source("synthetic:markers", frames=3, scene_options={"seed": 1})
+    frames = list(source.frames())
+    assert len(frames) == 3 and source.camera_names == ("cam0",)
+    assert "cam0" in source.calibration and frames[0].truth["cam0"]
+
+
+@pytest.mark.parametrize(("uri", "expected"), [
+    ("camera:97", "cannot open video device 97"),
+    ("video:/no/such/clip.mp4", "no such file"),
+    ("images:/no/such/folder", "no such folder"),
+    ("synthetic:teapot", "unknown scene 'teapot'"),
+    ("webcam:0", "is not a source URI"),
+    ("camera:front", "device number"),
+])
+def test_sources_that_cannot_start_name_the_reason(uri, expected):
+    with pytest.raises(SourceError, match=expected) as caught:
+        open_source(uri)
+    assert uri.split(":")[0] in str(caught.value)
+
+
+def test_empty_folder_and_unreadable_video_are_refused(tmp_path):
+    with pytest.raises(SourceError, match="no image files"):
+        open_source(f"images:{tmp_path}")
+    bad = tmp_path / "clip.mp4"
+    bad.write_text("not a video")
+    with pytest.raises(SourceError, match="OpenCV cannot read this file"):
+        open_source(f"video:{bad}")
+
+
+def test_check_uri_splits_scheme():
+    assert check_uri("video:/a/b:c.mp4") == ("video", "/a/b:c.mp4")
+
+
+def test_camera_info_yaml_round_trip(tmp_path):
+    camera = CameraModel("left", 640, 480, np.array([[500.0, 0, 320.5], [0, 501.0, 240.25], [0, 0, 1]]),
+                         np.array([0.1, -0.2, 0.001, 0.002, 0.05]), np.eye(4))
+    path = tmp_path / "left.yaml"
+    write_camera_info(path, camera)
+    back = read_camera_info(path)
+    assert (back.name, back.width, back.height) == ("left", 640, 480)
+    assert np.array_equal(back.K, camera.K) and np.array_equal(back.dist, camera.dist)
+    assert "camera_matrix:" in path.read_text() and "distortion_model: plumb_bob" in path.read_text()
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    ("image_width: 640\nimage_height: 480\n", "missing camera_matrix"),
+    ("image_width: 0\n", "image_width must be a positive integer"),
+    ("image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: [1, 2]}\n", "needs 9 numbers"),
+    ("image_width: 640\nimage_height: 480\ndistortion_model: equidistant\n", "plumb_bob only"),
+    ("[unclosed", "not valid YAML"),
+])
+def test_bad_camera_info_names_the_field(tmp_path: Path, text: str, expected: str):
+    path = tmp_path / "cam.yaml"
+    path.write_text(text)
+    with pytest.raises(CalibrationError, match=expected):
+        read_camera_info(path)
