@@ -24,6 +24,7 @@ does not validate) raises :class:`DecodeError` and nothing else.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import struct
@@ -66,8 +67,21 @@ def media_type(cls: type[Message]) -> str:
     return MEDIA_FRAME if is_frame(cls) else MEDIA_JSON
 
 
+@functools.cache
 def _prefix(cls: type[Message]) -> str:
     return f'{{"schema":{json.dumps(cls.SCHEMA)},"version":{cls.VERSION}'
+
+
+@functools.cache
+def _array_names(cls: type[Message]) -> frozenset[str]:
+    return frozenset(cls.ARRAY_FIELDS)
+
+
+def _descriptors(arrays: list[tuple[str, np.ndarray]], offsets: list[int]) -> str:
+    """``"name":{"dtype":..,"shape":[..],"offset":..}`` for each array, comma-joined (the JSON tail)."""
+    return ",".join(
+        f'"{name}":{{"dtype":"{dtype_name(wire.dtype)}","shape":[{",".join(map(str, wire.shape))}],"offset":{at}}}'
+        for (name, wire), at in zip(arrays, offsets, strict=True))
 
 
 def encode(message: Message) -> bytes:
@@ -77,18 +91,17 @@ def encode(message: Message) -> bytes:
         body = message.model_dump_json()
         return (_prefix(cls) + "," + body[1:]).encode()
     arrays = [(name, _wire(getattr(message, name))) for name in cls.ARRAY_FIELDS]
-    fields = message.model_dump_json(exclude=set(cls.ARRAY_FIELDS))
+    fields = message.model_dump_json(exclude=_array_names(cls))
     head = _prefix(cls) + "," + fields[1:-1] + ("," if len(fields) > 2 else "")
     # Array offsets depend on the header's length and the header holds the offsets:
     # lay out after a first guess and move the arrays back until the header fits.
     start = _align(_PREAMBLE.size + len(head) + 64)
     while True:
-        descriptors, offsets, offset = {}, [], start
-        for name, wire in arrays:
-            descriptors[name] = {"dtype": dtype_name(wire.dtype), "shape": list(wire.shape), "offset": offset}
+        offsets, offset = [], start
+        for _, wire in arrays:
             offsets.append(offset)
             offset = _align(offset + wire.nbytes)
-        header = (head + json.dumps(descriptors, separators=(",", ":"))[1:]).encode()
+        header = (head + _descriptors(arrays, offsets) + "}").encode()
         if _PREAMBLE.size + len(header) <= start:
             break
         start = _align(_PREAMBLE.size + len(header))

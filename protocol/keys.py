@@ -15,6 +15,7 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/node/<name>/stats         NodeStats        published every stats period
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
     ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
+    ar/rig0/node/<name>/control       (queryable)      replay's pause / resume / step
 
 The namespace may hold several segments (``site/lab1``); names are made of letters,
 digits, ``_``, ``-`` and ``.``.
@@ -112,9 +113,29 @@ class Keys:
     def errors(self, name: str) -> str:
         return f"{self.node(name)}/errors"
 
+    def every_camera(self, stream: str) -> str:
+        """``stream`` (``image``, ``markers``, ...) of every camera of the rig."""
+        return f"{self.prefix}/*/{check_name(stream, 'stream')}"
+
+    def every_node(self, stream: str) -> str:
+        """``stream`` (``stats``, ``errors``) of every node of the rig."""
+        return f"{self.prefix}/node/*/{check_name(stream, 'stream')}"
+
+    def control(self, name: str) -> str:
+        """The node's control queryable (pause, resume, step for replay)."""
+        return f"{self.node(name)}/control"
+
     def everything(self) -> str:
         """Every key of this rig."""
         return f"{self.prefix}/**"
+
+    def whole_namespace(self) -> str:
+        """Every key of every rig in the namespace."""
+        return f"{self.namespace}/**"
+
+    def all_node_keys(self) -> str:
+        """Every node key (stats, state, errors, control) of every rig in the namespace."""
+        return f"{self.namespace}/*/node/**"
 
     def all_nodes(self) -> str:
         """Liveliness tokens of every node in the namespace, any rig."""

@@ -3,17 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from pydantic import ValidationError
 
 from services.runtime.bus import LOCAL_ROUTER, BusConfig, BusError, open_session
 from services.runtime.logs import setup_logging
+from services.runtime.memory import tune_malloc
 from services.runtime.pipeline import PipelineError, describe
 
 log = logging.getLogger("artrack")
@@ -105,10 +109,24 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from services.capture.node import Params as CaptureParams
+    from services.jobs import run_job
+
+    scene = {}
+    for option in args.scene_option or ():
+        name, _, value = option.partition("=")
+        scene[name] = json.loads(value) if value[:1] in "0123456789-[{tf" else value
+    capture = _params(CaptureParams, "capture", source=tuple(args.source), cameras=tuple(args.cameras or ()),
+                      fps=args.fps, frames=args.frames, loop=args.loop or None, calib=tuple(args.calib or ()),
+                      scene=scene, stamps=args.stamps)
+    return run_job(_bus(args), args.pipeline, capture, args.record, args.rerun)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from services.demo import run_demo
 
-    return run_demo(_bus(args), args.frames, args.fps)
+    return run_demo(_bus(args), args.recording) if args.recording else run_demo(_bus(args))
 
 
 def cmd_node(args: argparse.Namespace) -> int:
@@ -133,6 +151,108 @@ def cmd_schemas(args: argparse.Namespace) -> int:
 
     for path in write_schemas(args.out):
         print(path)
+    return 0
+
+
+def _params(cls: type, what: str, **values: object) -> object:
+    """``cls`` (a node's Params) from the options given; unset (None) ones keep the model's defaults."""
+    try:
+        return cls(**{k: v for k, v in values.items() if v is not None})
+    except ValidationError as exc:
+        raise ValueError(f"{what}: {describe(exc)}") from exc
+
+
+def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[..., object]) -> int:
+    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
+    from services.runtime.node import run_node
+
+    setup_logging(json_lines=args.log_json, node=args.name)
+    return run_node(args.name, kind, _bus(args), body)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from services.recorder.record_node import Params, run, subscriptions
+    from services.recorder.writing import check_target
+
+    params = _params(Params, "record", out=args.out, keys=tuple(args.keys or ()), split_size_mb=args.split_size,
+                     split_duration_s=args.split_duration, queue_mb=args.queue_mb, flush_s=args.flush,
+                     compression=args.compression)
+    check_target(params.out)  # a bad output or overlapping keys fail here, before joining the bus
+    subscriptions(_bus(args).keys, params.keys)
+    return _run_as_node(args, "recorder", lambda node: run(node, params))
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from services.recorder.reading import Scan
+    from services.recorder.replay_node import Params, run
+
+    params = _params(Params, "replay", path=args.file, rate=args.rate, loop=args.loop, start_s=args.start,
+                     end_s=args.end, keys=tuple(args.keys or ()), paused=args.paused, wait_s=args.wait)
+    Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
+    codes: list[int] = []
+    failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
+    return failed or (codes[0] if codes else 0)
+
+
+def cmd_control(args: argparse.Namespace) -> int:
+    from services.recorder.replay_node import send_control
+
+    bus = _bus(args)
+    session = open_session(bus)
+    try:
+        answer = send_control(session, bus.keys, args.node, args.command, args.timeout)
+    finally:
+        session.close()
+    if answer is None:
+        log.error("no node answered on %s within %.1f s", bus.keys.control(args.node), args.timeout)
+        return 1
+    print(json.dumps(answer))
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from services.recorder.info import format_info, summarise
+    from services.recorder.reading import EXIT_DAMAGED, recover
+
+    info = summarise(args.file)
+    print(json.dumps(info.to_dict()) if args.json else format_info(info))
+    if args.recover is not None:
+        recovered = recover(args.file, args.recover)
+        log.info("recovered %d messages into %s", recovered.messages, args.recover)
+    return EXIT_DAMAGED if info.damage is not None else 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from services.recorder.export import Export
+    from services.recorder.reading import EXIT_DAMAGED
+
+    job = Export(args.file, args.key, args.format, child=args.child, full=args.full)
+    lines = job.lines()
+    first = next(lines, None)  # a wrong key or format fails here, before the output is created
+    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
+        for line in itertools.chain([] if first is None else [first], lines):
+            out.write(line + "\n")
+    log.info("exported %d rows of %s%s", job.rows, args.key,
+             f" ({job.skipped} undecodable messages skipped)" if job.skipped else "")
+    if job.damage is not None:
+        log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
+        return EXIT_DAMAGED
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from services.recorder.reading import EXIT_DAMAGED
+    from services.viewer.convert import convert
+    from services.viewer.scene import ViewOptions
+
+    options = _params(ViewOptions, "view", image_hz=args.image_hz, jpeg_quality=args.jpeg,
+                      trajectory_length=args.trajectory, world_axes=args.world_axes)
+    done = convert(args.file, args.out, options)
+    log.info("wrote %s: %d rows from %d messages%s", args.out, done.rows, done.messages,
+             f" ({done.undecodable} undecodable messages skipped)" if done.undecodable else "")
+    if done.damage is not None:
+        log.warning("%s is damaged: %s; converted its intact part", args.file, done.damage)
+        return EXIT_DAMAGED
     return 0
 
 
@@ -168,9 +288,25 @@ def parser() -> argparse.ArgumentParser:
     _bus_options(p)
     p.set_defaults(func=cmd_echo)
 
-    p = sub.add_parser("demo", help="synthetic camera -> echo node -> client, printing what flowed")
-    p.add_argument("--frames", type=int, default=300, help="frames to send (default 300)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p = sub.add_parser("run", help="one job: capture from a source through a pipeline, optionally recorded")
+    p.add_argument("pipeline", help="pipeline name: capture (the source alone), echo")
+    p.add_argument("--source", action="append", required=True, metavar="URI",
+                   help="camera:N, video:PATH, images:DIR or synthetic:SCENE (repeat for a rig)")
+    p.add_argument("--cameras", nargs="+", metavar="NAME", help="camera names (default: the source's, or cam0...)")
+    p.add_argument("--fps", type=float, help="pace (default: the source's own timing)")
+    p.add_argument("--frames", type=int, help="stop after this many frames")
+    p.add_argument("--loop", action="store_true", help="start finite sources over when they end")
+    p.add_argument("--calib", action="append", type=Path, metavar="FILE", help="ROS camera_info YAML, per camera")
+    p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option")
+    p.add_argument("--stamps", choices=("wall", "source"), help="stamp frames with capture or source time")
+    p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
+    p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
+    _bus_options(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="bundled recording -> replay -> echo node -> client, printing what flowed")
+    p.add_argument("--recording", type=Path, metavar="IN.mcap", help="the recording to play (default: "
+                   "recordings/markers.mcap)")
     _bus_options(p)
     p.set_defaults(func=cmd_demo)
 
@@ -184,6 +320,72 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("schemas", help="write the JSON Schema of every message to a folder")
     p.add_argument("out", type=Path, metavar="DIR")
     p.set_defaults(func=cmd_schemas)
+
+    relative = "relative to ar/<rig>/ unless it starts with the namespace"
+    p = sub.add_parser("record", help="record the rig's keys to MCAP until Ctrl-C (a node: `list` shows it)")
+    p.add_argument("out", type=Path, metavar="OUT.mcap")
+    p.add_argument("--keys", nargs="+", metavar="EXPR", help=f"key expressions to record, {relative} "
+                                                             "(default: everything of the rig)")
+    split = p.add_mutually_exclusive_group()
+    split.add_argument("--split-size", type=float, metavar="MB",
+                       help="write parts OUT_000.mcap, OUT_001.mcap, ... of about MB MiB each")
+    split.add_argument("--split-duration", type=float, metavar="S", help="write parts of S seconds each (same names)")
+    p.add_argument("--queue-mb", type=float, metavar="MB",
+                   help="arrivals held while the writer is busy (default 512); beyond it they are dropped and counted")
+    p.add_argument("--flush", type=float, metavar="S",
+                   help="write out buffered data every S seconds (default 1): all a killed recorder can lose")
+    p.add_argument("--compression", choices=("zstd", "lz4", "none"), help="chunk compression (default zstd)")
+    p.add_argument("--name", default="recorder", help="node name (default recorder)")
+    _bus_options(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("replay", help="publish a recording's bytes on their keys with their timing; exit 3 if damaged")
+    p.add_argument("file", type=Path, metavar="IN.mcap")
+    p.add_argument("--rate", type=float, metavar="R", help="speed factor (default 1)")
+    p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
+    p.add_argument("--start", type=float, metavar="S", help="begin S seconds into the recording")
+    p.add_argument("--end", type=float, metavar="S", help="stop S seconds into the recording")
+    p.add_argument("--keys", nargs="+", metavar="EXPR",
+                   help=f"key expressions to replay, {relative} (default: all but node health, <namespace>/*/node/**)")
+    p.add_argument("--paused", action="store_true", help="start paused; go on with `artrack control NAME resume`")
+    p.add_argument("--wait", type=float, metavar="S", help="wait up to S seconds for a subscriber first (default 2)")
+    p.add_argument("--name", default="replay", help="node name (default replay)")
+    _bus_options(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("control", help="pause, resume or step a replay node, or ask its status")
+    p.add_argument("node", metavar="NODE", help="the node's name (replay unless --name was given)")
+    p.add_argument("command", choices=("pause", "resume", "step", "status"))
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for the answer")
+    _bus_options(p)
+    p.set_defaults(func=cmd_control)
+
+    p = sub.add_parser("info", help="channels, counts, duration and rates of a recording (damaged too; exit 3 then)")
+    p.add_argument("file", type=Path, metavar="IN.mcap")
+    p.add_argument("--json", action="store_true", help="one JSON object instead of text")
+    p.add_argument("--recover", type=Path, metavar="OUT.mcap", help="copy the intact part into a new, indexed file")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("export", help="one key of a recording as a TUM trajectory, CSV or JSON lines")
+    p.add_argument("file", type=Path, metavar="IN.mcap")
+    p.add_argument("--key", required=True, help="a recorded key, absolute or relative to the recording's ar/<rig>/")
+    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
+    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output)")
+    p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
+    p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("view", help="a recording as a Rerun .rrd file, drawn as the live viewer draws it "
+                                    "(open it with `rerun OUT.rrd`; exit 3 if damaged)")
+    p.add_argument("file", type=Path, metavar="IN.mcap")
+    p.add_argument("out", type=Path, metavar="OUT.rrd")
+    p.add_argument("--image-hz", type=float, metavar="HZ", help="at most HZ images per camera per second of "
+                                                                 "recording (default: every frame)")
+    p.add_argument("--jpeg", type=int, metavar="Q", help="store images as JPEG of quality Q (1-100), not raw pixels")
+    p.add_argument("--trajectory", type=int, metavar="N", help="positions kept per trajectory line (default 300)")
+    p.add_argument("--world-axes", metavar="XYZ", help="where the world frame's x, y, z point, in Rerun's letters "
+                                                      "(default RDF, OpenCV's camera axes; RFU or FLU for z up)")
+    p.set_defaults(func=cmd_view)
     return top
 
 
@@ -192,6 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "name", "") is None:
         args.name = args.kind
     setup_logging(json_lines=args.log_json)
+    tune_malloc()
     try:
         return args.func(args)
     except (BusError, PipelineError, ValueError) as exc:

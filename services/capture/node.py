@@ -27,7 +27,15 @@ from protocol.message import Header
 from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
 from services.capture.calibration import read_camera_info
-from services.capture.sources import FrameFault, Source, SourceError, SourceFrame, check_uri, open_source
+from services.capture.sources import (
+    FrameFault,
+    Source,
+    SourceError,
+    SourceFrame,
+    check_uri,
+    open_source,
+    rig_camera_names,
+)
 from services.runtime.convert import camera_info, frame_transforms
 from services.runtime.node import Node, NodeError
 from services.runtime.pubsub import Role
@@ -83,11 +91,9 @@ class Rig:
         except SourceError:
             self.close()
             raise
-        own = [name for source in self.sources for name in source.camera_names]
+        own = rig_camera_names([source.camera_names for source in self.sources])
         if params.cameras and len(params.cameras) != len(own):
             raise SourceError(f"{len(params.cameras)} camera names given for {len(own)} cameras")
-        if len(self.sources) > 1 and not params.cameras:
-            own = [f"cam{i}" for i in range(len(own))]
         self.names = list(params.cameras or own)
         self.renames = [dict(zip(source.camera_names, names, strict=True))
                         for source, names in zip(self.sources, self._split(self.names), strict=True)]

@@ -201,6 +201,27 @@ def check_uri(uri: str) -> tuple[str, str]:
     return scheme, rest
 
 
+def rig_camera_names(own: list[tuple[str, ...]]) -> list[str]:
+    """Names of a rig's cameras from each source's own: a lone source keeps them, several give cam0, cam1, ..."""
+    flat = [name for names in own for name in names]
+    return flat if len(own) == 1 else [f"cam{i}" for i in range(len(flat))]
+
+
+def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
+    """The names the capture node gives the cameras of ``uris``, without opening devices or files."""
+    own = []
+    for uri in uris:
+        scheme, rest = check_uri(uri)
+        if scheme != "synthetic":
+            own.append(("cam0",))
+            continue
+        try:
+            own.append(tuple(camera.name for camera in make_scene(rest, **scene_options).cameras))
+        except ValueError as exc:
+            raise SourceError(f"{uri}: {exc}") from exc
+    return rig_camera_names(own)
+
+
 def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None) -> Source:
     """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless)."""
     try:

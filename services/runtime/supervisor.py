@@ -44,6 +44,7 @@ class _Child:
     failures: int = 0
     restart_at: float | None = None
     finished: bool = False
+    exit_code: int | None = None
 
 
 def _die_with_parent() -> None:
@@ -65,6 +66,10 @@ class Supervisor:
     def pids(self) -> dict[str, int]:
         """Pid of every child that is running now."""
         return {name: c.process.pid for name, c in self._children.items() if c.process and c.process.poll() is None}
+
+    def exit_codes(self) -> dict[str, int | None]:
+        """The code each child last exited with (None while it never has)."""
+        return {name: c.exit_code for name, c in self._children.items()}
 
     def restarts(self) -> dict[str, int]:
         return {name: c.restarts for name, c in self._children.items()}
@@ -97,6 +102,7 @@ class Supervisor:
     def _exited(self, child: _Child, code: int, now: float) -> None:
         ran = now - child.started
         child.process = None
+        child.exit_code = code
         how = f"signal {-code}" if code < 0 else f"code {code}"
         if code == 0 or not child.spec.restart:
             child.finished = True

@@ -7,6 +7,7 @@ background by design (a peer may be the first one up), so the failure is tested 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import pytest
 
@@ -18,7 +19,7 @@ COMMANDS = {
     "node": ["node", "echo", "--name", "e1"],
     "list": ["list", "--timeout", "0.5"],
     "echo": ["echo", "cam0/image", "--count", "1", "--timeout", "5"],
-    "demo": ["demo", "--frames", "5"],
+    "demo": ["demo", "--recording", str(Path(__file__).resolve().parents[2] / "recordings" / "pattern.mcap")],
 }
 
 

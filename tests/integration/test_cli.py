@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +18,7 @@ from .support import START_S, json_lines, live_names, start_node, states, wait_l
 
 pytestmark = pytest.mark.integration
 
+PATTERN = Path(__file__).resolve().parents[2] / "recordings" / "pattern.mcap"
 SMALL_CAMERA = {"cameras": ["cam0"], "fps": 20, "scene": {"width": 64, "height": 64}}
 
 
@@ -82,15 +84,22 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
         assert len(line["k"]) == 9 and line["k"][8] == 1.0
 
 
-def test_demo_receives_every_frame(bus, procs):
-    demo = procs.run("demo", "--frames", "60", "--connect", bus.endpoint, timeout=60)
+def test_demo_replays_the_bundled_recording_and_receives_every_frame(bus, procs):
+    demo = procs.run("demo", "--recording", str(PATTERN), "--connect", bus.endpoint, timeout=90)
     assert demo.poll() == 0, demo.describe()
     summary = dict(re.findall(r"^\s*([a-z /0-9]+):\s+(.*)$", demo.stdout, re.MULTILINE))
-    assert summary["frames published"] == "60", demo.stdout
-    assert summary["frames received"] == f"60 on {bus.keys.echo('cam0')}", demo.stdout
+    assert summary["frames replayed"] == "60", demo.stdout
+    assert summary["frames received"] == "60 on ar/rig0/cam0/echo", demo.stdout  # the recording's rig
     assert summary["lost / dropped"] == "0 / 0", demo.stdout
     assert summary["in order"] == "yes", demo.stdout
-    assert summary["nodes seen"] == "cam, echo", demo.stdout
+    assert summary["nodes seen"] == "echo, replay", demo.stdout
+    p50 = float(summary["latency p50 / p99"].split()[0])
+    assert 0 < p50 < 100, "restamped frames should arrive within milliseconds of their new stamp"
+
+
+def test_demo_names_a_missing_recording(procs, tmp_path):
+    demo = procs.run("demo", "--recording", str(tmp_path / "none.mcap"), timeout=30)
+    assert demo.poll() == 2 and "none.mcap: no such recording" in demo.stderr
 
 
 @pytest.mark.parametrize("kind, params", [("echo", {"camera": "cam0"}), ("capture", SMALL_CAMERA)])

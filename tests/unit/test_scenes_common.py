@@ -15,11 +15,11 @@ def scene(request):
 
 
 def test_registry_holds_the_four_scenes():
-    assert NAMES == ["ir_rig", "markers", "planar_target", "room"]
+    assert NAMES == ["ir_rig", "markers", "pattern", "planar_target", "room"]
 
 
 def test_unknown_scene_is_named_with_the_valid_ones():
-    with pytest.raises(ValueError, match=r"unknown scene 'boxes'.*ir_rig, markers, planar_target, room"):
+    with pytest.raises(ValueError, match=r"unknown scene 'boxes'.*ir_rig, markers, pattern, planar_target, room"):
         make_scene("boxes")
 
 

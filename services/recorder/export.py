@@ -1,0 +1,153 @@
+"""One key of a recording as a TUM trajectory, CSV or JSON lines.
+
+* ``tum``: one line per pose, ``stamp tx ty tz qx qy qz qw`` (the format evo and the SLAM
+  benchmarks read): stamp = ``header.stamp_ns`` in seconds, written exactly (9 decimals);
+  translation in metres, rotation quaternion x y z w, as Python's shortest round-trip
+  numbers. ``Pose`` messages give ``T_<frame_id>_<child_frame_id>`` (``child`` keeps one
+  child frame); ``GroundTruth`` messages give their transform whose child frame is
+  ``child``, which must then be named.
+* ``csv``: a header row, then one row per message: ``received_ns`` (the log time), then the
+  message's fields flattened (``header.stamp_ns``, ``transform.translation.0``, ...). The
+  columns are every field any message had, in first-seen order (the file is read twice).
+* ``jsonl``: one JSON object per message, as ``artrack echo`` prints them: ``key``,
+  ``received_ns``, ``schema``, ``version`` and the fields.
+
+In CSV and JSON lines, arrays of more than 16 elements are summarised as dtype and shape
+unless ``full``. Messages that do not decode are skipped and counted.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from protocol.codec import DecodeError, decode, to_json
+from protocol.message import Message
+from protocol.poses import GroundTruth, Pose
+from protocol.spatial import Transform
+from services.recorder.reading import Damage, Scan
+from services.recorder.writing import RECORDING_METADATA
+
+FORMATS = ("tum", "csv", "jsonl")
+SUMMARISE_OVER = 16
+
+
+class ExportError(ValueError):
+    """The key, format or child frame asked for does not fit the recording."""
+
+
+def tum_line(stamp_ns: int, transform: Transform) -> str:
+    """``stamp tx ty tz qx qy qz qw`` with the stamp in seconds, exact to the nanosecond."""
+    return " ".join([f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}",
+                     *map(repr, transform.translation), *map(repr, transform.rotation)])
+
+
+def flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts and lists as one level: ``{"a": {"b": [1, 2]}}`` -> ``{"a.b.0": 1, "a.b.1": 2}``."""
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, list | tuple):
+        items = enumerate(value)
+    else:
+        return {prefix: value}
+    flat: dict[str, Any] = {}
+    for name, item in items:
+        flat.update(flatten(item, f"{prefix}.{name}" if prefix else str(name)))
+    return flat
+
+
+class Export:
+    """The lines of one export; iterate ``lines()`` once, then read ``rows``, ``skipped``, ``damage``.
+
+    ``key`` is a recorded key, absolute or relative to the recording's ``namespace/rig``.
+    ``lines()`` raises ``ExportError`` when no channel has the key (naming the keys there
+    are) or when the format does not fit its messages.
+    """
+
+    def __init__(self, path: Path | str, key: str, fmt: str, *, child: str | None = None, full: bool = False):
+        if fmt not in FORMATS:
+            raise ExportError(f"unknown format {fmt!r} (use {', '.join(FORMATS)})")
+        self.path, self.key, self.format, self.child = Path(path), key, fmt, child
+        self.max_elements = None if full else SUMMARISE_OVER
+        self.rows = 0
+        self.skipped = 0
+        self.damage: Damage | None = None
+        Scan(self.path)  # fail now on a file that is not MCAP
+
+    def lines(self) -> Iterator[str]:
+        """Output lines, without line ends."""
+        if self.format == "tum":
+            yield from self._tum()
+        elif self.format == "jsonl":
+            for topic, log_time, message in self._messages():
+                self.rows += 1
+                yield json.dumps({"key": topic, "received_ns": log_time, **to_json(message, self.max_elements)})
+        else:
+            yield from self._csv()
+
+    def _messages(self) -> Iterator[tuple[str, int, Message]]:
+        """(key, log time, decoded message) of every message on the key, in file order."""
+        scan = Scan(self.path)
+        wanted, seen = {self.key}, set()
+        self.skipped = 0
+        for recorded in scan.messages():
+            recording = scan.metadata.get(RECORDING_METADATA, {})
+            if "namespace" in recording and "rig" in recording:
+                wanted.add(f"{recording['namespace']}/{recording['rig']}/{self.key}")
+            topic = recorded.channel.topic
+            seen.add(topic)
+            if topic not in wanted:
+                continue
+            try:
+                message = decode(recorded.message.data)
+            except DecodeError:
+                self.skipped += 1
+                continue
+            yield topic, recorded.message.log_time, message
+        self.damage = scan.damage
+        if not seen & wanted:
+            raise ExportError(f"no key {self.key!r} in {self.path} (keys: {', '.join(sorted(seen)) or 'none'})")
+
+    def _tum(self) -> Iterator[str]:
+        for _, _, message in self._messages():
+            if isinstance(message, Pose):
+                if self.child is not None and message.child_frame_id != self.child:
+                    continue
+                transforms = [message.transform]
+            elif isinstance(message, GroundTruth):
+                children = [t.child_frame for t in message.transforms]
+                if self.child is None:
+                    raise ExportError(f"{self.key} carries GroundTruth: choose a child frame with --child "
+                                      f"(this message has {', '.join(children) or 'none'})")
+                transforms = [t.transform for t in message.transforms if t.child_frame == self.child]
+            else:
+                raise ExportError(f"tum needs Pose or GroundTruth messages; {self.key} carries {message.SCHEMA}")
+            for transform in transforms:
+                self.rows += 1
+                yield tum_line(message.header.stamp_ns, transform)
+
+    def _csv(self) -> Iterator[str]:
+        def rows() -> Iterator[dict[str, Any]]:
+            for _, log_time, message in self._messages():
+                yield {"received_ns": log_time, **flatten(to_json(message, self.max_elements))}
+
+        columns: dict[str, None] = {}
+        for row in rows():
+            columns.update(dict.fromkeys(row))
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(columns), lineterminator="")
+
+        def line(write: Callable[..., object], *args: Any) -> str:
+            buffer.seek(0)
+            buffer.truncate()
+            write(*args)
+            return buffer.getvalue()
+
+        yield line(writer.writeheader)
+        for row in rows():
+            self.rows += 1
+            yield line(writer.writerow, row)

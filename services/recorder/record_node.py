@@ -1,0 +1,161 @@
+"""Recorder node: what travels on the rig's keys (or chosen key expressions) into MCAP files.
+
+Each key expression gets a raw Zenoh subscriber whose callback only copies the payload,
+stamps its arrival (``time.time_ns()``), peeks at what it is (``peek.identify``) and appends
+it to a ``ByteQueue``. The node body is the writer thread: it takes arrivals in order,
+writes them (``writing.RecordingWriter``) and flushes the open chunk every ``flush_s``, so a
+``kill -9`` loses at most the last ``flush_s`` of data and leaves every earlier message
+readable (``artrack info --recover`` re-indexes such a file). Nothing is latest-wins: an
+arrival that does not fit the queue is dropped, counted (the node's ``dropped``), logged and
+reported on the node's errors key at most once a second per key, and the count is written
+into the file. Payloads that are not known artrack messages are recorded raw, counted as
+decode errors and reported the same way.
+
+On SIGINT/SIGTERM the subscribers are undeclared, whatever Zenoh still had in flight is
+delivered, the queue is drained and the file finished (summary and index): nothing that
+arrived is lost.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from protocol.keys import Keys
+from services.observe import resolve_key
+from services.recorder.byte_queue import ByteQueue
+from services.recorder.peek import Identity, identify
+from services.recorder.writing import RecordingWriter, Split, check_target
+from services.runtime.node import POLL_S, Node
+from services.runtime.stats import StreamCounter
+
+MB = 1 << 20
+CLOSE_S = 5.0
+"""How long to wait, at the end, for Zenoh to deliver what it still had for a subscriber."""
+
+Arrival = tuple[str, bytes, int, Identity]
+
+
+class Params(BaseModel):
+    """Where to record, what, and how to split and flush."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    out: Path
+    keys: tuple[str, ...] = Field(default=(), description="key expressions, relative to the rig prefix unless "
+                                                          "they start with the namespace; empty = the whole rig")
+    split_size_mb: float | None = Field(default=None, gt=0, description="start a new part at this size (MiB)")
+    split_duration_s: float | None = Field(default=None, gt=0, description="start a new part after this long")
+    queue_mb: float = Field(default=512, gt=0, description="arrivals held while the writer is busy (MiB)")
+    flush_s: float = Field(default=1.0, gt=0, description="write out the open chunk this often")
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+    @model_validator(mode="after")
+    def _one_split(self) -> Params:
+        if self.split_size_mb is not None and self.split_duration_s is not None:
+            raise ValueError("split by size or by duration, not both")
+        return self
+
+    def split(self) -> Split:
+        return Split(size_bytes=None if self.split_size_mb is None else int(self.split_size_mb * MB),
+                     duration_ns=None if self.split_duration_s is None else int(self.split_duration_s * 1e9))
+
+
+class Tap:
+    """One raw subscription feeding the queue; its counter is part of the node's stats."""
+
+    def __init__(self, node: Node, key: str, queue: ByteQueue[Arrival]):
+        self.key = key
+        self.counter = node.track(StreamCounter(key, "in"))
+        self._node = node
+        self._queue = queue
+        self._delivered = threading.Event()  # Zenoh calls the drop callback after the last sample
+        self._subscriber = node.session.declare_subscriber(
+            key, zenoh.handlers.Callback(self._on_sample, self._delivered.set))
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:  # a deletion carries no payload to record or replay
+            return
+        key, payload, arrived = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+        identity = identify(payload)
+        queued = self._queue.put((key, payload, arrived, identity), len(payload))
+        self.counter.count(messages=1, dropped=int(not queued), decode_errors=int(identity.cls is None))
+        if not queued:
+            self._node.report("queue_full", f"recorder queue full ({self._queue.nbytes / MB:.0f} MiB held), "
+                                            f"a {len(payload)}-byte message was dropped", key)
+        if identity.cls is None:
+            self._node.report("unrecognised", f"recorded raw: {identity.reason}", key)
+
+    def close(self) -> bool:
+        """Undeclare; True once Zenoh has delivered everything it had for this subscriber."""
+        self._subscriber.undeclare()
+        return self._delivered.wait(CLOSE_S)
+
+
+def subscriptions(keys: Keys, expressions: tuple[str, ...]) -> list[str]:
+    """The key expressions to subscribe to (the whole rig when none are given), none inside
+    another; ValueError for two that overlap otherwise, since a message on both would be
+    recorded twice."""
+    chosen: list[zenoh.KeyExpr] = []
+    for expression in [resolve_key(keys, e) for e in expressions] or [keys.everything()]:
+        new = zenoh.KeyExpr(expression)
+        if any(old.includes(new) for old in chosen):
+            continue
+        chosen = [old for old in chosen if not new.includes(old)]
+        clash = next((old for old in chosen if old.intersects(new)), None)
+        if clash is not None:
+            raise ValueError(f"key expressions {clash} and {new} overlap: a message on both would be recorded twice")
+        chosen.append(new)
+    return [str(k) for k in chosen]
+
+
+def run(node: Node, params: Params) -> None:
+    keys = subscriptions(node.keys, params.keys)
+    check_target(params.out)
+    queue: ByteQueue[Arrival] = ByteQueue(int(params.queue_mb * MB))
+    taps: list[Tap] = []
+
+    def notes() -> dict[str, str]:
+        totals = [t.counter.snapshot() for t in taps]
+        return {"received": str(sum(s.messages for s in totals)), "dropped": str(sum(s.dropped for s in totals)),
+                "unrecognised": str(sum(s.decode_errors for s in totals))}
+
+    writer = RecordingWriter(params.out, split=params.split(), compression=params.compression, notes=notes,
+                             metadata={"namespace": node.keys.namespace, "rig": node.keys.rig,
+                                       "keys": json.dumps(keys)})
+    try:
+        try:
+            taps += [Tap(node, key, queue) for key in keys]
+            node.log.info("recording %s to %s", ", ".join(keys), writer.files[0])
+            flush_at = time.monotonic() + params.flush_s
+            while node.running:
+                arrival = queue.get(POLL_S)
+                if arrival is not None:
+                    _write(node, writer, arrival)
+                if time.monotonic() >= flush_at:
+                    writer.flush()
+                    flush_at = time.monotonic() + params.flush_s
+        finally:
+            for tap in taps:
+                if not tap.close():
+                    node.log.warning("%s: Zenoh did not deliver its last samples within %.0f s", tap.key, CLOSE_S)
+        while (arrival := queue.get(0)) is not None:
+            _write(node, writer, arrival)
+    finally:
+        writer.close()
+        counts = notes()
+        node.log.info("recorded %d messages (%.1f MiB of payload) in %s; %s dropped (queue full), %s unrecognised "
+                      "(recorded raw)", writer.messages, writer.payload_bytes / MB,
+                      ", ".join(map(str, writer.files)), counts["dropped"], counts["unrecognised"])
+
+
+def _write(node: Node, writer: RecordingWriter, arrival: Arrival) -> None:
+    started = time.perf_counter()
+    writer.write(*arrival)
+    node.processed(time.perf_counter() - started)

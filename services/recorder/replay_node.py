@@ -1,0 +1,253 @@
+"""Replay node: a recording's bytes back onto their original keys, with their original timing.
+
+Messages are published in file order (the order they reached the recorder), byte for byte,
+on the key they were recorded from, at their log times scaled by ``rate`` (see
+``playback``), so downstream nodes get the same inputs in the same order as live. Each
+channel gets the QoS of its role, inferred from its schema: ``artrack.Image`` -> FRAME,
+``artrack.NodeStats``/``ErrorReport`` -> STATUS, every other schema and raw payloads -> RESULT.
+
+Selection: the channels whose key is included in one of ``keys`` (relative to the rig prefix
+unless they start with the namespace); by default every channel except node health
+(``<namespace>/*/node/**``: stats and error reports of the recorded nodes), which would
+impersonate nodes that are not running. ``start_s``/``end_s`` cut a window, in seconds from
+the recording's first message. Before the first message the node waits up to ``wait_s`` for
+a subscriber to match the selection, then ``SETTLE_S``, so the first messages are not
+published before anyone can receive them.
+
+Control: the queryable ``<prefix>/node/<name>/control`` obeys ``?cmd=pause``, ``resume``,
+``step`` (publish the next message now, then stay paused) and ``status``, and answers each
+with a JSON object ``{"node", "state": "playing"|"paused"|"stopped", "played",
+"position_s"}``; ``artrack control NAME CMD`` sends them. With ``paused`` the node starts
+paused.
+
+A damaged file is played up to its damage; one line then says where and why it stopped,
+and ``run`` returns ``EXIT_DAMAGED`` (3).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+from mcap.records import Channel
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode
+from protocol.keys import Keys
+from protocol.sensors import Image
+from protocol.system import ErrorReport, NodeStats
+from services.observe import resolve_key
+from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
+from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded
+from services.runtime.node import Node
+from services.runtime.pubsub import RawPublisher, Role
+
+SETTLE_S = 0.2
+COMMANDS = ("pause", "resume", "step", "status")
+_ROLES = {Image.SCHEMA: Role.FRAME, NodeStats.SCHEMA: Role.STATUS, ErrorReport.SCHEMA: Role.STATUS}
+
+
+class Params(BaseModel):
+    """What to replay, how fast, and which part."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    path: Path
+    rate: float = Field(default=1.0, gt=0, description="playback speed: 2 = twice as fast")
+    loop: bool = False
+    start_s: float = Field(default=0.0, ge=0, description="skip the first S seconds of the recording")
+    end_s: float | None = Field(default=None, ge=0, description="stop S seconds into the recording")
+    keys: tuple[str, ...] = Field(default=(), description="key expressions to replay; empty = all but node health")
+    paused: bool = Field(default=False, description="start paused; resume with `artrack control NAME resume`")
+    wait_s: float = Field(default=2.0, ge=0, description="wait up to S for a subscriber before the first message")
+    restamp: bool = Field(default=False, description="give messages the time they are replayed as their stamp "
+                                                     "(re-encodes them), to measure latency on a replay")
+
+    @model_validator(mode="after")
+    def _window(self) -> Params:
+        if self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError(f"end_s ({self.end_s}) must be after start_s ({self.start_s})")
+        return self
+
+    def window(self) -> Window:
+        return Window(int(self.start_s * 1e9), None if self.end_s is None else int(self.end_s * 1e9))
+
+
+def role_of(channel_schema: str | None) -> Role:
+    """The role whose QoS a channel is replayed with."""
+    return _ROLES.get(channel_schema, Role.RESULT) if channel_schema else Role.RESULT
+
+
+class Selection:
+    """Which channels to replay, and the key expressions a subscriber must match to be waited for."""
+
+    def __init__(self, keys: Keys, expressions: tuple[str, ...]):
+        self.include = [zenoh.KeyExpr(resolve_key(keys, e)) for e in expressions]
+        self.exclude = [] if expressions else [zenoh.KeyExpr(keys.all_node_keys())]
+        self.probes = self.include or [zenoh.KeyExpr(keys.whole_namespace())]
+        self._decided: dict[int, bool] = {}
+
+    def __call__(self, channel: Channel) -> bool:
+        chosen = self._decided.get(channel.id)
+        if chosen is None:
+            key = zenoh.KeyExpr(channel.topic)
+            chosen = self._decided[channel.id] = (
+                (not self.include or any(e.includes(key) for e in self.include))
+                and not any(e.includes(key) for e in self.exclude))
+        return chosen
+
+
+class _Restamper:
+    """New stamps for replayed messages: the wall-clock time the first message of each recorded
+    stamp goes out, shared by every message of that stamp (an image and its CameraInfo stay joined)."""
+
+    def __init__(self, kept: int = 4096):
+        self._new: dict[int, int] = {}
+        self._kept = kept
+
+    def __call__(self, payload: bytes) -> bytes:
+        try:
+            message = decode(payload)
+        except DecodeError:
+            return payload  # raw payloads go out as recorded
+        old = message.header.stamp_ns
+        if old not in self._new:
+            if len(self._new) >= self._kept:
+                self._new.pop(next(iter(self._new)))
+            self._new[old] = time.time_ns()
+        header = message.header.model_copy(update={"stamp_ns": self._new[old]})
+        return encode(message.model_copy(update={"header": header}))
+
+
+class _Outputs:
+    """One raw publisher per recorded channel, declared at its first message."""
+
+    def __init__(self, node: Node, restamp: bool = False):
+        self._node = node
+        self._publishers: dict[int, RawPublisher] = {}
+        self._restamp = _Restamper() if restamp else None
+        self.published = 0
+
+    def declare(self, recorded: Recorded) -> None:
+        """Declare the publisher of ``recorded``'s channel unless it exists."""
+        if recorded.channel.id in self._publishers:
+            return
+        schema = recorded.schema.name if recorded.schema is not None else None
+        if schema is None:
+            encoding = zenoh.Encoding.APPLICATION_OCTET_STREAM
+        else:
+            media = MEDIA_FRAME if recorded.channel.message_encoding == MEDIA_FRAME else MEDIA_JSON
+            encoding = zenoh.Encoding(media).with_schema(schema)
+        self._publishers[recorded.channel.id] = self._node.raw_publisher(recorded.channel.topic, role_of(schema),
+                                                                         encoding)
+
+    def publish(self, recorded: Recorded) -> None:
+        started = time.perf_counter()
+        data = recorded.message.data
+        self._publishers[recorded.channel.id].put(self._restamp(data) if self._restamp else data)
+        self._node.processed(time.perf_counter() - started)
+        self.published += 1
+
+
+@dataclass
+class Replayed:
+    """What a replay did: messages published, passes over the file, the damage that ended
+    the intact part (None: none met), and the lateness (ns) of the last publications."""
+
+    played: int = 0
+    passes: int = 0
+    damage: Damage | None = None
+    lateness_ns: deque[int] = field(default_factory=lambda: deque(maxlen=LATENESS_KEPT))
+
+
+def replay(node: Node, params: Params) -> Replayed:
+    """Play ``params.path`` onto the bus until it ends (or forever with ``loop``) or the node stops."""
+    selection = Selection(node.keys, params.keys)
+    pacer = Pacer(params.rate, paused=params.paused, running=lambda: node.running)
+    outputs = _Outputs(node, params.restamp)
+    done = Replayed()
+
+    def on_query(query: zenoh.Query) -> None:
+        command = query.parameters.get("cmd") or "status"
+        if command not in COMMANDS:
+            query.reply_err(f"unknown command {command!r} (use {', '.join(COMMANDS)})")
+            return
+        if command != "status":
+            getattr(pacer, command)()
+        query.reply(query.key_expr, json.dumps({"node": node.name, "state": pacer.state,
+                                                "played": outputs.published, "position_s": pacer.position_ns() / 1e9}))
+
+    queryable = node.session.declare_queryable(node.keys.control(node.name), on_query)
+    try:
+        _wait_for_subscriber(node, selection.probes, params.wait_s)
+        if params.paused:
+            node.log.info("paused; `artrack control %s resume` (or step) to go on", node.name)
+        while node.running:
+            result = play_pass(params.path, pacer, outputs.publish, select=selection, window=params.window(),
+                               prepare=outputs.declare)
+            done.passes += 1
+            done.played += result.played
+            done.lateness_ns.extend(result.lateness_ns)
+            if result.damage is not None and done.damage is None:
+                done.damage = result.damage
+                node.log.warning("%s is damaged: %s, after %d intact messages (%.3f s into the recording); "
+                                 "replayed everything before it", params.path, result.damage, result.read,
+                                 result.last_ns / 1e9)
+            if result.stopped or not params.loop or result.played == 0:
+                break
+    finally:
+        queryable.undeclare()
+    return done
+
+
+def _wait_for_subscriber(node: Node, probes: list[zenoh.KeyExpr], wait_s: float) -> None:
+    publishers = [node.session.declare_publisher(probe) for probe in probes]
+    try:
+        deadline = time.monotonic() + wait_s
+        while not any(p.matching_status.matching for p in publishers):
+            if time.monotonic() > deadline or not node.wait(0.01):
+                node.log.info("no subscriber on %s after %.1f s; replaying anyway", ", ".join(map(str, probes)), wait_s)
+                return
+        node.wait(SETTLE_S)
+    finally:
+        for publisher in publishers:
+            publisher.undeclare()
+
+
+def run(node: Node, params: Params) -> int:
+    """Replay and log what was done; the exit code (0, or ``EXIT_DAMAGED``)."""
+    done = replay(node, params)
+    line = f"replayed {done.played} messages of {params.path} ({done.passes} pass(es), rate {params.rate:g})"
+    if done.lateness_ns:
+        p50, p99, worst = np.percentile(np.array(done.lateness_ns) / 1e6, [50, 99, 100])
+        line += f"; lateness p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {worst:.2f} ms"
+    node.log.info("%s", line)
+    return EXIT_DAMAGED if done.damage is not None else 0
+
+
+def send_control(session: zenoh.Session, keys: Keys, name: str, command: str, timeout_s: float) -> dict | None:
+    """Send ``command`` to the control queryable of node ``name``; its JSON answer, or None when
+    no such queryable appeared within ``timeout_s``; ValueError with the node's reason when it refused.
+
+    A session that has just opened learns of remote queryables only as its links come up, so
+    the query is sent once the queryable is known (a query sent earlier would reach nobody).
+    """
+    deadline = time.monotonic() + timeout_s
+    querier = session.declare_querier(keys.control(name), timeout=timeout_s)
+    try:
+        while not querier.matching_status.matching:
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.01)
+        for reply in querier.get(parameters=f"cmd={command}"):
+            if reply.ok is None:
+                raise ValueError(f"{name}: {reply.err.payload.to_string()}")
+            return json.loads(reply.ok.payload.to_string())
+        return None
+    finally:
+        querier.undeclare()

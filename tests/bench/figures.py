@@ -1,0 +1,81 @@
+"""The benchmark's output lines: figures per variant, typed-versus-raw comparisons, the machine.
+
+A variant's figure is the median of its runs. A comparison pairs run i of typed with run i
+of raw (measured back to back, in alternating order) and takes the median over the pairs of
+the typed/raw throughput ratio and of the typed - raw p50 latency difference, so that a
+slow spell of the machine hits both members of a pair rather than one variant.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+from importlib.metadata import version
+from typing import Any
+
+from tests.bench.runs import Run
+
+THROUGHPUT_RATIO_TARGET = 0.9
+LATENCY_DELTA_TARGET_US = 100.0
+
+
+def variant_line(bench: str, variant: str, payload_bytes: int, runs: list[Run]) -> dict[str, Any]:
+    """Medians over ``runs`` of one variant, with the per-run throughput and p50 for spread."""
+    return {
+        "bench": bench,
+        "variant": variant,
+        "payload_bytes": payload_bytes,
+        "msg_per_s": round(statistics.median(r.msg_per_s for r in runs), 1),
+        "latency_p50_us": round(statistics.median(r.latency_p50_us for r in runs), 1),
+        "latency_p99_us": round(statistics.median(r.latency_p99_us for r in runs), 1),
+        "n": min(r.latency_n for r in runs),
+        "flood_msgs": round(statistics.median(r.flood_sent for r in runs)),
+        "lost": sum(r.lost for r in runs),
+        "runs": len(runs),
+        "msg_per_s_runs": [round(r.msg_per_s, 1) for r in runs],
+        "latency_p50_us_runs": [round(r.latency_p50_us, 1) for r in runs],
+    }
+
+
+def comparison_lines(bench: str, typed: list[Run], raw: list[Run]) -> list[dict[str, Any]]:
+    """Typed/raw throughput ratio and typed - raw p50 latency, medians over paired runs."""
+    pairs = list(zip(typed, raw, strict=True))
+    ratio = statistics.median(t.msg_per_s / r.msg_per_s for t, r in pairs)
+    delta = statistics.median(t.latency_p50_us - r.latency_p50_us for t, r in pairs)
+    return [
+        {"bench": bench, "figure": "typed_vs_raw_throughput", "ratio": round(ratio, 3),
+         "target": f">= {THROUGHPUT_RATIO_TARGET}", "met": ratio >= THROUGHPUT_RATIO_TARGET},
+        {"bench": bench, "figure": "typed_minus_raw_latency_p50", "delta_us": round(delta, 1),
+         "target": f"<= +{LATENCY_DELTA_TARGET_US:.0f} us", "met": delta <= LATENCY_DELTA_TARGET_US},
+    ]
+
+
+def machine_line(malloc: str, load_before: float) -> dict[str, Any]:
+    """CPU model and count, Python, the package versions on the measured path, the malloc
+    settings, and the 1-minute load average before and after the suite (other work on the
+    cores shows there)."""
+    return {
+        "bench": "machine",
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "zenoh": version("eclipse-zenoh"),
+        "numpy": version("numpy"),
+        "pydantic": version("pydantic"),
+        "os": platform.platform(),
+        "malloc": malloc,
+        "loadavg_1m_before": round(load_before, 2),
+        "loadavg_1m_after": round(os.getloadavg()[0], 2),
+    }
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
