@@ -68,3 +68,19 @@ def test_missing_camera_exits_with_one_clear_line(procs):
     assert cam.wait(START_S) == 2, cam.describe()
     errors = [line for line in cam.stderr.splitlines() if "ERROR" in line]
     assert len(errors) == 1 and "camera:97" in errors[0] and "cannot open video device 97" in errors[0]
+
+
+def test_a_looped_folder_starts_over_and_keeps_counting(bus, procs, session, tmp_path):
+    pictures = [np.full((32, 32), 40 * (i + 1), np.uint8) for i in range(3)]
+    for i, picture in enumerate(pictures):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), picture)
+    images = Inbox(session, bus.keys.image("cam0"), Image, Role.RESULT)
+    try:
+        cam = start_node(procs, "capture", "cam", source=f"images:{tmp_path}", loop=True, frames=7, fps=40,
+                         wait_for_subscriber=True)
+        got = collect(images, 7)
+        assert cam.wait(START_S) == 0, cam.describe()
+        assert [m.header.seq for m in got] == list(range(7))
+        assert [int(m.data[0, 0]) for m in got] == [40, 80, 120, 40, 80, 120, 40]
+    finally:
+        images.close()

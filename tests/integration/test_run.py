@@ -3,6 +3,7 @@
 from mcap.reader import make_reader
 
 from protocol import decode
+from services.viewer.contents import RrdContents
 from tests.integration.support import START_S
 
 
@@ -33,3 +34,14 @@ def test_run_refuses_an_unknown_pipeline_before_starting(procs):
     assert job.wait(START_S) == 2
     assert "unknown pipeline 'teleport'" in job.stderr and "echo" in job.stderr
 
+
+
+def test_run_with_rerun_writes_a_recording_rerun_reads_back(procs, tmp_path):
+    out = tmp_path / "job.rrd"
+    job = procs.artrack("run", "capture", "--source", "synthetic:pattern", "--frames", "12", "--fps", "20",
+                        "--rerun", str(out), name="job")
+    assert job.wait(3 * START_S) == 0, job.describe()
+    contents = RrdContents(out)
+    images = contents.rows("world/cam0/image", "Image:buffer")
+    assert 3 <= len(images) <= 12, len(images)  # 0.6 s of frames at the default 10 Hz image limit
+    assert contents.rows("world/cam0/image", "Pinhole:image_from_camera")
