@@ -1,0 +1,75 @@
+"""Plane-to-image homographies: the normalised DLT, and the pose of a plane from its homography.
+
+Points are (N, 2) float64. ``H`` maps homogeneous source points to destination points:
+``dst ~ H @ [x, y, 1]``. For a planar target, source points are target-plane coordinates in
+metres (the target frame's z = 0 plane) and destination points are pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.geometry.rotation import nearest_rotation
+
+
+class DegenerateError(ValueError):
+    """The points do not determine the quantity asked for (too few, collinear, coincident)."""
+
+
+def normalising_transform(points: np.ndarray) -> np.ndarray:
+    """(3, 3) similarity moving (N, 2) ``points`` to mean 0 and RMS distance sqrt(2) from it (Hartley)."""
+    points = np.asarray(points, dtype=np.float64)
+    centre = points.mean(axis=0)
+    rms = np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1)))
+    if rms < 1e-12:
+        raise DegenerateError("all points coincide")
+    s = np.sqrt(2.0) / rms
+    return np.array([[s, 0.0, -s * centre[0]], [0.0, s, -s * centre[1]], [0.0, 0.0, 1.0]])
+
+
+def homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(3, 3) homography with ``H[2, 2] = 1`` from N >= 4 correspondences, by the normalised DLT.
+
+    Both point sets are normalised (mean 0, RMS sqrt(2)), the 2N x 9 system is solved by SVD
+    (right singular vector of the smallest singular value), and the result denormalised.
+    Raises DegenerateError when the system has no unique solution (e.g. three collinear of four).
+    """
+    src, dst = np.asarray(src, dtype=np.float64), np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2 or len(src) < 4:
+        raise DegenerateError(f"need N >= 4 matching (N, 2) points, got {src.shape} and {dst.shape}")
+    T_src, T_dst = normalising_transform(src), normalising_transform(dst)
+    a = src @ T_src[:2, :2].T + T_src[:2, 2]
+    b = dst @ T_dst[:2, :2].T + T_dst[:2, 2]
+    n = len(a)
+    A = np.zeros((2 * n, 9))
+    A[0::2, 0:2], A[0::2, 2] = a, 1.0
+    A[0::2, 6:8], A[0::2, 8] = -b[:, :1] * a, -b[:, 0]
+    A[1::2, 3:5], A[1::2, 5] = a, 1.0
+    A[1::2, 6:8], A[1::2, 8] = -b[:, 1:] * a, -b[:, 1]
+    _, singular, Vt = np.linalg.svd(A)
+    if singular[7] < 1e-10 * singular[0]:
+        raise DegenerateError("the correspondences do not determine a unique homography")
+    H = np.linalg.inv(T_dst) @ Vt[-1].reshape(3, 3) @ T_src
+    if abs(H[2, 2]) < 1e-15:
+        raise DegenerateError("the homography maps the source origin to infinity")
+    return H / H[2, 2]
+
+
+def pose_from_homography(H: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(4, 4) ``T_camera_plane`` from a plane-to-pixel homography and the intrinsics ``K``.
+
+    ``K^-1 H = lambda [r1 r2 t]``: lambda is the mean of the two column norms, ``r3 = r1 x r2``,
+    R is projected onto the nearest rotation (SVD), and the sign is chosen so the plane lies
+    in front of the camera (t_z > 0).
+    """
+    M = np.linalg.solve(np.asarray(K, dtype=np.float64), np.asarray(H, dtype=np.float64))
+    scale = (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1])) / 2
+    if scale < 1e-12:
+        raise DegenerateError("the homography has no rotation part")
+    M = M / scale
+    if M[2, 2] < 0:
+        M = -M
+    R = nearest_rotation(np.column_stack([M[:, 0], M[:, 1], np.cross(M[:, 0], M[:, 1])]))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, M[:, 2]
+    return T
