@@ -14,13 +14,16 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import PlainSerializer, PlainValidator, SerializationInfo, WithJsonSchema
+from pydantic import PlainSerializer, PlainValidator, SerializationInfo, ValidationInfo, WithJsonSchema
 
 WIRE_DTYPES: dict[str, np.dtype] = {
     name: np.dtype(name).newbyteorder("<")
     for name in ("uint8", "uint16", "int32", "int64", "float32", "float64")
 }
 """Dtypes that may travel, by name; all are little-endian on the wire."""
+
+VIEWS = "artrack.views"
+"""Validation-context key under which the codec passes its descriptor -> array resolver."""
 
 _NAMES: dict[np.dtype, str] = {
     np.dtype(name).newbyteorder(order): name for name in WIRE_DTYPES for order in "<>="
@@ -70,6 +73,19 @@ class ArraySpec:
             raise ValueError(f"shape {tuple(array.shape)} does not fit {wanted}")
         return array
 
+    def check_in_context(self, value: Any, info: ValidationInfo) -> np.ndarray:
+        """``check``, after turning a frame's array descriptor into its view when the codec asks.
+
+        The codec validates a frame's JSON header in one pass with ``context={VIEWS: resolve}``,
+        ``resolve(descriptor, field_name) -> ndarray`` (bounds-checked, read-only).
+        """
+        resolve = info.context.get(VIEWS) if info.context else None
+        if resolve is not None:
+            if not isinstance(value, dict):
+                raise ValueError("a frame's arrays travel as descriptors, not inline")
+            value = resolve(value, info.field_name)
+        return self.check(value)
+
     def serialize(self, array: np.ndarray, info: SerializationInfo) -> Any:
         limit = (info.context or {}).get("max_array_elements") if info.context else None
         if limit is not None and array.size > limit:
@@ -95,7 +111,7 @@ def ndarray(dtypes: str | tuple[str, ...], *shapes: tuple[int | None, ...]) -> A
     return Annotated[
         np.ndarray,
         spec,
-        PlainValidator(spec.check),
+        PlainValidator(spec.check_in_context),
         PlainSerializer(spec.serialize, when_used="json", return_type=Any),
         WithJsonSchema(ARRAY_DESCRIPTOR_SCHEMA),
     ]

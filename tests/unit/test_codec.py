@@ -385,3 +385,11 @@ def test_write_schemas_writes_one_file_per_message(tmp_path):
         assert schema["properties"]["version"] == {"const": cls.VERSION}
         assert schema["required"][:2] == ["schema", "version"]
         assert schema["x-artrack-layout"] == ("frame" if is_frame(cls) else "json")
+
+
+def test_a_frame_header_with_an_inline_array_is_refused():
+    header = json.dumps({"schema": "artrack.Image", "version": 1, "header": {"stamp_ns": 1, "frame_id": "", "seq": 0},
+                          "encoding": "mono8", "data": [[1, 2], [3, 4]]}, separators=(",", ":")).encode()
+    payload = struct.pack("<4sB3sI", MAGIC, 1, bytes(3), len(header)) + header
+    with pytest.raises(DecodeError, match="missing descriptor"):
+        decode(payload)
