@@ -95,7 +95,6 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, out: TextIO = 
             if image.header.seq % max(1, round(fps)) == 0:
                 print(f"frame {image.header.seq:5d}  {image.width}x{image.height} {image.encoding}  "
                       f"mean {float(image.data.mean()):6.1f}  latency {latencies[-1]:6.2f} ms", file=out, flush=True)
-        supervisor.stop()
         return _summary(out, frames, seqs, latencies, seen_nodes, keys.echo(CAMERA), inbox.counter.dropped)
     finally:
         if supervisor is not None:
