@@ -70,7 +70,7 @@ class Params(BaseModel):
     scene: dict[str, Any] = Field(default_factory=dict, description="options of a synthetic scene")
     stamps: Literal["wall", "source"] = "wall"
     wait_for_subscriber: bool = Field(
-        default=False, description="hold the first frame until something subscribes to the images")
+        default=False, description="hold the first frame until every camera's images have a subscriber")
 
     @field_validator("source")
     @classmethod
@@ -140,7 +140,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
               for source, rename in zip(rig.sources, rig.renames, strict=True)
               if source.uri.startswith("synthetic:") for name in rename.values()}
     if params.wait_for_subscriber:
-        while node.running and not any(p.matched() for p in images.values()):
+        while node.running and not all(p.matched() for p in images.values()):
             node.wait(0.02)
         node.wait(SETTLE_S)
     seq = 0

@@ -135,12 +135,18 @@ class BusError(RuntimeError):
 
 
 def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
-    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off."""
+    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
+
+    Shared memory is set up when the session opens rather than on the first large message: set up
+    lazily, the first frames of a stream went over TCP, filled the two-batch queue and a second
+    camera's first frame was dropped.
+    """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
     return config
 
 
