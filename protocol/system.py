@@ -29,7 +29,8 @@ class NodeStats(Message):
 
     ``dropped`` counts frames a latest-wins input replaced before they were processed;
     ``decode_errors`` payloads that failed to decode or validate; ``processing_ms_p50``
-    and ``_p99`` are over the last window of processed inputs.
+    and ``_p99`` are over the last window of processed inputs; ``skipped`` counts inputs
+    the node could not use, by reason (``decode_error``, ``degenerate_homography``, ...).
     """
 
     SCHEMA = "artrack.NodeStats"
@@ -48,6 +49,7 @@ class NodeStats(Message):
     decode_errors: int = Field(default=0, ge=0)
     processing_ms_p50: float | None = None
     processing_ms_p99: float | None = None
+    skipped: dict[str, int] = Field(default_factory=dict)
     streams: tuple[StreamStats, ...] = ()
 
 

@@ -33,6 +33,9 @@ KINDS: dict[str, NodeKind] = {
     for kind in (
         NodeKind("capture", "services.capture.node", "publishes camera frames + calibration from a source"),
         NodeKind("echo", "services.echo.node", "relays a camera's frames to its echo key"),
+        NodeKind("markers", "services.detection.node", "detects ArUco/AprilTag markers in a camera's frames"),
+        NodeKind("marker_pose", "services.estimation.node",
+                 "marker and board poses from a camera's frames (or a markers node's detections)"),
         NodeKind("recorder", "services.recorder.record_node", "records the rig's keys to MCAP files"),
         NodeKind("replay", "services.recorder.replay_node", "publishes a recording back onto its keys"),
         NodeKind("viewer", "services.viewer.node", "logs the rig to Rerun: an .rrd file and/or a gRPC server"),

@@ -111,8 +111,15 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from services.capture.node import Params as CaptureParams
-    from services.jobs import run_job
+    from services.jobs import RECORDING_SCHEME, JobError, Recording, run_job
 
+    given = {name: getattr(args, name) for name in ("dictionary", "marker_length", "board", "method")}
+    options = {name: str(value) if isinstance(value, Path) else value for name, value in given.items()
+               if value is not None}
+    if any(uri.startswith(RECORDING_SCHEME) for uri in args.source):
+        if len(args.source) > 1:
+            raise JobError("a recording is the whole rig: give one --source recording:PATH and nothing else")
+        return run_job(_bus(args), args.pipeline, Recording.open(args.source[0]), options, args.record, args.rerun)
     scene = {}
     for option in args.scene_option or ():
         name, _, value = option.partition("=")
@@ -120,13 +127,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     capture = _params(CaptureParams, "capture", source=tuple(args.source), cameras=tuple(args.cameras or ()),
                       fps=args.fps, frames=args.frames, loop=args.loop or None, calib=tuple(args.calib or ()),
                       scene=scene, stamps=args.stamps)
-    return run_job(_bus(args), args.pipeline, capture, args.record, args.rerun)
+    return run_job(_bus(args), args.pipeline, capture, options, args.record, args.rerun)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from services.demo import run_demo
 
-    return run_demo(_bus(args), args.recording) if args.recording else run_demo(_bus(args))
+    chosen = {name: value for name, value in (("recording", args.recording), ("runs", args.runs)) if value}
+    return run_demo(_bus(args), **chosen)
 
 
 def cmd_node(args: argparse.Namespace) -> int:
@@ -256,8 +264,52 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+
+
+def _image_files(where: str, pattern: str) -> list[Path]:
+    """Image files of folder ``where`` matching ``pattern``, or those a glob ``where`` matches; sorted by path."""
+    import glob
+
+    folder = Path(where)
+    candidates = folder.glob(pattern) if folder.is_dir() else (Path(p) for p in glob.glob(where))
+    files = sorted(p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) match {where}"
+                         + (f" with --glob {pattern!r}" if folder.is_dir() else ""))
+    return files
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import cv2
+
+    from services.capture.calibration import write_camera_info
+    from services.estimation.calibration import Charuco, Chessboard, calibrate_images
+
+    columns, _, rows = args.size.lower().partition("x")
+    if not (columns.isdigit() and rows.isdigit()):
+        raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
+    if args.pattern == "chessboard":
+        pattern = Chessboard(int(columns), int(rows), args.square)
+    elif args.marker is None or args.dictionary is None:
+        raise ValueError("--pattern charuco needs --marker and --dictionary")
+    else:
+        pattern = Charuco(int(columns), int(rows), args.square, args.marker, args.dictionary)
+    files = _image_files(args.images, args.glob)
+    images = ((path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in files)
+    result = calibrate_images(images, pattern, args.camera)
+    print(result.report())
+    try:
+        write_camera_info(args.out, result.camera)
+    except OSError as exc:
+        raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
+    print(f"wrote {args.out}")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     from services.catalog import KINDS
+    from services.pipelines import PIPELINES
 
     top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")
     top.add_argument("--log-json", action="store_true", default=None, help="log as JSON lines (env ARTRACK_LOG_JSON)")
@@ -289,9 +341,11 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("run", help="one job: capture from a source through a pipeline, optionally recorded")
-    p.add_argument("pipeline", help="pipeline name: capture (the source alone), echo")
+    p.add_argument("pipeline", choices=sorted(PIPELINES),
+                   help="; ".join(f"{name}: {pipeline.summary}" for name, pipeline in PIPELINES.items()))
     p.add_argument("--source", action="append", required=True, metavar="URI",
-                   help="camera:N, video:PATH, images:DIR or synthetic:SCENE (repeat for a rig)")
+                   help="camera:N, video:PATH, images:DIR or synthetic:SCENE (repeat for a rig), "
+                        "or recording:PATH.mcap (replayed on its own rig)")
     p.add_argument("--cameras", nargs="+", metavar="NAME", help="camera names (default: the source's, or cam0...)")
     p.add_argument("--fps", type=float, help="pace (default: the source's own timing)")
     p.add_argument("--frames", type=int, help="stop after this many frames")
@@ -299,14 +353,22 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--calib", action="append", type=Path, metavar="FILE", help="ROS camera_info YAML, per camera")
     p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option")
     p.add_argument("--stamps", choices=("wall", "source"), help="stamp frames with capture or source time")
+    marker = p.add_argument_group("marker pipeline")
+    marker.add_argument("--dictionary", metavar="NAME", help="OpenCV dictionary name (e.g. DICT_5X5_100, "
+                        "DICT_APRILTAG_36h11) or a custom dictionary YAML (default DICT_4X4_50)")
+    marker.add_argument("--marker-length", type=float, metavar="M", help="marker side length in metres")
+    marker.add_argument("--board", type=Path, metavar="FILE", help="a board / marker map YAML: one pose for all "
+                        "its markers (see README)")
+    marker.add_argument("--method", help="pose method (see README; default the most accurate on the tests)")
     p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
     p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
     _bus_options(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("demo", help="bundled recording -> replay -> echo node -> client, printing what flowed")
+    p = sub.add_parser("demo", help="the bundled marker session tracked live and scored against ground truth")
     p.add_argument("--recording", type=Path, metavar="IN.mcap", help="the recording to play (default: "
                    "recordings/markers.mcap)")
+    p.add_argument("--runs", type=Path, metavar="DIR", help="where the run folder goes (default: runs/)")
     _bus_options(p)
     p.set_defaults(func=cmd_demo)
 
@@ -386,6 +448,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--world-axes", metavar="XYZ", help="where the world frame's x, y, z point, in Rerun's letters "
                                                       "(default RDF, OpenCV's camera axes; RFU or FLU for z up)")
     p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("calibrate", help="camera intrinsics from photos of a chessboard or ChArUco board, "
+                                         "written as ROS camera_info YAML (exit 2 if the photos cannot constrain them)")
+    p.add_argument("images", metavar="DIR_OR_GLOB", help="a folder of images, or a quoted glob like 'data/left*.jpg'")
+    p.add_argument("--glob", default="*", metavar="PATTERN", help="in a folder, the files matching PATTERN (default *)")
+    p.add_argument("--pattern", required=True, choices=("chessboard", "charuco"))
+    p.add_argument("--size", required=True, metavar="COLSxROWS",
+                   help="inner corners of a chessboard (e.g. 9x6), squares of a ChArUco board (e.g. 5x7)")
+    p.add_argument("--square", required=True, type=float, metavar="M", help="side of a square, metres")
+    p.add_argument("--marker", type=float, metavar="M", help="ChArUco: side of a marker, metres")
+    p.add_argument("--dictionary", metavar="NAME", help="ChArUco: its markers' dictionary, e.g. DICT_6X6_250")
+    p.add_argument("--camera", default="cam0", metavar="NAME", help="camera name written to the file (default cam0)")
+    p.add_argument("--out", required=True, type=Path, metavar="CAMERA.yaml")
+    p.set_defaults(func=cmd_calibrate)
     return top
 
 

@@ -1,118 +1,152 @@
-"""``artrack demo``: a bundled recording -> replay node -> echo node -> this client, over Zenoh.
+"""``artrack demo``: the bundled marker session tracked live over Zenoh, scored against its ground truth.
 
-Starts the ``replay`` node (playing ``recordings/markers.mcap``, restamped with the time each
-frame goes out) and the ``echo`` node as separate processes, subscribes to the echo output
-here, prints what flowed and a summary: frames, losses, end-to-end latency from the frame's
-stamp to its arrival here (two process hops), and which nodes were seen on the bus.
+The job is ``artrack run marker --source recording:recordings/markers.mcap --marker-length
+0.05 --record RUN/run.mcap --rerun RUN/run.rrd``: a replay node publishes the recorded frames,
+calibration and ground truth (restamped with the time each frame goes out), one marker node
+per camera detects and estimates, and a recorder and a viewer write the run. This process is
+the subscribing client: it joins every pose to the ground truth of its frame (by camera and
+sequence number), prints a line a second while the run goes on, and a table at the end:
+frames, markers tracked, rotation and translation errors, latency from the frame's stamp to
+the pose's arrival here (two process hops: replay -> marker node -> client), and the files.
 """
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
-import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
 
-from protocol.sensors import Image
-from services.launch import node_command
-from services.observe import live_nodes
+from protocol.poses import GroundTruth, Pose, TrackingState
+from services.geometry.evaluation import pose_error
+from services.jobs import RECORDING_SCHEME, Recording, run_job
 from services.recorder.info import summarise
 from services.runtime.bus import BusConfig, open_session
+from services.runtime.convert import matrix_from_transform
 from services.runtime.pubsub import Inbox, Role
-from services.runtime.supervisor import ProcessSpec, Supervisor
 
-CAMERA = "cam0"
-STARTUP_TIMEOUT_S = 30.0
-QUIET_END_S = 2.0
-
-
-def echo_depth(fps: float) -> int:
-    """Frames the demo's echo node may queue: about two seconds' worth."""
-    return max(1, min(1000, round(2 * fps)))
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_RECORDING = ROOT / "recordings" / "markers.mcap"
+DEFAULT_RUNS = ROOT / "runs"
+MARKER_LENGTH_M = 0.05
+"""Side of the markers in the bundled session (the ``markers`` scene's default)."""
+DEPTH = 100_000
+TRACKED_AT_LEAST = 0.99
 
 
-DEFAULT_RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "markers.mcap"
+@dataclass
+class Scorecard:
+    """Poses joined to ground truth: errors per marker view, latencies per pose."""
+
+    truth: dict[tuple[str, int], dict[str, np.ndarray]] = field(default_factory=dict)
+    poses: dict[tuple[str, int], dict[str, Pose]] = field(default_factory=lambda: defaultdict(dict))
+    latencies_ms: list[float] = field(default_factory=list)
+    states: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+
+    def add_truth(self, truth: GroundTruth) -> None:
+        self.truth[(truth.header.frame_id, truth.header.seq)] = {
+            t.child_frame: matrix_from_transform(t.transform) for t in truth.transforms}
+
+    def add_pose(self, pose: Pose, received_ns: int) -> None:
+        self.states[pose.state.value] += 1
+        if pose.state is TrackingState.TRACKING:
+            self.poses[(pose.header.frame_id, pose.header.seq)][pose.child_frame_id] = pose
+            self.latencies_ms.append((received_ns - pose.header.stamp_ns) / 1e6)
+
+    def errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rotation error (deg), translation error (mm) and translation error (% of distance) per scored view."""
+        rows = []
+        for frame, estimates in self.poses.items():
+            known = self.truth.get(frame, {})
+            for child, pose in estimates.items():
+                if child in known:
+                    rotation, translation = pose_error(matrix_from_transform(pose.transform), known[child])
+                    rows.append((np.degrees(rotation), translation * 1e3,
+                                 100 * translation / np.linalg.norm(known[child][:3, 3])))
+        table = np.array(rows).reshape(-1, 3)
+        return table[:, 0], table[:, 1], table[:, 2]
+
+    def views(self) -> tuple[int, int]:
+        """Marker views in the ground truth, and how many of them got a tracking pose."""
+        total = sum(len(known) for known in self.truth.values())
+        tracked = sum(len(set(self.poses.get(frame, {})) & set(known)) for frame, known in self.truth.items())
+        return total, tracked
 
 
-def recorded_frames(recording: Path) -> tuple[int, float, dict[str, str]]:
-    """How many ``CAMERA`` images ``recording`` holds, their rate (Hz), and its namespace and rig."""
-    if not recording.is_file():
-        raise ValueError(f"{recording}: no such recording (the bundled ones are in recordings/)")
-    info = summarise(recording)
-    where = info.metadata.get("artrack.recording", {})
-    for channel in info.channels:
-        if channel.key.endswith(f"/{CAMERA}/image") and channel.messages > 1:
-            rate = (channel.messages - 1) / ((channel.last_ns - channel.first_ns) / 1e9)
-            return channel.messages, rate, {k: where[k] for k in ("namespace", "rig") if k in where}
-    raise ValueError(f"{recording}: no {CAMERA} images in it")
-
-
-def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, out: TextIO = sys.stdout) -> int:
-    """Run the demo; return 0 when every frame made it through, 1 otherwise."""
-    frames, fps, where = recorded_frames(recording)
-    bus = bus.model_copy(update=where)  # replay publishes on the recorded keys: work in their rig
-    keys = bus.keys
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    session = open_session(bus)
-    supervisor = None
+def _collect(session, bus: BusConfig, card: Scorecard, stop: threading.Event, out: TextIO) -> None:
+    poses = Inbox(session, bus.keys.poses(), Pose, Role.RESULT, depth=DEPTH)
+    truths = Inbox(session, bus.keys.every_camera("truth"), GroundTruth, Role.RESULT, depth=DEPTH)
+    printed = -1
     try:
-        inbox = Inbox(session, keys.echo(CAMERA), Image, Role.FRAME, depth=1024)
-        env = bus.to_env()
-        supervisor = Supervisor([
-            # Replaying only the images makes the replay wait for the echo node's subscription to them.
-            ProcessSpec("replay", node_command("replay", "replay", {
-                "path": str(recording), "keys": [f"{CAMERA}/image"], "restamp": True, "wait_s": STARTUP_TIMEOUT_S,
-            }), env, restart=False),
-            # The demo counts every frame, so the relay queues ~2 s of frames instead of keeping only
-            # the newest: a busy machine's scheduling stalls must not show up as losses.
-            ProcessSpec("echo", node_command("echo", "echo", {"camera": CAMERA, "depth": echo_depth(fps)}), env),
-        ])
-        supervisor.start()
-        print(f"demo: nodes 'replay' ({recording.name}) and 'echo' on {keys.prefix}; {frames} frames at "
-              f"{fps:.0f} fps. `artrack list` in another shell shows them.", file=out, flush=True)
-        latencies, seqs, seen_nodes = [], [], set()
-        started = last = time.monotonic()
-        while len(seqs) < frames and not stop.is_set():
-            supervisor.step()
-            received = inbox.recv(0.1)
-            now = time.monotonic()
+        while not stop.is_set() or poses.pending() or truths.pending():
+            while (truth := truths.take()) is not None:
+                card.add_truth(truth.message)
+            received = poses.recv(0.05)
             if received is None:
-                waited = now - (started if not seqs else last)
-                if waited > (STARTUP_TIMEOUT_S if not seqs else QUIET_END_S):
-                    break
                 continue
-            last = now
-            image = received.message
-            latencies.append((received.received_ns - image.header.stamp_ns) / 1e6)
-            seqs.append(image.header.seq)
-            if len(seqs) == min(frames, 10):
-                seen_nodes = {name for rig, name in live_nodes(session, keys, 1.0) if rig == keys.rig}
-            if image.header.seq % max(1, round(fps)) == 0:
-                print(f"frame {image.header.seq:5d}  {image.width}x{image.height} {image.encoding}  "
-                      f"mean {float(image.data.mean()):6.1f}  latency {latencies[-1]:6.2f} ms", file=out, flush=True)
-        return _summary(out, frames, seqs, latencies, seen_nodes, keys.echo(CAMERA), inbox.counter.dropped)
+            pose = received.message
+            card.add_pose(pose, received.received_ns)
+            second = pose.header.seq // 30
+            if second != printed and pose.state is TrackingState.TRACKING:
+                printed = second
+                t = pose.transform.translation
+                print(f"frame {pose.header.seq:4d}  {pose.header.frame_id}/{pose.child_frame_id:<9} "
+                      f"t = ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m  rms {pose.quality.reprojection_rms_px:.2f} px"
+                      f"  latency {card.latencies_ms[-1]:5.2f} ms", file=out, flush=True)
     finally:
-        if supervisor is not None:
-            supervisor.stop()
+        poses.close()
+        truths.close()
+
+
+def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = DEFAULT_RUNS,
+             out: TextIO = sys.stdout) -> int:
+    """Run the demo; 0 when the job ended cleanly, wrote its files, and at least ``TRACKED_AT_LEAST`` of
+    the ground-truth marker views got a pose (markers cut by the image border may go undetected)."""
+    source = Recording.open(f"{RECORDING_SCHEME}{recording}")
+    bus = source.on_bus(bus)
+    run_dir = runs / f"demo-{datetime.now():%Y%m%d-%H%M%S}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record, rerun = run_dir / "run.mcap", run_dir / "run.rrd"
+    frames = next(c.messages for c in summarise(recording).channels if c.key.endswith("/image"))
+    print(f"demo: {recording.name} ({frames} frames, cameras {', '.join(source.cameras)}) -> marker node -> "
+          f"this client, on {bus.keys.prefix}; `artrack list` in another shell shows the nodes.", file=out, flush=True)
+    card, stop = Scorecard(), threading.Event()
+    session = open_session(bus)
+    collector = threading.Thread(target=_collect, args=(session, bus, card, stop, out), daemon=True)
+    collector.start()
+    try:
+        code = run_job(bus, "marker", source, {"marker_length": MARKER_LENGTH_M}, record, rerun)
+    finally:
+        stop.set()
+        collector.join()
         session.close()
+    return _summary(out, frames, card, record, rerun, code)
 
 
-def _summary(out: TextIO, frames: int, seqs: list[int], latencies: list[float], nodes: set[str],
-             key: str, dropped: int) -> int:
-    in_order = all(a < b for a, b in zip(seqs, seqs[1:], strict=False))
-    p50, p99 = (np.percentile(latencies, [50, 99]) if latencies else (float("nan"), float("nan")))
+def _median(values: np.ndarray) -> float:
+    return float(np.median(values)) if len(values) else float("nan")
+
+
+def _summary(out: TextIO, frames: int, card: Scorecard, record: Path, rerun: Path, code: int) -> int:
+    rotation, translation_mm, translation_pct = card.errors()
+    total, tracked = card.views()
+    p50, p99 = np.percentile(card.latencies_ms, [50, 99]) if card.latencies_ms else (float("nan"),) * 2
+    p90 = float(np.percentile(rotation, 90)) if len(rotation) else float("nan")
+    outcomes = ", ".join(f"{count} {state}" for state, count in card.states.items())
     rows = [
-        ("frames replayed", str(frames)),
-        ("frames received", f"{len(seqs)} on {key}"),
-        ("lost / dropped", f"{frames - len(seqs)} / {dropped}"),
-        ("in order", "yes" if in_order else "no"),
-        ("latency p50 / p99", f"{p50:.2f} / {p99:.2f} ms (replay stamp -> here, 2 hops)"),
-        ("nodes seen", ", ".join(sorted(nodes)) or "none"),
+        ("frames", f"{frames} replayed, {len(card.truth)} with ground truth, {len(card.poses)} with poses"),
+        ("markers tracked", f"{tracked} of {total} marker views (poses: {outcomes})"),
+        ("rotation error", f"median {_median(rotation):.3f} deg, p90 {p90:.3f} deg"),
+        ("translation error", f"median {_median(translation_mm):.2f} mm, {_median(translation_pct):.3f} % of range"),
+        ("latency p50 / p99", f"{p50:.2f} / {p99:.2f} ms (frame stamp -> pose here, 2 hops)"),
+        ("recorded", str(record)),
+        ("rerun", f"{rerun} (open it with `rerun {rerun}`)"),
     ]
     print("\n".join(f"{name:>18}: {value}" for name, value in rows), file=out, flush=True)
-    return 0 if len(seqs) == frames and in_order else 1
+    complete = total > 0 and tracked >= TRACKED_AT_LEAST * total
+    return 0 if code == 0 and complete and record.is_file() and rerun.is_file() else 1

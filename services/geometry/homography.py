@@ -17,14 +17,17 @@ class DegenerateError(ValueError):
 
 
 def normalising_transform(points: np.ndarray) -> np.ndarray:
-    """(3, 3) similarity moving (N, 2) ``points`` to mean 0 and RMS distance sqrt(2) from it (Hartley)."""
+    """(d+1, d+1) similarity moving (N, d) ``points`` to mean 0 and RMS distance sqrt(d) from it (Hartley)."""
     points = np.asarray(points, dtype=np.float64)
+    d = points.shape[1]
     centre = points.mean(axis=0)
     rms = np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1)))
     if rms < 1e-12:
         raise DegenerateError("all points coincide")
-    s = np.sqrt(2.0) / rms
-    return np.array([[s, 0.0, -s * centre[0]], [0.0, s, -s * centre[1]], [0.0, 0.0, 1.0]])
+    s = np.sqrt(d) / rms
+    T = np.diag([*([s] * d), 1.0])
+    T[:d, d] = -s * centre
+    return T
 
 
 def homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -167,10 +167,10 @@ class Node:
         self._processed += 1
         self._processing.add(seconds)
 
-    def report(self, kind: str, detail: str, key: str = "") -> None:
-        """Count a skipped input; log and publish an ErrorReport at most once a second per kind and key."""
+    def report(self, kind: str, detail: str, key: str = "", count: int = 1) -> None:
+        """Count ``count`` skipped inputs; log and publish an ErrorReport at most once a second per kind and key."""
         slot = (kind, key)
-        count = self._errors.get(slot, 0) + 1
+        count = self._errors.get(slot, 0) + count
         self._errors[slot] = count
         now = time.monotonic()
         if now - self._last_report.get(slot, -REPORT_EVERY_S) < REPORT_EVERY_S:
@@ -179,6 +179,13 @@ class Node:
         self.log.warning("%s on %s (%d so far): %s", kind, key or "-", count, detail)
         self._errors_pub.put(ErrorReport(header=Header(stamp_ns=time.time_ns()), node=self.name,
                                          kind=kind, detail=detail, key=key, count=count))
+
+    def skipped(self) -> dict[str, int]:
+        """Inputs skipped so far, by the kind given to ``report``."""
+        totals: dict[str, int] = {}
+        for (kind, _), count in list(self._errors.items()):
+            totals[kind] = totals.get(kind, 0) + count
+        return totals
 
     def _on_decode_error(self, key: str, error: DecodeError) -> None:
         self.report("decode_error", str(error), key)
@@ -198,7 +205,8 @@ class Node:
             received=sum(s.messages for s in inputs), published=sum(s.messages for s in outputs),
             processed=self._processed, dropped=sum(s.dropped for s in inputs),
             decode_errors=sum(s.decode_errors for s in inputs),
-            processing_ms_p50=p50, processing_ms_p99=p99, streams=tuple(inputs + outputs),
+            processing_ms_p50=p50, processing_ms_p99=p99, skipped=self.skipped(),
+            streams=tuple(inputs + outputs),
         )
 
     def _stats_loop(self) -> None:

@@ -29,6 +29,20 @@ def wait_until(probe: Callable[[], T], timeout_s: float, what: str, interval_s: 
         time.sleep(interval_s)
 
 
+def collect(inbox, enough: int | Callable[[list], bool], timeout_s: float = START_S) -> list:
+    """Messages taken from ``inbox`` until there are ``enough`` (a count, or a test of the list so far)."""
+    got: list = []
+    done = (lambda messages: len(messages) >= enough) if isinstance(enough, int) else enough
+
+    def probe() -> bool:
+        while (received := inbox.take()) is not None:
+            got.append(received.message)
+        return done(got)
+
+    wait_until(probe, timeout_s, f"{enough if isinstance(enough, int) else 'enough'} messages on {inbox.key}")
+    return got
+
+
 def published(proc) -> int | None:
     """How many messages the bus probe ``proc`` says it published; None until it has said so."""
     for line in proc.stdout.splitlines():

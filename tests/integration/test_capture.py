@@ -7,19 +7,7 @@ from protocol import CameraInfo, GroundTruth, Image
 from services.capture.calibration import write_camera_info
 from services.geometry.camera import CameraModel
 from services.runtime.pubsub import Inbox, Role
-from tests.integration.support import START_S, start_node, wait_until
-
-
-def collect(inbox: Inbox, n: int) -> list:
-    got = []
-
-    def enough() -> bool:
-        while (received := inbox.take()) is not None:
-            got.append(received.message)
-        return len(got) >= n
-
-    wait_until(enough, START_S, f"{n} messages on {inbox.key}")
-    return got
+from tests.integration.support import START_S, collect, start_node
 
 
 def test_image_folder_with_calibration_flows_in_order(bus, procs, session, tmp_path):

@@ -84,17 +84,20 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
         assert len(line["k"]) == 9 and line["k"][8] == 1.0
 
 
-def test_demo_replays_the_bundled_recording_and_receives_every_frame(bus, procs):
-    demo = procs.run("demo", "--recording", str(PATTERN), "--connect", bus.endpoint, timeout=90)
+def test_demo_tracks_the_bundled_markers_and_scores_them(bus, procs, tmp_path):
+    demo = procs.run("demo", "--runs", str(tmp_path), "--connect", bus.endpoint, timeout=120)
     assert demo.poll() == 0, demo.describe()
     summary = dict(re.findall(r"^\s*([a-z /0-9]+):\s+(.*)$", demo.stdout, re.MULTILINE))
-    assert summary["frames replayed"] == "60", demo.stdout
-    assert summary["frames received"] == "60 on ar/rig0/cam0/echo", demo.stdout  # the recording's rig
-    assert summary["lost / dropped"] == "0 / 0", demo.stdout
-    assert summary["in order"] == "yes", demo.stdout
-    assert summary["nodes seen"] == "echo, replay", demo.stdout
+    assert summary["frames"].startswith("150 replayed, 150 with ground truth, 150 with poses"), demo.stdout
+    tracked, total = map(int, re.match(r"(\d+) of (\d+) marker views", summary["markers tracked"]).groups())
+    assert total > 600 and tracked >= 0.99 * total, summary["markers tracked"]
+    rotation = float(re.match(r"median ([0-9.]+) deg", summary["rotation error"]).group(1))
+    range_pct = float(re.search(r"([0-9.]+) % of range", summary["translation error"]).group(1))
+    assert rotation < 0.5 and range_pct < 1.0, demo.stdout
     p50 = float(summary["latency p50 / p99"].split()[0])
-    assert 0 < p50 < 100, "restamped frames should arrive within milliseconds of their new stamp"
+    assert 0 < p50 < 100, "restamped frames should give poses within milliseconds of their new stamp"
+    run = Path(summary["recorded"]).parent
+    assert run.parent == tmp_path and (run / "run.mcap").stat().st_size > 0 and (run / "run.rrd").stat().st_size > 0
 
 
 def test_demo_names_a_missing_recording(procs, tmp_path):

@@ -46,6 +46,7 @@ def test_echo_node_counts_bad_payloads_and_keeps_relaying(bus, procs, session):
 
     stats = states(session, keys)["echo"]
     assert stats.decode_errors == len(bad_payloads)
+    assert stats.skipped == {"decode_error": len(bad_payloads)}
     assert (stats.published, stats.processed) == (0, 0)
     assert stats.pid == node.pid
     stream = next(s for s in stats.streams if s.key == image_key)

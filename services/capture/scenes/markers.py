@@ -25,6 +25,7 @@ import numpy as np
 from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
 from services.capture.scenes.paths import plane_viewing_path
 from services.capture.scenes.plane import PlaneTexture, rectangle_corners
+from services.detection.markers import DICTIONARY_NAMES, aruco_dictionary
 from services.geometry.camera import CameraModel, intrinsics, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
 
@@ -47,21 +48,14 @@ class MarkersOptions(SceneOptions):
     def __post_init__(self) -> None:
         super().__post_init__()
         self.check_float("marker_length", 0.0, 10.0, low_open=True)
-        name = self.dictionary
-        if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
-            valid = sorted(name for name in dir(cv2.aruco) if name.startswith("DICT_"))
-            raise ValueError(f"option dictionary={self.dictionary!r}: must be one of {', '.join(valid)}")
+        if not (isinstance(self.dictionary, str) and self.dictionary in DICTIONARY_NAMES):
+            raise ValueError(f"option dictionary={self.dictionary!r}: must be one of {', '.join(DICTIONARY_NAMES)}")
         size = len(aruco_dictionary(self.dictionary).bytesList)
         ids = tuple(self.ids) if isinstance(self.ids, list | tuple) else ()
         integers = all(isinstance(i, numbers.Integral) and not isinstance(i, bool) and 0 <= i < size for i in ids)
         if not (integers and 0 < len(ids) <= 64 and len(set(ids)) == len(ids)):
             raise ValueError(f"option ids={self.ids!r}: must be 1 to 64 distinct integers in [0, {size - 1}]")
         object.__setattr__(self, "ids", tuple(int(i) for i in ids))
-
-
-def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
-    """The predefined cv2.aruco dictionary called ``name`` (e.g. "DICT_4X4_50")."""
-    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
 class MarkersScene(SyntheticScene):

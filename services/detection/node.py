@@ -1,0 +1,46 @@
+"""Markers node: finds ArUco / AprilTag markers in one camera's frames and publishes them.
+
+Each frame on ``<camera>/image`` yields one ``MarkerDetections`` on ``<camera>/markers``
+with the frame's header unchanged, zero rows when nothing was found. Frames are
+latest-wins (``depth`` 1): a frame that arrives while one is being searched replaces any
+frame still waiting, and is counted as dropped. The algorithm and the meaning of each
+setting are in ``services.detection.markers``.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from protocol.detections import MarkerDetections
+from protocol.keys import KeyName
+from protocol.message import Header
+from protocol.sensors import Image
+from services.detection.markers import MarkerFound
+from services.detection.settings import DetectorSettings
+from services.runtime.node import Node, NodeError
+from services.runtime.pubsub import Role
+
+
+class Params(DetectorSettings):
+    """Which camera to watch, which markers to look for, and how."""
+
+    camera: KeyName = "cam0"
+    depth: int = Field(default=1, ge=1, le=1000,
+                       description="frames queued while busy; 1 = latest-wins, more rides out stalls")
+
+
+def run(node: Node, params: Params) -> None:
+    try:
+        markers = params.detector()
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
+    out = node.publisher(node.keys.markers(params.camera), MarkerDetections, Role.RESULT)
+    for image in node.inputs(frames):
+        out.put(as_message(image.header, params.dictionary, markers.detect(image.data)))
+
+
+def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDetections:
+    """``found`` in an image with ``header`` as the message that carries it."""
+    return MarkerDetections(header=header, dictionary=dictionary, ids=found.ids, corners=found.corners,
+                            quality=found.quality, side_m=found.side_m)

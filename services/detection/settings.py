@@ -1,0 +1,39 @@
+"""Marker detector settings as nodes take them (pydantic), shared by every node that detects markers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.detection.markers import MarkerDetector
+
+DEFAULT_DICTIONARY = "DICT_4X4_50"
+
+
+class DetectorSettings(BaseModel):
+    """Which markers to look for and how (see ``MarkerDetector``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dictionary: str = Field(default=DEFAULT_DICTIONARY,
+                            description="cv2.aruco predefined dictionary name, or the path of a dictionary YAML")
+    marker_length: float = Field(default=0.0, ge=0.0, allow_inf_nan=False,
+                                 description="side of a marker's black square, metres; 0 = unknown")
+    lengths: dict[int, float] = Field(default_factory=dict, description="side lengths of single ids, metres")
+    refinement: Literal["none", "subpix", "contour", "apriltag"] = "subpix"
+    parameters: dict[str, Any] = Field(default_factory=dict,
+                                       description="cv2.aruco.DetectorParameters fields to override, by name")
+
+    def dictionary_name(self, fallback: str | None = None) -> str:
+        """The dictionary given, else ``fallback`` (a board's), else the default."""
+        return self.dictionary if "dictionary" in self.model_fields_set or not fallback else fallback
+
+    def detector(self, dictionary: str | None = None, lengths: Mapping[int, float] | None = None) -> MarkerDetector:
+        """The detector these settings describe. ``dictionary`` stands in for the default one when no
+        dictionary was given; ``lengths`` are side lengths known elsewhere (a board), which ``lengths``
+        given here override. Raises ValueError naming a bad dictionary, refinement or parameter."""
+        return MarkerDetector(self.dictionary_name(dictionary), marker_length=self.marker_length,
+                              lengths={**(lengths or {}), **self.lengths}, refinement=self.refinement,
+                              parameters=self.parameters)

@@ -1,0 +1,1 @@
+"""Pose estimation algorithms (marker poses, marker maps, calibration) and their node; pure numpy/OpenCV."""

@@ -1,0 +1,183 @@
+"""Marker pose node: one camera's markers -> ``T_camera_marker`` (and board) poses.
+
+Inputs: the camera's ``image`` key (``input = "images"``: markers are detected here, in this
+process, and the detections published on the camera's ``markers`` key too) or its
+``markers`` key (``input = "detections"``: a separate ``markers`` node detects), plus its
+``camera_info`` key (the newest calibration is used; a ``calib`` file given here wins).
+
+Outputs, each with the header of the frame the detections came from:
+
+* ``pose/<camera>/marker/<id>``: ``T_<camera>_marker/<id>`` per marker with a side length,
+  state ``tracking``, with reprojection RMS, corner count, ambiguity flag and a 6x6
+  covariance; a marker tracked in the previous frame and not seen in this one gets one
+  ``lost`` pose (identity transform).
+* ``pose/<camera>/<board>``: the board's pose from all its visible markers at once, when a
+  board file is given; the board's own markers get no pose of their own.
+* Without calibration (no CameraInfo yet and no file): one pose per detected marker in state
+  ``no_calibration`` (identity transform) and a ``no_calibration`` report, instead of poses.
+
+Markers that give no pose (degenerate corners, no side length, not converged) are counted by
+reason in the node's ``skipped`` statistics and reported on its errors key; nothing raises.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import ConfigDict, Field
+
+from protocol.detections import MarkerDetections
+from protocol.keys import KeyName
+from protocol.message import Header
+from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.sensors import CameraInfo, Image
+from services.capture.calibration import CalibrationError, read_camera_info
+from services.detection.markers import MarkerDetector
+from services.detection.node import as_message
+from services.detection.settings import DetectorSettings
+from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marker_map
+from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator
+from services.geometry.camera import CameraModel
+from services.runtime.convert import camera_model, transform_from_matrix
+from services.runtime.node import Node, NodeError
+from services.runtime.pubsub import Inbox, Publisher, Role
+
+FIRST_INFO_WAIT_S = 0.05
+"""The longest the first frame's markers wait for the camera's first CameraInfo."""
+INFO_DEPTH = 100
+"""CameraInfo messages kept until the next frame takes the newest (one a frame: none is ever dropped)."""
+
+
+class Params(DetectorSettings):
+    """Which camera, where its markers come from, and how poses are estimated."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera: KeyName = "cam0"
+    input: Literal["images", "detections"] = Field(
+        default="images", description="detect here from images, or take a markers node's detections")
+    board: Path | None = Field(default=None, description="board / marker map YAML: one pose for all its markers")
+    method: Literal[METHODS] = DEFAULT_METHOD  # type: ignore[valid-type]
+    corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
+    calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
+    depth: int = Field(default=1, ge=1, le=1000, description="frames queued while busy (images input)")
+
+
+class _Calibration:
+    """The camera model in use: a fixed file, or the newest CameraInfo of the camera.
+
+    A capture node publishes a frame's CameraInfo just after the frame, so it has nearly always
+    arrived by the time the frame's markers are found; only before the first one does the node
+    wait for it, once, at most ``FIRST_INFO_WAIT_S``.
+    """
+
+    def __init__(self, infos: Inbox[CameraInfo], fixed: CameraModel | None):
+        self._infos = infos
+        self.model = fixed
+        self._fixed = fixed is not None
+        self._waited = False
+
+    def current(self) -> CameraModel | None:
+        if self._fixed:
+            return self.model
+        newest = None
+        while (received := self._infos.take()) is not None:
+            newest = received.message
+        if newest is None and self.model is None and not self._waited:
+            self._waited = True
+            received = self._infos.recv(FIRST_INFO_WAIT_S)
+            newest = received.message if received else None
+        if newest is not None:
+            self.model = camera_model(newest)
+        return self.model
+
+
+class _Poses:
+    """One publisher per target, created when the target first appears; remembers who was tracked."""
+
+    def __init__(self, node: Node, camera: str):
+        self._node = node
+        self._camera = camera
+        self._publishers: dict[str, Publisher[Pose]] = {}
+        self._tracked: set[str] = set()
+
+    def put(self, pose: Pose) -> None:
+        child = pose.child_frame_id
+        if child not in self._publishers:
+            key = self._node.keys.pose(f"{self._camera}/{child}")
+            self._publishers[child] = self._node.publisher(key, Pose, Role.RESULT)
+        self._publishers[child].put(pose)
+
+    def frame_done(self, header: Header, tracked: set[str]) -> None:
+        """Publish one ``lost`` pose for each target tracked in the previous frame and not in this one."""
+        for child in sorted(self._tracked - tracked):
+            self.put(Pose(header=header, child_frame_id=child, state=TrackingState.LOST))
+        self._tracked = tracked
+
+
+def run(node: Node, params: Params) -> None:
+    try:
+        board = load_marker_map(params.board) if params.board else None
+        fixed = read_camera_info(params.calib) if params.calib else None
+        detector = params.detector(*_board_markers(board)) if params.input == "images" else None
+    except (MarkerMapError, CalibrationError, ValueError) as exc:
+        raise NodeError(str(exc)) from exc
+    estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
+    keys = node.keys
+    infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
+    calibration = _Calibration(infos, fixed)
+    poses = _Poses(node, params.camera)
+    if detector is None:
+        found = node.inputs(node.inbox(keys.markers(params.camera), MarkerDetections, Role.RESULT))
+    else:
+        frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
+        found = _detected(node, frames, detector, params.dictionary_name(board.dictionary if board else None),
+                          node.publisher(keys.markers(params.camera), MarkerDetections))
+    for detections in found:
+        _estimate(node, detections, calibration.current(), estimator, poses)
+
+
+def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float]]:
+    """The board's dictionary (None when it names none) and its markers' side lengths."""
+    if board is None:
+        return None, {}
+    return board.dictionary, {marker_id: marker.length for marker_id, marker in board.markers.items()}
+
+
+def _detected(node: Node, frames: Inbox[Image], detector: MarkerDetector, dictionary: str,
+              out: Publisher[MarkerDetections]) -> Iterator[MarkerDetections]:
+    """Detections of each frame from ``frames``, published on ``out`` as they are made."""
+    for image in node.inputs(frames):
+        detections = as_message(image.header, dictionary, detector.detect(image.data))
+        out.put(detections)
+        yield detections
+
+
+def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | None,
+              estimator: MarkerPoseEstimator, poses: _Poses) -> None:
+    header = detections.header
+    if camera is None:
+        for marker in detections.ids:
+            poses.put(Pose(header=header, child_frame_id=f"marker/{marker}", state=TrackingState.NO_CALIBRATION,
+                           quality=PoseQuality(inliers=4)))
+        if len(detections.ids):
+            node.report("no_calibration", f"no CameraInfo for {header.frame_id or 'the camera'} and no calib file: "
+                        "detections only", node.keys.camera_info(header.frame_id))
+        return
+    result = estimator.estimate(detections.ids, detections.corners, detections.side_m, camera.K, camera.dist)
+    for reason, count in result.failures.items():
+        node.report(reason, f"frame {header.seq}: {count} marker(s) gave no pose ({reason.replace('_', ' ')})",
+                    node.keys.markers(header.frame_id), count)
+    tracked = set()
+    for estimate in result.poses:
+        tracked.add(estimate.target)
+        poses.put(Pose(
+            header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
+            quality=PoseQuality(reprojection_rms_px=estimate.rms_px, inliers=estimate.points,
+                                ambiguous=estimate.ambiguous),
+            covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
+        ))
+    poses.frame_done(header, tracked)

@@ -1,0 +1,134 @@
+"""Marker tracking speed: the live pipeline against the same work done in one process.
+
+* ``in_process``: the synthetic ``markers`` scene's frames (640x480, ``FRAMES`` of them) are
+  rendered first; then each is detected and its markers' poses estimated in this process,
+  with the pipeline's own settings. Per-frame time p50/p99.
+* ``pipeline``: a capture node renders the same frames at ``FPS`` and publishes them; a marker
+  node (its own process) detects and estimates; this process subscribes to the poses. Per
+  frame, latency = arrival here of the frame's last pose - the frame's capture stamp (two
+  process hops: capture -> marker node -> here). Frames are counted in and out: the node's
+  ``dropped`` (frames replaced before they were processed) and the frames whose poses arrived.
+  The processes meet through an in-process router on a free loopback port.
+* ``overhead_p50_ms`` = pipeline p50 - in-process p50; target <= 1 ms, and ``FPS`` sustained
+  with no frame dropped.
+
+``python -m tests.bench.markers`` prints the lines (about 20 s).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+import uuid
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from protocol.poses import Pose
+from services.capture.scenes import make_scene
+from services.detection.settings import DetectorSettings
+from services.estimation.marker_pose import MarkerPoseEstimator
+from services.launch import node_command
+from services.observe import node_states, wait_for_nodes
+from services.runtime.bus import BusConfig, open_session
+from services.runtime.pubsub import Inbox, Role
+from services.runtime.router import router_config
+from tests.bench.link import free_port
+
+ROOT = Path(__file__).resolve().parents[2]
+FPS = 60.0
+FRAMES = 600
+MARKER_LENGTH = 0.05
+START_S = 30.0
+QUIET_S = 2.0
+WARMUP = 10
+
+
+def in_process(settings: DetectorSettings) -> dict[str, float]:
+    """Detect + estimate per frame of the scene, in this process: p50 / p99 ms."""
+    scene = make_scene("markers")
+    camera = scene.cameras[0]
+    frames = [scene.render(i).images[camera.name] for i in range(FRAMES)]
+    detector, estimator = settings.detector(), MarkerPoseEstimator()
+    times = []
+    for image in frames:
+        started = time.perf_counter()
+        found = detector.detect(image)
+        estimator.estimate(found.ids, found.corners, found.side_m, camera.K, camera.dist)
+        times.append((time.perf_counter() - started) * 1e3)
+    p50, p99 = np.percentile(times[WARMUP:], [50, 99])
+    return {"p50_ms": round(float(p50), 3), "p99_ms": round(float(p99), 3)}
+
+
+def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
+    """The capture -> marker node -> here pipeline at FPS: latency per frame and frames lost."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(router_config((endpoint,), (), None))
+    bus = BusConfig(connect=(endpoint,), rig=f"bench{uuid.uuid4().hex[:6]}", autostart_router=False)
+    env = {**os.environ, **bus.to_env()}
+    session = open_session(bus)
+    poses = Inbox(session, bus.keys.poses(), Pose, Role.RESULT, depth=100_000)
+    processes: list[subprocess.Popen] = []
+    try:
+        marker = {"camera": "cam0", **settings.model_dump(exclude_defaults=True), **node}
+        processes.append(subprocess.Popen(node_command("marker_pose", "marker", marker), cwd=ROOT, env=env))
+        if wait_for_nodes(session, bus.keys, {"marker"}, START_S) != {"marker"}:
+            raise RuntimeError("the marker node did not come up")
+        capture = {"source": ["synthetic:markers"], "fps": FPS, "frames": FRAMES, "wait_for_subscriber": True}
+        processes.append(subprocess.Popen(node_command("capture", "capture", capture), cwd=ROOT, env=env))
+        arrivals: dict[int, list[int]] = defaultdict(list)
+        stamps: dict[int, int] = {}
+        quiet_since = time.monotonic()
+        while time.monotonic() - quiet_since < QUIET_S or processes[1].poll() is None:
+            received = poses.recv(0.1)
+            if received is None:
+                continue
+            quiet_since = time.monotonic()
+            header = received.message.header
+            arrivals[header.seq].append(received.received_ns)
+            stamps[header.seq] = header.stamp_ns
+        stats = node_states(session, bus.keys, 2.0).get((bus.rig, "marker"))
+        images = next((s.messages for s in stats.streams if s.key == bus.keys.image("cam0")), 0) if stats else 0
+        latencies = [(max(arrivals[seq]) - stamps[seq]) / 1e6 for seq in sorted(arrivals)][WARMUP:]
+        p50, p99 = np.percentile(latencies, [50, 99])
+        return {"p50_ms": round(float(p50), 3), "p99_ms": round(float(p99), 3), "frames_sent": FRAMES,
+                "frames_with_poses": len(arrivals), "frames_received": images,
+                "dropped": stats.dropped if stats else None,
+                "node_p50_ms": stats.processing_ms_p50 if stats else None,
+                "node_p99_ms": stats.processing_ms_p99 if stats else None}
+    finally:
+        poses.close()
+        for process in processes:
+            if process.poll() is None:
+                process.terminate()
+        for process in processes:
+            try:
+                process.wait(5)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        session.close()
+        router.close()
+
+
+def bench_markers() -> list[dict[str, Any]]:
+    settings = DetectorSettings(marker_length=MARKER_LENGTH)
+    local, live = in_process(settings), pipeline(settings)
+    common = {"bench": "marker_tracking", "width": 640, "height": 480, "fps": FPS, "frames": FRAMES}
+    return [
+        {**common, "variant": "in_process", **local},
+        {**common, "variant": "pipeline", "hops": 2, **live},
+        {**common, "variant": "overhead", "p50_ms": round(live["p50_ms"] - local["p50_ms"], 3),
+         "target_ms": 1.0, "no_frame_dropped": live["dropped"] == 0 and live["frames_received"] == FRAMES},
+    ]
+
+
+if __name__ == "__main__":
+    for line in bench_markers():
+        print(json.dumps(line), flush=True)
+    sys.exit(0)
