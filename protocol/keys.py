@@ -8,6 +8,7 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/<camera>/truth            GroundTruth      exact poses of synthetic / mocap sources
     ar/rig0/<camera>/{markers,blobs,keypoints}         detections in that camera's images
     ar/rig0/<camera>/echo             Image            frames relayed by the echo node
+    ar/rig0/<camera>/overlay          Image            frames with the tracked targets drawn (AR overlay)
     ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
     ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
     ar/rig0/map                       PointCloud       SLAM / triangulated points
@@ -86,6 +87,10 @@ class Keys:
 
     def echo(self, camera: str) -> str:
         return self.camera(camera, "echo")
+
+    def overlay(self, camera: str) -> str:
+        """The camera's frames with a cube and axes drawn on each tracked target (marker_pose ``overlay``)."""
+        return self.camera(camera, "overlay")
 
     def pose(self, target: str) -> str:
         return f"{self.prefix}/pose/{check_name(target, 'target', segments=True)}"

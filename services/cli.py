@@ -113,7 +113,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from services.capture.node import Params as CaptureParams
     from services.jobs import RECORDING_SCHEME, JobError, Recording, run_job
 
-    given = {name: getattr(args, name) for name in ("dictionary", "marker_length", "board", "method")}
+    given = {name: getattr(args, name) for name in ("dictionary", "marker_length", "board", "method", "overlay")}
     options = {name: str(value) if isinstance(value, Path) else value for name, value in given.items()
                if value is not None}
     if any(uri.startswith(RECORDING_SCHEME) for uri in args.source):
@@ -360,6 +360,9 @@ def parser() -> argparse.ArgumentParser:
     marker.add_argument("--board", type=Path, metavar="FILE", help="a board / marker map YAML: one pose for all "
                         "its markers (see README)")
     marker.add_argument("--method", help="pose method (see README; default the most accurate on the tests)")
+    marker.add_argument("--overlay", action="store_true", default=None,
+                        help="also publish each camera's frames with a cube and axes drawn on every tracked "
+                             "marker/board (key <camera>/overlay; logged by --rerun)")
     p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
     p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
     _bus_options(p)

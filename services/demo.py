@@ -109,14 +109,14 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     the ground-truth marker views got a pose (markers cut by the image border may go undetected)."""
     source = Recording.open(f"{RECORDING_SCHEME}{recording}")
     bus = source.on_bus(bus)
+    frames = next(c.messages for c in summarise(recording).channels if c.key.endswith("/image"))
+    session = open_session(bus)
     run_dir = runs / f"demo-{datetime.now():%Y%m%d-%H%M%S}"
     run_dir.mkdir(parents=True, exist_ok=True)
     record, rerun = run_dir / "run.mcap", run_dir / "run.rrd"
-    frames = next(c.messages for c in summarise(recording).channels if c.key.endswith("/image"))
     print(f"demo: {recording.name} ({frames} frames, cameras {', '.join(source.cameras)}) -> marker node -> "
           f"this client, on {bus.keys.prefix}; `artrack list` in another shell shows the nodes.", file=out, flush=True)
     card, stop = Scorecard(), threading.Event()
-    session = open_session(bus)
     collector = threading.Thread(target=_collect, args=(session, bus, card, stop, out), daemon=True)
     collector.start()
     try:

@@ -15,6 +15,18 @@ Outputs, each with the header of the frame the detections came from:
   board file is given; the board's own markers get no pose of their own.
 * Without calibration (no CameraInfo yet and no file): one pose per detected marker in state
   ``no_calibration`` (identity transform) and a ``no_calibration`` report, instead of poses.
+* ``<camera>/overlay`` (with ``overlay`` set, ``input = "images"`` only): every frame, as
+  bgr8, with a wireframe cube and axes drawn on each target that got a pose in it
+  (``services.estimation.overlay``; a frame with none, or without calibration, goes out
+  undrawn). A marker's cube has the marker's side; a board's is half the smaller side of its
+  markers' bounding box, at least its largest marker (``overlay.board_cube_size``: the axis
+  length of OpenCV's board samples, a cube that stays on the board). The header is the
+  frame's, except ``frame_id`` = ``<frame's frame_id>/overlay``: a frame id names a camera's
+  picture to viewers, and Rerun keeps one image per entity, so the overlay under the
+  camera's own frame id would overwrite the camera's image there; under its own it is a
+  picture of its own (``world/<camera>/overlay/image``, its own 2D view). Role FRAME
+  (latest-wins); it costs a 3-channel copy of every frame on the bus, so it is off by
+  default. With ``input = "detections"`` the node sees no frames and the option is refused.
 
 Markers that give no pose (degenerate corners, no side length, not converged) are counted by
 reason in the node's ``skipped`` statistics and reported on its errors key; nothing raises.
@@ -27,7 +39,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, model_validator
 
 from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
@@ -39,7 +51,8 @@ from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marker_map
-from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator
+from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, FrameEstimate, MarkerPoseEstimator
+from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
 from services.runtime.convert import camera_model, transform_from_matrix
 from services.runtime.node import Node, NodeError
@@ -64,6 +77,15 @@ class Params(DetectorSettings):
     corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
     depth: int = Field(default=1, ge=1, le=1000, description="frames queued while busy (images input)")
+    overlay: bool = Field(default=False, description="publish the frames with a cube and axes drawn on each "
+                                                     "tracked marker/board (images input)")
+
+    @model_validator(mode="after")
+    def _overlay_needs_frames(self) -> Params:
+        if self.overlay and self.input != "images":
+            raise ValueError(f"overlay draws on the camera's frames: it needs input 'images' (with input "
+                             f"{self.input!r} this node never sees a frame)")
+        return self
 
 
 class _Calibration:
@@ -118,6 +140,34 @@ class _Poses:
         self._tracked = tracked
 
 
+class _Overlay:
+    """Publishes each frame with a cube and axes drawn on every target posed in it (see the module docstring)."""
+
+    def __init__(self, node: Node, camera: str, board: MarkerMap | None):
+        self._camera = camera
+        self._out = node.publisher(node.keys.overlay(camera), Image, Role.FRAME)
+        self._board = board.name if board else None
+        self._board_size = 0.0
+        if board is not None and board.markers:
+            corners = np.concatenate([marker.corners() for marker in board.markers.values()])
+            self._board_size = board_cube_size(corners, max(marker.length for marker in board.markers.values()))
+
+    def put(self, image: Image, detections: MarkerDetections, camera: CameraModel | None,
+            result: FrameEstimate | None) -> None:
+        sides = dict(zip(detections.ids.tolist(), detections.side_m.tolist(), strict=True))
+        targets = []
+        for estimate in result.poses if result is not None else ():
+            size = self._board_size if estimate.target == self._board else sides.get(estimate.marker_ids[0], 0.0)
+            if size > 0:
+                targets.append(OverlayTarget(estimate.T, size, estimate.target))
+        if camera is not None and targets:
+            drawn = draw_overlay(image.data, camera.K, camera.dist, targets)
+        else:
+            drawn = to_bgr8(image.data)
+        header = image.header.model_copy(update={"frame_id": f"{image.header.frame_id or self._camera}/overlay"})
+        self._out.put(Image(header=header, encoding="bgr8", data=drawn))
+
+
 def run(node: Node, params: Params) -> None:
     try:
         board = load_marker_map(params.board) if params.board else None
@@ -130,14 +180,19 @@ def run(node: Node, params: Params) -> None:
     infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
     calibration = _Calibration(infos, fixed)
     poses = _Poses(node, params.camera)
+    overlay = _Overlay(node, params.camera, board) if params.overlay else None
     if detector is None:
-        found = node.inputs(node.inbox(keys.markers(params.camera), MarkerDetections, Role.RESULT))
+        found = ((None, d) for d in node.inputs(node.inbox(keys.markers(params.camera), MarkerDetections,
+                                                            Role.RESULT)))
     else:
         frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
         found = _detected(node, frames, detector, params.dictionary_name(board.dictionary if board else None),
                           node.publisher(keys.markers(params.camera), MarkerDetections))
-    for detections in found:
-        _estimate(node, detections, calibration.current(), estimator, poses)
+    for image, detections in found:
+        camera = calibration.current()
+        result = _estimate(node, detections, camera, estimator, poses)
+        if overlay is not None and image is not None:
+            overlay.put(image, detections, camera, result)
 
 
 def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float]]:
@@ -148,16 +203,17 @@ def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float
 
 
 def _detected(node: Node, frames: Inbox[Image], detector: MarkerDetector, dictionary: str,
-              out: Publisher[MarkerDetections]) -> Iterator[MarkerDetections]:
-    """Detections of each frame from ``frames``, published on ``out`` as they are made."""
+              out: Publisher[MarkerDetections]) -> Iterator[tuple[Image, MarkerDetections]]:
+    """Each frame from ``frames`` with its detections, published on ``out`` as they are made."""
     for image in node.inputs(frames):
         detections = as_message(image.header, dictionary, detector.detect(image.data))
         out.put(detections)
-        yield detections
+        yield image, detections
 
 
 def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | None,
-              estimator: MarkerPoseEstimator, poses: _Poses) -> None:
+              estimator: MarkerPoseEstimator, poses: _Poses) -> FrameEstimate | None:
+    """Publish the poses of ``detections``; the estimate, None without calibration."""
     header = detections.header
     if camera is None:
         for marker in detections.ids:
@@ -166,7 +222,7 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         if len(detections.ids):
             node.report("no_calibration", f"no CameraInfo for {header.frame_id or 'the camera'} and no calib file: "
                         "detections only", node.keys.camera_info(header.frame_id))
-        return
+        return None
     result = estimator.estimate(detections.ids, detections.corners, detections.side_m, camera.K, camera.dist)
     for reason, count in result.failures.items():
         node.report(reason, f"frame {header.seq}: {count} marker(s) gave no pose ({reason.replace('_', ' ')})",
@@ -181,3 +237,4 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
             covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
         ))
     poses.frame_done(header, tracked)
+    return result

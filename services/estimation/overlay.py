@@ -17,10 +17,14 @@ border, widened by ``FOV_MARGIN`` of its width and height. The border is undisto
 the calibration, so the pyramid is the view of the lens as calibrated; without the pyramid
 a point far outside the view can wrap back into the image through the distortion
 polynomial (k1 = -0.25 puts a point 63 degrees off axis at the image centre). The clipped
-edges are sampled every 1/``SAMPLES_PER_EDGE`` of their length (only their ends when there is
-no distortion) and projected with ``cv2.projectPoints`` and the distortion, so straight edges
-bend as the lens bends them, and drawn anti-aliased with sub-pixel vertices. ``cv2.drawFrameAxes`` draws the same axes
-unclipped (tests/unit/test_estimation_overlay.py compares the two).
+edges are sampled every 1/``SAMPLES_PER_EDGE`` of their length (only their ends when there
+is no distortion) and projected with ``cv2.projectPoints`` and the distortion, so straight
+edges bend as the lens bends them, and drawn anti-aliased with sub-pixel vertices.
+``cv2.drawFrameAxes`` draws the same axes unclipped (tests/unit/test_estimation_overlay.py
+compares the two).
+
+Cost (640x480, 2 px lines, 2-core VM): about 0.2 ms for the copy, then 0.5 ms per target
+(0.75 ms with distortion).
 """
 
 from __future__ import annotations

@@ -3,8 +3,9 @@
 Left: a 3D view of the world frame (cameras as frusta with their images, poses, truth,
 trajectories, points) above tabs of node health (stream rates, processing p50/p99, dropped
 frames, decode errors, error reports). Right: one 2D view per camera (its image with the
-detection overlays), in order of appearance. The time panel starts on the ``stamp``
-timeline. The blueprint is sent again whenever a camera appears.
+detection overlays), in order of appearance; a marker node's AR overlay of camera ``cam0``
+is the camera ``cam0/overlay`` here, with a view of its own. The time panel starts on the
+``stamp`` timeline. The blueprint is sent again whenever a camera appears.
 """
 
 from __future__ import annotations

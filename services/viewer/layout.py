@@ -14,6 +14,7 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
     world/<cam>/image/markers             LineStrips2D: marker outlines (corners closed), ids as labels
     world/<cam>/image/blobs               Points2D: blob centres, radius = the blob's radius (px)
     world/<cam>/image/keypoints           Points2D: feature positions
+    world/<cam>/overlay/image             Image: the marker node's AR overlay of <cam> (frame id <cam>/overlay)
     <F>/pose/<child>                      Transform3D T_F_child + TransformAxes3D (Pose, RigidBodies)
     <F>/truth/<child>                     the same for GroundTruth, beside the estimate
     <F>/trajectory/pose/<child>           LineStrips3D: the child's last positions in F
@@ -30,7 +31,12 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
 entities sit under ``pose/`` and ``truth/`` rather than directly under ``<F>`` so that an
 estimated camera pose (SLAM's ``T_world_cam0``) does not overwrite the calibrated camera
 entity ``world/cam0``. An image, calibration or detection without a frame id belongs to the
-camera ``camera``. Each ``/``-separated part of a name is escaped for Rerun.
+camera ``camera``. An AR overlay is an Image whose frame id is ``<cam>/overlay``, so it is
+the image of the camera ``<cam>/overlay``: an entity of its own under the camera's (Rerun
+keeps one image per entity: under ``world/<cam>/image`` it would replace the camera's frames)
+with a 2D view of its own. No CameraInfo names that camera, so it has no Pinhole and Rerun
+leaves it out of the 3D view (the camera's own image is there already). Each
+``/``-separated part of a name is escaped for Rerun.
 
 Timelines: ``stamp`` (a timestamp: ``header.stamp_ns``, the capture time of the frame a message
 derives from; the time it was made for NodeStats and ErrorReport) and ``seq`` (a sequence:

@@ -7,6 +7,11 @@ inboxes), so a slow viewer never holds up the pipeline:
 * ``<prefix>/*/image``: role FRAME, latest-wins. One inbox serves every camera and holds the
   newest ``image_depth`` frames of all of them together (keep it at least the number of
   cameras); frames it replaces are counted as dropped in the node's stats.
+* ``<prefix>/*/overlay``: the marker node's AR overlays (frames with the tracked targets
+  drawn), role FRAME, in an inbox of their own of the same depth, so overlays never push
+  camera frames out. Their frame id is ``<camera>/overlay``: each is drawn as the image of a
+  camera of that name (``world/<camera>/overlay/image``, a 2D view of its own; no
+  calibration, so not in the 3D view).
 * ``*/camera_info``, ``*/markers``, ``*/blobs``, ``*/keypoints``, ``*/truth``, ``pose/**``,
   ``bodies``, ``map``: role RESULT, in order, never dropped silently.
 * ``node/*/stats``, ``node/*/errors``: role STATUS (node health, this node's included).
@@ -30,8 +35,8 @@ from services.runtime.pubsub import Role
 from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
 
-CAMERA_STREAMS = {"image": Role.FRAME, "camera_info": Role.RESULT, "markers": Role.RESULT, "blobs": Role.RESULT,
-                  "keypoints": Role.RESULT, "truth": Role.RESULT}
+CAMERA_STREAMS = {"image": Role.FRAME, "overlay": Role.FRAME, "camera_info": Role.RESULT, "markers": Role.RESULT,
+                  "blobs": Role.RESULT, "keypoints": Role.RESULT, "truth": Role.RESULT}
 """The per-camera streams of ``protocol.keys`` that the viewer draws, with their roles."""
 
 

@@ -6,8 +6,9 @@ the same QoS: the FRAME role's for the latency phase (what images use), the RESU
 for the flood (its ``CongestionControl.BLOCK`` makes the count of received messages a
 zero-loss throughput). Poses: ``RUNS`` runs with the RESULT role's QoS in both phases.
 Both processes fix glibc's malloc thresholds first (see ``tests.bench.memory``).
-Then the scene renderers, the recorder and replay, and the viewer (each module's docstring
-says what it measures). Progress goes to stderr.
+Then the scene renderers, the recorder and replay, the viewer, marker tracking (the live
+pipeline against the same work in one process) and the marker estimators' accuracy against
+ground truth (each module's docstring says what it measures). Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ from typing import Any
 from protocol import encode
 from services.runtime.memory import tune_malloc
 from services.runtime.pubsub import Role
+from tests.accuracy.report import report_lines
 from tests.bench.figures import comparison_lines, machine_line, variant_line
 from tests.bench.link import Sink
+from tests.bench.markers import bench_markers
 from tests.bench.recorder import bench_recorder
 from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
@@ -80,7 +83,8 @@ def main() -> None:
         for case in IMAGE_CASES:
             emit(image_bench(sink, case))
         emit(pose_bench(sink))
-    for name, bench in (("scenes", bench_scenes), ("recorder", bench_recorder), ("viewer", bench_viewer)):
+    for name, bench in (("scenes", bench_scenes), ("recorder", bench_recorder), ("viewer", bench_viewer),
+                        ("markers", bench_markers), ("marker accuracy", report_lines)):
         progress(name)
         emit(bench())
     emit([machine_line(malloc, load_before)])

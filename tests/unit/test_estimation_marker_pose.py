@@ -111,7 +111,7 @@ def ambiguous_view(lower_error_is_wrong: bool) -> np.ndarray:
     rng = np.random.default_rng(0)
     for _ in range(500):
         corners = exact + rng.normal(0, 0.5, exact.shape)
-        best, second = ippe_candidates(single_observation(0, L, corners), K)
+        best, second = ippe_candidates([single_observation(0, L, corners)], K)[0]
         errors = [rotation_angle(c.T[:3, :3], TILTED[:3, :3]) for c in (best, second)]
         if second.rms_px < 1.5 * best.rms_px and abs(errors[0] - errors[1]) > 0.1 \
                 and (errors[0] > errors[1]) == lower_error_is_wrong:
@@ -199,3 +199,28 @@ def test_a_non_planar_map(method):
     (found,) = MarkerPoseEstimator(method=method, marker_map=box).estimate([1, 2], corners, 0.0, K).poses
     assert found.target == "box" and found.points == 8 and not found.ambiguous
     assert np.allclose(found.T, T_cam_box, atol=1e-7)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_frame_of_markers_gives_each_the_pose_it_gets_alone(method):
+    """The markers of a frame are solved together; each gets exactly its own pose, flag and covariance,
+    the ambiguous view and an unusable marker included."""
+    rng = np.random.default_rng(4)
+    corners = [corners_of(T) + rng.normal(0, 0.5, (4, 2)) for T in POSES]
+    corners += [ambiguous_view(lower_error_is_wrong=True), [[100, 100], [150, 100], [200, 100], [250, 100]]]
+    ids, sides = [3, 1, 4, 0, 5], [L, L, L, L, L]
+    together = MarkerPoseEstimator(method=method).estimate(ids, np.array(corners), sides, K)
+    assert together.failures == {"degenerate_corners": 1}
+    assert [p.target for p in together.poses] == ["marker/3", "marker/1", "marker/4", "marker/0"]
+    for pose, marker_id, marker_corners_px in zip(together.poses, ids, corners, strict=False):
+        (alone,) = MarkerPoseEstimator(method=method).estimate([marker_id], marker_corners_px[None], L, K).poses
+        assert np.array_equal(pose.T, alone.T) and pose.rms_px == alone.rms_px
+        assert pose.ambiguous == alone.ambiguous and np.array_equal(pose.covariance, alone.covariance)
+    assert together.poses[3].ambiguous
+
+
+@pytest.mark.parametrize("method", ["lm", "ippe+lm"])
+def test_an_iteration_limit_too_low_fails_every_marker_as_not_converged(method):
+    corners = np.array([corners_of(T) for T in POSES]) + np.random.default_rng(5).normal(0, 0.5, (3, 4, 2))
+    result = MarkerPoseEstimator(method=method, max_iterations=1).estimate([1, 2, 3], corners, L, K)
+    assert result.poses == [] and result.failures == {"not_converged": 3}

@@ -1,5 +1,6 @@
 """LM pose refinement: against cv2.solvePnPRefineLM, its Jacobian against finite differences, its
-covariance against the Monte-Carlo spread of poses under known pixel noise."""
+covariance against the Monte-Carlo spread of poses under known pixel noise, and the batched
+refinement against the plain step-by-step loop, problem by problem."""
 
 import cv2
 import numpy as np
@@ -7,7 +8,19 @@ import pytest
 
 from services.geometry.camera import project_points
 from services.geometry.homography import DegenerateError
-from services.geometry.refine import pose_covariance, refine_pose, residuals_and_jacobian
+from services.geometry.refine import (
+    augmented_rows,
+    damped_steps,
+    increments,
+    normal_equations,
+    point_basis,
+    pose_covariance,
+    pose_covariances,
+    refine_pose,
+    refine_poses,
+    residuals_and_jacobian,
+    residuals_and_jacobians,
+)
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle, rotvec_from_matrix
 from services.geometry.se3 import invert, make_transform, transform_points
 
@@ -125,3 +138,88 @@ def test_the_iteration_limit_is_reported():
     result = refine_pose(perturbed(T, rng, 0.3, 0.05), SQUARE, pixels_of(T, SQUARE), K, max_iterations=1)
     assert result.iterations == 1 and not result.converged
     assert result.jacobian.shape == (8, 6)
+
+
+def noisy_problems(seed: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` marker-like problems: (B, 4, 4) starts near the true poses, (B, 4, 3) squares of
+    varied size and (B, 4, 2) pixels with 0.5 px noise."""
+    rng = np.random.default_rng(seed)
+    truth = [random_pose(rng) for _ in range(count)]
+    squares = SQUARE * rng.uniform(0.2, 1.5, (count, 1, 1))
+    pixels = np.array([pixels_of(T, X) for T, X in zip(truth, squares, strict=True)])
+    return np.array([perturbed(T, rng) for T in truth]), squares, pixels + rng.normal(0, 0.5, pixels.shape)
+
+
+def step_by_step(T: np.ndarray, points: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, int, bool, int]:
+    """The documented LM run one step after the other with the module's own arithmetic: the pose,
+    iterations, convergence, and the longest streak of rejected steps."""
+    basis, pixels = point_basis(points[None]), pixels[None]
+    normal = normal_equations(augmented_rows(T[None], basis, pixels, K)[0])
+    damping, iterations, streak, longest = 1e-3, 0, 0, 0
+    while iterations < 100:
+        iterations += 1
+        step = damped_steps(normal, np.array([damping]))[0]
+        candidate = T[None] @ increments(step)
+        rows, front = augmented_rows(candidate, basis, pixels, K)
+        candidate_normal = normal_equations(rows)
+        cost, candidate_cost = normal[0, 6, 6], candidate_normal[0, 6, 6] if front[0] else np.inf
+        done = np.max(np.abs(step)) < 1e-10
+        if candidate_cost <= cost:
+            done = done or cost - candidate_cost <= 1e-10 * cost
+            T, normal, damping, streak = candidate[0], candidate_normal, max(damping / 10, 1e-12), 0
+        else:
+            damping, streak = damping * 10, streak + 1
+            longest = max(longest, streak)
+            done = done or damping > 1e12
+        if done:
+            return T, iterations, True, longest
+    return T, iterations, False, longest
+
+
+def test_a_batch_takes_every_problem_through_its_own_steps():
+    """The batch (several dampings tried at once after a rejection) lands each problem exactly where
+    the plain step-by-step loop does, after as many iterations."""
+    starts, squares, pixels = noisy_problems(30, 40)
+    batch = refine_poses(starts, squares, pixels, K)
+    longest = 0
+    for b in range(len(starts)):
+        T, iterations, converged, streak = step_by_step(starts[b], squares[b], pixels[b])
+        longest = max(longest, streak)
+        assert np.array_equal(batch.T[b], T)
+        assert (batch.iterations[b], batch.converged[b]) == (iterations, converged)
+        alone = refine_pose(starts[b], squares[b], pixels[b], K)
+        assert np.array_equal(alone.T, T) and alone.iterations == iterations
+        assert batch.rms_px[b] == pytest.approx(alone.rms_px, rel=1e-12)
+        assert np.allclose(batch.normal[b], alone.jacobian.T @ alone.jacobian, rtol=1e-9)
+    assert longest >= 3, "no rejection streak exercised the tries of several dampings at once"
+    assert not np.any(batch.degenerate)
+
+
+def test_a_degenerate_problem_stops_alone():
+    """All points at the object's origin leave the rotation free: that problem is flagged, the others
+    are refined as if it were not there (and refine_pose raises for it)."""
+    starts, squares, pixels = noisy_problems(31, 3)
+    squares[1] = 0.0
+    batch = refine_poses(starts, squares, pixels, K)
+    assert batch.degenerate.tolist() == [False, True, False]
+    assert batch.converged.tolist() == [True, False, True]
+    for b in (0, 2):
+        assert np.array_equal(batch.T[b], refine_pose(starts[b], squares[b], pixels[b], K).T)
+    with pytest.raises(DegenerateError):
+        refine_pose(starts[1], squares[1], pixels[1], K)
+
+
+def test_batched_residuals_covariances_and_iteration_limits():
+    starts, squares, pixels = noisy_problems(32, 4)
+    r, J = residuals_and_jacobians(starts, squares, pixels, K)
+    for b in range(4):
+        r_b, J_b = residuals_and_jacobian(starts[b], squares[b], pixels[b], K)
+        assert np.array_equal(r[b], r_b) and np.array_equal(J[b], J_b)
+    normal = J.transpose(0, 2, 1) @ J
+    normal[3, :, 5] = normal[3, 5, :] = 0.0
+    covariance, regular = pose_covariances(normal, 0.5)
+    assert regular.tolist() == [True, True, True, False] and np.all(np.isnan(covariance[3]))
+    for b in range(3):
+        assert np.allclose(covariance[b], pose_covariance(J[b], 0.5), rtol=1e-12, atol=0)
+    limited = refine_poses(starts, squares, pixels, K, max_iterations=2)
+    assert limited.iterations.tolist() == [2, 2, 2, 2] and not np.any(limited.converged)

@@ -19,6 +19,7 @@ LAYOUT = [
     (lambda k: k.blobs("cam0"), "ar/rig0/cam0/blobs"),
     (lambda k: k.keypoints("cam0"), "ar/rig0/cam0/keypoints"),
     (lambda k: k.echo("cam0"), "ar/rig0/cam0/echo"),
+    (lambda k: k.overlay("cam0"), "ar/rig0/cam0/overlay"),
     (lambda k: k.pose("marker-7"), "ar/rig0/pose/marker-7"),
     (lambda k: k.pose("body/wand"), "ar/rig0/pose/body/wand"),
     (lambda k: k.poses(), "ar/rig0/pose/**"),

@@ -1,0 +1,27 @@
+"""The pipeline files and board shipped in ``pipelines/`` are valid and describe what they say."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+from services.estimation.marker_map import load_marker_map
+from services.launch import read_pipeline
+
+PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
+
+
+@pytest.mark.parametrize("path", sorted(PIPELINES.glob("*.toml")), ids=lambda p: p.name)
+def test_every_bundled_pipeline_file_validates(path):
+    spec = read_pipeline(path)
+    assert spec.nodes and all(node.kind for node in spec.nodes.values())
+
+
+def test_the_bundled_board_is_the_markers_scene_board():
+    board = load_marker_map(PIPELINES / "board.yaml")
+    scene = make_scene("markers")
+    assert set(board.markers) == set(scene.marker_poses)
+    for marker_id, marker in board.markers.items():
+        assert marker.length == scene.marker_length
+        assert np.allclose(marker.T_map_marker, scene.marker_poses[marker_id])
