@@ -16,7 +16,6 @@ the network by accident.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import socket
@@ -30,10 +29,10 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from protocol.keys import Keys, check_name
+from services.client.transport import LOCAL_ROUTER, session_config
 
 log = logging.getLogger(__name__)
 
-LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 LOCAL_ROUTER_IDLE_EXIT_S = 60.0
 
 
@@ -132,22 +131,6 @@ class BusConfig(BaseModel):
 
 class BusError(RuntimeError):
     """The bus could not be opened as configured; the message says what and why."""
-
-
-def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
-    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
-
-    Shared memory is set up when the session opens rather than on the first large message: set up
-    lazily, the first frames of a stream went over TCP, filled the two-batch queue and a second
-    camera's first frame was dropped.
-    """
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps(mode))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
-    return config
 
 
 def open_session(bus: BusConfig) -> zenoh.Session:

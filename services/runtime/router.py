@@ -13,7 +13,8 @@ from pathlib import Path
 
 import zenoh
 
-from services.runtime.bus import BusError, session_config
+from services.client.transport import session_config
+from services.runtime.bus import BusError
 
 log = logging.getLogger(__name__)
 

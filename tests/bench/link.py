@@ -19,7 +19,7 @@ from typing import Any
 
 import zenoh
 
-from services.runtime.bus import session_config
+from services.client.transport import session_config
 from tests.bench.sink import REPLY
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 
-from services.runtime.bus import session_config
+from services.client.transport import session_config
 from services.runtime.memory import tune_malloc
 from tests.bench.traffic import reader
 

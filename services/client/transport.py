@@ -1,0 +1,31 @@
+"""Zenoh session configs, the one place both client apps and artrack's own processes build them.
+
+The client library may depend on nothing but ``protocol`` and zenoh, and a client must open its
+session exactly as the nodes do (same endpoints, same scouting, same security), so the config
+layer lives here and ``services.runtime.bus`` builds on it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import zenoh
+
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"
+"""Where processes on one machine meet when nothing else is said."""
+
+
+def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
+    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
+
+    Shared memory is set up when the session opens rather than on the first large message: set up
+    lazily, the first frames of a stream went over TCP, filled the two-batch queue and a second
+    camera's first frame was dropped.
+    """
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
+    return config
