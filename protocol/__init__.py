@@ -12,11 +12,11 @@ from protocol.message import Header, Message, message_type, message_types
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
 from protocol.spatial import FrameTransform, Transform
-from protocol.system import ErrorReport, NodeStats, StreamStats
+from protocol.system import ClientState, ErrorReport, NodeStats, StreamStats, Subscription
 
 __all__ = [
-    "BlobDetections", "CameraInfo", "DecodeError", "ErrorReport", "FrameTransform", "GroundTruth",
+    "BlobDetections", "CameraInfo", "ClientState", "DecodeError", "ErrorReport", "FrameTransform", "GroundTruth",
     "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message", "NodeStats", "PointCloud",
     "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies", "RigidBody", "StreamStats",
-    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
+    "Subscription", "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
 ]

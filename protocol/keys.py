@@ -17,6 +17,8 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
     ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
     ar/rig0/node/<name>/control       (queryable)      replay's pause / resume / step
+    ar/rig0/client/<id>               (liveliness)     present while a client app is connected
+    ar/rig0/client/<id>/state         (queryable)      ClientState: what the app subscribed to
 
 The namespace may hold several segments (``site/lab1``); names are made of letters,
 digits, ``_``, ``-`` and ``.``.
@@ -99,6 +101,21 @@ class Keys:
         """Every pose of the rig."""
         return f"{self.prefix}/pose/**"
 
+    def pose_pattern(self, target: str) -> str:
+        """Poses of the targets matching ``target``: a target name whose segments may be ``*``
+        (one segment) or ``**`` (any number), e.g. ``cam0/*`` or ``**``."""
+        for part in target.split("/"):
+            if part not in ("*", "**"):
+                check_name(part, "target")
+        return f"{self.prefix}/pose/{target}"
+
+    def target(self, key: str) -> str:
+        """The target name of a pose key of this rig (``ar/rig0/pose/cam0/marker_7`` -> ``cam0/marker_7``)."""
+        head = f"{self.prefix}/pose/"
+        if not key.startswith(head) or len(key) == len(head):
+            raise ValueError(f"{key!r} is not a pose key of {self.prefix!r}")
+        return key[len(head):]
+
     def bodies(self) -> str:
         return f"{self.prefix}/bodies"
 
@@ -117,6 +134,24 @@ class Keys:
 
     def errors(self, name: str) -> str:
         return f"{self.node(name)}/errors"
+
+    def client(self, client_id: str) -> str:
+        """A client app's liveliness token."""
+        return f"{self.prefix}/client/{check_name(client_id, 'client id')}"
+
+    def client_state(self, client_id: str) -> str:
+        return f"{self.client(client_id)}/state"
+
+    def all_client_states(self) -> str:
+        """State queryables of every client app in the namespace, any rig."""
+        return f"{self.namespace}/*/client/*/state"
+
+    def split_client(self, key: str) -> tuple[str, str]:
+        """``(rig, client id)`` of a client key (token or state) in this namespace."""
+        rest = key.removeprefix(self.namespace + "/").split("/")
+        if not key.startswith(self.namespace + "/") or len(rest) < 3 or rest[1] != "client":
+            raise ValueError(f"{key!r} is not a client key under {self.namespace!r}")
+        return rest[0], rest[2]
 
     def every_camera(self, stream: str) -> str:
         """``stream`` (``image``, ``markers``, ...) of every camera of the rig."""

@@ -1,4 +1,4 @@
-"""Messages about the service itself: node statistics and error reports.
+"""Messages about the service itself: node statistics, error reports, client apps.
 
 Their header's ``stamp_ns`` is the wall-clock time they were made and ``seq`` counts
 them per node; ``frame_id`` is empty.
@@ -64,3 +64,27 @@ class ErrorReport(Message):
     detail: str
     key: str = ""
     count: int = Field(default=1, ge=1)
+
+
+class Subscription(Struct):
+    """One stream a client app asked for: the key expression, and what it has had from it."""
+
+    key: str
+    received: int = Field(default=0, ge=0)
+    dropped: int = Field(default=0, ge=0)
+    decode_errors: int = Field(default=0, ge=0)
+    last_stamp_ns: int | None = None
+
+
+class ClientState(Message):
+    """A client app's view of the service, answered on its state queryable (``artrack status``)."""
+
+    SCHEMA = "artrack.ClientState"
+    VERSION = 1
+
+    client: str
+    app: str
+    host: str
+    pid: int
+    uptime_s: float = Field(ge=0)
+    subscriptions: tuple[Subscription, ...] = ()

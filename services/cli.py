@@ -74,7 +74,8 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from services.observe import format_nodes, live_nodes, node_states
+    from services.client.discovery import live_nodes, node_states
+    from services.observe import format_nodes
 
     bus = _bus(args)
     session = open_session(bus)
@@ -112,8 +113,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from services.capture.node import Params as CaptureParams
     from services.jobs import RECORDING_SCHEME, JobError, Recording, run_job
+    from services.pipelines import PIPELINES
 
-    given = {name: getattr(args, name) for name in ("dictionary", "marker_length", "board", "method", "overlay")}
+    given = {name: getattr(args, name) for name in PIPELINES["marker"].options}
     options = {name: str(value) if isinstance(value, Path) else value for name, value in given.items()
                if value is not None}
     if any(uri.startswith(RECORDING_SCHEME) for uri in args.source):
@@ -363,6 +365,8 @@ def parser() -> argparse.ArgumentParser:
     marker.add_argument("--overlay", action="store_true", default=None,
                         help="also publish each camera's frames with a cube and axes drawn on every tracked "
                              "marker/board (key <camera>/overlay; logged by --rerun)")
+    marker.add_argument("--depth", type=int, metavar="N", help="frames a marker node may queue while busy "
+                        "(default 1: latest wins; more tracks a recording whole through hiccups)")
     p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
     p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
     _bus_options(p)

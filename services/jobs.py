@@ -22,8 +22,9 @@ from typing import Any
 from services.capture.node import Params as CaptureParams
 from services.capture.sources import camera_names
 from services.catalog import kind
+from services.client.discovery import node_states
 from services.launch import node_command
-from services.observe import node_states, wait_for_nodes
+from services.observe import wait_for_nodes
 from services.pipelines import PIPELINES, NodeSet
 from services.recorder.info import summarise
 from services.recorder.reading import NotMcap

@@ -4,55 +4,17 @@ from __future__ import annotations
 
 import json
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from typing import TextIO
 
 import zenoh
 
-from protocol.codec import DecodeError, decode, to_json
+from protocol.codec import DecodeError, to_json
 from protocol.keys import Keys
 from protocol.system import NodeStats
+from services.client.discovery import live_nodes
 from services.runtime.pubsub import Inbox, Received, Role
-
-
-def live_nodes(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tuple[str, str]]:
-    """``(rig, name)`` of every node holding a liveliness token in the namespace.
-
-    Listens for ``timeout_s``: a session that has just opened learns of existing tokens
-    only as its links come up, so a one-shot query right after opening can miss them.
-    """
-    found: set[tuple[str, str]] = set()
-    lock = threading.Lock()
-
-    def on_token(sample: zenoh.Sample) -> None:
-        node = keys.split_node(str(sample.key_expr))
-        with lock:
-            (found.add if sample.kind == zenoh.SampleKind.PUT else found.discard)(node)
-
-    subscriber = session.liveliness().declare_subscriber(keys.all_nodes(), on_token, history=True)
-    try:
-        time.sleep(timeout_s)
-    finally:
-        subscriber.undeclare()
-    with lock:
-        return sorted(found)
-
-
-def node_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], NodeStats]:
-    """The NodeStats every reachable node answers on its state queryable."""
-    states = {}
-    for reply in session.get(keys.all_states(), timeout=timeout_s):
-        if reply.ok is None:
-            continue
-        try:
-            stats = decode(reply.ok.payload.to_bytes())
-        except DecodeError:
-            continue
-        if isinstance(stats, NodeStats):
-            states[keys.split_node(str(reply.ok.key_expr))] = stats
-    return states
 
 
 def _ms(value: float | None) -> str:

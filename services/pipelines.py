@@ -33,5 +33,5 @@ PIPELINES: dict[str, Pipeline] = {
     "echo": Pipeline("relays each camera's frames to its echo key", (),
                      lambda cameras, options: {f"echo-{c}": ("echo", {"camera": c}) for c in cameras}),
     "marker": Pipeline("ArUco/AprilTag detection -> marker and board poses per camera",
-                       ("dictionary", "marker_length", "board", "method", "overlay"), _marker_nodes),
+                       ("dictionary", "marker_length", "board", "method", "overlay", "depth"), _marker_nodes),
 }

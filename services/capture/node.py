@@ -10,11 +10,13 @@ and image folders without times go at 30 fps. Stamps are the wall-clock time of 
 (``stamps = "wall"``) or the source's own time (``"source"``, for evaluating against a
 data set's ground truth). CameraInfo comes from ``calib`` files (ROS camera_info YAML,
 one per camera), else from the source (synthetic scenes know theirs); a camera with
-neither publishes no CameraInfo, and trackers report it uncalibrated.
+neither publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated
+camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -36,6 +38,7 @@ from services.capture.sources import (
     open_source,
     rig_camera_names,
 )
+from services.geometry.camera import CameraModel
 from services.runtime.convert import camera_info, frame_transforms
 from services.runtime.node import Node, NodeError
 from services.runtime.pubsub import Role
@@ -136,6 +139,8 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     keys = node.keys
     images = {name: node.publisher(keys.image(name), Image, Role.FRAME) for name in rig.names}
     infos = {name: node.publisher(keys.camera_info(name), CameraInfo) for name in rig.calibration}
+    for name, model in rig.calibration.items():
+        node.answer(keys.calibration(name), functools.partial(_calibration, name, model))
     truths = {name: node.publisher(keys.truth(name), GroundTruth)
               for source, rename in zip(rig.sources, rig.renames, strict=True)
               if source.uri.startswith("synthetic:") for name in rename.values()}
@@ -164,6 +169,11 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
             seq += 1
         if not params.loop:
             break
+
+
+def _calibration(camera: str, model: CameraModel) -> CameraInfo:
+    """The calibration queryable's answer: the camera's CameraInfo, stamped now."""
+    return camera_info(Header(stamp_ns=time.time_ns(), frame_id=camera), model)
 
 
 def _live(rig: Rig) -> bool:

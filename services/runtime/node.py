@@ -63,6 +63,7 @@ class Node:
         self._started = time.monotonic()
         self._inboxes: list[Inbox] = []
         self._publishers: list[Publisher | RawPublisher] = []
+        self._answers: list[zenoh.Queryable] = []
         self._tracked: list[StreamCounter] = []
         self._processing = LatencyWindow()
         self._processed = 0
@@ -115,6 +116,16 @@ class Node:
         publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"))
         self._publishers.append(publisher)
         return publisher
+
+    def answer(self, key: str, reply: Callable[[], Message | None]) -> None:
+        """Answer queries on ``key`` with the message ``reply()`` returns at the time (none when None)."""
+
+        def on_query(query: zenoh.Query) -> None:
+            message = reply()
+            if message is not None:
+                query.reply(key, encode(message))
+
+        self._answers.append(self.session.declare_queryable(key, on_query))
 
     def track(self, counter: StreamCounter) -> StreamCounter:
         """Count a stream the body serves with its own Zenoh entities (the recorder's raw
@@ -225,7 +236,8 @@ class Node:
         self._stats_thread.join(timeout=1.0)
         for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub]:
             entity.close()
-        self._queryable.undeclare()
+        for queryable in [*self._answers, self._queryable]:
+            queryable.undeclare()
         self._token.undeclare()
         self.session.close()
 

@@ -35,10 +35,11 @@ import zenoh
 
 from protocol.poses import Pose
 from services.capture.scenes import make_scene
+from services.client.discovery import node_states
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_pose import MarkerPoseEstimator
 from services.launch import node_command
-from services.observe import node_states, wait_for_nodes
+from services.observe import wait_for_nodes
 from services.runtime.bus import BusConfig, open_session
 from services.runtime.pubsub import Inbox, Role
 from services.runtime.router import router_config

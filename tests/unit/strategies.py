@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from protocol import (
     BlobDetections,
     CameraInfo,
+    ClientState,
     ErrorReport,
     FrameTransform,
     GroundTruth,
@@ -30,6 +31,7 @@ from protocol import (
     RigidBodies,
     RigidBody,
     StreamStats,
+    Subscription,
     TrackingState,
     Transform,
 )
@@ -170,6 +172,11 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         decode_errors=big_counts,
         processing_ms_p50=st.none() | finite, processing_ms_p99=st.none() | finite,
         streams=_tuples_of(stream_stats)),
+    "artrack.ClientState": st.builds(
+        ClientState, header=headers, client=texts, app=texts, host=texts, pid=st.integers(-(2**70), 2**70),
+        uptime_s=non_negative, subscriptions=_tuples_of(st.builds(
+            Subscription, key=texts, received=big_counts, dropped=big_counts, decode_errors=big_counts,
+            last_stamp_ns=st.none() | st.integers(0, 2**63)))),
     "artrack.ErrorReport": st.builds(ErrorReport, header=headers, node=texts, kind=texts, detail=texts,
                                      key=texts, count=st.integers(1, 2**80)),
 }

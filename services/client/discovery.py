@@ -1,0 +1,69 @@
+"""What is on the bus: live nodes (liveliness tokens) and their state (queryables).
+
+Used by client apps and by ``artrack list`` / ``status`` alike.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TypeVar
+
+import zenoh
+
+from protocol.codec import DecodeError, decode
+from protocol.keys import Keys
+from protocol.message import Message
+from protocol.system import ClientState, NodeStats
+
+M = TypeVar("M", bound=Message)
+
+
+def live_nodes(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tuple[str, str]]:
+    """``(rig, name)`` of every node holding a liveliness token in the namespace.
+
+    Listens for ``timeout_s``: a session that has just opened learns of existing tokens
+    only as its links come up, so a one-shot query right after opening can miss them.
+    """
+    found: set[tuple[str, str]] = set()
+    lock = threading.Lock()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        node = keys.split_node(str(sample.key_expr))
+        with lock:
+            (found.add if sample.kind == zenoh.SampleKind.PUT else found.discard)(node)
+
+    subscriber = session.liveliness().declare_subscriber(keys.all_nodes(), on_token, history=True)
+    try:
+        time.sleep(timeout_s)
+    finally:
+        subscriber.undeclare()
+    with lock:
+        return sorted(found)
+
+
+def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float) -> dict[str, M]:
+    """Key -> message of every reply of type ``cls`` to a query on ``selector``; other replies are skipped."""
+    found: dict[str, M] = {}
+    for reply in session.get(selector, timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        try:
+            message = decode(reply.ok.payload.to_bytes())
+        except DecodeError:
+            continue
+        if isinstance(message, cls):
+            found[str(reply.ok.key_expr)] = message
+    return found
+
+
+def node_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], NodeStats]:
+    """The NodeStats every reachable node answers on its state queryable, by ``(rig, name)``."""
+    return {keys.split_node(key): stats for key, stats in answers(session, keys.all_states(), NodeStats,
+                                                                  timeout_s).items()}
+
+
+def client_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], ClientState]:
+    """The ClientState every connected client app answers, by ``(rig, client id)``."""
+    return {keys.split_client(key): state for key, state in answers(session, keys.all_client_states(),
+                                                                    ClientState, timeout_s).items()}

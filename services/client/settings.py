@@ -1,0 +1,133 @@
+"""Where a process finds the bus: the settings client apps and artrack's own processes share.
+
+Three ways to say it, in order of precedence:
+
+1. a Zenoh JSON5/YAML config file (``zenoh_config`` or ``ZENOH_CONFIG``), used as is;
+2. explicit endpoints: ``connect`` (``tcp/HOST:PORT`` of a router or a peer) and ``listen``,
+   in ``peer`` or ``client`` mode (``ARTRACK_CONNECT``, ``ARTRACK_LISTEN``, ``ARTRACK_MODE``);
+3. nothing: a peer listening on a free loopback port that connects to the local router at
+   ``tcp/127.0.0.1:7447``.
+
+``namespace`` and ``rig`` (``ARTRACK_NAMESPACE``, ``ARTRACK_RIG``) say whose keys to use.
+Multicast scouting is always off unless a config file turns it on.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, field_validator
+
+from protocol.keys import Keys, check_name
+from services.client.transport import LOCAL_ROUTER, session_config
+
+
+class BusError(RuntimeError):
+    """The bus could not be opened as configured; the message says what and why."""
+
+
+def _endpoints(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+class BusSettings(BaseModel):
+    """Mode, endpoints or config file, namespace and rig of one process's Zenoh session."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
+        "ARTRACK_MODE": ("mode", str),
+        "ARTRACK_CONNECT": ("connect", _endpoints),
+        "ARTRACK_LISTEN": ("listen", _endpoints),
+        "ZENOH_CONFIG": ("zenoh_config", str),
+        "ARTRACK_NAMESPACE": ("namespace", str),
+        "ARTRACK_RIG": ("rig", str),
+    }
+    """Environment variable -> (field, parser); subclasses add their own."""
+
+    mode: Literal["peer", "client"] = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    zenoh_config: Path | None = None
+    namespace: str = "ar"
+    rig: str = "rig0"
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, value: str) -> str:
+        return check_name(value, "namespace", segments=True)
+
+    @field_validator("rig")
+    @classmethod
+    def _rig(cls, value: str) -> str:
+        return check_name(value, "rig")
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for endpoint in value:
+            if "/" not in endpoint:
+                raise ValueError(f"endpoint {endpoint!r} must look like tcp/HOST:PORT")
+        return value
+
+    @property
+    def keys(self) -> Keys:
+        return Keys(self.namespace, self.rig)
+
+    @property
+    def uses_local_router(self) -> bool:
+        return self.zenoh_config is None and not self.connect
+
+    @property
+    def where(self) -> str:
+        """Where the session goes, for error messages: the config file or the endpoints."""
+        return str(self.zenoh_config) if self.zenoh_config else ", ".join(self.connect or (LOCAL_ROUTER,))
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> BusSettings:
+        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset)."""
+        env = os.environ if environ is None else environ
+        values: dict[str, object] = {field: parse(env[name]) for name, (field, parse) in cls.ENV.items()
+                                     if env.get(name)}
+        values.update({k: v for k, v in overrides.items() if v is not None and v != ()})
+        return cls.model_validate(values)
+
+    def to_env(self) -> dict[str, str]:
+        """The variables that make ``from_env`` rebuild these settings in a child process."""
+        env = {}
+        for name, (field, _) in self.ENV.items():
+            value = getattr(self, field)
+            if isinstance(value, tuple):
+                env[name] = ",".join(value)
+            elif isinstance(value, bool):
+                env[name] = "1" if value else "0"
+            elif isinstance(value, float):
+                env[name] = repr(value)
+            else:
+                env[name] = "" if value is None else str(value)
+        return env
+
+    def zenoh(self) -> zenoh.Config:
+        """The Zenoh config these settings describe (BusError for a missing or invalid file)."""
+        if self.zenoh_config is not None:
+            if not self.zenoh_config.is_file():
+                raise BusError(f"Zenoh config file {self.zenoh_config} does not exist")
+            try:
+                return zenoh.Config.from_file(str(self.zenoh_config))
+            except zenoh.ZError as exc:
+                raise BusError(f"Zenoh config file {self.zenoh_config} is invalid: {exc}") from exc
+        connect = self.connect or (LOCAL_ROUTER,)
+        listen = self.listen or (("tcp/127.0.0.1:0",) if self.mode == "peer" else ())
+        return session_config(self.mode, listen=listen, connect=connect)
+
+    def open(self) -> zenoh.Session:
+        """Open the session (BusError naming where and why when Zenoh refuses)."""
+        config = self.zenoh()
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as exc:
+            raise BusError(f"cannot open the Zenoh session ({self.mode} via {self.where}): {exc}") from exc
