@@ -30,11 +30,13 @@ BENCH = "pipeline_with_apps"
 
 
 def condition_line(apps: int, passes: list[dict[str, Any]]) -> dict[str, Any]:
-    """One condition's medians over its passes, each pass's p50 / p99 and what the apps received."""
+    """One condition's medians over its passes; each pass's p50 / p99, the marker node's own
+    processing p50 and what the apps received."""
     line = {"bench": BENCH, "apps": apps, "fps": FPS, "frames": FRAMES, "passes": len(passes),
             "p50_ms": round(statistics.median(p["p50_ms"] for p in passes), 3),
             "p99_ms": round(statistics.median(p["p99_ms"] for p in passes), 3),
             "p50_ms_passes": [p["p50_ms"] for p in passes], "p99_ms_passes": [p["p99_ms"] for p in passes],
+            "node_p50_ms_passes": [round(p["node_p50_ms"], 3) for p in passes],
             "frames_with_poses_min": min(p["frames_with_poses"] for p in passes),
             "dropped": sum(p["dropped"] or 0 for p in passes)}
     if apps:
