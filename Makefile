@@ -1,5 +1,6 @@
 # Two commands on a fresh clone: `make demo` and `make test`. Each creates .venv and
 # installs the project into it (editable, with the dev extra) when missing or stale.
+# `make bench BENCH="routing apps"` runs only the benchmarks named (see tests/bench/__main__.py).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -20,7 +21,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
-	$(BIN)/python -m tests.bench
+	$(BIN)/python -m tests.bench $(BENCH)
 
 lint: $(STAMP)
 	$(BIN)/ruff check protocol services tests

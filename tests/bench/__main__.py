@@ -1,4 +1,6 @@
-"""``python -m tests.bench``: run every benchmark, print one JSON line per figure, then the machine.
+"""``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
+line per figure, then the machine. Names, in running order: ``transport``, ``routing``,
+``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -6,26 +8,32 @@ the same QoS: the FRAME role's for the latency phase (what images use), the RESU
 for the flood (its ``CongestionControl.BLOCK`` makes the count of received messages a
 zero-loss throughput). Poses: ``RUNS`` runs with the RESULT role's QoS in both phases.
 Both processes fix glibc's malloc thresholds first (see ``tests.bench.memory``).
-Then the scene renderers, the recorder and replay, the viewer, marker tracking (the live
-pipeline against the same work in one process) and the marker estimators' accuracy against
-ground truth (each module's docstring says what it measures). Progress goes to stderr.
+Then poses through a router against peer to peer (``routing``), the scene renderers, the
+recorder and replay, the viewer, marker tracking (the live pipeline against the same work in
+one process), the pipeline with client apps subscribed against none (``apps``) and the marker
+estimators' accuracy against ground truth (each module's docstring says what it measures).
+Progress goes to stderr.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from protocol import encode
 from services.runtime.memory import tune_malloc
 from services.runtime.pubsub import Role
 from tests.accuracy.report import report_lines
-from tests.bench.figures import comparison_lines, machine_line, variant_line
+from tests.bench.apps import bench_apps
+from tests.bench.figures import alternating, comparison_lines, machine_line, variant_line
 from tests.bench.link import Sink
 from tests.bench.markers import bench_markers
 from tests.bench.recorder import bench_recorder
+from tests.bench.routing import bench_routing
 from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
 from tests.bench.traffic import (
@@ -52,12 +60,11 @@ def image_bench(sink: Sink, case: ImageCase) -> list[dict[str, Any]]:
         "raw": (raw_reader_spec(case.shape, size), lambda s, k, role: RawImageSender(s, k, role, frame, size)),
     }
     runs: dict[str, list[Run]] = {name: [] for name in variants}
-    for round_ in range(RUNS):
-        for name in list(variants)[:: 1 if round_ % 2 == 0 else -1]:
-            progress(f"{case.name} {name} {round_ + 1}/{RUNS}")
-            reader, make_sender = variants[name]
-            runs[name].append(measure(sink, f"bench/{case.name}/{name}/{round_}", reader, make_sender,
-                                      Role.FRAME, Role.RESULT))
+    for round_, name in alternating(list(variants), RUNS):
+        progress(f"{case.name} {name} {round_ + 1}/{RUNS}")
+        reader, make_sender = variants[name]
+        runs[name].append(measure(sink, f"bench/{case.name}/{name}/{round_}", reader, make_sender,
+                                  Role.FRAME, Role.RESULT))
     lines = [variant_line(case.name, name, size, runs[name]) for name in variants]
     return lines + comparison_lines(case.name, runs["typed"], runs["raw"])
 
@@ -76,17 +83,35 @@ def progress(text: str) -> None:
     print(f"bench: {text}", file=sys.stderr, flush=True)
 
 
-def main() -> None:
-    malloc = tune_malloc()
-    load_before = os.getloadavg()[0]
+def transport_bench() -> list[dict[str, Any]]:
+    """Typed against raw images of each size, then typed poses, over one sink."""
+    lines = []
     with Sink() as sink:
         for case in IMAGE_CASES:
-            emit(image_bench(sink, case))
-        emit(pose_bench(sink))
-    for name, bench in (("scenes", bench_scenes), ("recorder", bench_recorder), ("viewer", bench_viewer),
-                        ("markers", bench_markers), ("marker accuracy", report_lines)):
-        progress(name)
-        emit(bench())
+            lines += image_bench(sink, case)
+        lines += pose_bench(sink)
+    return lines
+
+
+BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
+    "transport": transport_bench, "routing": bench_routing, "scenes": bench_scenes, "recorder": bench_recorder,
+    "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps, "accuracy": report_lines,
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m tests.bench", description="artrack's benchmarks (JSON lines)")
+    parser.add_argument("names", nargs="*", metavar="NAME",
+                        help=f"benchmarks to run, in this order: {', '.join(BENCHES)} (default: all)")
+    chosen = set(parser.parse_args(argv).names) or set(BENCHES)
+    if unknown := chosen - set(BENCHES):
+        parser.error(f"no benchmark named {', '.join(sorted(unknown))} (choose from {', '.join(BENCHES)})")
+    malloc = tune_malloc()
+    load_before = os.getloadavg()[0]
+    for name, bench in BENCHES.items():
+        if name in chosen:
+            progress(name)
+            emit(bench())
     emit([machine_line(malloc, load_before)])
 
 

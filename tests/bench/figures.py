@@ -1,4 +1,5 @@
-"""The benchmark's output lines: figures per variant, typed-versus-raw comparisons, the machine.
+"""The benchmark's output lines: figures per variant, typed-versus-raw comparisons, the machine;
+and the order and pairing helpers the benchmarks that compare variants share.
 
 A variant's figure is the median of its runs. A comparison pairs run i of typed with run i
 of raw (measured back to back, in alternating order) and takes the median over the pairs of
@@ -8,16 +9,36 @@ slow spell of the machine hits both members of a pair rather than one variant.
 
 from __future__ import annotations
 
+import operator
 import os
 import platform
 import statistics
+from collections.abc import Callable, Sequence
 from importlib.metadata import version
-from typing import Any
+from typing import Any, TypeVar
 
 from tests.bench.runs import Run
 
 THROUGHPUT_RATIO_TARGET = 0.9
 LATENCY_DELTA_TARGET_US = 100.0
+
+T = TypeVar("T")
+
+
+def alternating(variants: Sequence[T], rounds: int) -> list[tuple[int, T]]:
+    """``(round, variant)`` in measuring order: each variant once a round, the order reversed every
+    other round (A B, B A, A B, ...), so a drift of the machine hits every variant alike."""
+    return [(round_, variant) for round_ in range(rounds)
+            for variant in (variants if round_ % 2 == 0 else variants[::-1])]
+
+
+def paired_median(first: Sequence[float], second: Sequence[float],
+                  combine: Callable[[float, float], float] = operator.truediv) -> float:
+    """Median over i of ``combine(first[i], second[i])`` (default the ratio), for figures measured
+    in pairs; ValueError when the sequences differ in length or are empty."""
+    if not first or len(first) != len(second):
+        raise ValueError(f"need two equally long, non-empty sequences, not {len(first)} and {len(second)}")
+    return statistics.median(combine(a, b) for a, b in zip(first, second, strict=True))
 
 
 def variant_line(bench: str, variant: str, payload_bytes: int, runs: list[Run]) -> dict[str, Any]:
@@ -40,9 +61,8 @@ def variant_line(bench: str, variant: str, payload_bytes: int, runs: list[Run]) 
 
 def comparison_lines(bench: str, typed: list[Run], raw: list[Run]) -> list[dict[str, Any]]:
     """Typed/raw throughput ratio and typed - raw p50 latency, medians over paired runs."""
-    pairs = list(zip(typed, raw, strict=True))
-    ratio = statistics.median(t.msg_per_s / r.msg_per_s for t, r in pairs)
-    delta = statistics.median(t.latency_p50_us - r.latency_p50_us for t, r in pairs)
+    ratio = paired_median([t.msg_per_s for t in typed], [r.msg_per_s for r in raw])
+    delta = paired_median([t.latency_p50_us for t in typed], [r.latency_p50_us for r in raw], operator.sub)
     return [
         {"bench": bench, "figure": "typed_vs_raw_throughput", "ratio": round(ratio, 3),
          "target": f">= {THROUGHPUT_RATIO_TARGET}", "met": ratio >= THROUGHPUT_RATIO_TARGET},

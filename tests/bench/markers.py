@@ -11,7 +11,8 @@
   frame, latency = arrival here of the frame's last pose - the frame's capture stamp (two
   process hops: capture -> marker node -> here). Frames are counted in and out: the node's
   ``dropped`` (frames replaced before they were processed) and the frames whose poses arrived.
-  The processes meet through an in-process router on a free loopback port.
+  The processes meet through an in-process router on a free loopback port. ``tests.bench.apps``
+  runs the same pipeline with client apps subscribed beside this process.
 * ``overhead``: pipeline p50 - in-process p50, against both baselines; target <= 1 ms, and
   ``FPS`` sustained with no frame dropped.
 
@@ -35,7 +36,7 @@ import zenoh
 
 from protocol.poses import Pose
 from services.capture.scenes import make_scene
-from services.client.discovery import node_states
+from services.client.discovery import client_states, node_states
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_pose import MarkerPoseEstimator
 from services.launch import node_command
@@ -43,9 +44,10 @@ from services.observe import wait_for_nodes
 from services.runtime.bus import BusConfig, open_session
 from services.runtime.pubsub import Inbox, Role
 from services.runtime.router import router_config
-from tests.bench.link import free_port
+from tests.bench.link import cpu_seconds, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
+APP = ROOT / "examples" / "track_marker.py"
 FPS = 60.0
 FRAMES = 600
 MARKER_LENGTH = 0.05
@@ -75,8 +77,14 @@ def in_process(settings: DetectorSettings, period_s: float = 0.0) -> dict[str, f
     return {"p50_ms": round(float(p50), 3), "p99_ms": round(float(p99), 3)}
 
 
-def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
-    """The capture -> marker node -> here pipeline at FPS: latency per frame and frames lost."""
+def pipeline(settings: DetectorSettings, apps: int = 0, **node: Any) -> dict[str, Any]:
+    """The capture -> marker node -> here pipeline at FPS: latency per frame and frames lost.
+
+    With ``apps`` > 0, that many ``examples/track_marker.py`` processes follow every pose of the
+    rig meanwhile (subscribed before the first frame); ``app_poses_min`` is the fewest poses one
+    of them had at the end, against ``poses``, the count that reached this process, and
+    ``apps_cores`` the CPU they used together while the frames flowed (cores, 1.0 = one busy core).
+    """
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(router_config((endpoint,), (), None))
     bus = BusConfig(connect=(endpoint,), rig=f"bench{uuid.uuid4().hex[:6]}", autostart_router=False)
@@ -85,16 +93,21 @@ def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
     poses = Inbox(session, bus.keys.poses(), Pose, Role.RESULT, depth=100_000)
     processes: list[subprocess.Popen] = []
     try:
+        processes += [subprocess.Popen([sys.executable, str(APP)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+                      for _ in range(apps)]
         marker = {"camera": "cam0", **settings.model_dump(exclude_defaults=True), **node}
         processes.append(subprocess.Popen(node_command("marker_pose", "marker", marker), cwd=ROOT, env=env))
         if wait_for_nodes(session, bus.keys, {"marker"}, START_S) != {"marker"}:
             raise RuntimeError("the marker node did not come up")
-        capture = {"source": ["synthetic:markers"], "fps": FPS, "frames": FRAMES, "wait_for_subscriber": True}
-        processes.append(subprocess.Popen(node_command("capture", "capture", capture), cwd=ROOT, env=env))
+        wait_for_apps(session, bus, apps)
+        capture_params = {"source": ["synthetic:markers"], "fps": FPS, "frames": FRAMES, "wait_for_subscriber": True}
+        capture = subprocess.Popen(node_command("capture", "capture", capture_params), cwd=ROOT, env=env)
+        processes.append(capture)
         arrivals: dict[int, list[int]] = defaultdict(list)
         stamps: dict[int, int] = {}
-        quiet_since = time.monotonic()
-        while time.monotonic() - quiet_since < QUIET_S or processes[1].poll() is None:
+        started, apps_cpu = time.monotonic(), sum(cpu_seconds(p.pid) for p in processes[:apps])
+        quiet_since = started
+        while time.monotonic() - quiet_since < QUIET_S or capture.poll() is None:
             received = poses.recv(0.1)
             if received is None:
                 continue
@@ -102,6 +115,7 @@ def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
             header = received.message.header
             arrivals[header.seq].append(received.received_ns)
             stamps[header.seq] = header.stamp_ns
+        apps_cores = (sum(cpu_seconds(p.pid) for p in processes[:apps]) - apps_cpu) / (time.monotonic() - started)
         stats = node_states(session, bus.keys, 2.0).get((bus.rig, "marker"))
         images = next((s.messages for s in stats.streams if s.key == bus.keys.image("cam0")), 0) if stats else 0
         latencies = [(max(arrivals[seq]) - stamps[seq]) / 1e6 for seq in sorted(arrivals)][WARMUP:]
@@ -110,7 +124,10 @@ def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
                 "frames_with_poses": len(arrivals), "frames_received": images,
                 "dropped": stats.dropped if stats else None,
                 "node_p50_ms": stats.processing_ms_p50 if stats else None,
-                "node_p99_ms": stats.processing_ms_p99 if stats else None}
+                "node_p99_ms": stats.processing_ms_p99 if stats else None,
+                **({"apps": apps, "poses": sum(map(len, arrivals.values())),
+                    "app_poses_min": min(app_poses(session, bus), default=0),
+                    "apps_cores": round(apps_cores, 3)} if apps else {})}
     finally:
         poses.close()
         for process in processes:
@@ -123,6 +140,21 @@ def pipeline(settings: DetectorSettings, **node: Any) -> dict[str, Any]:
                 process.kill()
         session.close()
         router.close()
+
+
+def app_poses(session: zenoh.Session, bus: BusConfig) -> list[int]:
+    """Poses received so far by each client app of the rig that answers (all its subscriptions)."""
+    return [sum(s.received for s in state.subscriptions)
+            for (rig, _), state in client_states(session, bus.keys, 1.0).items() if rig == bus.rig]
+
+
+def wait_for_apps(session: zenoh.Session, bus: BusConfig, count: int) -> None:
+    """Return once ``count`` client apps of the rig answer with a subscription; RuntimeError after ``START_S``."""
+    deadline = time.monotonic() + START_S
+    while count and (ready := sum(1 for (rig, _), state in client_states(session, bus.keys, 0.5).items()
+                        if rig == bus.rig and state.subscriptions)) < count:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{ready} of {count} client apps subscribed within {START_S:.0f} s")
 
 
 def bench_markers() -> list[dict[str, Any]]:

@@ -24,7 +24,6 @@ line ``{"sent": {key: count}}``. The whole benchmark takes about 35 s.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -44,7 +43,7 @@ from services.runtime.bus import BusConfig, open_session
 from services.runtime.memory import tune_malloc
 from services.runtime.node import Node
 from services.runtime.pubsub import Publisher, Role
-from tests.bench.link import ROOT, free_port
+from tests.bench.link import Bench, cpu_seconds
 
 CAMERAS = 4
 FPS = 30.0
@@ -55,7 +54,6 @@ MATCH_S = 20.0
 MIN_GAP_NS = 2_000_000
 LINGER_S = 0.5
 """Pause between the last frame and closing the session, so nothing is left in flight."""
-RIG = "bench"
 MIB = 1 << 20
 K = (500.0, 0.0, WIDTH / 2, 0.0, 500.0, HEIGHT / 2, 0.0, 0.0, 1.0)
 
@@ -98,51 +96,10 @@ def emulate_cameras(cameras: int, fps: float, seconds: float) -> dict[str, int]:
         session.close()
 
 
-class Bench:
-    """A private router and the child processes of the benchmark; everything is stopped on exit."""
-
-    def __init__(self, folder: Path):
-        self.folder = folder
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.env = {**os.environ, "ARTRACK_CONNECT": self.endpoint, "ARTRACK_ROUTER_AUTOSTART": "0",
-                    "ARTRACK_RIG": RIG, "ARTRACK_LOG_LEVEL": "WARNING"}
-        self.bus = BusConfig(connect=(self.endpoint,), rig=RIG, autostart_router=False)
-        self.children: list[subprocess.Popen] = []
-        self.start("router", "--listen", self.endpoint)
-        time.sleep(0.5)
-
-    def start(self, *args: str, module: str = "services.cli") -> subprocess.Popen:
-        log = open(self.folder / f"{len(self.children):02d}-{args[0]}.log", "wb")  # noqa: SIM115
-        child = subprocess.Popen([sys.executable, "-m", module, *args], cwd=ROOT, env=self.env,
-                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log)
-        log.close()
-        self.children.append(child)
-        return child
-
-    def __enter__(self) -> Bench:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for child in self.children:
-            if child.poll() is None:
-                child.terminate()
-        for child in self.children:
-            try:
-                child.wait(5)
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.wait()
-
-
 def stop(child: subprocess.Popen) -> None:
     child.send_signal(signal.SIGINT)
     if child.wait(30) != 0:
         raise RuntimeError(f"{child.args} exited with {child.returncode}")
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 @dataclass

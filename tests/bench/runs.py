@@ -1,8 +1,8 @@
 """One run of one variant: a paced latency phase, then a flood throughput phase.
 
-* Latency: ``WARMUP + LATENCY_N`` messages at ``RATE_HZ``; the warm-up messages (Zenoh's
-  shared-memory pool and Python's caches settle during them) are left out; p50 and p99 of the
-  one-way latencies the sink measured.
+* Latency: ``WARMUP + LATENCY_N`` messages at ``RATE_HZ`` (unless the caller says otherwise);
+  the warm-up messages (Zenoh's shared-memory pool and Python's caches settle during them) are
+  left out; p50 and p99 of the one-way latencies the sink measured.
 * Throughput: the bench process puts messages back to back for ``FLOOD_S`` with
   ``CongestionControl.BLOCK``, so nothing may be dropped; the sink counts them.
   msg/s = (received - 1) / (last arrival - first arrival), valid only with ``lost == 0``.
@@ -44,10 +44,10 @@ class Run:
 
 
 def measure(sink: Sink, key: str, reader: dict[str, Any], make_sender: SenderFactory,
-            paced_role: Role, flood_role: Role) -> Run:
-    """Run both phases of one variant on keys under ``key``."""
+            paced_role: Role, flood_role: Role, *, rate_hz: float = RATE_HZ, latency_n: int = LATENCY_N) -> Run:
+    """Run both phases of one variant on keys under ``key``: ``latency_n`` timed messages at ``rate_hz``."""
     _, paced = _phase(sink, f"{key}/paced", reader, make_sender, paced_role,
-                      lambda sender: _paced(sender, WARMUP + LATENCY_N, RATE_HZ))
+                      lambda sender: _paced(sender, WARMUP + latency_n, rate_hz))
     latencies = paced["latencies_us"][WARMUP:]
     sent, flood = _phase(sink, f"{key}/flood", reader, make_sender, flood_role,
                          lambda sender: _flood(sender, FLOOD_S))
