@@ -8,7 +8,9 @@
 #      docker-compose v1's `config` (interpolation, merge, references), or `docker compose config`
 #      when a Compose v2 plugin is installed;
 #   4. `systemd-analyze verify` on the unit, its ExecStart pointed at the venv of step 1;
-#   5. tests/unit/test_deploy_files.py with the project's own venv.
+#   5. tests/unit/test_deploy_files.py and tests/integration/test_deploy_compose.py (the compose
+#      capture and marker services' commands and environment run without Docker) with the
+#      project's own venv.
 # Tools go to throwaway venvs under $ARTRACK_DEPLOY_CACHE (default /tmp/artrack-deploy-check).
 set -uo pipefail
 
@@ -95,9 +97,10 @@ else
     ran systemd_verify
 fi
 
-CHECK="tests/unit/test_deploy_files.py"; echo "== $CHECK"
+CHECK="tests/unit/test_deploy_files.py tests/integration/test_deploy_compose.py"; echo "== $CHECK"
 if [ -x "$PROJECT_PYTHON" ]; then
-    ran "$PROJECT_PYTHON" -m pytest -q -o faulthandler_timeout=120 "$ROOT/tests/unit/test_deploy_files.py"
+    ran "$PROJECT_PYTHON" -m pytest -q -o faulthandler_timeout=120 "$ROOT/tests/unit/test_deploy_files.py" \
+        "$ROOT/tests/integration/test_deploy_compose.py"
 else
     skip "no project venv at $PROJECT_PYTHON (make .venv/.installed)"
 fi
