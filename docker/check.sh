@@ -9,8 +9,8 @@
 #      when a Compose v2 plugin is installed;
 #   4. `systemd-analyze verify` on the unit, its ExecStart pointed at the venv of step 1;
 #   5. tests/unit/test_deploy_files.py and tests/integration/test_deploy_compose.py (the compose
-#      capture and marker services' commands and environment run without Docker) with the
-#      project's own venv.
+#      capture, marker and recorder services' commands and environment run without Docker) with
+#      the project's own venv.
 # Tools go to throwaway venvs under $ARTRACK_DEPLOY_CACHE (default /tmp/artrack-deploy-check).
 set -uo pipefail
 
