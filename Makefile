@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench lint deploy-check clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,11 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check protocol services tests
+
+# docker/ checked without a Docker engine: hadolint, compose config, systemd-analyze, the image's
+# install step in a fresh venv, tests/unit/test_deploy_files.py (see docker/check.sh).
+deploy-check: $(STAMP)
+	bash docker/check.sh
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -36,6 +37,8 @@ from services.runtime.node import POLL_S, Node
 from services.runtime.stats import StreamCounter
 
 MB = 1 << 20
+START = "{start}"
+"""Placeholder in ``out`` for the UTC time the node starts, so a restarted recorder writes new files."""
 CLOSE_S = 5.0
 """How long to wait, at the end, for Zenoh to deliver what it still had for a subscriber."""
 
@@ -47,7 +50,8 @@ class Params(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    out: Path
+    out: Path = Field(description=f"the file to write; {START} in its name becomes the UTC start time "
+                                  "(e.g. 20261124T051000Z), a new name each time the node starts")
     keys: tuple[str, ...] = Field(default=(), description="key expressions, relative to the rig prefix unless "
                                                           "they start with the namespace; empty = the whole rig")
     split_size_mb: float | None = Field(default=None, gt=0, description="start a new part at this size (MiB)")
@@ -61,6 +65,11 @@ class Params(BaseModel):
         if self.split_size_mb is not None and self.split_duration_s is not None:
             raise ValueError("split by size or by duration, not both")
         return self
+
+    def target(self, started: datetime) -> Path:
+        """``out`` with ``{start}`` replaced by ``started`` (UTC, ``YYYYmmddTHHMMSSZ``)."""
+        stamp = started.astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+        return self.out.with_name(self.out.name.replace(START, stamp))
 
     def split(self) -> Split:
         return Split(size_bytes=None if self.split_size_mb is None else int(self.split_size_mb * MB),
@@ -117,7 +126,8 @@ def subscriptions(keys: Keys, expressions: tuple[str, ...]) -> list[str]:
 
 def run(node: Node, params: Params) -> None:
     keys = subscriptions(node.keys, params.keys)
-    check_target(params.out)
+    out = params.target(datetime.now(UTC))
+    check_target(out)
     queue: ByteQueue[Arrival] = ByteQueue(int(params.queue_mb * MB))
     taps: list[Tap] = []
 
@@ -126,7 +136,7 @@ def run(node: Node, params: Params) -> None:
         return {"received": str(sum(s.messages for s in totals)), "dropped": str(sum(s.dropped for s in totals)),
                 "unrecognised": str(sum(s.decode_errors for s in totals))}
 
-    writer = RecordingWriter(params.out, split=params.split(), compression=params.compression, notes=notes,
+    writer = RecordingWriter(out, split=params.split(), compression=params.compression, notes=notes,
                              metadata={"namespace": node.keys.namespace, "rig": node.keys.rig,
                                        "keys": json.dumps(keys)})
     try:

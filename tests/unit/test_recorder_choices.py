@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import UTC, datetime, timedelta, timezone
+
 import pytest
 from mcap.records import Channel
 
@@ -53,6 +55,17 @@ def test_recordings_are_never_overwritten(tmp_path):
         check_target(out)
     with pytest.raises(ValueError, match="does not exist"):
         check_target(tmp_path / "missing" / "run.mcap")
+
+
+def test_a_start_placeholder_gives_each_start_its_own_file(tmp_path):
+    params = RecordParams(out=tmp_path / "rig-{start}.mcap", split_duration_s=600)
+    first = params.target(datetime(2026, 11, 24, 5, 10, 0, tzinfo=UTC))
+    assert first == tmp_path / "rig-20261124T051000Z.mcap"
+    part_path(first, 0).write_bytes(b"")
+    with pytest.raises(ValueError, match="exists"):
+        check_target(first)
+    check_target(params.target(datetime(2026, 11, 24, 6, 10, 1, tzinfo=timezone(timedelta(hours=1)))))
+    assert RecordParams(out=tmp_path / "run.mcap").target(datetime.now(UTC)) == tmp_path / "run.mcap"
 
 
 def test_parameters_refuse_contradictions():
