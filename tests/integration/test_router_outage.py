@@ -15,7 +15,7 @@ from protocol.sensors import Image
 from services.runtime.bus import open_session, reachable
 from services.runtime.pubsub import Inbox, Role
 
-from .support import START_S, collect, kill_hard, start_node, start_router, wait_live, wait_until
+from .support import ROOT, START_S, collect, kill_hard, start_node, start_router, wait_live, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -30,24 +30,35 @@ def client_env(endpoint: str) -> dict[str, str]:
     return {"ARTRACK_MODE": "client", "ARTRACK_CONNECT": endpoint}
 
 
-def test_a_client_node_waits_for_its_router_with_one_error_and_joins_when_it_comes(bus, procs, unused_endpoint):
-    node = procs.artrack("node", "echo", "--name", "early", env=client_env(unused_endpoint))
-    wait_until(lambda: "cannot reach the bus" in node.stderr, START_S, "the node to say the router is missing")
+DAEMONS = {
+    "node": (["node", "echo", "--name", "early"], {"early"}),
+    "up": (["up", str(ROOT / "pipelines" / "echo.toml")], {"cam", "echo"}),
+}
+
+
+@pytest.mark.parametrize("command", sorted(DAEMONS))
+def test_a_client_daemon_waits_for_its_router_with_one_error_per_node_and_joins(bus, procs, unused_endpoint,
+                                                                               command):
+    argv, names = DAEMONS[command]
+    daemon = procs.artrack(*argv, "--rig", bus.rig, env=client_env(unused_endpoint), name=command)
+    wait_until(lambda: daemon.stderr.count("cannot reach the bus") == len(names), START_S,
+               "every node to say the router is missing")
     time.sleep(2 * SETTLE_S)  # a few more attempts, which must stay quiet
-    assert node.poll() is None, node.describe()
+    assert daemon.poll() is None, daemon.describe()
 
     start_router(procs, unused_endpoint)
     config = bus.config.model_copy(update={"connect": (unused_endpoint,), "mode": "client"})
     session = open_session(config)
     try:
-        wait_live(session, config.keys, {"early"}, [node])
+        wait_live(session, config.keys, names, [daemon])
     finally:
         session.close()
-    errors = [line for line in node.stderr.splitlines() if "ERROR" in line]
-    assert len(errors) == 1, node.stderr
-    assert unused_endpoint in errors[0] and "client" in errors[0] and "retrying" in errors[0], errors[0]
-    assert "Traceback" not in node.stderr
-    assert f"joined the bus via {unused_endpoint}" in node.stderr
+    errors = [line for line in daemon.stderr.splitlines() if "ERROR" in line]
+    assert sorted(line.split("[", 1)[1].split("]", 1)[0] for line in errors) == sorted(names), daemon.stderr
+    for line in errors:
+        assert unused_endpoint in line and "client" in line and "retrying" in line, line
+    assert "Traceback" not in daemon.stderr
+    assert daemon.stderr.count(f"joined the bus via {unused_endpoint}") == len(names), daemon.stderr
 
 
 def test_nodes_and_a_subscriber_carry_on_after_the_router_is_killed_and_restarted(bus, procs, unused_endpoint):
