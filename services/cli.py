@@ -7,6 +7,7 @@ import contextlib
 import itertools
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -36,8 +37,12 @@ def _bus_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--rig", help="rig name (env ARTRACK_RIG; default rig0)")
 
 
-def _bus(args: argparse.Namespace, **base: object) -> BusConfig:
-    """Bus settings: environment, then ``base`` (a pipeline's ``[bus]``), then command-line options."""
+def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> BusConfig:
+    """Bus settings: environment, then ``base`` (a pipeline's ``[bus]``), then command-line options.
+
+    A ``daemon`` (a node, ``up``) waits for its router unless ``ARTRACK_RETRY=0``."""
+    if daemon and not os.environ.get("ARTRACK_RETRY"):
+        base = {"retry": True, **base}
     given = {"connect": tuple(args.connect or ()), "listen": tuple(args.listen or ()), "mode": args.mode,
              "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig}
     # Only options actually given may override ``base``: an unset option must not erase a pipeline value.
@@ -50,7 +55,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     from services.runtime.supervisor import Supervisor
 
     spec = read_pipeline(args.pipeline)
-    bus = _bus(args, **spec.bus)
+    bus = _bus(args, daemon=True, **spec.bus)
     supervisor = Supervisor(processes(spec, bus))
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -152,7 +157,7 @@ def cmd_node(args: argparse.Namespace) -> int:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
     module = node_kind.load()
     setup_logging(json_lines=args.log_json, node=args.name)
-    return run_node(args.name, args.kind, _bus(args), lambda node: module.run(node, params))
+    return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: module.run(node, params))
 
 
 def cmd_schemas(args: argparse.Namespace) -> int:

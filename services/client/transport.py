@@ -14,9 +14,17 @@ import zenoh
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 """Where processes on one machine meet when nothing else is said."""
 
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}
+"""Zenoh's back-off between tries of a connect endpoint, while it waits for the first connection and
+after a router it was connected to has gone: 0.25 s, doubling up to 2 s (Zenoh's own default is 1 s
+up to 4 s)."""
+
 
 def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
     """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
+
+    A session that loses an endpoint tries it again with the ``RECONNECT`` back-off, so a router that
+    restarts is rejoined by itself.
 
     Shared memory is set up when the session opens rather than on the first large message: set up
     lazily, the first frames of a stream went over TCP, filled the two-batch queue and a second
@@ -27,5 +35,13 @@ def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[st
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("connect/retry", json.dumps(RECONNECT))
     config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
+    return config
+
+
+def patient(config: zenoh.Config, attempt_ms: int) -> zenoh.Config:
+    """``config`` changed so that opening a session keeps trying the connect endpoints (with Zenoh's
+    retry back-off) for ``attempt_ms`` before giving up, instead of failing at once in client mode."""
+    config.insert_json5("connect/timeout_ms", json.dumps(attempt_ms))
     return config

@@ -6,6 +6,12 @@ of them runs as a peer listening on a free loopback port and connects to the loc
 ``tcp/127.0.0.1:7447``, starting one in the background when none answers. That router exits by
 itself a while after its last peer has gone. Peers that met through it also connect to each
 other directly, so data does not pass through it.
+
+Every session tries a lost endpoint again by itself (Zenoh's reconnect, see
+``services.client.transport.RECONNECT``), so a restarted router is rejoined without help. A
+long-running process (``retry``: nodes and ``artrack up``) also waits for a router that is not
+there yet: it logs one error naming the endpoint and keeps trying, where a one-shot command
+fails at once with ``BusError``.
 """
 
 from __future__ import annotations
@@ -24,13 +30,15 @@ import zenoh
 from pydantic import Field
 
 from services.client.settings import BusError, BusSettings
-from services.client.transport import LOCAL_ROUTER
+from services.client.transport import LOCAL_ROUTER, patient
 
 __all__ = ["LOCAL_ROUTER", "BusConfig", "BusError", "ensure_local_router", "open_session", "reachable"]
 
 log = logging.getLogger(__name__)
 
 LOCAL_ROUTER_IDLE_EXIT_S = 60.0
+RETRY_ATTEMPT_MS = 1000
+"""How long one attempt to open a retrying session waits before Python gets control back (signals)."""
 
 
 def _flag(text: str) -> bool:
@@ -44,10 +52,13 @@ class BusConfig(BusSettings):
         **BusSettings.ENV,
         "ARTRACK_ROUTER_AUTOSTART": ("autostart_router", _flag),
         "ARTRACK_ROUTER_WAIT_S": ("router_wait_s", str),
+        "ARTRACK_RETRY": ("retry", _flag),
     }
 
     autostart_router: bool = True
     router_wait_s: float = Field(default=5.0, ge=0)
+    retry: bool = False
+    """Wait for an unreachable router (client mode) instead of failing: for long-running processes."""
 
 
 def open_session(bus: BusConfig) -> zenoh.Session:
@@ -55,7 +66,29 @@ def open_session(bus: BusConfig) -> zenoh.Session:
     zenoh.init_log_from_env_or("error")
     if bus.uses_local_router and bus.autostart_router:
         ensure_local_router(bus.router_wait_s)
-    return bus.open()
+    if not bus.retry:
+        return bus.open()
+    return _open_retrying(bus)
+
+
+def _open_retrying(bus: BusConfig) -> zenoh.Session:
+    """Open the session, trying again until the bus answers; the first failure is logged once."""
+    config = patient(bus.zenoh(), RETRY_ATTEMPT_MS)
+    failed_at = None
+    while True:
+        attempt_ends = time.monotonic() + RETRY_ATTEMPT_MS / 1000
+        try:
+            session = zenoh.open(config)
+        except zenoh.ZError as exc:
+            if failed_at is None:
+                failed_at = time.monotonic()
+                log.error("cannot reach the bus (%s via %s): %s; retrying until it answers", bus.mode, bus.where,
+                          exc)
+            time.sleep(max(0.0, attempt_ends - time.monotonic()))  # a refusal that comes at once must not spin
+            continue
+        if failed_at is not None:
+            log.info("joined the bus via %s after %.1f s", bus.where, time.monotonic() - failed_at)
+        return session
 
 
 def _endpoint_address(endpoint: str) -> tuple[str, int]:

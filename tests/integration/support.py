@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -12,9 +14,11 @@ from typing import TypeVar
 T = TypeVar("T")
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
 PROBE = HERE / "busprobe.py"
 START_S = 20.0
 """Deadline for a process to come up and be seen on the bus (generous: CI shares its cores)."""
+STOP_S = 5.0
 
 
 def wait_until(probe: Callable[[], T], timeout_s: float, what: str, interval_s: float = 0.05) -> T:
@@ -85,9 +89,9 @@ def states(session, keys) -> dict:
     return {name: s for (rig, name), s in node_states(session, keys, 2.0).items() if rig == keys.rig}
 
 
-def start_node(procs, kind: str, name: str, **params):
-    """``artrack node KIND --name NAME --params JSON`` on the test's bus."""
-    return procs.artrack("node", kind, "--name", name, "--params", json.dumps(params), name=name)
+def start_node(procs, kind: str, name: str, env: dict[str, str] | None = None, **params):
+    """``artrack node KIND --name NAME --params JSON`` on the test's bus (``env``: changes to its environment)."""
+    return procs.artrack("node", kind, "--name", name, "--params", json.dumps(params), name=name, env=env)
 
 
 def wait_live(session, keys, names: set[str], procs_to_check=()) -> None:
@@ -99,3 +103,22 @@ def wait_live(session, keys, names: set[str], procs_to_check=()) -> None:
         return names <= live_names(session, keys)
 
     wait_until(ready, START_S, f"nodes {sorted(names)} to be live")
+
+
+def start_router(procs, endpoint: str, *, prefix: tuple[str, ...] = (), name: str = "router"):
+    """``artrack router --listen ENDPOINT`` as a process of its own (``prefix``: e.g. ``ip netns exec NS``),
+    returned once it says it listens."""
+    proc = procs.start([*prefix, sys.executable, "-m", "services.cli", "router", "--listen", endpoint], name=name)
+
+    def up() -> bool:
+        assert proc.poll() is None, f"the router exited:\n{proc.describe()}"
+        return "listening on" in proc.stderr
+
+    wait_until(up, START_S, f"the router on {endpoint}")
+    return proc
+
+
+def kill_hard(proc) -> None:
+    """SIGKILL ``proc`` (no chance to say goodbye to its peers) and reap it."""
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(STOP_S)

@@ -2,6 +2,8 @@
 
 Zenoh's client mode fails at once when no router answers; peer mode keeps retrying in the
 background by design (a peer may be the first one up), so the failure is tested in client mode.
+A node waits for its router by default (see test_router_outage.py); ``ARTRACK_RETRY=0`` makes
+it fail like the one-shot commands.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ COMMANDS = {
 def test_client_with_no_router_fails_with_one_clear_line(procs, unused_endpoint, command):
     dead = unused_endpoint
     started = time.monotonic()
-    done = procs.run(*COMMANDS[command], "--mode", "client", "--connect", dead, timeout=30)
+    env = {"ARTRACK_RETRY": "0"} if command == "node" else None
+    done = procs.run(*COMMANDS[command], "--mode", "client", "--connect", dead, timeout=30, env=env)
     took = time.monotonic() - started
     assert done.poll() not in (None, 0), done.describe()
     lines = [line for line in done.stderr.splitlines() if line.strip()]
