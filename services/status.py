@@ -13,6 +13,7 @@ only when at least one ``artrack up`` answered and every node it supervises is r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import zenoh
 
@@ -101,13 +102,14 @@ def _cell(value: float | None, digits: int = 1) -> str:
 
 
 def format_status(status: Status) -> str:
-    """Tables of the nodes (supervised first) and client apps, then warnings and problems."""
+    """Tables of the nodes (supervised first; IN/s and OUT/s summed over each node's keys) and
+    client apps, then warnings and problems."""
     header = ("PIPELINE", "NODE", "KIND", "STATE", "PID", "UP(s)", "RESTARTS", "IN/s", "OUT/s", "DROPPED",
               "DECODE_ERR", "P50(ms)", "P99(ms)")
     rows = [header]
     for health in status.pipelines.values():
         for node in health.nodes:
-            rows.append((health.pipeline, node.name, node.kind, node.state, str(node.pid or "-"),
+            rows.append((Path(health.pipeline).name, node.name, node.kind, node.state, str(node.pid or "-"),
                          f"{node.uptime_s:.0f}", str(node.restarts), *_figures(status.nodes.get(node.name))))
     for name, stats in sorted(status.nodes.items()):
         if name not in status.supervised():
