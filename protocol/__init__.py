@@ -12,11 +12,22 @@ from protocol.message import Header, Message, message_type, message_types
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
 from protocol.spatial import FrameTransform, Transform
-from protocol.system import ClientState, ErrorReport, NodeStats, StreamStats, Subscription
+from protocol.system import (
+    ClientState,
+    ConfigAnswer,
+    ConfigChange,
+    ErrorReport,
+    NodeStats,
+    PipelineHealth,
+    StreamStats,
+    Subscription,
+    SupervisedNode,
+)
 
 __all__ = [
-    "BlobDetections", "CameraInfo", "ClientState", "DecodeError", "ErrorReport", "FrameTransform", "GroundTruth",
-    "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message", "NodeStats", "PointCloud",
-    "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies", "RigidBody", "StreamStats",
-    "Subscription", "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
+    "BlobDetections", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError", "ErrorReport",
+    "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
+    "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies",
+    "RigidBody", "StreamStats", "Subscription", "SupervisedNode", "TrackingState", "Transform", "decode", "encode",
+    "message_type", "message_types", "to_json",
 ]

@@ -17,6 +17,8 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
     ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
     ar/rig0/node/<name>/control       (queryable)      replay's pause / resume / step
+    ar/rig0/node/<name>/config        (queryable)      ConfigChange -> ConfigAnswer: live parameter changes
+    ar/rig0/supervisor/<pipeline>     (queryable)      PipelineHealth of an ``artrack up`` process
     ar/rig0/client/<id>               (liveliness)     present while a client app is connected
     ar/rig0/client/<id>/state         (queryable)      ClientState: what the app subscribed to
 
@@ -164,6 +166,18 @@ class Keys:
     def control(self, name: str) -> str:
         """The node's control queryable (pause, resume, step for replay)."""
         return f"{self.node(name)}/control"
+
+    def config(self, name: str) -> str:
+        """The node's config queryable (live parameter changes)."""
+        return f"{self.node(name)}/config"
+
+    def supervisor(self, pipeline: str) -> str:
+        """The health queryable of the ``artrack up`` process running ``pipeline`` (its file's stem)."""
+        return f"{self.prefix}/supervisor/{check_name(pipeline, 'pipeline name')}"
+
+    def supervisors(self) -> str:
+        """Health queryables of every ``artrack up`` process of the rig."""
+        return f"{self.prefix}/supervisor/*"
 
     def everything(self) -> str:
         """Every key of this rig."""

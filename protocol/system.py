@@ -88,3 +88,59 @@ class ClientState(Message):
     pid: int
     uptime_s: float = Field(ge=0)
     subscriptions: tuple[Subscription, ...] = ()
+
+
+class SupervisedNode(Struct):
+    """One node process of a pipeline as its supervisor sees it.
+
+    ``state``: ``running``; ``backing_off`` (died, restart pending); ``failed`` (died more
+    often than the restart budget allows, left down); ``finished`` (exited with code 0, or
+    stopped). ``uptime_s`` is that of the current process (0 while down); ``exit_code`` the
+    last one (negative: killed by that signal).
+    """
+
+    name: str
+    kind: str
+    state: Literal["running", "backing_off", "failed", "finished"]
+    pid: int | None = None
+    uptime_s: float = Field(default=0.0, ge=0)
+    restarts: int = Field(default=0, ge=0)
+    exit_code: int | None = None
+
+
+class PipelineHealth(Message):
+    """What an ``artrack up`` process supervises, answered on its health queryable."""
+
+    SCHEMA = "artrack.PipelineHealth"
+    VERSION = 1
+
+    pipeline: str
+    host: str
+    pid: int
+    uptime_s: float = Field(ge=0)
+    nodes: tuple[SupervisedNode, ...] = ()
+
+
+class ConfigChange(Message):
+    """A request to change node parameters live: field name -> new value as JSON text."""
+
+    SCHEMA = "artrack.ConfigChange"
+    VERSION = 1
+
+    values: dict[str, str] = Field(default_factory=dict)
+
+
+class ConfigAnswer(Message):
+    """A node's answer to a ConfigChange: all of it applied, or none of it with the reasons.
+
+    ``applied`` maps each changed field to its new value (JSON text); ``refused`` maps each
+    refused field to why. ``params`` holds every live-changeable field's value now.
+    """
+
+    SCHEMA = "artrack.ConfigAnswer"
+    VERSION = 1
+
+    node: str
+    applied: dict[str, str] = Field(default_factory=dict)
+    refused: dict[str, str] = Field(default_factory=dict)
+    params: dict[str, str] = Field(default_factory=dict)

@@ -17,7 +17,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from services.runtime.bus import LOCAL_ROUTER, BusConfig, BusError, open_session
-from services.runtime.logs import setup_logging
+from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 from services.runtime.pipeline import PipelineError, describe
 
@@ -51,20 +51,56 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from services.launch import processes, read_pipeline
-    from services.runtime.supervisor import Supervisor
+    from services.daemon import Daemon
+    from services.launch import read_pipeline
 
     spec = read_pipeline(args.pipeline)
-    bus = _bus(args, daemon=True, **spec.bus)
-    supervisor = Supervisor(processes(spec, bus))
-    stop = threading.Event()
+    daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, **spec.bus))
+    stop, hup = threading.Event(), threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    log.info("pipeline %s: %d node(s) on %s", args.pipeline, len(spec.nodes), bus.keys.prefix)
-    supervisor.start()
-    supervisor.run(stop)
-    log.info("pipeline %s stopped", args.pipeline)
-    return 0
+    signal.signal(signal.SIGHUP, lambda *_: hup.set())
+    return daemon.run(stop, hup)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from services.status import HEALTHY, UNHEALTHY, format_status, gather
+
+    bus = _bus(args)
+    session = open_session(bus)
+    try:
+        status = gather(session, bus.keys, args.timeout)
+    finally:
+        session.close()
+    print(json.dumps(status.to_json()) if args.json else format_status(status))
+    return (UNHEALTHY if status.problems() else HEALTHY) if args.check else 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from services.runtime.reconfig import request_change
+
+    values = {}
+    for option in args.set or ():
+        name, sep, text = option.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--set {option!r}: give FIELD=VALUE")
+        try:
+            values[name] = json.loads(text)
+        except json.JSONDecodeError:
+            values[name] = text
+    bus = _bus(args)
+    session = open_session(bus)
+    try:
+        answer = request_change(session, bus.keys, args.node, values, args.timeout)
+    finally:
+        session.close()
+    if answer is None:
+        log.error("no node answered on %s within %.1f s (is %s running, and does its kind take live changes?)",
+                  bus.keys.config(args.node), args.timeout, args.node)
+        return 1
+    print(json.dumps({"node": answer.node, "applied": answer.applied, "refused": answer.refused,
+                      "params": answer.params}))
+    return 1 if answer.refused else 0
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -156,7 +192,7 @@ def cmd_node(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
     module = node_kind.load()
-    setup_logging(json_lines=args.log_json, node=args.name)
+    setup_logging(log_format=log_format(args.log_format), node=args.name)
     return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: module.run(node, params))
 
 
@@ -181,7 +217,7 @@ def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[..., object
     """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
     from services.runtime.node import run_node
 
-    setup_logging(json_lines=args.log_json, node=args.name)
+    setup_logging(log_format=log_format(args.log_format), node=args.name)
     return run_node(args.name, kind, _bus(args), body)
 
 
@@ -319,13 +355,32 @@ def parser() -> argparse.ArgumentParser:
     from services.pipelines import PIPELINES
 
     top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")
-    top.add_argument("--log-json", action="store_true", default=None, help="log as JSON lines (env ARTRACK_LOG_JSON)")
+    top.add_argument("--log-format", choices=FORMATS, help=f"log lines as text or JSON objects (env {FORMAT_ENV}; "
+                     "default text); `up` passes it on to its nodes")
     sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("up", help="run a pipeline file: every node its own process, restarted if it dies")
+    p = sub.add_parser("up", help="run a pipeline file: every node its own process, restarted if it dies "
+                                  "(within a budget); SIGHUP reloads live parameters")
     p.add_argument("pipeline", type=Path, metavar="PIPELINE.toml")
     _bus_options(p)
     p.set_defaults(func=cmd_up)
+
+    p = sub.add_parser("status", help="every supervised node's state, restarts and rates, client apps and "
+                                      "their subscriptions; --check: exit 0 only when all nodes run")
+    p.add_argument("--json", action="store_true", help="one JSON object instead of tables")
+    p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` answered and every node "
+                   "it supervises is running (a health check)")
+    p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers")
+    _bus_options(p)
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("config", help="change a running node's live parameters (or show them, without --set)")
+    p.add_argument("node", metavar="NODE", help="the node's name")
+    p.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a parameter to change, VALUE as JSON "
+                   "(a bare word is a string); repeatable, applied all or none")
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for the answer")
+    _bus_options(p)
+    p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("router", help="run a Zenoh router that hosts and local nodes meet through")
     p.add_argument("--listen", action="append", metavar="ENDPOINT", help=f"default {LOCAL_ROUTER}")
@@ -481,7 +536,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if getattr(args, "name", "") is None:
         args.name = args.kind
-    setup_logging(json_lines=args.log_json)
+    try:
+        chosen = log_format(args.log_format)
+    except ValueError as exc:
+        print(f"artrack: {exc}", file=sys.stderr)
+        return 2
+    os.environ[FORMAT_ENV] = chosen  # processes started from here (`up`'s nodes) log the same way
+    setup_logging(log_format=chosen)
     tune_malloc()
     try:
         return args.func(args)

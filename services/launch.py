@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
+
 from services.catalog import kind
 from services.runtime.bus import BusConfig
 from services.runtime.pipeline import NodeSpec, PipelineSpec, load_pipeline
@@ -22,6 +24,11 @@ def node_command(kind_name: str, name: str, params: dict[str, Any]) -> tuple[str
 def check_node(name: str, spec: NodeSpec) -> None:
     """Validate a pipeline node's kind and parameters (raises ValueError naming the problem)."""
     kind(spec.kind).params(spec.params)
+
+
+def params_model(kind_name: str) -> type[BaseModel]:
+    """The Params model of a node kind (its ``RELOADABLE`` fields may change live)."""
+    return kind(kind_name).load().Params
 
 
 def read_pipeline(path: Path) -> PipelineSpec:

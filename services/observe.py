@@ -32,7 +32,12 @@ def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], Nod
             continue
         rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
                      str(s.dropped), str(s.decode_errors), _ms(s.processing_ms_p50), _ms(s.processing_ms_p99)))
-    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    return format_table(rows)
+
+
+def format_table(rows: list[tuple[str, ...]]) -> str:
+    """Rows of cells as left-aligned columns two spaces apart (the first row is the header)."""
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 

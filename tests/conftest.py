@@ -119,7 +119,7 @@ def bus(router) -> Bus:
         "ARTRACK_TEST_ID": marker,
         "PYTHONUNBUFFERED": "1",
     }
-    for name in ("ARTRACK_MODE", "ARTRACK_LISTEN", "ARTRACK_NAMESPACE", "ZENOH_CONFIG", "ARTRACK_LOG_JSON"):
+    for name in ("ARTRACK_MODE", "ARTRACK_LISTEN", "ARTRACK_NAMESPACE", "ZENOH_CONFIG", "ARTRACK_LOG_FORMAT"):
         env.pop(name, None)
     return Bus(endpoint=router, rig=rig, marker=marker, config=config, env=env)
 

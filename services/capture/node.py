@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
@@ -56,9 +57,10 @@ def _as_tuple(value: Any) -> Any:
 
 
 class Params(BaseModel):
-    """Settings of a capture node."""
+    """Settings of a capture node; ``fps`` may change while it runs (``artrack config``, SIGHUP)."""
 
     model_config = ConfigDict(extra="forbid")
+    RELOADABLE: ClassVar[frozenset[str]] = frozenset({"fps"})
 
     source: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
         default=("synthetic:pattern",), min_length=1,
@@ -137,6 +139,7 @@ def run(node: Node, params: Params) -> None:
 
 def _publish(node: Node, params: Params, rig: Rig) -> None:
     keys = node.keys
+    live = node.configurable(params)
     images = {name: node.publisher(keys.image(name), Image, Role.FRAME) for name in rig.names}
     infos = {name: node.publisher(keys.camera_info(name), CameraInfo) for name in rig.calibration}
     for name, model in rig.calibration.items():
@@ -150,7 +153,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
         node.wait(SETTLE_S)
     seq = 0
     while node.running and (params.frames == 0 or seq < params.frames):
-        clock = _Pacer(params.fps)
+        clock = _Pacer(lambda: live.value.fps)
         for instant in rig.instants():
             if not node.running or (params.frames and seq >= params.frames):
                 break
@@ -200,18 +203,24 @@ def _publish_frame(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: 
 
 
 class _Pacer:
-    """Sleeps so frames leave at ``fps``, or at the source's own pace (its frame times)."""
+    """Sleeps so frames leave at ``fps()``, or at the source's own pace (its frame times).
 
-    def __init__(self, fps: float | None):
-        self.period = None if fps is None else 1.0 / fps
+    ``fps()`` is asked before every frame: when it changes, pacing starts over from that frame.
+    """
+
+    def __init__(self, fps: Callable[[], float | None]):
+        self.fps = fps
+        self.period: float | None = None
         self.start_wall: float | None = None
         self.start_source: float | None = None
         self.count = 0
 
     def wait_for(self, node: Node, time_s: float | None, untimed: bool) -> None:
         now = time.monotonic()
-        if self.start_wall is None:
-            self.start_wall, self.start_source = now, time_s
+        fps = self.fps()
+        period = None if fps is None else 1.0 / fps
+        if self.start_wall is None or period != self.period:
+            self.start_wall, self.start_source, self.count, self.period = now, time_s, 0, period
         if self.period is not None:
             due = self.start_wall + self.count * self.period
         elif time_s is not None and self.start_source is not None:

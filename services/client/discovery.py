@@ -42,10 +42,12 @@ def live_nodes(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tup
         return sorted(found)
 
 
-def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float) -> dict[str, M]:
-    """Key -> message of every reply of type ``cls`` to a query on ``selector``; other replies are skipped."""
+def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
+            payload: bytes | None = None) -> dict[str, M]:
+    """Key -> message of every reply of type ``cls`` to a query on ``selector`` (carrying ``payload``
+    when given); other replies are skipped."""
     found: dict[str, M] = {}
-    for reply in session.get(selector, timeout=timeout_s):
+    for reply in session.get(selector, timeout=timeout_s, payload=payload):
         if reply.ok is None:
             continue
         try:
@@ -55,6 +57,21 @@ def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: floa
         if isinstance(message, cls):
             found[str(reply.ok.key_expr)] = message
     return found
+
+
+def first_answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
+                  payload: bytes | None = None) -> dict[str, M]:
+    """``answers``, asked again until some come or ``timeout_s`` is over.
+
+    A session that has just opened may not yet know the queryables its router knows: a
+    query then ends at once, empty, though an answer was there to have.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        found = answers(session, selector, cls, max(0.05, deadline - time.monotonic()), payload)
+        if found or time.monotonic() >= deadline:
+            return found
+        time.sleep(0.05)
 
 
 def node_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], NodeStats]:

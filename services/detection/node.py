@@ -9,6 +9,8 @@ setting are in ``services.detection.markers``.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import Field
 
 from protocol.detections import MarkerDetections
@@ -22,7 +24,10 @@ from services.runtime.pubsub import Role
 
 
 class Params(DetectorSettings):
-    """Which camera to watch, which markers to look for, and how."""
+    """Which camera to watch, which markers to look for, and how; the detector's tuning (side
+    lengths, refinement, ``parameters`` thresholds) may change while it runs."""
+
+    RELOADABLE: ClassVar[frozenset[str]] = frozenset({"marker_length", "lengths", "refinement", "parameters"})
 
     camera: KeyName = "cam0"
     depth: int = Field(default=1, ge=1, le=1000,
@@ -34,10 +39,12 @@ def run(node: Node, params: Params) -> None:
         markers = params.detector()
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
+    current = {"detector": markers}
+    node.configurable(params, lambda new: current.update(detector=new.detector()))
     frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     out = node.publisher(node.keys.markers(params.camera), MarkerDetections, Role.RESULT)
     for image in node.inputs(frames):
-        out.put(as_message(image.header, params.dictionary, markers.detect(image.data)))
+        out.put(as_message(image.header, params.dictionary, current["detector"].detect(image.data)))
 
 
 def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDetections:

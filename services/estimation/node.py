@@ -36,7 +36,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import ConfigDict, Field, model_validator
@@ -65,9 +65,11 @@ INFO_DEPTH = 100
 
 
 class Params(DetectorSettings):
-    """Which camera, where its markers come from, and how poses are estimated."""
+    """Which camera, where its markers come from, and how poses are estimated; ``corner_sigma_px``
+    may change while the node runs."""
 
     model_config = ConfigDict(extra="forbid")
+    RELOADABLE: ClassVar[frozenset[str]] = frozenset({"corner_sigma_px"})
 
     camera: KeyName = "cam0"
     input: Literal["images", "detections"] = Field(
@@ -176,6 +178,7 @@ def run(node: Node, params: Params) -> None:
     except (MarkerMapError, CalibrationError, ValueError) as exc:
         raise NodeError(str(exc)) from exc
     estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
+    node.configurable(params, lambda new: setattr(estimator, "corner_sigma_px", new.corner_sigma_px))
     keys = node.keys
     infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
     calibration = _Calibration(infos, fixed)

@@ -1,8 +1,12 @@
-"""Log set-up shared by every artrack process: one line per record, plain or JSON.
+"""Log set-up shared by every artrack process: one line per record, plain text or JSON.
 
-JSON lines (``--log-json`` or ``ARTRACK_LOG_JSON=1``) carry ``ts`` (ISO 8601, UTC), ``level``,
-``logger``, ``msg`` and, for node processes, ``node``. Rotation is left to the host
-(journald, docker, logrotate): artrack writes to stderr only.
+The format comes from ``--log-format text|json`` or the environment variable
+``ARTRACK_LOG_FORMAT`` (default ``text``); ``artrack up`` exports the variable so the node
+processes it starts log the same way. A JSON line is one object with ``time`` (ISO 8601,
+UTC, milliseconds), ``level``, ``logger``, ``node`` (null outside node processes),
+``message``, ``exception`` when there is one, and every field passed to the logging call
+with ``extra={...}``. Rotation is left to the host (journald, docker, logrotate): artrack
+writes to stderr only and opens no log file.
 """
 
 from __future__ import annotations
@@ -12,35 +16,51 @@ import logging
 import os
 import sys
 from datetime import UTC, datetime
+from typing import Literal
+
+FORMAT_ENV = "ARTRACK_LOG_FORMAT"
+FORMATS = ("text", "json")
+
+LogFormat = Literal["text", "json"]
+
+_STANDARD = frozenset(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message", "asctime"}
 
 
-class _JsonFormatter(logging.Formatter):
+class JsonFormatter(logging.Formatter):
+    """One JSON object per record (see the module docstring)."""
+
     def __init__(self, node: str | None):
         super().__init__()
         self.node = node
 
     def format(self, record: logging.LogRecord) -> str:
         entry = {
-            "ts": datetime.fromtimestamp(record.created, UTC).isoformat(timespec="milliseconds"),
+            "time": datetime.fromtimestamp(record.created, UTC).isoformat(timespec="milliseconds"),
             "level": record.levelname.lower(),
             "logger": record.name,
-            "msg": record.getMessage(),
+            "node": self.node,
+            "message": record.getMessage(),
         }
-        if self.node:
-            entry["node"] = self.node
         if record.exc_info:
-            entry["exc"] = self.formatException(record.exc_info)
-        return json.dumps(entry)
+            entry["exception"] = self.formatException(record.exc_info)
+        entry.update({k: v for k, v in vars(record).items() if k not in _STANDARD and k not in entry})
+        return json.dumps(entry, default=str)
 
 
-def setup_logging(*, json_lines: bool | None = None, level: str | None = None, node: str | None = None) -> None:
-    """Send log records to stderr, as JSON lines or plain text (``node`` tags every line)."""
-    if json_lines is None:
-        json_lines = os.environ.get("ARTRACK_LOG_JSON", "") not in ("", "0", "false")
+def log_format(given: str | None = None) -> LogFormat:
+    """``given``, else ``$ARTRACK_LOG_FORMAT``, else ``text``; ValueError naming a bad value."""
+    value = (given or os.environ.get(FORMAT_ENV) or "text").lower()
+    if value not in FORMATS:
+        raise ValueError(f"log format {value!r} ({FORMAT_ENV} or --log-format) is not one of {', '.join(FORMATS)}")
+    return value  # type: ignore[return-value]
+
+
+def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, node: str | None = None) -> None:
+    """Send log records to stderr in ``log_format`` (``node`` tags every line)."""
     level = level or os.environ.get("ARTRACK_LOG_LEVEL", "INFO")
     handler = logging.StreamHandler(sys.stderr)
-    if json_lines:
-        handler.setFormatter(_JsonFormatter(node))
+    if log_format == "json":
+        handler.setFormatter(JsonFormatter(node))
     else:
         tag = f"[{node}] " if node else ""
         handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s {tag}%(name)s: %(message)s"))

@@ -11,8 +11,10 @@ A node body is a short loop over its inputs::
 While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
 list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``,
 answers the same on the ``keys.state(name)`` queryable, and reports inputs it had to skip
-(``report``) on ``keys.errors(name)``. ``run_node`` adds SIGINT/SIGTERM handling: the loop
-ends within a poll period (0.1 s) and everything is undeclared and closed.
+(``report``) on ``keys.errors(name)``. A body that calls ``configurable`` also answers
+live parameter changes on ``keys.config(name)`` (``services.runtime.reconfig``).
+``run_node`` adds SIGINT/SIGTERM handling: the loop ends within a poll period (0.1 s) and
+everything is undeclared and closed.
 """
 
 from __future__ import annotations
@@ -27,15 +29,18 @@ from collections.abc import Callable, Iterator
 from typing import Literal, TypeVar
 
 import zenoh
+from pydantic import BaseModel
 
-from protocol.codec import DecodeError, encode
+from protocol.codec import DecodeError, decode, encode
 from protocol.message import Header, Message
-from protocol.system import ErrorReport, NodeStats
+from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats
 from services.runtime.bus import BusConfig, BusError, open_session
 from services.runtime.pubsub import Inbox, Publisher, RawPublisher, Role
+from services.runtime.reconfig import LiveParams
 from services.runtime.stats import LatencyWindow, StreamCounter
 
 M = TypeVar("M", bound=Message)
+P = TypeVar("P", bound=BaseModel)
 
 POLL_S = 0.1
 LINGER_S = 0.5
@@ -126,6 +131,35 @@ class Node:
                 query.reply(key, encode(message))
 
         self._answers.append(self.session.declare_queryable(key, on_query))
+
+    def configurable(self, params: P, apply: Callable[[P], None] | None = None) -> LiveParams[P]:
+        """Let the reloadable fields of ``params`` change while the node runs (``keys.config(name)``).
+
+        The body reads ``.value`` of the result for the current parameters; ``apply(new)``
+        puts changed ones to work first and may raise ValueError to refuse them.
+        """
+        live = LiveParams(params, apply)
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                change = decode(query.payload.to_bytes()) if query.payload is not None else None
+            except DecodeError as exc:
+                change = None
+                self.report("decode_error", str(exc), str(query.key_expr))
+            if not isinstance(change, ConfigChange):
+                answer = ConfigAnswer(header=Header(stamp_ns=time.time_ns()), node=self.name,
+                                      refused={"(request)": "expected a ConfigChange payload"},
+                                      params=live.reloadable_values())
+            else:
+                answer = live.answer(self.name, change)
+                if answer.applied:
+                    self.log.info("parameters changed live: %s", answer.applied, extra={"applied": answer.applied})
+                elif answer.refused:
+                    self.log.warning("parameter change refused: %s", answer.refused, extra={"refused": answer.refused})
+            query.reply(self.keys.config(self.name), encode(answer))
+
+        self._answers.append(self.session.declare_queryable(self.keys.config(self.name), on_query))
+        return live
 
     def track(self, counter: StreamCounter) -> StreamCounter:
         """Count a stream the body serves with its own Zenoh entities (the recorder's raw

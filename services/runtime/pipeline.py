@@ -5,6 +5,10 @@ A pipeline is a TOML file::
     [bus]               # optional, any BusConfig field: namespace, rig, connect, listen, mode
     rig = "demo"
 
+    [supervisor]        # optional, any SupervisorSettings field: back-off, restart budget, grace
+    max_restarts = 5    # restarts allowed within window_s; past that the node is failed, left down
+    window_s = 60
+
     [nodes.cam]         # one table per node; the table name is the node's name
     kind = "capture"    # a node kind (``artrack kinds`` lists them)
     restart = true      # restart it when it dies (default)
@@ -28,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from protocol.keys import check_name
 from services.runtime.bus import BusConfig
+from services.runtime.supervisor import SupervisorSettings
 
 
 class PipelineError(ValueError):
@@ -51,6 +56,7 @@ class PipelineSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     bus: dict[str, Any] = Field(default_factory=dict)
+    supervisor: SupervisorSettings = Field(default_factory=SupervisorSettings)
     nodes: dict[str, NodeSpec] = Field(min_length=1)
 
     @field_validator("nodes")

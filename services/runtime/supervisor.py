@@ -3,7 +3,9 @@
 A child that exits with code 0 has finished its job and is left alone. One that dies
 (non-zero code or a signal) while the supervisor runs is restarted after a back-off that doubles
 with each quick failure (0.5 s, 1 s, 2 s ... up to 10 s) and resets once the child has
-run for ``stable_s``. Stopping sends SIGTERM to every child, waits up to ``grace_s``, then
+run for ``stable_s``. The restart budget bounds a crash loop: a child that would need more
+than ``max_restarts`` restarts within ``window_s`` seconds is marked failed, logged as an
+error and left down, while the others keep running. Stopping sends SIGTERM to every child, waits up to ``grace_s``, then
 SIGKILLs what is left and reaps everything. On Linux each child also asks the kernel for
 SIGTERM should the supervisor die without stopping it, so no child outlives it.
 """
@@ -18,11 +20,54 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+
+State = Literal["running", "backing_off", "failed", "finished"]
+
+
+class SupervisorSettings(BaseModel):
+    """Restart policy: back-off, restart budget and stop grace (a pipeline's ``[supervisor]`` table)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    backoff_s: float = Field(default=0.5, gt=0, le=3600, description="first restart delay, doubled per quick failure")
+    max_backoff_s: float = Field(default=10.0, gt=0, le=3600, description="longest restart delay")
+    stable_s: float = Field(default=10.0, gt=0, description="a child up this long has its back-off reset")
+    max_restarts: int = Field(default=5, ge=0, description="restarts allowed within window_s; beyond: failed")
+    window_s: float = Field(default=60.0, gt=0, description="the restart budget's sliding window")
+    grace_s: float = Field(default=1.5, gt=0, le=60, description="SIGTERM to SIGKILL delay when stopping")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> SupervisorSettings:
+        if self.max_backoff_s < self.backoff_s:
+            raise ValueError(f"max_backoff_s ({self.max_backoff_s}) is below backoff_s ({self.backoff_s})")
+        return self
+
+
+class RestartBudget:
+    """At most ``max_restarts`` restarts within any ``window_s`` seconds (times from ``time.monotonic``)."""
+
+    def __init__(self, max_restarts: int, window_s: float):
+        self.max_restarts = max_restarts
+        self.window_s = window_s
+        self._times: deque[float] = deque()
+
+    def allow(self, now: float) -> bool:
+        """Whether one more restart at ``now`` fits; if it does, it is counted."""
+        while self._times and now - self._times[0] >= self.window_s:
+            self._times.popleft()
+        if len(self._times) >= self.max_restarts:
+            return False
+        self._times.append(now)
+        return True
 
 
 @dataclass(frozen=True)
@@ -35,16 +80,38 @@ class ProcessSpec:
     restart: bool = True
 
 
+@dataclass(frozen=True)
+class ChildHealth:
+    """One child now: its state (see ``protocol.system.SupervisedNode``), pid, uptime, restarts, last exit code."""
+
+    name: str
+    state: State
+    pid: int | None
+    uptime_s: float
+    restarts: int
+    exit_code: int | None
+
+
 @dataclass
 class _Child:
     spec: ProcessSpec
+    budget: RestartBudget
     process: subprocess.Popen | None = None
     started: float = 0.0
     restarts: int = 0
     failures: int = 0
     restart_at: float | None = None
     finished: bool = False
+    failed: bool = False
     exit_code: int | None = None
+
+    @property
+    def state(self) -> State:
+        if self.failed:
+            return "failed"
+        if self.finished:
+            return "finished"
+        return "backing_off" if self.process is None else "running"
 
 
 def _die_with_parent() -> None:
@@ -55,13 +122,19 @@ def _die_with_parent() -> None:
 class Supervisor:
     """Keeps a set of processes running (see the module docstring). Call from the main thread."""
 
-    def __init__(self, specs: list[ProcessSpec], *, backoff_s: float = 0.5, max_backoff_s: float = 10.0,
-                 stable_s: float = 10.0, grace_s: float = 1.5):
-        self.backoff_s = backoff_s
-        self.max_backoff_s = max_backoff_s
-        self.stable_s = stable_s
-        self.grace_s = grace_s
-        self._children = {spec.name: _Child(spec) for spec in specs}
+    def __init__(self, specs: list[ProcessSpec], settings: SupervisorSettings | None = None):
+        self.settings = settings or SupervisorSettings()
+        self._children = {spec.name: _Child(spec, RestartBudget(self.settings.max_restarts, self.settings.window_s))
+                          for spec in specs}
+        self._lock = threading.Lock()
+
+    def health(self) -> list[ChildHealth]:
+        """Every child's state now (safe from other threads)."""
+        now = time.monotonic()
+        with self._lock:
+            return [ChildHealth(name, c.state, c.process.pid if c.process else None,
+                                now - c.started if c.process else 0.0, c.restarts, c.exit_code)
+                    for name, c in self._children.items()]
 
     def pids(self) -> dict[str, int]:
         """Pid of every child that is running now."""
@@ -71,8 +144,10 @@ class Supervisor:
         """The code each child last exited with (None while it never has)."""
         return {name: c.exit_code for name, c in self._children.items()}
 
-    def restarts(self) -> dict[str, int]:
-        return {name: c.restarts for name, c in self._children.items()}
+    def update(self, spec: ProcessSpec) -> None:
+        """Start the child named ``spec.name`` with ``spec`` from its next restart on."""
+        with self._lock:
+            self._children[spec.name].spec = spec
 
     def start(self) -> None:
         for child in self._children.values():
@@ -91,13 +166,14 @@ class Supervisor:
     def step(self) -> bool:
         """Reap exited children and restart those that are due; False once nothing is left to run."""
         now = time.monotonic()
-        for child in self._children.values():
-            if child.process is not None and (code := child.process.poll()) is not None:
-                self._exited(child, code, now)
-            if child.process is None and child.restart_at is not None and now >= child.restart_at:
-                child.restarts += 1
-                self._spawn(child)
-        return any(not c.finished for c in self._children.values())
+        with self._lock:
+            for child in self._children.values():
+                if child.process is not None and (code := child.process.poll()) is not None:
+                    self._exited(child, code, now)
+                if child.process is None and child.restart_at is not None and now >= child.restart_at:
+                    child.restarts += 1
+                    self._spawn(child)
+            return any(not (c.finished or c.failed) for c in self._children.values())
 
     def _exited(self, child: _Child, code: int, now: float) -> None:
         ran = now - child.started
@@ -108,16 +184,24 @@ class Supervisor:
             child.finished = True
             log.info("%s exited with %s after %.1f s", child.spec.name, how, ran)
             return
-        if ran >= self.stable_s:
+        if not child.budget.allow(now):
+            child.failed = True
+            log.error("%s exited with %s after %.1f s; FAILED: it would be restart %d within %.0f s "
+                      "(budget %d), left down", child.spec.name, how, ran, child.budget.max_restarts + 1,
+                      self.settings.window_s, self.settings.max_restarts,
+                      extra={"child": child.spec.name, "exit_code": code, "restarts": child.restarts})
+            return
+        if ran >= self.settings.stable_s:
             child.failures = 0
-        delay = min(self.backoff_s * 2**child.failures, self.max_backoff_s)
+        delay = min(self.settings.backoff_s * 2**child.failures, self.settings.max_backoff_s)
         child.failures += 1
         child.restart_at = now + delay
         log.warning("%s exited with %s after %.1f s; restarting in %.1f s (restart %d)",
-                    child.spec.name, how, ran, delay, child.restarts + 1)
+                    child.spec.name, how, ran, delay, child.restarts + 1,
+                    extra={"child": child.spec.name, "exit_code": code, "restarts": child.restarts})
 
     def run(self, stop: threading.Event, poll_s: float = 0.05) -> None:
-        """Supervise until ``stop`` is set or every child has finished, then stop them all."""
+        """Supervise until ``stop`` is set or every child has finished or failed, then stop them all."""
         try:
             while not stop.is_set() and self.step():
                 stop.wait(poll_s)
@@ -129,15 +213,17 @@ class Supervisor:
         running = [c.process for c in self._children.values() if c.process and c.process.poll() is None]
         for process in running:
             process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.grace_s
+        grace_s = self.settings.grace_s
+        deadline = time.monotonic() + grace_s
         for process in running:
             try:
                 process.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("pid %d ignored SIGTERM for %.1f s, killing it", process.pid, self.grace_s)
+                log.warning("pid %d ignored SIGTERM for %.1f s, killing it", process.pid, grace_s)
                 process.kill()
                 process.wait()
-        for child in self._children.values():
-            child.process = None
-            child.restart_at = None
-            child.finished = True
+        with self._lock:
+            for child in self._children.values():
+                child.process = None
+                child.restart_at = None
+                child.finished = True

@@ -16,6 +16,8 @@ from protocol import (
     BlobDetections,
     CameraInfo,
     ClientState,
+    ConfigAnswer,
+    ConfigChange,
     ErrorReport,
     FrameTransform,
     GroundTruth,
@@ -24,6 +26,7 @@ from protocol import (
     Keypoints,
     MarkerDetections,
     NodeStats,
+    PipelineHealth,
     PointCloud,
     Pose,
     PoseQuality,
@@ -32,6 +35,7 @@ from protocol import (
     RigidBody,
     StreamStats,
     Subscription,
+    SupervisedNode,
     TrackingState,
     Transform,
 )
@@ -177,6 +181,17 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         uptime_s=non_negative, subscriptions=_tuples_of(st.builds(
             Subscription, key=texts, received=big_counts, dropped=big_counts, decode_errors=big_counts,
             last_stamp_ns=st.none() | st.integers(0, 2**63)))),
+    "artrack.PipelineHealth": st.builds(
+        PipelineHealth, header=headers, pipeline=texts, host=texts, pid=st.integers(-(2**70), 2**70),
+        uptime_s=non_negative, nodes=_tuples_of(st.builds(
+            SupervisedNode, name=texts, kind=texts,
+            state=st.sampled_from(["running", "backing_off", "failed", "finished"]),
+            pid=st.none() | st.integers(0, 2**31), uptime_s=non_negative, restarts=big_counts,
+            exit_code=st.none() | st.integers(-64, 255)))),
+    "artrack.ConfigChange": st.builds(ConfigChange, header=headers, values=st.dictionaries(texts, texts, max_size=3)),
+    "artrack.ConfigAnswer": st.builds(
+        ConfigAnswer, header=headers, node=texts, applied=st.dictionaries(texts, texts, max_size=3),
+        refused=st.dictionaries(texts, texts, max_size=3), params=st.dictionaries(texts, texts, max_size=3)),
     "artrack.ErrorReport": st.builds(ErrorReport, header=headers, node=texts, kind=texts, detail=texts,
                                      key=texts, count=st.integers(1, 2**80)),
 }

@@ -1,0 +1,128 @@
+"""``artrack up``: a pipeline file run as supervised processes, for days.
+
+The process supervises one process per node (``services.runtime.supervisor``: back-off and
+restart budget from the file's ``[supervisor]`` table), answers ``PipelineHealth`` on
+``keys.supervisor(<file stem>)`` (what ``artrack status`` reads), and on SIGHUP re-reads
+the file: reloadable parameter changes are pushed to the running nodes through their
+config queryables, anything else refuses the reload with reasons naming node and field,
+and the running pipeline stays as it was (``services.runtime.reconfig``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import socket
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from protocol.codec import encode
+from protocol.message import Header
+from protocol.system import PipelineHealth, SupervisedNode
+from services.launch import params_model, processes, read_pipeline
+from services.runtime.bus import BusConfig, open_session
+from services.runtime.pipeline import PipelineError, PipelineSpec
+from services.runtime.reconfig import plan_reload, request_change
+from services.runtime.supervisor import Supervisor
+
+log = logging.getLogger("artrack.up")
+
+ANSWER_TIMEOUT_S = 2.0
+
+
+def pipeline_name(path: Path) -> str:
+    """The name a pipeline file's health is answered under: its stem, other characters as ``_``."""
+    return re.sub(r"[^A-Za-z0-9_.\-]", "_", path.stem) or "pipeline"
+
+
+class Daemon:
+    """One running pipeline: its supervisor, health queryable and reload (see the module docstring)."""
+
+    def __init__(self, path: Path, spec: PipelineSpec, bus: BusConfig):
+        self.path = path
+        self.spec = spec
+        self.bus = bus
+        self.name = pipeline_name(path)
+        self.supervisor = Supervisor(processes(spec, bus), spec.supervisor)
+        self._started = time.monotonic()
+        self.session = open_session(bus)
+        try:
+            self._queryable = self.session.declare_queryable(bus.keys.supervisor(self.name), self._on_health)
+        except Exception:
+            self.session.close()
+            raise
+
+    def health(self) -> PipelineHealth:
+        """Every supervised node's state now."""
+        nodes = tuple(SupervisedNode(name=h.name, kind=self.spec.nodes[h.name].kind, state=h.state, pid=h.pid,
+                                     uptime_s=h.uptime_s, restarts=h.restarts, exit_code=h.exit_code)
+                      for h in self.supervisor.health())
+        return PipelineHealth(header=Header(stamp_ns=time.time_ns()), pipeline=str(self.path),
+                              host=socket.gethostname(), pid=os.getpid(),
+                              uptime_s=time.monotonic() - self._started, nodes=nodes)
+
+    def _on_health(self, query: zenoh.Query) -> None:
+        query.reply(self.bus.keys.supervisor(self.name), encode(self.health()))
+
+    def reload(self) -> bool:
+        """Re-read the file and apply its live changes; False (everything logged) when refused."""
+        try:
+            wanted = read_pipeline(self.path)
+        except PipelineError as exc:
+            log.error("reload refused: %s", exc)
+            return False
+        plan = plan_reload(self.spec, wanted, params_model)
+        if plan.refused:
+            for reason in plan.refused:
+                log.error("reload refused: %s", reason, extra={"pipeline": str(self.path)})
+            log.error("reload of %s refused: the running pipeline is unchanged", self.path)
+            return False
+        if not plan.changes:
+            log.info("reload of %s: nothing changed", self.path)
+            return True
+        nodes = dict(self.spec.nodes)
+        restarts = {spec.name: spec for spec in processes(wanted, self.bus)}
+        for name, values in sorted(plan.changes.items()):
+            answer = request_change(self.session, self.bus.keys, name, values, ANSWER_TIMEOUT_S)
+            if answer is not None and answer.refused:
+                log.error("reload: node %s refused %s", name, answer.refused, extra={"node_name": name})
+                continue
+            if answer is None:
+                log.warning("reload: node %s did not answer; its next start uses %s", name, values)
+            else:
+                log.info("reload: node %s applied %s", name, answer.applied, extra={"node_name": name})
+            nodes[name] = wanted.nodes[name]
+            self.supervisor.update(restarts[name])
+        self.spec = self.spec.model_copy(update={"nodes": nodes})
+        return True
+
+    def run(self, stop: threading.Event, hup: threading.Event) -> int:
+        """Supervise until ``stop`` (or until every node finished or failed), reloading on ``hup``.
+
+        Exit code 1 when a node ended failed, else 0.
+        """
+        reloader = threading.Thread(target=self._reloads, args=(stop, hup), name="reload", daemon=True)
+        log.info("pipeline %s: %d node(s) on %s", self.path, len(self.spec.nodes), self.bus.keys.prefix)
+        self.supervisor.start()
+        reloader.start()
+        try:
+            self.supervisor.run(stop)
+        finally:
+            stop.set()
+            reloader.join()
+            self._queryable.undeclare()
+            self.session.close()
+        failed = [h.name for h in self.supervisor.health() if h.state == "failed"]
+        log.info("pipeline %s stopped%s", self.path, f"; failed: {', '.join(failed)}" if failed else "")
+        return 1 if failed else 0
+
+    def _reloads(self, stop: threading.Event, hup: threading.Event) -> None:
+        while not stop.is_set():
+            if hup.wait(0.1):
+                hup.clear()
+                log.info("SIGHUP: re-reading %s", self.path)
+                self.reload()

@@ -1,0 +1,135 @@
+"""Restart budget, ``[supervisor]`` validation, live parameter changes, reload planning and JSON log lines."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+
+from protocol.message import Header
+from protocol.system import ConfigChange
+from services.capture.node import Params as CaptureParams
+from services.detection.node import Params as MarkerParams
+from services.launch import params_model, read_pipeline
+from services.runtime.logs import JsonFormatter, log_format
+from services.runtime.pipeline import PipelineError
+from services.runtime.reconfig import LiveParams, Refused, changed_params, plan_reload
+from services.runtime.supervisor import RestartBudget
+
+PIPELINE = """
+[nodes.cam]
+kind = "capture"
+fps = {fps}
+scene = {{ width = 64, height = 64 }}
+
+[nodes.markers]
+kind = "markers"
+{markers}
+"""
+
+
+def _spec(tmp_path: Path, markers: str = "", extra: str = "", name: str = "p.toml", fps: float = 10):
+    path = tmp_path / name
+    path.write_text(extra + PIPELINE.format(markers=markers, fps=fps))
+    return read_pipeline(path)
+
+
+def test_budget_allows_max_restarts_per_window_then_refuses():
+    budget = RestartBudget(max_restarts=2, window_s=10.0)
+    assert [budget.allow(t) for t in (0.0, 1.0, 2.0)] == [True, True, False]
+    assert budget.allow(10.5) is True  # the restart at 0.0 has left the window
+    assert budget.allow(10.6) is False  # 1.0 and 10.5 are still in it
+    assert RestartBudget(max_restarts=0, window_s=1.0).allow(0.0) is False
+
+
+@pytest.mark.parametrize(("table", "expected"), [
+    ("max_restarts = -1", "supervisor.max_restarts: Input should be greater than or equal to 0"),
+    ("window_s = 0", "supervisor.window_s: Input should be greater than 0"),
+    ("backoff_s = 5\nmax_backoff_s = 1", "max_backoff_s (1.0) is below backoff_s (5.0)"),
+    ("restarts = 3", "supervisor.restarts: Extra inputs are not permitted"),
+])
+def test_bad_supervisor_table_names_field_and_reason(tmp_path, table, expected):
+    with pytest.raises(PipelineError) as caught:
+        _spec(tmp_path, extra=f"[supervisor]\n{table}\n")
+    assert expected in str(caught.value) and str(tmp_path / "p.toml") in str(caught.value)
+
+
+def test_supervisor_table_is_read(tmp_path):
+    spec = _spec(tmp_path, extra="[supervisor]\nmax_restarts = 2\nwindow_s = 30\n")
+    assert (spec.supervisor.max_restarts, spec.supervisor.window_s, spec.supervisor.backoff_s) == (2, 30.0, 0.5)
+
+
+def test_changed_params_applies_reloadable_fields_only():
+    params = CaptureParams(fps=10, frames=5)
+    assert changed_params(params, {"fps": 30}).fps == 30
+    assert changed_params(params, {"fps": 30}).frames == 5
+    with pytest.raises(Refused) as caught:
+        changed_params(params, {"fps": 30, "frames": 1, "bogus": 2})
+    assert caught.value.reasons == {"frames": "not reloadable: needs a restart", "bogus": "no such parameter"}
+    with pytest.raises(Refused) as caught:
+        changed_params(params, {"fps": -1})
+    assert list(caught.value.reasons) == ["fps"] and "greater than 0" in caught.value.reasons["fps"]
+
+
+def test_live_params_answer_is_all_or_nothing_and_apply_may_refuse():
+    built = []
+
+    def apply(new: MarkerParams) -> None:
+        built.append(new.detector())  # a bad aruco parameter raises ValueError here
+
+    live = LiveParams(MarkerParams(marker_length=0.05), apply)
+    change = ConfigChange(header=Header(stamp_ns=1), values={"parameters": '{"minMarkerPerimeterRate": 0.2}'})
+    answer = live.answer("markers", change)
+    assert answer.applied == change.values and answer.refused == {} and len(built) == 1
+    assert live.value.parameters == {"minMarkerPerimeterRate": 0.2} and live.value.marker_length == 0.05
+    assert json.loads(answer.params["parameters"]) == {"minMarkerPerimeterRate": 0.2}
+
+    bad = live.answer("markers", ConfigChange(header=Header(stamp_ns=2), values={"parameters": '{"noSuch": 1}'}))
+    assert bad.applied == {} and "noSuch" in bad.refused["parameters"]
+    assert live.value.parameters == {"minMarkerPerimeterRate": 0.2}, "a refused change must leave the params"
+    mixed = live.answer("markers", ConfigChange(header=Header(stamp_ns=3),
+                                                values={"marker_length": "0.1", "camera": '"cam1"'}))
+    assert mixed.refused == {"camera": "not reloadable: needs a restart"} and live.value.marker_length == 0.05
+    not_json = live.answer("markers", ConfigChange(header=Header(stamp_ns=4), values={"marker_length": "0,1"}))
+    assert "not JSON" in not_json.refused["marker_length"]
+
+
+def test_plan_reload_yields_live_changes(tmp_path):
+    running = _spec(tmp_path, markers='camera = "cam0"')
+    wanted = _spec(tmp_path, markers='camera = "cam0"\nmarker_length = 0.1', name="q.toml", fps=25)
+    plan = plan_reload(running, wanted, params_model)
+    assert plan.refused == [] and plan.changes == {"cam": {"fps": 25}, "markers": {"marker_length": 0.1}}
+
+
+def test_plan_reload_refuses_what_needs_a_restart_naming_node_and_field(tmp_path):
+    running = _spec(tmp_path, markers='camera = "cam0"\nmarker_length = 0.1')
+    wanted = _spec(tmp_path, markers='camera = "cam1"', extra="[supervisor]\nmax_restarts = 9\n", name="q.toml")
+    plan = plan_reload(running, wanted, params_model)
+    assert plan.changes == {}
+    assert "[supervisor] changed: needs a restart of `artrack up`" in plan.refused
+    assert "node markers: field camera is not reloadable (markers): needs a restart" in plan.refused
+    assert not any("marker_length" in reason for reason in plan.refused)  # dropped -> back to default: reloadable
+
+    more = wanted.model_copy(update={"nodes": {"cam": wanted.nodes["cam"], "echo": wanted.nodes["cam"]}})
+    reasons = plan_reload(running, more, params_model).refused
+    assert "node echo: new node: needs a restart of `artrack up`" in reasons
+    assert "node markers: removed: needs a restart of `artrack up`" in reasons
+
+
+def test_json_log_lines_carry_the_fields_and_extras():
+    record = logging.LogRecord("artrack.up", logging.WARNING, __file__, 1, "echo died %d times", (3,), None)
+    record.child = "echo"
+    entry = json.loads(JsonFormatter("cam").format(record))
+    assert entry["level"] == "warning" and entry["logger"] == "artrack.up" and entry["node"] == "cam"
+    assert entry["message"] == "echo died 3 times" and entry["child"] == "echo"
+    assert entry["time"].endswith("+00:00")
+
+
+def test_log_format_comes_from_flag_then_environment(monkeypatch):
+    monkeypatch.setenv("ARTRACK_LOG_FORMAT", "json")
+    assert (log_format(), log_format("text")) == ("json", "text")
+    monkeypatch.setenv("ARTRACK_LOG_FORMAT", "xml")
+    with pytest.raises(ValueError, match="'xml'.*ARTRACK_LOG_FORMAT.*text, json"):
+        log_format()
