@@ -24,7 +24,7 @@ from protocol.codec import encode
 from protocol.message import Header
 from protocol.system import PipelineHealth, SupervisedNode
 from services.launch import params_model, processes, read_pipeline
-from services.runtime.bus import BusConfig, open_session
+from services.runtime.bus import BusConfig, BusError, open_session
 from services.runtime.pipeline import PipelineError, PipelineSpec
 from services.runtime.reconfig import plan_reload, request_change
 from services.runtime.supervisor import Supervisor
@@ -49,12 +49,10 @@ class Daemon:
         self.name = pipeline_name(path)
         self.supervisor = Supervisor(processes(spec, bus), spec.supervisor)
         self._started = time.monotonic()
-        self.session = open_session(bus)
-        try:
-            self._queryable = self.session.declare_queryable(bus.keys.supervisor(self.name), self._on_health)
-        except Exception:
-            self.session.close()
-            raise
+        self._lock = threading.Lock()
+        self._left = False
+        self.session: zenoh.Session | None = None
+        self._queryable: zenoh.Queryable | None = None
 
     def health(self) -> PipelineHealth:
         """Every supervised node's state now."""
@@ -68,8 +66,33 @@ class Daemon:
     def _on_health(self, query: zenoh.Query) -> None:
         query.reply(self.bus.keys.supervisor(self.name), encode(self.health()))
 
+    def _join(self) -> None:
+        """Open this process's session and answer health on it. Runs beside the supervisor: with
+        ``retry`` a router that is not there yet is waited for while the nodes are already started."""
+        try:
+            session = open_session(self.bus)
+        except BusError as exc:
+            log.error("%s; the nodes run, but `artrack status` cannot see this pipeline", exc)
+            return
+        with self._lock:
+            if self._left:
+                session.close()
+                return
+            self.session = session
+            self._queryable = session.declare_queryable(self.bus.keys.supervisor(self.name), self._on_health)
+
+    def _leave(self) -> None:
+        with self._lock:
+            self._left = True
+            if self.session is not None:
+                self._queryable.undeclare()
+                self.session.close()
+
     def reload(self) -> bool:
         """Re-read the file and apply its live changes; False (everything logged) when refused."""
+        if self.session is None:
+            log.error("reload refused: %s is not on the bus yet, so its nodes cannot be reached", self.path)
+            return False
         try:
             wanted = read_pipeline(self.path)
         except PipelineError as exc:
@@ -106,16 +129,17 @@ class Daemon:
         Exit code 1 when a node ended failed, else 0.
         """
         reloader = threading.Thread(target=self._reloads, args=(stop, hup), name="reload", daemon=True)
+        joiner = threading.Thread(target=self._join, name="bus", daemon=True)
         log.info("pipeline %s: %d node(s) on %s", self.path, len(self.spec.nodes), self.bus.keys.prefix)
         self.supervisor.start()
+        joiner.start()
         reloader.start()
         try:
             self.supervisor.run(stop)
         finally:
             stop.set()
             reloader.join()
-            self._queryable.undeclare()
-            self.session.close()
+            self._leave()
         failed = [h.name for h in self.supervisor.health() if h.state == "failed"]
         log.info("pipeline %s stopped%s", self.path, f"; failed: {', '.join(failed)}" if failed else "")
         return 1 if failed else 0
