@@ -9,6 +9,9 @@ Three ways to say it, in order of precedence:
    ``tcp/127.0.0.1:7447``.
 
 ``namespace`` and ``rig`` (``ARTRACK_NAMESPACE``, ``ARTRACK_RIG``) say whose keys to use.
+``security`` (``ARTRACK_TLS_ROOT_CA``, ``ARTRACK_TLS_CERT``, ``ARTRACK_TLS_KEY``,
+``ARTRACK_TLS_MUTUAL``, ``ARTRACK_USER``, ``ARTRACK_PASSWORD`` or ``ARTRACK_PASSWORD_FILE``) adds
+TLS and credentials to the endpoints' config (see ``services.client.security``).
 Multicast scouting is always off unless a config file turns it on.
 """
 
@@ -20,9 +23,10 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from protocol.keys import Keys, check_name
+from services.client.security import Security
 from services.client.transport import LOCAL_ROUTER, session_config
 
 
@@ -32,6 +36,19 @@ class BusError(RuntimeError):
 
 def _endpoints(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def flag(text: str) -> bool:
+    """An environment switch: anything but ``0``, ``false`` or ``no`` is on."""
+    return text not in ("0", "false", "no")
+
+
+def _nest(values: dict[str, Any], field: str, value: object) -> None:
+    """Set ``values[a][b] = value`` for a dotted ``field`` ``a.b``."""
+    *parents, last = field.split(".")
+    for parent in parents:
+        values = values.setdefault(parent, {})
+    values[last] = value
 
 
 class BusSettings(BaseModel):
@@ -46,8 +63,15 @@ class BusSettings(BaseModel):
         "ZENOH_CONFIG": ("zenoh_config", str),
         "ARTRACK_NAMESPACE": ("namespace", str),
         "ARTRACK_RIG": ("rig", str),
+        "ARTRACK_TLS_ROOT_CA": ("security.root_ca", str),
+        "ARTRACK_TLS_CERT": ("security.cert", str),
+        "ARTRACK_TLS_KEY": ("security.key", str),
+        "ARTRACK_TLS_MUTUAL": ("security.mutual", flag),
+        "ARTRACK_USER": ("security.user", str),
+        "ARTRACK_PASSWORD": ("security.password", str),
+        "ARTRACK_PASSWORD_FILE": ("security.password_file", str),
     }
-    """Environment variable -> (field, parser); subclasses add their own."""
+    """Environment variable -> (field, parser); a dotted field is one of a nested model's. Subclasses add their own."""
 
     mode: Literal["peer", "client"] = "peer"
     connect: tuple[str, ...] = ()
@@ -55,6 +79,7 @@ class BusSettings(BaseModel):
     zenoh_config: Path | None = None
     namespace: str = "ar"
     rig: str = "rig0"
+    security: Security = Security()
 
     @field_validator("namespace")
     @classmethod
@@ -74,6 +99,12 @@ class BusSettings(BaseModel):
                 raise ValueError(f"endpoint {endpoint!r} must look like tcp/HOST:PORT")
         return value
 
+    @model_validator(mode="after")
+    def _secure(self) -> BusSettings:
+        if self.zenoh_config is None:
+            self.security.check(self.mode, self.listen, self.connect)
+        return self
+
     @property
     def keys(self) -> Keys:
         return Keys(self.namespace, self.rig)
@@ -89,18 +120,31 @@ class BusSettings(BaseModel):
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> BusSettings:
-        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset)."""
+        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset).
+
+        A dict override of a nested model (``security={"root_ca": ...}``) updates what the
+        environment said field by field; a model instance replaces it whole.
+        """
         env = os.environ if environ is None else environ
-        values: dict[str, object] = {field: parse(env[name]) for name, (field, parse) in cls.ENV.items()
-                                     if env.get(name)}
-        values.update({k: v for k, v in overrides.items() if v is not None and v != ()})
+        values: dict[str, Any] = {}
+        for name, (field, parse) in cls.ENV.items():
+            if env.get(name):
+                _nest(values, field, parse(env[name]))
+        for field, value in overrides.items():
+            if value is None or value == ():
+                continue
+            if isinstance(value, Mapping) and isinstance(values.get(field), dict):
+                value = {**values[field], **value}
+            values[field] = value
         return cls.model_validate(values)
 
     def to_env(self) -> dict[str, str]:
         """The variables that make ``from_env`` rebuild these settings in a child process."""
         env = {}
         for name, (field, _) in self.ENV.items():
-            value = getattr(self, field)
+            value: Any = self
+            for part in field.split("."):
+                value = getattr(value, part)
             if isinstance(value, tuple):
                 env[name] = ",".join(value)
             elif isinstance(value, bool):
@@ -122,7 +166,7 @@ class BusSettings(BaseModel):
                 raise BusError(f"Zenoh config file {self.zenoh_config} is invalid: {exc}") from exc
         connect = self.connect or (LOCAL_ROUTER,)
         listen = self.listen or (("tcp/127.0.0.1:0",) if self.mode == "peer" else ())
-        return session_config(self.mode, listen=listen, connect=connect)
+        return session_config(self.mode, listen=listen, connect=connect, security=self.security)
 
     def open(self) -> zenoh.Session:
         """Open the session (BusError naming where and why when Zenoh refuses)."""

@@ -11,12 +11,16 @@ import json
 
 import zenoh
 
+from services.client.security import Security
+
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 """Where processes on one machine meet when nothing else is said."""
 
 
-def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
-    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
+def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = (),
+                   security: Security | None = None) -> zenoh.Config:
+    """A Zenoh config in ``mode`` with explicit endpoints, multicast scouting off and ``security``
+    (TLS, credentials) applied; ValueError when ``security`` does not fit the mode or endpoints.
 
     Shared memory is set up when the session opens rather than on the first large message: set up
     lazily, the first frames of a stream went over TCP, filled the two-batch queue and a second
@@ -28,4 +32,7 @@ def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[st
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
+    if security is not None:
+        security.check(mode, listen, connect)
+        security.apply(config)
     return config
