@@ -2,7 +2,8 @@
 
 Three ways to say it, in order of precedence:
 
-1. a Zenoh JSON5/YAML config file (``zenoh_config`` or ``ZENOH_CONFIG``), used as is;
+1. a Zenoh JSON5/YAML config file (``zenoh_config`` or ``ZENOH_CONFIG``), used as is but for
+   the security settings, which are written over it when given;
 2. explicit endpoints: ``connect`` (``tcp/HOST:PORT`` of a router or a peer) and ``listen``,
    in ``peer`` or ``client`` mode (``ARTRACK_CONNECT``, ``ARTRACK_LISTEN``, ``ARTRACK_MODE``);
 3. nothing: a peer listening on a free loopback port that connects to the local router at
@@ -161,9 +162,11 @@ class BusSettings(BaseModel):
             if not self.zenoh_config.is_file():
                 raise BusError(f"Zenoh config file {self.zenoh_config} does not exist")
             try:
-                return zenoh.Config.from_file(str(self.zenoh_config))
+                config = zenoh.Config.from_file(str(self.zenoh_config))
             except zenoh.ZError as exc:
                 raise BusError(f"Zenoh config file {self.zenoh_config} is invalid: {exc}") from exc
+            self.security.apply(config)
+            return config
         connect = self.connect or (LOCAL_ROUTER,)
         listen = self.listen or (("tcp/127.0.0.1:0",) if self.mode == "peer" else ())
         return session_config(self.mode, listen=listen, connect=connect, security=self.security)

@@ -101,7 +101,7 @@ def _rules(keys: Keys) -> dict[str, list[dict[str, Any]]]:
             _rule("app-poses-ask", ("declare_subscriber",), (INGRESS,), keys.all_poses()),
             _rule("app-poses-get", ("put",), (EGRESS,), keys.all_poses()),
             _rule("app-nodes-watch", watch, (INGRESS,), keys.all_nodes(), keys.all_clients()),
-            _rule("app-nodes-get", ("liveliness_token", "reply"), (EGRESS,), keys.all_nodes(), keys.all_clients()),
+            _rule("app-nodes-get", ("liveliness_token",), (EGRESS,), keys.all_nodes(), keys.all_clients()),
             _rule("app-queries-ask", ("query",), (INGRESS,), keys.all_states(), keys.all_calibrations(),
                   keys.all_client_states()),
             _rule("app-queries-get", ("reply",), (EGRESS,), keys.all_states(), keys.all_calibrations(),

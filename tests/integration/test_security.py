@@ -16,6 +16,7 @@ import pytest
 
 from protocol.codec import encode
 from services.client import BusError, BusSettings, Security, connect
+from services.client.discovery import client_states
 from services.runtime.bus import reachable
 from tests.conftest import free_port
 from tests.integration.busprobe import make_message
@@ -145,8 +146,10 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
         with connect(mode="client", connect=endpoint, rig=bus.rig, app="dashboard", security=credentials) as app:
             with app.poses("cam0/**", idle_timeout_s=START_S) as stream:
                 assert next(stream).target.startswith("cam0/marker/")
+            assert {"cam", "marker"} <= {name for rig, name in app.services() if rig == bus.rig}
             assert {"cam", "marker"} <= {name for rig, name in app.status() if rig == bus.rig}
             assert app.calibration("cam0") is not None
+            assert (bus.rig, app.id) in client_states(pipeline, bus.keys, 2.0)  # `artrack status` sees the app
             forged = [bus.keys.pose("cam0/forged"), bus.keys.markers("cam0"), bus.keys.image("cam9")]
             genuine = bus.keys.pose("cam0/genuine")
             for _ in range(5):

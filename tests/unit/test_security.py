@@ -14,6 +14,7 @@ from services.client import BusSettings, Security
 from services.client.transport import session_config
 from services.runtime.access import MESSAGES, access_control, read_access
 from services.runtime.bus import BusConfig
+from services.runtime.router import router_config
 
 
 @pytest.fixture
@@ -163,3 +164,23 @@ def test_namespace_wide_patterns_match_every_rig():
     assert zenoh.KeyExpr(ns.all_calibrations()).intersects(zenoh.KeyExpr(ns.calibration("cam1")))
     assert zenoh.KeyExpr(ns.all_clients()).intersects(zenoh.KeyExpr(ns.client("abc")))
     assert not zenoh.KeyExpr(ns.all_poses()).intersects(zenoh.KeyExpr(ns.markers("cam0")))
+
+
+def test_security_is_written_over_a_zenoh_config_file(files, tmp_path):
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "client", connect: { endpoints: ["tls/10.0.0.5:7447"] } }')
+    config = BusSettings(zenoh_config=path, security=Security(root_ca=files["ca.pem"])).zenoh()
+    assert rendered(config, "transport/link/tls/root_ca_certificate") == str(files["ca.pem"])
+
+
+def test_router_config_carries_users_and_access(files, tmp_path):
+    users, acl = tmp_path / "users.txt", tmp_path / "acl.toml"
+    users.write_text("tracker:secret\n")
+    acl.write_text(ACCESS)
+    config = router_config(("tls/127.0.0.1:7447",), (), None, users=users, access=acl,
+                           security=Security(cert=files["cert.pem"], key=files["key.pem"]))
+    assert rendered(config, "transport/auth/usrpwd/dictionary_file") == str(users)
+    assert rendered(config, "access_control/enabled") is True
+    assert rendered(config, "transport/link/tls/listen_certificate") == str(files["cert.pem"])
+    with pytest.raises(ValueError, match=f"users file {tmp_path / 'nobody.txt'} does not exist"):
+        router_config(("tcp/127.0.0.1:7447",), (), None, users=tmp_path / "nobody.txt")
