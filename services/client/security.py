@@ -28,9 +28,12 @@ TLS = "tls/"
 
 
 class Security(BaseModel):
-    """TLS files and credentials of one session (see the module docstring); empty = plain TCP."""
+    """TLS files and credentials of one session (see the module docstring); empty = plain TCP.
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    Validation errors leave out the input, which may hold the password.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", hide_input_in_errors=True)
 
     root_ca: Path | None = None
     cert: Path | None = None
@@ -45,7 +48,7 @@ class Security(BaseModel):
         for what, path in (("TLS root CA", self.root_ca), ("TLS certificate", self.cert),
                            ("TLS private key", self.key), ("password file", self.password_file)):
             if path is not None and not path.is_file():
-                raise ValueError(f"{what} {path} does not exist")
+                raise ValueError(f"{what} {path} {'is not a file' if path.exists() else 'does not exist'}")
         if (self.cert is None) != (self.key is None):
             raise ValueError("a TLS certificate and its private key go together: give both or neither")
         if self.mutual and (self.cert is None or self.root_ca is None):
@@ -62,10 +65,17 @@ class Security(BaseModel):
         return self.user is not None
 
     def secret(self) -> str | None:
-        """The password, read from ``password_file`` when that is how it was given."""
-        if self.password_file is not None:
-            return self.password_file.read_text().strip()
-        return self.password
+        """The password, read from ``password_file`` (surrounding whitespace dropped) when that is
+        how it was given; ValueError when the file cannot be read or holds nothing."""
+        if self.password_file is None:
+            return self.password
+        try:
+            password = self.password_file.read_text().strip()
+        except OSError as exc:
+            raise ValueError(f"password file {self.password_file}: {exc.strerror}") from exc
+        if not password:
+            raise ValueError(f"password file {self.password_file} is empty")
+        return password
 
     def check(self, mode: str, listen: tuple[str, ...], connect: tuple[str, ...]) -> None:
         """Raise ValueError when these settings cannot work with ``mode`` and the endpoints."""

@@ -53,7 +53,7 @@ def _nest(values: dict[str, Any], field: str, value: object) -> None:
 
 
 class BusSettings(BaseModel):
-    """Mode, endpoints or config file, namespace and rig of one process's Zenoh session."""
+    """Mode, endpoints or config file, namespace, rig and security of one process's Zenoh session."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -137,6 +137,8 @@ class BusSettings(BaseModel):
             if isinstance(value, Mapping) and isinstance(values.get(field), dict):
                 value = {**values[field], **value}
             values[field] = value
+        if isinstance(values.get("security"), Mapping):  # validated on its own: its errors hide the password
+            values["security"] = Security.model_validate(values["security"])
         return cls.model_validate(values)
 
     def to_env(self) -> dict[str, str]:

@@ -60,7 +60,8 @@ def test_password_stays_out_of_the_repr(files):
     ({"user": "u", "password": "p", "password_file": "password"}, "not both"),
     ({"user": "u"}, "needs both a user and a password"),
     ({"password": "p"}, "needs both a user and a password"),
-    ({"root_ca": "missing.pem"}, "does not exist"),
+    ({"root_ca": "missing.pem"}, "TLS root CA .*missing.pem does not exist"),
+    ({"cert": ".", "key": "key.pem"}, "TLS certificate .* is not a file"),
 ])
 def test_inconsistent_settings_are_refused(files, given, says):
     folder = files["ca.pem"].parent
@@ -184,3 +185,19 @@ def test_router_config_carries_users_and_access(files, tmp_path):
     assert rendered(config, "transport/link/tls/listen_certificate") == str(files["cert.pem"])
     with pytest.raises(ValueError, match=f"users file {tmp_path / 'nobody.txt'} does not exist"):
         router_config(("tcp/127.0.0.1:7447",), (), None, users=tmp_path / "nobody.txt")
+
+
+def test_errors_never_show_the_password(files):
+    with pytest.raises(ValidationError, match="needs client mode") as refused:
+        BusSettings.from_env({"ARTRACK_USER": "u", "ARTRACK_PASSWORD": "hunter2"})
+    assert "hunter2" not in str(refused.value)
+    with pytest.raises(ValidationError, match="not both") as refused:
+        Security(user="u", password="hunter2", password_file=files["password"])
+    assert "hunter2" not in str(refused.value)
+
+
+def test_an_empty_password_file_is_refused_when_the_session_is_configured(files):
+    files["password"].write_text("\n")
+    bus = BusSettings(mode="client", security=Security(user="u", password_file=files["password"]))
+    with pytest.raises(ValueError, match=f"password file {files['password']} is empty"):
+        bus.zenoh()
