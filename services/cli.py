@@ -31,7 +31,7 @@ def _bus_options(parser: argparse.ArgumentParser) -> None:
                        help="endpoint to listen on (repeatable; env ARTRACK_LISTEN)")
     group.add_argument("--mode", choices=("peer", "client"), help="Zenoh mode (env ARTRACK_MODE; default peer)")
     group.add_argument("--zenoh-config", type=Path, metavar="FILE",
-                       help="a Zenoh JSON5/YAML config, used as is (env ZENOH_CONFIG)")
+                       help="a Zenoh JSON5/YAML config, used as is but for the security options (env ZENOH_CONFIG)")
     group.add_argument("--namespace", help="key namespace (env ARTRACK_NAMESPACE; default ar)")
     group.add_argument("--rig", help="rig name (env ARTRACK_RIG; default rig0)")
     _tls_options(group)
