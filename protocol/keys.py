@@ -202,6 +202,18 @@ class Keys:
     def all_stats(self) -> str:
         return f"{self.namespace}/*/node/*/stats"
 
+    def all_poses(self) -> str:
+        """Poses of every target of every rig in the namespace."""
+        return f"{self.namespace}/*/pose/**"
+
+    def all_calibrations(self) -> str:
+        """Calibration queryables of every camera of every rig in the namespace."""
+        return f"{self.namespace}/*/*/calibration"
+
+    def all_clients(self) -> str:
+        """Liveliness tokens of every client app in the namespace, any rig."""
+        return f"{self.namespace}/*/client/*"
+
     def split_node(self, key: str) -> tuple[str, str]:
         """``(rig, node name)`` of a node key (token, stats or state) in this namespace."""
         rest = key.removeprefix(self.namespace + "/").split("/")

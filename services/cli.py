@@ -32,9 +32,28 @@ def _bus_options(parser: argparse.ArgumentParser) -> None:
                        help="endpoint to listen on (repeatable; env ARTRACK_LISTEN)")
     group.add_argument("--mode", choices=("peer", "client"), help="Zenoh mode (env ARTRACK_MODE; default peer)")
     group.add_argument("--zenoh-config", type=Path, metavar="FILE",
-                       help="a Zenoh JSON5/YAML config, used as is (env ZENOH_CONFIG)")
+                       help="a Zenoh JSON5/YAML config, used as is but for the security options (env ZENOH_CONFIG)")
     group.add_argument("--namespace", help="key namespace (env ARTRACK_NAMESPACE; default ar)")
     group.add_argument("--rig", help="rig name (env ARTRACK_RIG; default rig0)")
+    _tls_options(group)
+    group.add_argument("--user", help="user name the router checks (env ARTRACK_USER; needs --mode client)")
+    group.add_argument("--password-file", type=Path, metavar="FILE",
+                       help="file holding the user's password (env ARTRACK_PASSWORD_FILE, or ARTRACK_PASSWORD)")
+
+
+def _tls_options(group: argparse._ActionGroup) -> None:
+    group.add_argument("--tls-ca", type=Path, metavar="PEM", help="root CA of tls/ endpoints (env ARTRACK_TLS_ROOT_CA)")
+    group.add_argument("--tls-cert", type=Path, metavar="PEM", help="own certificate (env ARTRACK_TLS_CERT)")
+    group.add_argument("--tls-key", type=Path, metavar="PEM", help="own private key (env ARTRACK_TLS_KEY)")
+    group.add_argument("--tls-mutual", action="store_true", default=None,
+                       help="mutual TLS: present the certificate / require one (env ARTRACK_TLS_MUTUAL)")
+
+
+def _security(args: argparse.Namespace) -> dict[str, object]:
+    """The security options given on the command line, by ``Security`` field."""
+    given = {"root_ca": args.tls_ca, "cert": args.tls_cert, "key": args.tls_key, "mutual": args.tls_mutual,
+             "user": getattr(args, "user", None), "password_file": getattr(args, "password_file", None)}
+    return {field: value for field, value in given.items() if value is not None}
 
 
 def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> BusConfig:
@@ -44,7 +63,8 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
     if daemon and not os.environ.get("ARTRACK_RETRY"):
         base = {"retry": True, **base}
     given = {"connect": tuple(args.connect or ()), "listen": tuple(args.listen or ()), "mode": args.mode,
-             "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig}
+             "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig,
+             "security": _security(args) or None}
     # Only options actually given may override ``base``: an unset option must not erase a pipeline value.
     overrides = {**base, **{k: v for k, v in given.items() if v is not None and v != ()}}
     return BusConfig.from_env(**overrides)
@@ -104,13 +124,16 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
+    from services.client.security import Security
     from services.runtime.router import router_config, run_router
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     listen = tuple(args.listen or (LOCAL_ROUTER,))
-    run_router(router_config(listen, tuple(args.connect or ()), args.zenoh_config), stop, args.idle_exit)
+    config = router_config(listen, tuple(args.connect or ()), args.zenoh_config, security=Security(**_security(args)),
+                           users=args.users, access=args.acl)
+    run_router(config, stop, args.idle_exit)
     return 0
 
 
@@ -387,6 +410,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to link with")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="a Zenoh config file (mode forced to router)")
     p.add_argument("--idle-exit", type=float, metavar="S", help="leave after S seconds with no session connected")
+    _tls_options(p.add_argument_group("security (see examples/secure)"))
+    p.add_argument("--users", type=Path, metavar="FILE", help="user:password lines; sessions must log in as one")
+    p.add_argument("--acl", type=Path, metavar="FILE", help="access file (TOML): who holds the pipeline and app roles")
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("list", help="list the live nodes and their health")

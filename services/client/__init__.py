@@ -7,7 +7,8 @@ nodes; the ``Client`` it returns iterates poses (``poses``, ``poses_async``), ca
 """
 
 from services.client.client import Client, connect
+from services.client.security import Security
 from services.client.settings import BusError, BusSettings
 from services.client.streams import AsyncPoseStream, PoseStream, PoseUpdate
 
-__all__ = ["AsyncPoseStream", "BusError", "BusSettings", "Client", "PoseStream", "PoseUpdate", "connect"]
+__all__ = ["AsyncPoseStream", "BusError", "BusSettings", "Client", "PoseStream", "PoseUpdate", "Security", "connect"]

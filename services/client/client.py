@@ -32,6 +32,7 @@ from protocol.message import Header
 from protocol.sensors import CameraInfo
 from protocol.system import ClientState, NodeStats
 from services.client.discovery import live_nodes, node_states
+from services.client.security import Security
 from services.client.settings import BusSettings
 from services.client.streams import DEFAULT_DEPTH, AsyncPoseStream, Feed, PoseStream, PoseUpdate
 
@@ -160,16 +161,20 @@ class Client:
 
 def connect(*, mode: str | None = None, connect: tuple[str, ...] | list[str] | str | None = None,
             listen: tuple[str, ...] | list[str] | None = None, zenoh_config: str | Path | None = None,
-            namespace: str | None = None, rig: str | None = None, app: str | None = None) -> Client:
+            namespace: str | None = None, rig: str | None = None, app: str | None = None,
+            security: Security | None = None) -> Client:
     """Join the bus as a client app. Arguments left out come from the same environment variables
-    the nodes read (``ARTRACK_MODE``, ``ARTRACK_CONNECT``, ``ZENOH_CONFIG``, ``ARTRACK_RIG``, ...),
-    else the defaults: a peer that meets the nodes through the local router on ``tcp/127.0.0.1:7447``.
+    the nodes read (``ARTRACK_MODE``, ``ARTRACK_CONNECT``, ``ZENOH_CONFIG``, ``ARTRACK_RIG``,
+    ``ARTRACK_TLS_ROOT_CA``, ``ARTRACK_USER``, ...), else the defaults: a peer that meets the nodes
+    through the local router on ``tcp/127.0.0.1:7447``. ``security`` (TLS files, user and
+    password) replaces whatever the environment said about them.
 
     Raises ``BusError`` naming the endpoint when the session cannot be opened (for example a
-    client-mode session whose router is down).
+    client-mode session whose router is down, or that the router refused), ValueError for
+    settings that cannot work (credentials in peer mode, a ``tls/`` endpoint without a root CA).
     """
     if isinstance(connect, str):
         connect = (connect,)
     settings = BusSettings.from_env(mode=mode, connect=tuple(connect or ()), listen=tuple(listen or ()),
-                                    zenoh_config=zenoh_config, namespace=namespace, rig=rig)
+                                    zenoh_config=zenoh_config, namespace=namespace, rig=rig, security=security)
     return Client(settings, app=app)

@@ -2,13 +2,17 @@
 
 Three ways to say it, in order of precedence:
 
-1. a Zenoh JSON5/YAML config file (``zenoh_config`` or ``ZENOH_CONFIG``), used as is;
+1. a Zenoh JSON5/YAML config file (``zenoh_config`` or ``ZENOH_CONFIG``), used as is but for
+   the security settings, which are written over it when given;
 2. explicit endpoints: ``connect`` (``tcp/HOST:PORT`` of a router or a peer) and ``listen``,
    in ``peer`` or ``client`` mode (``ARTRACK_CONNECT``, ``ARTRACK_LISTEN``, ``ARTRACK_MODE``);
 3. nothing: a peer listening on a free loopback port that connects to the local router at
    ``tcp/127.0.0.1:7447``.
 
 ``namespace`` and ``rig`` (``ARTRACK_NAMESPACE``, ``ARTRACK_RIG``) say whose keys to use.
+``security`` (``ARTRACK_TLS_ROOT_CA``, ``ARTRACK_TLS_CERT``, ``ARTRACK_TLS_KEY``,
+``ARTRACK_TLS_MUTUAL``, ``ARTRACK_USER``, ``ARTRACK_PASSWORD`` or ``ARTRACK_PASSWORD_FILE``) adds
+TLS and credentials to the endpoints' config (see ``services.client.security``).
 Multicast scouting is always off unless a config file turns it on.
 """
 
@@ -20,9 +24,10 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from protocol.keys import Keys, check_name
+from services.client.security import Security
 from services.client.transport import LOCAL_ROUTER, session_config
 
 
@@ -34,8 +39,21 @@ def _endpoints(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
 
 
+def flag(text: str) -> bool:
+    """An environment switch: anything but ``0``, ``false`` or ``no`` is on."""
+    return text not in ("0", "false", "no")
+
+
+def _nest(values: dict[str, Any], field: str, value: object) -> None:
+    """Set ``values[a][b] = value`` for a dotted ``field`` ``a.b``."""
+    *parents, last = field.split(".")
+    for parent in parents:
+        values = values.setdefault(parent, {})
+    values[last] = value
+
+
 class BusSettings(BaseModel):
-    """Mode, endpoints or config file, namespace and rig of one process's Zenoh session."""
+    """Mode, endpoints or config file, namespace, rig and security of one process's Zenoh session."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -46,8 +64,15 @@ class BusSettings(BaseModel):
         "ZENOH_CONFIG": ("zenoh_config", str),
         "ARTRACK_NAMESPACE": ("namespace", str),
         "ARTRACK_RIG": ("rig", str),
+        "ARTRACK_TLS_ROOT_CA": ("security.root_ca", str),
+        "ARTRACK_TLS_CERT": ("security.cert", str),
+        "ARTRACK_TLS_KEY": ("security.key", str),
+        "ARTRACK_TLS_MUTUAL": ("security.mutual", flag),
+        "ARTRACK_USER": ("security.user", str),
+        "ARTRACK_PASSWORD": ("security.password", str),
+        "ARTRACK_PASSWORD_FILE": ("security.password_file", str),
     }
-    """Environment variable -> (field, parser); subclasses add their own."""
+    """Environment variable -> (field, parser); a dotted field is one of a nested model's. Subclasses add their own."""
 
     mode: Literal["peer", "client"] = "peer"
     connect: tuple[str, ...] = ()
@@ -55,6 +80,7 @@ class BusSettings(BaseModel):
     zenoh_config: Path | None = None
     namespace: str = "ar"
     rig: str = "rig0"
+    security: Security = Security()
 
     @field_validator("namespace")
     @classmethod
@@ -74,6 +100,12 @@ class BusSettings(BaseModel):
                 raise ValueError(f"endpoint {endpoint!r} must look like tcp/HOST:PORT")
         return value
 
+    @model_validator(mode="after")
+    def _secure(self) -> BusSettings:
+        if self.zenoh_config is None:
+            self.security.check(self.mode, self.listen, self.connect)
+        return self
+
     @property
     def keys(self) -> Keys:
         return Keys(self.namespace, self.rig)
@@ -89,18 +121,33 @@ class BusSettings(BaseModel):
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> BusSettings:
-        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset)."""
+        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset).
+
+        A dict override of a nested model (``security={"root_ca": ...}``) updates what the
+        environment said field by field; a model instance replaces it whole.
+        """
         env = os.environ if environ is None else environ
-        values: dict[str, object] = {field: parse(env[name]) for name, (field, parse) in cls.ENV.items()
-                                     if env.get(name)}
-        values.update({k: v for k, v in overrides.items() if v is not None and v != ()})
+        values: dict[str, Any] = {}
+        for name, (field, parse) in cls.ENV.items():
+            if env.get(name):
+                _nest(values, field, parse(env[name]))
+        for field, value in overrides.items():
+            if value is None or value == ():
+                continue
+            if isinstance(value, Mapping) and isinstance(values.get(field), dict):
+                value = {**values[field], **value}
+            values[field] = value
+        if isinstance(values.get("security"), Mapping):  # validated on its own: its errors hide the password
+            values["security"] = Security.model_validate(values["security"])
         return cls.model_validate(values)
 
     def to_env(self) -> dict[str, str]:
         """The variables that make ``from_env`` rebuild these settings in a child process."""
         env = {}
         for name, (field, _) in self.ENV.items():
-            value = getattr(self, field)
+            value: Any = self
+            for part in field.split("."):
+                value = getattr(value, part)
             if isinstance(value, tuple):
                 env[name] = ",".join(value)
             elif isinstance(value, bool):
@@ -117,12 +164,14 @@ class BusSettings(BaseModel):
             if not self.zenoh_config.is_file():
                 raise BusError(f"Zenoh config file {self.zenoh_config} does not exist")
             try:
-                return zenoh.Config.from_file(str(self.zenoh_config))
+                config = zenoh.Config.from_file(str(self.zenoh_config))
             except zenoh.ZError as exc:
                 raise BusError(f"Zenoh config file {self.zenoh_config} is invalid: {exc}") from exc
+            self.security.apply(config)
+            return config
         connect = self.connect or (LOCAL_ROUTER,)
         listen = self.listen or (("tcp/127.0.0.1:0",) if self.mode == "peer" else ())
-        return session_config(self.mode, listen=listen, connect=connect)
+        return session_config(self.mode, listen=listen, connect=connect, security=self.security)
 
     def open(self) -> zenoh.Session:
         """Open the session (BusError naming where and why when Zenoh refuses)."""

@@ -11,6 +11,8 @@ import json
 
 import zenoh
 
+from services.client.security import Security
+
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 """Where processes on one machine meet when nothing else is said."""
 
@@ -20,8 +22,10 @@ after a router it was connected to has gone: 0.25 s, doubling up to 2 s (Zenoh's
 up to 4 s)."""
 
 
-def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
-    """A Zenoh config in ``mode`` with explicit endpoints and multicast scouting off.
+def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = (),
+                   security: Security | None = None) -> zenoh.Config:
+    """A Zenoh config in ``mode`` with explicit endpoints, multicast scouting off and ``security``
+    (TLS, credentials) applied; ValueError when ``security`` does not fit the mode or endpoints.
 
     A session that loses an endpoint tries it again with the ``RECONNECT`` back-off, so a router that
     restarts is rejoined by itself.
@@ -37,6 +41,9 @@ def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[st
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", json.dumps(RECONNECT))
     config.insert_json5("transport/shared_memory/mode", json.dumps("init"))
+    if security is not None:
+        security.check(mode, listen, connect)
+        security.apply(config)
     return config
 
 

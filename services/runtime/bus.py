@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 import zenoh
 from pydantic import Field
 
-from services.client.settings import BusError, BusSettings
+from services.client.settings import BusError, BusSettings, flag
 from services.client.transport import LOCAL_ROUTER, patient
 
 __all__ = ["LOCAL_ROUTER", "BusConfig", "BusError", "ensure_local_router", "open_session", "reachable"]
@@ -41,18 +41,14 @@ RETRY_ATTEMPT_MS = 1000
 """How long one attempt to open a retrying session waits before Python gets control back (signals)."""
 
 
-def _flag(text: str) -> bool:
-    return text not in ("0", "false", "no")
-
-
 class BusConfig(BusSettings):
     """Bus settings of an artrack process: the shared ones, plus starting the local router on demand."""
 
     ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
         **BusSettings.ENV,
-        "ARTRACK_ROUTER_AUTOSTART": ("autostart_router", _flag),
+        "ARTRACK_ROUTER_AUTOSTART": ("autostart_router", flag),
         "ARTRACK_ROUTER_WAIT_S": ("router_wait_s", str),
-        "ARTRACK_RETRY": ("retry", _flag),
+        "ARTRACK_RETRY": ("retry", flag),
     }
 
     autostart_router: bool = True

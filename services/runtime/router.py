@@ -2,10 +2,15 @@
 
 ``idle_exit_s`` makes the router leave once no session has been connected to it for that
 long; the router that artrack starts on demand uses it, a router started by hand does not.
+
+A hardened router listens on ``tls/`` endpoints with its certificate (``Security``), checks
+``user:password`` lines of a users file (Zenoh's ``usrpwd`` dictionary), and applies an access
+file (``services.runtime.access``).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -13,19 +18,34 @@ from pathlib import Path
 
 import zenoh
 
+from services.client.security import Security
 from services.client.transport import session_config
+from services.runtime.access import access_control, read_access
 from services.runtime.bus import BusError
 
 log = logging.getLogger(__name__)
 
 
-def router_config(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> zenoh.Config:
-    """A router config: a Zenoh config file when given, else explicit endpoints, no multicast."""
+def router_config(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None, *,
+                  security: Security | None = None, users: Path | None = None,
+                  access: Path | None = None) -> zenoh.Config:
+    """A router config: a Zenoh config file when given, else explicit endpoints, no multicast;
+    then ``security`` (TLS files), the ``users`` file and the ``access`` file on top.
+    ValueError naming the file or setting that cannot work."""
     if zenoh_config is not None:
         config = zenoh.Config.from_file(str(zenoh_config))
         config.insert_json5("mode", '"router"')
-        return config
-    return session_config("router", listen=listen, connect=connect)
+        if security is not None:
+            security.apply(config)
+    else:
+        config = session_config("router", listen=listen, connect=connect, security=security)
+    if users is not None:
+        if not users.is_file():
+            raise ValueError(f"users file {users} does not exist")
+        config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    if access is not None:
+        config.insert_json5("access_control", json.dumps(access_control(read_access(access))))
+    return config
 
 
 def run_router(config: zenoh.Config, stop: threading.Event, idle_exit_s: float | None = None) -> None:
