@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable
@@ -92,6 +93,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         status = gather(session, bus.keys, args.timeout)
     finally:
         session.close()
+    if args.here:
+        status = status.on_host(socket.gethostname())
     print(json.dumps(status.to_json()) if args.json else format_status(status))
     return (UNHEALTHY if status.problems() else HEALTHY) if args.check else 0
 
@@ -393,6 +396,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="one JSON object instead of tables")
     p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` answered and every node "
                    "it supervises is running (a health check)")
+    p.add_argument("--here", action="store_true", help="only the `artrack up` processes of this host")
     p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers")
     _bus_options(p)
     p.set_defaults(func=cmd_status)

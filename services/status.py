@@ -8,6 +8,8 @@ streams in ``NodeStats.streams``) is flagged: the app waits for something nobody
 
 ``--check`` is the health-check contract (docker HEALTHCHECK, systemd): healthy, exit 0,
 only when at least one ``artrack up`` answered and every node it supervises is running.
+``--here`` keeps only the ``artrack up`` processes of this host, so each container of a
+deployment checks its own nodes rather than the whole rig's.
 """
 
 from __future__ import annotations
@@ -67,6 +69,11 @@ class Status:
             "problems": self.problems(),
             "healthy": not self.problems(),
         }
+
+    def on_host(self, host: str) -> Status:
+        """Only the pipelines supervised on ``host`` (a container's health check looks at its own)."""
+        return Status({key: health for key, health in self.pipelines.items() if health.host == host},
+                      self.nodes, self.clients)
 
     def warnings(self) -> list[str]:
         return [f"app {app} waits for {key} but no node publishes it" for app, key in self.unmatched()]

@@ -4,6 +4,7 @@ its volume for a temporary folder."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 
@@ -12,7 +13,7 @@ import pytest
 from protocol.poses import Pose, TrackingState
 from services.runtime.bus import BusConfig
 from services.runtime.pubsub import Inbox, Role
-from tests.deploy_files import artrack_services, host_pipeline
+from tests.deploy_files import artrack_services, host_pipeline, instruction
 from tests.integration.support import START_S, collect, states, wait_until
 
 pytestmark = pytest.mark.integration
@@ -36,6 +37,10 @@ def test_the_compose_capture_and_marker_services_track_markers_through_the_route
 
     tracked = collect(poses, lambda got: any(p.state == TrackingState.TRACKING for p in got))
     assert any(p.header.frame_id == "cam0" for p in tracked)
+    healthcheck = json.loads(instruction("HEALTHCHECK")[-1].partition(" CMD ")[2])
+    check = procs.artrack(*healthcheck[1:], name="healthcheck", env=composed_environment(services["marker"],
+                                                                                          bus.endpoint))
+    assert check.wait(START_S) == 0, check.describe()
 
 
 def test_the_compose_recorder_starts_new_files_when_its_node_is_restarted(bus, procs, session, tmp_path):

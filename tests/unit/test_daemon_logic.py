@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from protocol.message import Header
-from protocol.system import ConfigChange
+from protocol.system import ConfigChange, PipelineHealth, SupervisedNode
 from services.capture.node import Params as CaptureParams
 from services.detection.node import Params as MarkerParams
 from services.launch import params_model, read_pipeline
@@ -17,6 +17,7 @@ from services.runtime.logs import JsonFormatter, log_format
 from services.runtime.pipeline import PipelineError
 from services.runtime.reconfig import LiveParams, Refused, changed_params, plan_reload
 from services.runtime.supervisor import RestartBudget
+from services.status import Status
 
 PIPELINE = """
 [nodes.cam]
@@ -133,3 +134,15 @@ def test_log_format_comes_from_flag_then_environment(monkeypatch):
     monkeypatch.setenv("ARTRACK_LOG_FORMAT", "xml")
     with pytest.raises(ValueError, match="'xml'.*ARTRACK_LOG_FORMAT.*text, json"):
         log_format()
+
+
+def test_a_health_check_here_ignores_other_hosts_pipelines():
+    def health(host: str, state: str) -> PipelineHealth:
+        return PipelineHealth(header=Header(stamp_ns=1), pipeline=f"{host}.toml", host=host, pid=1, uptime_s=1.0,
+                              nodes=(SupervisedNode(name=f"{host}-cam", kind="capture", state=state),))
+
+    status = Status({"a": health("box-a", "running"), "b": health("box-b", "failed")})
+    assert status.problems() == ["node box-b-cam is failed"]
+    assert status.on_host("box-a").problems() == []
+    assert status.on_host("box-b").problems() == ["node box-b-cam is failed"]
+    assert status.on_host("box-c").problems() == ["no `artrack up` answered on this rig"]
