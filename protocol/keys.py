@@ -150,10 +150,7 @@ class Keys:
 
     def split_client(self, key: str) -> tuple[str, str]:
         """``(rig, client id)`` of a client key (token or state) in this namespace."""
-        rest = key.removeprefix(self.namespace + "/").split("/")
-        if not key.startswith(self.namespace + "/") or len(rest) < 3 or rest[1] != "client":
-            raise ValueError(f"{key!r} is not a client key under {self.namespace!r}")
-        return rest[0], rest[2]
+        return self._split(key, "client")
 
     def every_camera(self, stream: str) -> str:
         """``stream`` (``image``, ``markers``, ...) of every camera of the rig."""
@@ -216,7 +213,11 @@ class Keys:
 
     def split_node(self, key: str) -> tuple[str, str]:
         """``(rig, node name)`` of a node key (token, stats or state) in this namespace."""
+        return self._split(key, "node")
+
+    def _split(self, key: str, kind: str) -> tuple[str, str]:
+        """``(rig, name)`` of ``<namespace>/<rig>/<kind>/<name>[/...]``; ValueError for any other key."""
         rest = key.removeprefix(self.namespace + "/").split("/")
-        if not key.startswith(self.namespace + "/") or len(rest) < 3 or rest[1] != "node":
-            raise ValueError(f"{key!r} is not a node key under {self.namespace!r}")
+        if not key.startswith(self.namespace + "/") or len(rest) < 3 or rest[1] != kind:
+            raise ValueError(f"{key!r} is not a {kind} key under {self.namespace!r}")
         return rest[0], rest[2]

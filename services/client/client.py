@@ -26,12 +26,12 @@ from pathlib import Path
 
 import zenoh
 
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import encode
 from protocol.keys import Keys
 from protocol.message import Header
 from protocol.sensors import CameraInfo
 from protocol.system import ClientState, NodeStats
-from services.client.discovery import live_nodes, node_states
+from services.client.discovery import first_answers, live_nodes, node_states
 from services.client.security import Security
 from services.client.settings import BusSettings
 from services.client.streams import DEFAULT_DEPTH, AsyncPoseStream, Feed, PoseStream, PoseUpdate
@@ -115,16 +115,8 @@ class Client:
 
     def calibration(self, camera: str, timeout_s: float = 1.0) -> CameraInfo | None:
         """The calibration the capture node holds for ``camera``; None when nobody answers with one."""
-        for reply in self.session.get(self.keys.calibration(camera), timeout=timeout_s):
-            if reply.ok is None:
-                continue
-            try:
-                message = decode(reply.ok.payload.to_bytes())
-            except DecodeError:
-                continue
-            if isinstance(message, CameraInfo):
-                return message
-        return None
+        found = first_answers(self.session, self.keys.calibration(camera), CameraInfo, timeout_s)
+        return next(iter(found.values()), None)
 
     def state(self) -> ClientState:
         """What this client subscribed to and what it received, as ``artrack status`` sees it."""
