@@ -1,7 +1,7 @@
 """Pose transport through a router against peer to peer, on loopback, side by side in one run.
 
 The bench process publishes ``protocol.Pose`` messages (``traffic.PoseSender``: built, encoded
-by the codec, put with the RESULT role's QoS, priority DATA_HIGH, express, congestion BLOCK)
+by the codec, put with the RESULT role's QoS, priority DATA_HIGH, congestion BLOCK)
 on pose keys of the rig; a client app process (``tests.bench.sink --app``) receives them the
 way apps do, through ``services.client`` (``Client.on_pose``, decoded by the library):
 
