@@ -203,6 +203,10 @@ class Keys:
         """Poses of every target of every rig in the namespace."""
         return f"{self.namespace}/*/pose/**"
 
+    def all_supervisors(self) -> str:
+        """Health queryables of every ``artrack up`` process in the namespace, any rig."""
+        return f"{self.namespace}/*/supervisor/*"
+
     def all_calibrations(self) -> str:
         """Calibration queryables of every camera of every rig in the namespace."""
         return f"{self.namespace}/*/*/calibration"

@@ -95,6 +95,7 @@ def _rule(rule_id: str, messages: tuple[str, ...], flows: tuple[str, ...], *key_
 def _rules(keys: Keys) -> dict[str, list[dict[str, Any]]]:
     """Rule lists of each role, for the namespace of ``keys``."""
     watch = ("declare_liveliness_subscriber", "liveliness_query")
+    status = (keys.all_states(), keys.all_supervisors(), keys.all_calibrations(), keys.all_client_states())
     return {
         "pipeline": [_rule("pipeline", MESSAGES, (INGRESS, EGRESS), keys.whole_namespace())],
         "app": [
@@ -102,10 +103,8 @@ def _rules(keys: Keys) -> dict[str, list[dict[str, Any]]]:
             _rule("app-poses-get", ("put",), (EGRESS,), keys.all_poses()),
             _rule("app-nodes-watch", watch, (INGRESS,), keys.all_nodes(), keys.all_clients()),
             _rule("app-nodes-get", ("liveliness_token",), (EGRESS,), keys.all_nodes(), keys.all_clients()),
-            _rule("app-queries-ask", ("query",), (INGRESS,), keys.all_states(), keys.all_calibrations(),
-                  keys.all_client_states()),
-            _rule("app-queries-get", ("reply",), (EGRESS,), keys.all_states(), keys.all_calibrations(),
-                  keys.all_client_states()),
+            _rule("app-queries-ask", ("query",), (INGRESS,), *status),
+            _rule("app-queries-get", ("reply",), (EGRESS,), *status),
             _rule("app-own-token", ("liveliness_token",), (INGRESS,), keys.all_clients()),
             _rule("app-own-state", ("declare_queryable", "reply"), (INGRESS,), keys.all_client_states()),
             _rule("app-own-state-asked", ("query",), (EGRESS,), keys.all_client_states()),

@@ -6,6 +6,7 @@ module in a temporary folder; the access file is the example's ``acl.toml``.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -163,6 +164,11 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
         listed = procs.run("list", "--mode", "client", "--connect", endpoint, "--rig", bus.rig, "--tls-ca", str(pki.ca),
                            "--user", "tracker", "--password-file", str(pki.password_file("tracker")))
         assert listed.wait(0) == 0 and {"cam", "marker"} <= set(listed.stdout.split()), listed.describe()
+        status = procs.run("status", "--check", "--json", "--mode", "client", "--connect", endpoint, "--rig", bus.rig,
+                           "--tls-ca", str(pki.ca), "--user", "dashboard",
+                           "--password-file", str(pki.password_file("dashboard")))
+        assert status.wait(0) == 0, status.describe()  # an app user may ask for the pipeline's health
+        assert {n["name"] for p in json.loads(status.stdout)["pipelines"] for n in p["nodes"]} == {"cam", "marker"}
     finally:
         other.close()
         pipeline.close()
