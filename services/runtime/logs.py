@@ -19,6 +19,7 @@ from datetime import UTC, datetime
 from typing import Literal
 
 FORMAT_ENV = "ARTRACK_LOG_FORMAT"
+LEVEL_ENV = "ARTRACK_LOG_LEVEL"
 FORMATS = ("text", "json")
 
 LogFormat = Literal["text", "json"]
@@ -57,7 +58,7 @@ def log_format(given: str | None = None) -> LogFormat:
 
 def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, node: str | None = None) -> None:
     """Send log records to stderr in ``log_format`` (``node`` tags every line)."""
-    level = level or os.environ.get("ARTRACK_LOG_LEVEL", "INFO")
+    level = level or os.environ.get(LEVEL_ENV, "INFO")
     handler = logging.StreamHandler(sys.stderr)
     if log_format == "json":
         handler.setFormatter(JsonFormatter(node))

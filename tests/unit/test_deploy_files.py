@@ -21,10 +21,11 @@ import zenoh
 from services.cli import parser
 from services.launch import read_pipeline
 from services.runtime.bus import BusConfig
+from services.runtime.logs import FORMAT_ENV, LEVEL_ENV, log_format
 from services.runtime.pipeline import PipelineError
 from tests.deploy_files import DOCKER, ROUTER, artrack_services, compose, host_pipeline, instruction
 
-LOG_ENV = {"ARTRACK_LOG_JSON", "ARTRACK_LOG_LEVEL"}  # read by services.runtime.logs
+LOG_ENV = {FORMAT_ENV, LEVEL_ENV}
 
 
 def commands() -> list[tuple[str, list[str]]]:
@@ -74,6 +75,8 @@ def test_services_join_the_router_in_client_mode_with_variables_the_bus_reads():
         environment = service["environment"]
         unknown = set(environment) - set(BusConfig.ENV) - LOG_ENV
         assert not unknown, f"{name}: no artrack code reads {sorted(unknown)}"
+        if FORMAT_ENV in environment:
+            assert log_format(str(environment[FORMAT_ENV])) == "json", name
         bus = BusConfig.from_env({key: str(value) for key, value in environment.items()})
         assert bus.mode == "client", name
         assert bus.connect == (f"tcp/{ROUTER}:{port}",), name
@@ -143,3 +146,13 @@ def test_the_systemd_unit_runs_artrack_up_sandboxed_as_its_own_user():
     assert service["StandardOutput"] == "journal"
     assert (service["NoNewPrivileges"], service["ProtectSystem"], service["ProtectHome"]) == ("yes", "strict", "yes")
     assert "artrack" in service["StateDirectory"].split()
+
+
+def test_the_image_and_the_unit_set_only_variables_artrack_reads():
+    image = dict(pair.split("=", 1) for line in instruction("ENV") for pair in shlex.split(line))
+    service = dict(pair.split("=", 1) for pair in shlex.split(unit()["Service"]["Environment"]))
+    for where, environment in (("Dockerfile", image), ("artrack.service", service)):
+        ours = {name: value for name, value in environment.items() if name.startswith("ARTRACK_")}
+        assert ours, where
+        assert not set(ours) - set(BusConfig.ENV) - LOG_ENV, f"{where}: no artrack code reads {sorted(ours)}"
+        assert log_format(ours.get(FORMAT_ENV)) == "json", where
