@@ -27,7 +27,7 @@ class Params(DetectorSettings):
     """Which camera to watch, which markers to look for, and how; the detector's tuning (side
     lengths, refinement, ``parameters`` thresholds) may change while it runs."""
 
-    RELOADABLE: ClassVar[frozenset[str]] = frozenset({"marker_length", "lengths", "refinement", "parameters"})
+    RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING
 
     camera: KeyName = "cam0"
     depth: int = Field(default=1, ge=1, le=1000,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -17,6 +17,9 @@ class DetectorSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    TUNING: ClassVar[frozenset[str]] = frozenset({"marker_length", "lengths", "refinement", "parameters"})
+    """The fields a running detector may take new values of (all but the dictionary)."""
+
     dictionary: str = Field(default=DEFAULT_DICTIONARY,
                             description="cv2.aruco predefined dictionary name, or the path of a dictionary YAML")
     marker_length: float = Field(default=0.0, ge=0.0, allow_inf_nan=False,
@@ -25,6 +28,10 @@ class DetectorSettings(BaseModel):
     refinement: Literal["none", "subpix", "contour", "apriltag"] = "subpix"
     parameters: dict[str, Any] = Field(default_factory=dict,
                                        description="cv2.aruco.DetectorParameters fields to override, by name")
+
+    def tuning(self) -> dict[str, Any]:
+        """The ``TUNING`` fields' values."""
+        return {name: getattr(self, name) for name in sorted(self.TUNING)}
 
     def dictionary_name(self, fallback: str | None = None) -> str:
         """The dictionary given, else ``fallback`` (a board's), else the default."""

@@ -69,7 +69,7 @@ class Params(DetectorSettings):
     may change while the node runs."""
 
     model_config = ConfigDict(extra="forbid")
-    RELOADABLE: ClassVar[frozenset[str]] = frozenset({"corner_sigma_px"})
+    RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING | {"corner_sigma_px"}
 
     camera: KeyName = "cam0"
     input: Literal["images", "detections"] = Field(
@@ -178,7 +178,17 @@ def run(node: Node, params: Params) -> None:
     except (MarkerMapError, CalibrationError, ValueError) as exc:
         raise NodeError(str(exc)) from exc
     estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
-    node.configurable(params, lambda new: setattr(estimator, "corner_sigma_px", new.corner_sigma_px))
+    live = {"detector": detector}
+
+    def apply(new: Params) -> None:
+        """Put a live change to work: the covariance's corner noise, and the detector's tuning."""
+        if detector is None and new.tuning() != params.tuning():
+            raise ValueError("this node takes a markers node's detections: change that node's detector")
+        if detector is not None:
+            live["detector"] = new.detector(*_board_markers(board))
+        estimator.corner_sigma_px = new.corner_sigma_px
+
+    node.configurable(params, apply)
     keys = node.keys
     infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
     calibration = _Calibration(infos, fixed)
@@ -189,7 +199,7 @@ def run(node: Node, params: Params) -> None:
                                                             Role.RESULT)))
     else:
         frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
-        found = _detected(node, frames, detector, params.dictionary_name(board.dictionary if board else None),
+        found = _detected(node, frames, live, params.dictionary_name(board.dictionary if board else None),
                           node.publisher(keys.markers(params.camera), MarkerDetections))
     for image, detections in found:
         camera = calibration.current()
@@ -205,11 +215,12 @@ def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float
     return board.dictionary, {marker_id: marker.length for marker_id, marker in board.markers.items()}
 
 
-def _detected(node: Node, frames: Inbox[Image], detector: MarkerDetector, dictionary: str,
+def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
               out: Publisher[MarkerDetections]) -> Iterator[tuple[Image, MarkerDetections]]:
-    """Each frame from ``frames`` with its detections, published on ``out`` as they are made."""
+    """Each frame from ``frames`` with its detections by ``live["detector"]`` (replaced by live
+    changes), published on ``out`` as they are made."""
     for image in node.inputs(frames):
-        detections = as_message(image.header, dictionary, detector.detect(image.data))
+        detections = as_message(image.header, dictionary, live["detector"].detect(image.data))
         out.put(detections)
         yield image, detections
 

@@ -7,10 +7,13 @@ import json
 import os
 import signal
 import sys
+import time
 
+import numpy as np
 import pytest
 
 from protocol.detections import MarkerDetections
+from protocol.poses import Pose, TrackingState
 from services.client.client import connect
 from services.runtime.pubsub import Inbox, Role
 
@@ -159,3 +162,58 @@ def test_sighup_and_config_change_live_parameters(bus, procs, session, tmp_path)
         assert all(n["restarts"] == 0 for n in after.values())
     finally:
         detections.close()
+
+
+def _drain(inbox) -> list:
+    """Everything ``inbox`` holds now."""
+    got = []
+    while (received := inbox.take()) is not None:
+        got.append(received.message)
+    return got
+
+
+def _tracking_after(poses, seq: int, child: str | None = None) -> Pose:
+    """The first tracking pose (of ``child``, if given) of a frame after ``seq``."""
+    def fits(p: Pose) -> bool:
+        return p.state is TrackingState.TRACKING and p.header.seq > seq and child in (None, p.child_frame_id)
+
+    return next(p for p in collect(poses, lambda got: any(fits(p) for p in got)) if fits(p))
+
+
+def test_the_marker_pose_node_takes_new_corner_noise_and_detector_thresholds_live(bus, procs, session, tmp_path):
+    path = tmp_path / "marker.toml"
+    path.write_text(_bus_table(bus) + """
+[nodes.cam]
+kind = "capture"
+source = "synthetic:markers"
+fps = 15
+loop = true
+
+[nodes.marker]
+kind = "marker_pose"
+camera = "cam0"
+marker_length = 0.05
+""")
+    procs.artrack("up", str(path), name="up")
+    poses = Inbox(session, bus.keys.poses(), Pose, Role.RESULT, depth=10_000)
+    try:
+        before = _tracking_after(poses, -1)
+
+        # Corner noise 0.5 -> 2 px: covariances 16 times larger (the view moves a little meanwhile).
+        done = procs.run("config", "marker", "--set", "corner_sigma_px=2.0", timeout=30)
+        assert done.poll() == 0 and json.loads(done.stdout)["refused"] == {}, done.describe()
+        applied_by = max(p.header.seq for p in [before, *_drain(poses)]) + 1  # frames after it saw the change
+        after = _tracking_after(poses, applied_by, before.child_frame_id)
+        scale = np.diag(np.reshape(after.covariance, (6, 6))) / np.diag(np.reshape(before.covariance, (6, 6)))
+        assert np.all((scale > 4) & (scale < 64)), scale
+
+        # A detector threshold no marker passes: every tracked marker is reported lost, then nothing tracks.
+        done = procs.run("config", "marker", "--set", 'parameters={"minMarkerPerimeterRate": 3.9}', timeout=30)
+        assert done.poll() == 0 and "parameters" in json.loads(done.stdout)["applied"], done.describe()
+        since = _drain(poses)
+        since += collect(poses, lambda got: any(p.state is TrackingState.LOST for p in since + got))
+        applied_by = max(p.header.seq for p in since) + 1
+        time.sleep(1.0)
+        assert [p for p in _drain(poses) if p.header.seq > applied_by and p.state is TrackingState.TRACKING] == []
+    finally:
+        poses.close()
