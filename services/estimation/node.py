@@ -41,6 +41,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import ConfigDict, Field, model_validator
 
+from protocol.codec import encode
 from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
 from protocol.message import Header
@@ -120,7 +121,11 @@ class _Calibration:
 
 
 class _Poses:
-    """One publisher per target, created when the target first appears; remembers who was tracked."""
+    """One publisher per target, created when the target first appears; remembers who was tracked.
+
+    A frame's poses are encoded first and then sent back to back, so Zenoh batches them and each
+    subscriber wakes once for the frame rather than once for each pose while the rest are built.
+    """
 
     def __init__(self, node: Node, camera: str):
         self._node = node
@@ -128,17 +133,24 @@ class _Poses:
         self._publishers: dict[str, Publisher[Pose]] = {}
         self._tracked: set[str] = set()
 
-    def put(self, pose: Pose) -> None:
-        child = pose.child_frame_id
+    def publish(self, poses: list[Pose]) -> None:
+        """Send ``poses`` (one frame's), each on its target's key."""
+        payloads = [(self._publisher(pose.child_frame_id), encode(pose)) for pose in poses]
+        for publisher, payload in payloads:
+            publisher.raw.put(payload)
+
+    def _publisher(self, child: str) -> Publisher[Pose]:
         if child not in self._publishers:
             key = self._node.keys.pose(f"{self._camera}/{child}")
             self._publishers[child] = self._node.publisher(key, Pose, Role.RESULT)
-        self._publishers[child].put(pose)
+        return self._publishers[child]
 
-    def frame_done(self, header: Header, tracked: set[str]) -> None:
-        """Publish one ``lost`` pose for each target tracked in the previous frame and not in this one."""
-        for child in sorted(self._tracked - tracked):
-            self.put(Pose(header=header, child_frame_id=child, state=TrackingState.LOST))
+    def frame(self, header: Header, poses: list[Pose], tracked: set[str]) -> None:
+        """Send one frame's ``poses`` (tracking the targets in ``tracked``), plus one ``lost`` pose for
+        each target tracked in the previous frame and not in this one."""
+        lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
+                for child in sorted(self._tracked - tracked)]
+        self.publish(poses + lost)
         self._tracked = tracked
 
 
@@ -230,9 +242,8 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
     """Publish the poses of ``detections``; the estimate, None without calibration."""
     header = detections.header
     if camera is None:
-        for marker in detections.ids:
-            poses.put(Pose(header=header, child_frame_id=f"marker/{marker}", state=TrackingState.NO_CALIBRATION,
-                           quality=PoseQuality(inliers=4)))
+        poses.publish([Pose(header=header, child_frame_id=f"marker/{marker}", state=TrackingState.NO_CALIBRATION,
+                            quality=PoseQuality(inliers=4)) for marker in detections.ids])
         if len(detections.ids):
             node.report("no_calibration", f"no CameraInfo for {header.frame_id or 'the camera'} and no calib file: "
                         "detections only", node.keys.camera_info(header.frame_id))
@@ -241,14 +252,9 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
     for reason, count in result.failures.items():
         node.report(reason, f"frame {header.seq}: {count} marker(s) gave no pose ({reason.replace('_', ' ')})",
                     node.keys.markers(header.frame_id), count)
-    tracked = set()
-    for estimate in result.poses:
-        tracked.add(estimate.target)
-        poses.put(Pose(
-            header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
-            quality=PoseQuality(reprojection_rms_px=estimate.rms_px, inliers=estimate.points,
-                                ambiguous=estimate.ambiguous),
-            covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
-        ))
-    poses.frame_done(header, tracked)
+    poses.frame(header, [Pose(
+        header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
+        quality=PoseQuality(reprojection_rms_px=estimate.rms_px, inliers=estimate.points, ambiguous=estimate.ambiguous),
+        covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
+    ) for estimate in result.poses], {estimate.target for estimate in result.poses})
     return result
