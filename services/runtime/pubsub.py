@@ -11,7 +11,7 @@ Streams have a role that sets their Zenoh quality of service and their queueing:
   poses that are ready together in one batch, so each subscriber wakes once per frame rather
   than once per pose. Measured (``make bench BENCH="routing apps"``): a lone pose arrives as
   fast as express (p50 109 against 127 us), pose throughput doubles (76 000 against 35 500
-  msg/s), and five client apps slow the marker pipeline by 16 % instead of 45 %.
+  msg/s), and five client apps slow the marker pipeline by 11-22 % instead of 45 %.
 * ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
 
 Payloads are decoded on the consumer's thread, not in Zenoh's callback, so the callback
