@@ -3,8 +3,8 @@
 The job is ``artrack run marker --source recording:recordings/markers.mcap --marker-length
 0.05 --depth 8 --record RUN/run.mcap --rerun RUN/run.rrd``: a replay node publishes the
 recorded frames, calibration and ground truth (restamped with the time each frame goes out),
-one marker node per camera detects and estimates, and a recorder and a viewer write the run. This process is
-the subscribing client: it joins every pose to the ground truth of its frame (by camera and
+one marker node per camera detects and estimates, and a recorder and a viewer write the run.
+This process is the subscribing client: it joins every pose to the ground truth of its frame (by camera and
 sequence number), prints a line a second while the run goes on, and a table at the end:
 frames, markers tracked, rotation and translation errors, latency from the frame's stamp to
 the pose's arrival here (two process hops: replay -> marker node -> client), and the files.

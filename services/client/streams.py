@@ -89,7 +89,8 @@ class Feed:
         self.received += 1
         self.last_stamp_ns = message.header.stamp_ns
         self.latest = update
-        self._arrived.set()
+        if not self._arrived.is_set():
+            self._arrived.set()
         try:
             self._sink(update)
         except Exception:

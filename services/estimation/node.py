@@ -41,7 +41,6 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import ConfigDict, Field, model_validator
 
-from protocol.codec import encode
 from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
 from protocol.message import Header
@@ -66,8 +65,8 @@ INFO_DEPTH = 100
 
 
 class Params(DetectorSettings):
-    """Which camera, where its markers come from, and how poses are estimated; ``corner_sigma_px``
-    may change while the node runs."""
+    """Which camera, where its markers come from, and how poses are estimated; the detector's
+    tuning and ``corner_sigma_px`` may change while the node runs."""
 
     model_config = ConfigDict(extra="forbid")
     RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING | {"corner_sigma_px"}
@@ -123,8 +122,8 @@ class _Calibration:
 class _Poses:
     """One publisher per target, created when the target first appears; remembers who was tracked.
 
-    A frame's poses are encoded first and then sent back to back, so Zenoh batches them and each
-    subscriber wakes once for the frame rather than once for each pose while the rest are built.
+    A frame's poses are all built before the first is sent, so they leave back to back, Zenoh
+    batches them, and each subscriber wakes once for the frame rather than once for each pose.
     """
 
     def __init__(self, node: Node, camera: str):
@@ -135,22 +134,20 @@ class _Poses:
 
     def publish(self, poses: list[Pose]) -> None:
         """Send ``poses`` (one frame's), each on its target's key."""
-        payloads = [(self._publisher(pose.child_frame_id), encode(pose)) for pose in poses]
-        for publisher, payload in payloads:
-            publisher.raw.put(payload)
+        for pose in poses:
+            child = pose.child_frame_id
+            if child not in self._publishers:
+                key = self._node.keys.pose(f"{self._camera}/{child}")
+                self._publishers[child] = self._node.publisher(key, Pose, Role.RESULT)
+            self._publishers[child].put(pose)
 
-    def _publisher(self, child: str) -> Publisher[Pose]:
-        if child not in self._publishers:
-            key = self._node.keys.pose(f"{self._camera}/{child}")
-            self._publishers[child] = self._node.publisher(key, Pose, Role.RESULT)
-        return self._publishers[child]
-
-    def frame(self, header: Header, poses: list[Pose], tracked: set[str]) -> None:
-        """Send one frame's ``poses`` (tracking the targets in ``tracked``), plus one ``lost`` pose for
-        each target tracked in the previous frame and not in this one."""
+    def frame(self, header: Header, tracking: list[Pose]) -> None:
+        """Send one frame's ``tracking`` poses, plus one ``lost`` pose for each target tracked in the
+        previous frame and not in this one."""
+        tracked = {pose.child_frame_id for pose in tracking}
         lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
                 for child in sorted(self._tracked - tracked)]
-        self.publish(poses + lost)
+        self.publish(tracking + lost)
         self._tracked = tracked
 
 
@@ -256,5 +253,5 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
         quality=PoseQuality(reprojection_rms_px=estimate.rms_px, inliers=estimate.points, ambiguous=estimate.ambiguous),
         covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
-    ) for estimate in result.poses], {estimate.target for estimate in result.poses})
+    ) for estimate in result.poses])
     return result

@@ -15,9 +15,10 @@ Roles, as seen by the router (ingress: from that session; egress: to it):
 
 * ``pipeline``: every message, both ways, on every key of the namespace;
 * ``app``: subscribes to poses and receives them; watches and queries node liveliness; queries
-  node state and camera calibration and receives the replies; holds its own client token and
-  answers its own state queryable (so ``artrack status`` lists it). Nothing else: its puts
-  and deletes on the pipeline's keys are dropped at the router.
+  node state, pipeline health (``artrack status``) and camera calibration and receives the
+  replies; holds its own client token and answers its own state queryable (so ``artrack
+  status`` lists it). Nothing else: its puts and deletes on the pipeline's keys are dropped at
+  the router.
 
 Everything not allowed is denied, including every session that matches no subject. Zenoh's
 own access control enforces this (in the router, so apps and nodes connect in client mode).

@@ -151,8 +151,7 @@ def test_sighup_and_config_change_live_parameters(bus, procs, session, tmp_path)
         done = procs.run("config", "markers", "--set", 'parameters={"minMarkerPerimeterRate": 3.9}', timeout=30)
         answer = json.loads(done.stdout)
         assert done.poll() == 0 and answer["refused"] == {} and "parameters" in answer["applied"], done.describe()
-        while detections.take() is not None:
-            pass
+        collect(detections, 0)  # what came before the change
         collect(detections, lambda got: len(got) >= 5 and all(len(m.ids) == 0 for m in got[-5:]))
         refused = procs.run("config", "markers", "--set", "dictionary=DICT_5X5_100", timeout=30)
         assert refused.poll() == 1
@@ -162,14 +161,6 @@ def test_sighup_and_config_change_live_parameters(bus, procs, session, tmp_path)
         assert all(n["restarts"] == 0 for n in after.values())
     finally:
         detections.close()
-
-
-def _drain(inbox) -> list:
-    """Everything ``inbox`` holds now."""
-    got = []
-    while (received := inbox.take()) is not None:
-        got.append(received.message)
-    return got
 
 
 def _tracking_after(poses, seq: int, child: str | None = None) -> Pose:
@@ -202,7 +193,7 @@ marker_length = 0.05
         # Corner noise 0.5 -> 2 px: covariances 16 times larger (the view moves a little meanwhile).
         done = procs.run("config", "marker", "--set", "corner_sigma_px=2.0", timeout=30)
         assert done.poll() == 0 and json.loads(done.stdout)["refused"] == {}, done.describe()
-        applied_by = max(p.header.seq for p in [before, *_drain(poses)]) + 1  # frames after it saw the change
+        applied_by = max(p.header.seq for p in [before, *collect(poses, 0)]) + 1  # frames after it saw the change
         after = _tracking_after(poses, applied_by, before.child_frame_id)
         scale = np.diag(np.reshape(after.covariance, (6, 6))) / np.diag(np.reshape(before.covariance, (6, 6)))
         assert np.all((scale > 4) & (scale < 64)), scale
@@ -210,10 +201,10 @@ marker_length = 0.05
         # A detector threshold no marker passes: every tracked marker is reported lost, then nothing tracks.
         done = procs.run("config", "marker", "--set", 'parameters={"minMarkerPerimeterRate": 3.9}', timeout=30)
         assert done.poll() == 0 and "parameters" in json.loads(done.stdout)["applied"], done.describe()
-        since = _drain(poses)
+        since = collect(poses, 0)
         since += collect(poses, lambda got: any(p.state is TrackingState.LOST for p in since + got))
         applied_by = max(p.header.seq for p in since) + 1
         time.sleep(1.0)
-        assert [p for p in _drain(poses) if p.header.seq > applied_by and p.state is TrackingState.TRACKING] == []
+        assert [p for p in collect(poses, 0) if p.header.seq > applied_by and p.state is TrackingState.TRACKING] == []
     finally:
         poses.close()
