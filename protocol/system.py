@@ -12,6 +12,9 @@ from pydantic import Field
 
 from protocol.message import Message, Struct
 
+LATENCY_AGE_MAX_S = 10.0
+"""The oldest input age ``NodeStats`` counts as latency (see there)."""
+
 
 class StreamStats(Struct):
     """Counters of one subscribed (``in``) or published (``out``) key."""
@@ -29,7 +32,12 @@ class NodeStats(Message):
 
     ``dropped`` counts frames a latest-wins input replaced before they were processed;
     ``decode_errors`` payloads that failed to decode or validate; ``processing_ms_p50``
-    and ``_p99`` are over the last window of processed inputs; ``skipped`` counts inputs
+    and ``_p99`` are over the last window of processed inputs; ``latency_ms_p50`` and ``_p99``
+    over the same window are each input's age when the node was done with it (its outputs
+    published): now minus the input's ``header.stamp_ns``, so for a tracker fed by a live
+    capture, the pipeline's own latency up to this node. Only ages from 0 to
+    ``LATENCY_AGE_MAX_S`` count: a replay stamped with the recording's time, or another
+    host's clock, gives no figure (None) rather than a wrong one. ``skipped`` counts inputs
     the node could not use, by reason (``decode_error``, ``degenerate_homography``, ...).
     """
 
@@ -49,6 +57,8 @@ class NodeStats(Message):
     decode_errors: int = Field(default=0, ge=0)
     processing_ms_p50: float | None = None
     processing_ms_p99: float | None = None
+    latency_ms_p50: float | None = None
+    latency_ms_p99: float | None = None
     skipped: dict[str, int] = Field(default_factory=dict)
     streams: tuple[StreamStats, ...] = ()
 

@@ -168,7 +168,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
             header_stamp = _stamp(params, instant[0])
             for frame, rename in zip(instant, rig.renames, strict=True):
                 _publish_frame(frame, rename, header_stamp, seq, images, infos, truths, rig)
-            node.processed(time.perf_counter() - started)
+            node.processed(time.perf_counter() - started, header_stamp)
             seq += 1
         if not params.loop:
             break

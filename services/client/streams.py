@@ -4,7 +4,9 @@ A ``Feed`` is one Zenoh subscriber on a pose key expression. It decodes each pay
 Zenoh's thread (poses are a few hundred bytes), counts what it received, dropped and could
 not decode, and passes each update to a sink:
 
-* ``PoseStream``: a bounded queue read by a plain ``for`` loop;
+* ``PoseStream``: a bounded queue read by a plain ``for`` loop (``queue.SimpleQueue``, whose
+  put and waiting get are C code: a few lines of Python per pose instead of a ``Condition``'s
+  dozens, which matters when every pose wakes the app's thread);
 * ``AsyncPoseStream``: an asyncio queue read by ``async for``;
 * a callback (``Client.on_pose``).
 
@@ -142,7 +144,8 @@ class PoseStream:
     def __init__(self, session: zenoh.Session, keys: Keys, key: str, *, idle_timeout_s: float | None = None,
                  depth: int = DEFAULT_DEPTH, on_close: Callable[[PoseStream], None] | None = None):
         self.idle_timeout_s = idle_timeout_s
-        self._queue: queue.Queue[PoseUpdate] = queue.Queue(maxsize=depth)
+        self._queue: queue.SimpleQueue[PoseUpdate] = queue.SimpleQueue()
+        self._depth = depth
         self._overflow = _Overflow(key)
         self._closed = threading.Event()
         self._on_close = on_close
@@ -153,16 +156,14 @@ class PoseStream:
         return self._overflow.dropped
 
     def _put(self, update: PoseUpdate) -> None:
-        while True:
+        """Queue ``update`` (Zenoh's thread, the only producer), first dropping the oldest while full."""
+        while self._queue.qsize() >= self._depth:
             try:
-                self._queue.put_nowait(update)
-                return
-            except queue.Full:
-                try:
-                    self._queue.get_nowait()
-                    self._overflow.count()
-                except queue.Empty:
-                    pass
+                self._queue.get_nowait()
+                self._overflow.count()
+            except queue.Empty:
+                break
+        self._queue.put(update)
 
     def __iter__(self) -> Iterator[PoseUpdate]:
         return self

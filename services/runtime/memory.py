@@ -1,4 +1,7 @@
-"""Stop glibc from giving payload memory back to the OS after every message.
+"""Memory habits of long-running processes: glibc's thresholds, and the garbage collector's
+work on what a node builds at start.
+
+``tune_malloc``: stop glibc from giving payload memory back to the OS after every message.
 
 glibc serves a large ``malloc`` with a fresh ``mmap`` (above 128 KiB at first, a threshold it
 then raises to the largest block freed) and trims the top of its heap once more than twice
@@ -13,11 +16,14 @@ Every artrack process fixes the thresholds when it starts (``services.cli.main``
 ``tune_malloc``), and so do both processes of the benchmarks. Set ``ARTRACK_MALLOC=default``
 to keep glibc's defaults. Numbers measured by the benchmark author on this project's 2-core
 machine (tests/bench).
+
+``settle_heap``: every node calls it once it is up (``services.runtime.node.run_node``).
 """
 
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 
 M_TRIM_THRESHOLD = -1
@@ -37,3 +43,17 @@ def tune_malloc() -> str:
     if not (mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD) and mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)):
         return "default (mallopt refused the thresholds)"
     return f"mmap_threshold={MMAP_THRESHOLD >> 20} MiB, trim_threshold={TRIM_THRESHOLD >> 20} MiB"
+
+
+def settle_heap() -> None:
+    """Collect once, then leave every object alive now out of later collections (``gc.freeze``).
+
+    A node's start leaves its modules, classes and pydantic schemas behind, long-lived objects
+    that every full collection would otherwise walk again. Measured with ``gc.callbacks`` in a
+    capture and a marker node at 60 fps on this project's 2-core machine: each full collection
+    paused the node 11-15 ms (most of a frame period: the frame behind it is late, and frames
+    that pile up behind it are dropped); after the freeze, 0.6-0.8 ms.
+    """
+    gc.collect()
+    gc.freeze()
+

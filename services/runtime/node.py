@@ -35,9 +35,10 @@ from protocol.codec import DecodeError, decode, encode
 from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats
 from services.runtime.bus import BusConfig, BusError, open_session
+from services.runtime.memory import settle_heap
 from services.runtime.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.runtime.reconfig import LiveParams
-from services.runtime.stats import LatencyWindow, StreamCounter
+from services.runtime.stats import AgeWindow, LatencyWindow, StreamCounter
 
 M = TypeVar("M", bound=Message)
 P = TypeVar("P", bound=BaseModel)
@@ -71,6 +72,7 @@ class Node:
         self._answers: list[zenoh.Queryable] = []
         self._tracked: list[StreamCounter] = []
         self._processing = LatencyWindow()
+        self._ages = AgeWindow()
         self._processed = 0
         self._stats_seq = 0
         self._state: Literal["starting", "running", "stopping"] = "starting"
@@ -195,7 +197,7 @@ class Node:
                 continue
             started = time.perf_counter()
             yield received.message
-            self.processed(time.perf_counter() - started)
+            self.processed(time.perf_counter() - started, received.message.header.stamp_ns)
 
     def linger(self, seconds: float = LINGER_S) -> None:
         """Stay up a moment after a job's last message while anyone subscribes to an output.
@@ -206,11 +208,14 @@ class Node:
         if any(publisher.matched() for publisher in self._publishers):
             self.wait(seconds)
 
-    def processed(self, seconds: float) -> None:
-        """Count one processed input that took ``seconds`` (sources call this per frame)."""
+    def processed(self, seconds: float, stamp_ns: int | None = None) -> None:
+        """Count one processed input that took ``seconds`` (sources call this per frame); with its
+        ``stamp_ns``, its age now counts as the node's latency (``AgeWindow`` says which ages count)."""
         self._state = "running"
         self._processed += 1
         self._processing.add(seconds)
+        if stamp_ns is not None:
+            self._ages.add_stamp(stamp_ns)
 
     def report(self, kind: str, detail: str, key: str = "", count: int = 1) -> None:
         """Count ``count`` skipped inputs; log and publish an ErrorReport at most once a second per kind and key."""
@@ -241,6 +246,7 @@ class Node:
         inputs = [inbox.counter.snapshot() for inbox in self._inboxes] + [s for s in tracked if s.direction == "in"]
         outputs = [pub.counter.snapshot() for pub in self._publishers] + [s for s in tracked if s.direction == "out"]
         p50, p99 = self._processing.percentiles_ms(50, 99)
+        age_p50, age_p99 = self._ages.percentiles_ms(50, 99)
         self._stats_seq += 1
         return NodeStats(
             header=Header(stamp_ns=time.time_ns(), seq=self._stats_seq),
@@ -250,7 +256,8 @@ class Node:
             received=sum(s.messages for s in inputs), published=sum(s.messages for s in outputs),
             processed=self._processed, dropped=sum(s.dropped for s in inputs),
             decode_errors=sum(s.decode_errors for s in inputs),
-            processing_ms_p50=p50, processing_ms_p99=p99, skipped=self.skipped(),
+            processing_ms_p50=p50, processing_ms_p99=p99, latency_ms_p50=age_p50, latency_ms_p99=age_p99,
+            skipped=self.skipped(),
             streams=tuple(inputs + outputs),
         )
 
@@ -288,6 +295,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None])
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: node.stop())
         log.info("node %s (%s) up on %s, pid %d", name, kind, node.keys.prefix, os.getpid())
+        settle_heap()
         try:
             body(node)
         except NodeError as exc:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.system import StreamStats
+from protocol.system import LATENCY_AGE_MAX_S, StreamStats
 
 
 @dataclass
@@ -81,3 +81,21 @@ class LatencyWindow:
                 return tuple(None for _ in qs)
             values = np.fromiter(self._values, dtype=np.float64) * 1e3
         return tuple(float(v) for v in np.percentile(values, qs))
+
+
+class AgeWindow(LatencyWindow):
+    """The ages of the last ``size`` inputs when they were done with (now - their header stamp, on
+    CLOCK_REALTIME), counting only ages from 0 to ``max_s``: a stamp from another clock (a replay
+    stamped with the recording's time, a host out of sync) gives no figure rather than a wrong one."""
+
+    def __init__(self, max_s: float = LATENCY_AGE_MAX_S, size: int = 1000):
+        super().__init__(size)
+        self.max_s = max_s
+
+    def add_stamp(self, stamp_ns: int, now_ns: int | None = None) -> bool:
+        """Count the age of an input stamped ``stamp_ns`` at ``now_ns`` (default: now); False when out of range."""
+        age = ((time.time_ns() if now_ns is None else now_ns) - stamp_ns) / 1e9
+        if not 0.0 <= age <= self.max_s:
+            return False
+        self.add(age)
+        return True

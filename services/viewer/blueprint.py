@@ -17,7 +17,7 @@ import rerun.blueprint as rrb
 from services.viewer import layout
 
 HEALTH = ((layout.RATE_HZ, "rates (Hz)"), (layout.PROCESSING_MS, "processing (ms)"),
-          (layout.DROPPED, "dropped"), (layout.DECODE_ERRORS, "decode errors"))
+          (layout.LATENCY_MS, "latency (ms)"), (layout.DROPPED, "dropped"), (layout.DECODE_ERRORS, "decode errors"))
 
 
 def blueprint(cameras: Sequence[str]) -> rrb.Blueprint:

@@ -58,6 +58,7 @@ ESTIMATE = "pose"
 TRUTH = "truth"
 RATE_HZ = "rate_hz"
 PROCESSING_MS = "processing_ms"
+LATENCY_MS = "latency_ms"
 DROPPED = "dropped"
 DECODE_ERRORS = "decode_errors"
 

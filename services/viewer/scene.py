@@ -199,7 +199,9 @@ class Scene:
         figures = [(layout.stats(layout.DROPPED, node), stats.dropped),
                    (layout.stats(layout.DECODE_ERRORS, node), stats.decode_errors),
                    (layout.stats(layout.PROCESSING_MS, node, "p50"), stats.processing_ms_p50),
-                   (layout.stats(layout.PROCESSING_MS, node, "p99"), stats.processing_ms_p99)]
+                   (layout.stats(layout.PROCESSING_MS, node, "p99"), stats.processing_ms_p99),
+                   (layout.stats(layout.LATENCY_MS, node, "p50"), stats.latency_ms_p50),
+                   (layout.stats(layout.LATENCY_MS, node, "p99"), stats.latency_ms_p99)]
         figures += [(layout.stats(layout.RATE_HZ, node, s.direction, s.key), s.rate_hz) for s in stats.streams]
         return [Row(entity, (rr.Scalars(value),)) for entity, value in figures if value is not None]
 

@@ -175,6 +175,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         received=big_counts, published=big_counts, processed=big_counts, dropped=big_counts,
         decode_errors=big_counts,
         processing_ms_p50=st.none() | finite, processing_ms_p99=st.none() | finite,
+        latency_ms_p50=st.none() | finite, latency_ms_p99=st.none() | finite,
         streams=_tuples_of(stream_stats)),
     "artrack.ClientState": st.builds(
         ClientState, header=headers, client=texts, app=texts, host=texts, pid=st.integers(-(2**70), 2**70),

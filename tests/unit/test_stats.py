@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,7 +12,7 @@ from hypothesis import strategies as st
 
 from protocol import StreamStats
 from services.runtime import stats
-from services.runtime.stats import LatencyWindow, RateMeter, StreamCounter
+from services.runtime.stats import AgeWindow, LatencyWindow, RateMeter, StreamCounter
 
 
 class FakeClock:
@@ -111,3 +112,21 @@ def test_stream_counter_rate_forgets_old_messages(clock: FakeClock):
     clock.now += 5.0
     snapshot = counter.snapshot()
     assert (snapshot.messages, snapshot.rate_hz) == (8, 0.0)
+
+
+def test_age_window_counts_recent_stamps_only():
+    ages = AgeWindow(max_s=10.0)
+    now = 1_700_000_000_000_000_000
+    assert ages.add_stamp(now - 2_000_000, now) and ages.add_stamp(now - 4_000_000, now)
+    assert ages.add_stamp(now, now)  # an age of zero counts
+    assert not ages.add_stamp(now + 1_000, now)  # stamped after now: another clock
+    assert not ages.add_stamp(now - 10_000_000_001, now)  # older than max_s: a replay's recorded time
+    assert len(ages) == 3
+    assert ages.percentiles_ms(50, 100) == pytest.approx((2.0, 4.0))
+
+
+def test_age_window_uses_the_wall_clock_by_default():
+    ages = AgeWindow()
+    assert ages.add_stamp(time.time_ns() - 5_000_000)
+    (p50,) = ages.percentiles_ms(50)
+    assert 5.0 <= p50 < 5.0 + 1e3 * ages.max_s

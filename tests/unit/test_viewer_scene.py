@@ -202,12 +202,14 @@ def test_point_clouds_are_points_in_their_frame_with_rgb_colours(view):
 def test_node_health_is_scalars_and_text_on_the_stamp_timeline_only(view):
     stats = NodeStats(header=Header(stamp_ns=BASE_NS, seq=41), node="det", kind="detection", host="h", pid=1,
                       uptime_s=3.0, dropped=4, decode_errors=2, processing_ms_p50=1.5, processing_ms_p99=9.0,
+                      latency_ms_p50=3.5, latency_ms_p99=12.0,
                       streams=(StreamStats(key="ar/rig0/cam0/image", direction="in", rate_hz=29.5),))
     report = ErrorReport(header=Header(stamp_ns=BASE_NS), node="det", kind="decode_error", detail="bad", key="k")
     contents = view([stats, report])
     value = lambda entity: contents.rows(entity, "Scalars:scalars")[0].numbers().tolist()  # noqa: E731
     assert value("stats/dropped/det") == [4] and value("stats/decode_errors/det") == [2]
     assert value("stats/processing_ms/det/p50") == [1.5] and value("stats/processing_ms/det/p99") == [9.0]
+    assert value("stats/latency_ms/det/p50") == [3.5] and value("stats/latency_ms/det/p99") == [12.0]
     assert value("stats/rate_hz/det/in/ar/rig0/cam0/image") == [29.5]
     row = contents.rows("stats/dropped/det", "Scalars:scalars")[0]
     assert row.times["stamp"] == BASE_NS and "seq" not in row.times
