@@ -23,15 +23,17 @@ def _ms(value: float | None) -> str:
 
 def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], NodeStats]) -> str:
     """A table of nodes with their health figures."""
-    header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "DECODE_ERR", "P50(ms)", "P99(ms)")
+    header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "DECODE_ERR", "P50(ms)", "P99(ms)",
+              "LAT50(ms)", "LAT99(ms)")
     rows = [header]
     for rig, name in nodes:
         s = states.get((rig, name))
         if s is None:
-            rows.append((rig, name, "?", "-", "-", "-", "-", "-", "-", "-", "-"))
+            rows.append((rig, name, "?", *("-",) * (len(header) - 3)))
             continue
         rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
-                     str(s.dropped), str(s.decode_errors), _ms(s.processing_ms_p50), _ms(s.processing_ms_p99)))
+                     str(s.dropped), str(s.decode_errors), _ms(s.processing_ms_p50), _ms(s.processing_ms_p99),
+                     _ms(s.latency_ms_p50), _ms(s.latency_ms_p99)))
     return format_table(rows)
 
 
