@@ -456,7 +456,8 @@ def parser() -> argparse.ArgumentParser:
                         help="also publish each camera's frames with a cube and axes drawn on every tracked "
                              "marker/board (key <camera>/overlay; logged by --rerun)")
     marker.add_argument("--depth", type=int, metavar="N", help="frames a marker node may queue while busy "
-                        "(default 1: latest wins; more tracks a recording whole through hiccups)")
+                        "(default 2: one frame waits, newer ones replace it; more tracks a recording whole "
+                        "through long hiccups)")
     p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
     p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
     _bus_options(p)

@@ -1,10 +1,11 @@
 """Markers node: finds ArUco / AprilTag markers in one camera's frames and publishes them.
 
 Each frame on ``<camera>/image`` yields one ``MarkerDetections`` on ``<camera>/markers``
-with the frame's header unchanged, zero rows when nothing was found. Frames are
-latest-wins (``depth`` 1): a frame that arrives while one is being searched replaces any
-frame still waiting, and is counted as dropped. The algorithm and the meaning of each
-setting are in ``services.detection.markers``.
+with the frame's header unchanged, zero rows when nothing was found. One frame may wait
+while another is searched (``depth`` 2), so a stall of the node or a late frame that comes
+in a burst with the next costs latency, not a frame; a frame arriving when ``depth`` wait
+already replaces the oldest, which is counted as dropped (latest wins). The algorithm and
+the meaning of each setting are in ``services.detection.markers``.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ class Params(DetectorSettings):
     RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING
 
     camera: KeyName = "cam0"
-    depth: int = Field(default=1, ge=1, le=1000,
-                       description="frames queued while busy; 1 = latest-wins, more rides out stalls")
+    depth: int = Field(default=2, ge=1, le=1000,
+                       description="frames queued while busy; 1 = always the newest only, more rides out stalls")
 
 
 def run(node: Node, params: Params) -> None:

@@ -78,7 +78,8 @@ class Params(DetectorSettings):
     method: Literal[METHODS] = DEFAULT_METHOD  # type: ignore[valid-type]
     corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
-    depth: int = Field(default=1, ge=1, le=1000, description="frames queued while busy (images input)")
+    depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (images input; as the "
+                                                             "markers node's: one waits, more are dropped)")
     overlay: bool = Field(default=False, description="publish the frames with a cube and axes drawn on each "
                                                      "tracked marker/board (images input)")
 
