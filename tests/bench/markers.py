@@ -18,8 +18,9 @@
 * ``overhead``: pipeline p50 - in-process p50, against both baselines. Target: <= 1 ms over
   the paced baseline, and ``FPS`` sustained with no frame dropped. The paced loop is the one
   judged because it gets the frames as the pipeline does, one every 1/``FPS`` s; on this
-  machine such a gap costs every code path a cold start (a pose decode: 5 us back to back,
-  60 us as the first call after 16 ms asleep), which back-to-back work never pays.
+  machine such a gap costs every code path a cold start (``tests.bench.codec``: a pose
+  decodes in 4 us back to back, 37 us as the first call after 16 ms asleep), which
+  back-to-back work never pays.
 
 ``python -m tests.bench.markers`` prints the lines (about 20 s).
 """
