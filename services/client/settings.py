@@ -55,7 +55,7 @@ def _nest(values: dict[str, Any], field: str, value: object) -> None:
 class BusSettings(BaseModel):
     """Mode, endpoints or config file, namespace, rig and security of one process's Zenoh session."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", hide_input_in_errors=True)  # the input may hold a password
 
     ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
         "ARTRACK_MODE": ("mode", str),

@@ -194,6 +194,9 @@ def test_errors_never_show_the_password(files):
     with pytest.raises(ValidationError, match="not both") as refused:
         Security(user="u", password="hunter2", password_file=files["password"])
     assert "hunter2" not in str(refused.value)
+    with pytest.raises(ValidationError, match="needs client mode") as refused:  # credentials given as a plain dict
+        BusSettings(mode="peer", security={"user": "u", "password": "hunter2"})
+    assert "hunter2" not in str(refused.value) and "nter2" not in str(refused.value)
 
 
 def test_an_empty_password_file_is_refused_when_the_session_is_configured(files):
