@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -106,3 +107,12 @@ class Security(BaseModel):
             entries["transport/auth/usrpwd/password"] = self.secret()
         for key, value in entries.items():
             config.insert_json5(key, json.dumps(value))
+
+
+def masked(value: Any) -> Any:
+    """``value`` with every ``password`` entry of its dicts (at any depth) shown as ``***``: what a
+    validation error may echo of settings given as plain dicts."""
+    if isinstance(value, dict):
+        return {key: "***" if key == "password" and item is not None else masked(item) for key, item in value.items()}
+    return value
+

@@ -24,10 +24,11 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, ModelWrapValidatorHandler, ValidationError, field_validator, model_validator
+from pydantic_core import InitErrorDetails
 
 from protocol.keys import Keys, check_name
-from services.client.security import Security
+from services.client.security import Security, masked
 from services.client.transport import LOCAL_ROUTER, session_config
 
 
@@ -55,7 +56,7 @@ def _nest(values: dict[str, Any], field: str, value: object) -> None:
 class BusSettings(BaseModel):
     """Mode, endpoints or config file, namespace, rig and security of one process's Zenoh session."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", hide_input_in_errors=True)  # the input may hold a password
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
         "ARTRACK_MODE": ("mode", str),
@@ -105,6 +106,17 @@ class BusSettings(BaseModel):
         if self.zenoh_config is None:
             self.security.check(self.mode, self.listen, self.connect)
         return self
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _no_password_in_errors(cls, data: Any, handler: ModelWrapValidatorHandler[BusSettings]) -> BusSettings:
+        """Errors show the input they refused, so a password given in a plain dict is masked in them."""
+        try:
+            return handler(data)
+        except ValidationError as exc:
+            details = [InitErrorDetails(type=e["type"], loc=e["loc"], input=masked(e["input"]), **(
+                {"ctx": e["ctx"]} if "ctx" in e else {})) for e in exc.errors()]
+            raise ValidationError.from_exception_data(exc.title, details) from None
 
     @property
     def keys(self) -> Keys:

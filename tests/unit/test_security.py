@@ -196,7 +196,11 @@ def test_errors_never_show_the_password(files):
     assert "hunter2" not in str(refused.value)
     with pytest.raises(ValidationError, match="needs client mode") as refused:  # credentials given as a plain dict
         BusSettings(mode="peer", security={"user": "u", "password": "hunter2"})
-    assert "hunter2" not in str(refused.value) and "nter2" not in str(refused.value)
+    assert "nter2" not in str(refused.value)
+    with pytest.raises(ValidationError) as refused:  # the other values refused are still shown
+        BusSettings(mode="router", security={"user": "u", "password": "hunter2"})
+    assert "'router'" in str(refused.value) and "nter2" not in str(refused.value)
+    assert [e["loc"] for e in refused.value.errors()] == [("mode",)]
 
 
 def test_an_empty_password_file_is_refused_when_the_session_is_configured(files):
