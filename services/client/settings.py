@@ -127,9 +127,14 @@ class BusSettings(BaseModel):
         return self.zenoh_config is None and not self.connect
 
     @property
+    def endpoints(self) -> tuple[str, ...]:
+        """The endpoints the session connects to; () with a config file (they are the file's)."""
+        return () if self.zenoh_config else self.connect or (LOCAL_ROUTER,)
+
+    @property
     def where(self) -> str:
         """Where the session goes, for error messages: the config file or the endpoints."""
-        return str(self.zenoh_config) if self.zenoh_config else ", ".join(self.connect or (LOCAL_ROUTER,))
+        return str(self.zenoh_config) if self.zenoh_config else ", ".join(self.endpoints)
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> BusSettings:

@@ -68,7 +68,12 @@ def open_session(bus: BusConfig) -> zenoh.Session:
 
 
 def _open_retrying(bus: BusConfig) -> zenoh.Session:
-    """Open the session, trying again until the bus answers; the first failure is logged once."""
+    """Open the session, trying again until the bus answers; the first failure is logged once.
+
+    Only an absent bus is waited for: when every endpoint accepts a TCP connection and the
+    session still fails (credentials or TLS refused, a listen port in use), waiting cannot
+    help, so the BusError comes at once.
+    """
     config = patient(bus.zenoh(), RETRY_ATTEMPT_MS)
     failed_at = None
     while True:
@@ -76,6 +81,9 @@ def _open_retrying(bus: BusConfig) -> zenoh.Session:
         try:
             session = zenoh.open(config)
         except zenoh.ZError as exc:
+            if bus.endpoints and all(reachable(endpoint) for endpoint in bus.endpoints):
+                raise BusError(f"cannot open the Zenoh session ({bus.mode} via {bus.where}), which answers, so "
+                               f"waiting will not help: {exc}") from exc
             if failed_at is None:
                 failed_at = time.monotonic()
                 log.error("cannot reach the bus (%s via %s): %s; retrying until it answers", bus.mode, bus.where,

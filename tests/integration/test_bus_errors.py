@@ -8,6 +8,8 @@ it fail like the one-shot commands.
 
 from __future__ import annotations
 
+import socket
+import threading
 import time
 from pathlib import Path
 
@@ -69,3 +71,40 @@ def test_peer_started_before_its_router_joins_once_the_router_is_up(bus, procs, 
             session.close()
     finally:
         router.close()
+
+
+def test_retrying_gives_up_at_once_when_the_endpoint_answers_but_the_session_fails(bus):
+    """A daemon waits for a router that is down, not for one that answers and refuses: here a busy
+    listen port beside a live router, then an endpoint that accepts TCP but never speaks Zenoh."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        cases = {
+            "busy listen port": bus.config.model_copy(update={"listen": (busy,), "retry": True}),
+            "not a Zenoh router": bus.config.model_copy(update={"mode": "client", "connect": (busy,), "retry": True}),
+        }
+        for case, config in cases.items():
+            outcome = opening(config, 10.0)
+            assert isinstance(outcome, Exception) and "waiting will not help" in str(outcome), (case, outcome)
+            assert config.where in str(outcome), case
+
+
+def opening(config, timeout_s: float) -> Exception | str:
+    """What opening a session with ``config`` ends in within ``timeout_s``: the error raised,
+    ``"opened"``, or ``"still trying"`` (the attempt runs on in a daemon thread)."""
+    from services.runtime.bus import open_session
+
+    outcome: list[Exception | str] = []
+
+    def attempt() -> None:
+        try:
+            open_session(config).close()
+            outcome.append("opened")
+        except Exception as exc:  # noqa: BLE001 - the test reports whatever it was
+            outcome.append(exc)
+
+    trying = threading.Thread(target=attempt, daemon=True)
+    trying.start()
+    trying.join(timeout_s)
+    return outcome[0] if outcome else "still trying"
