@@ -36,6 +36,16 @@ class BusError(RuntimeError):
     """The bus could not be opened as configured; the message says what and why."""
 
 
+def read_zenoh_config(path: Path) -> zenoh.Config:
+    """The Zenoh config in the JSON5/YAML file ``path``; BusError when it is missing or invalid."""
+    if not path.is_file():
+        raise BusError(f"Zenoh config file {path} does not exist")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise BusError(f"Zenoh config file {path} is invalid: {exc}") from exc
+
+
 def _endpoints(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
 
@@ -178,12 +188,7 @@ class BusSettings(BaseModel):
     def zenoh(self) -> zenoh.Config:
         """The Zenoh config these settings describe (BusError for a missing or invalid file)."""
         if self.zenoh_config is not None:
-            if not self.zenoh_config.is_file():
-                raise BusError(f"Zenoh config file {self.zenoh_config} does not exist")
-            try:
-                config = zenoh.Config.from_file(str(self.zenoh_config))
-            except zenoh.ZError as exc:
-                raise BusError(f"Zenoh config file {self.zenoh_config} is invalid: {exc}") from exc
+            config = read_zenoh_config(self.zenoh_config)
             self.security.apply(config)
             return config
         connect = self.connect or (LOCAL_ROUTER,)

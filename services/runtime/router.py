@@ -19,6 +19,7 @@ from pathlib import Path
 import zenoh
 
 from services.client.security import Security
+from services.client.settings import read_zenoh_config
 from services.client.transport import session_config
 from services.runtime.access import access_control, read_access
 from services.runtime.bus import BusError
@@ -31,9 +32,10 @@ def router_config(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_confi
                   access: Path | None = None) -> zenoh.Config:
     """A router config: a Zenoh config file when given, else explicit endpoints, no multicast;
     then ``security`` (TLS files), the ``users`` file and the ``access`` file on top.
-    ValueError naming the file or setting that cannot work."""
+    BusError naming a config file that is missing or invalid, ValueError naming any other file
+    or setting that cannot work."""
     if zenoh_config is not None:
-        config = zenoh.Config.from_file(str(zenoh_config))
+        config = read_zenoh_config(zenoh_config)
         config.insert_json5("mode", '"router"')
         if security is not None:
             security.apply(config)

@@ -43,12 +43,17 @@ def test_client_with_no_router_fails_with_one_clear_line(procs, unused_endpoint,
     assert took < 15, f"took {took:.1f} s to give up"
 
 
-def test_missing_zenoh_config_file_is_named(procs, tmp_path):
-    missing = tmp_path / "nowhere.json5"
-    done = procs.run("list", "--zenoh-config", str(missing), timeout=30)
-    assert done.poll() not in (None, 0), done.describe()
+@pytest.mark.parametrize("command", ["list", "router"])
+@pytest.mark.parametrize(("content", "reason"), [(None, "does not exist"), ("{bogus_key: 1}", "is invalid")])
+def test_a_missing_or_invalid_zenoh_config_file_is_named(procs, tmp_path, command, content, reason):
+    config = tmp_path / "zenoh.json5"
+    if content is not None:
+        config.write_text(content)
+    done = procs.run(command, "--zenoh-config", str(config), timeout=30)
+    assert done.poll() == 2, done.describe()
     lines = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and str(missing) in lines[0] and "does not exist" in lines[0], done.stderr
+    assert len(lines) == 1 and str(config) in lines[0] and reason in lines[0], done.stderr
+    assert "Traceback" not in done.stderr
 
 
 def test_peer_started_before_its_router_joins_once_the_router_is_up(bus, procs, unused_endpoint):
