@@ -17,10 +17,10 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from services.runtime.bus import LOCAL_ROUTER, BusConfig, BusError, open_session
+from services.bus.session import LOCAL_ROUTER, BusConfig, BusError, open_session
+from services.launcher.pipeline import PipelineError, describe
 from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
-from services.runtime.pipeline import PipelineError, describe
 
 log = logging.getLogger("artrack")
 
@@ -72,8 +72,8 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from services.daemon import Daemon
     from services.launch import read_pipeline
+    from services.launcher.daemon import Daemon
 
     spec = read_pipeline(args.pipeline)
     daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, **spec.bus))
@@ -85,7 +85,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from services.status import HEALTHY, UNHEALTHY, format_status, gather
+    from services.launcher.status import HEALTHY, UNHEALTHY, format_status, gather
 
     bus = _bus(args)
     session = open_session(bus)
@@ -100,7 +100,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    from services.runtime.reconfig import request_change
+    from services.launcher.reload import request_change
 
     values = {}
     for option in args.set or ():
@@ -127,8 +127,8 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from services.client.security import Security
-    from services.runtime.router import router_config, run_router
+    from services.bus.security import Security
+    from services.launcher.router import router_config, run_router
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -141,8 +141,8 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from services.client.discovery import live_nodes, node_states
-    from services.observe import format_nodes
+    from services.bus.discovery import live_nodes, node_states
+    from services.launcher.observe import format_nodes
 
     bus = _bus(args)
     session = open_session(bus)
@@ -159,7 +159,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from services.observe import echo, print_json_lines, resolve_key
+    from services.launcher.observe import echo, print_json_lines, resolve_key
 
     bus = _bus(args)
     session = open_session(bus)
@@ -179,7 +179,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from services.capture.node import Params as CaptureParams
-    from services.jobs import RECORDING_SCHEME, JobError, Recording, run_job
+    from services.launcher.job import RECORDING_SCHEME, JobError, Recording, run_job
     from services.pipelines import PIPELINES
 
     given = {name: getattr(args, name) for name in PIPELINES["marker"].options}
@@ -200,14 +200,14 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from services.demo import run_demo
+    from services.launcher.demo import run_demo
 
     chosen = {name: value for name, value in (("recording", args.recording), ("runs", args.runs)) if value}
     return run_demo(_bus(args), **chosen)
 
 
 def cmd_node(args: argparse.Namespace) -> int:
-    from services.catalog import kind
+    from services.launcher.kinds import kind
     from services.runtime.node import run_node
 
     node_kind = kind(args.kind)
@@ -352,8 +352,8 @@ def _image_files(where: str, pattern: str) -> list[Path]:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import cv2
 
-    from services.capture.calibration import write_camera_info
-    from services.estimation.calibration import Charuco, Chessboard, calibrate_images
+    from services.calibration.camera_info import write_camera_info
+    from services.calibration.intrinsics import Charuco, Chessboard, calibrate_images
 
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
@@ -377,7 +377,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    from services.catalog import KINDS
+    from services.launcher.kinds import KINDS
     from services.pipelines import PIPELINES
 
     top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")

@@ -9,10 +9,10 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from services.catalog import kind
-from services.runtime.bus import BusConfig
-from services.runtime.pipeline import NodeSpec, PipelineSpec, load_pipeline
-from services.runtime.supervisor import ProcessSpec
+from services.bus.session import BusConfig
+from services.launcher.kinds import kind
+from services.launcher.pipeline import NodeSpec, PipelineSpec, load_pipeline
+from services.launcher.supervisor import ProcessSpec
 
 
 def node_command(kind_name: str, name: str, params: dict[str, Any]) -> tuple[str, ...]:

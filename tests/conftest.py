@@ -65,7 +65,7 @@ class Bus:
     endpoint: str
     rig: str
     marker: str
-    config: object  # services.runtime.bus.BusConfig
+    config: object  # services.bus.session.BusConfig
     env: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -78,7 +78,7 @@ def router():
     """An in-process Zenoh router on a free 127.0.0.1 port; yields its endpoint ``tcp/127.0.0.1:PORT``."""
     import zenoh
 
-    from services.runtime.router import router_config
+    from services.launcher.router import router_config
 
     zenoh.init_log_from_env_or("error")
     session, last_error = None, None
@@ -106,7 +106,7 @@ def unused_endpoint() -> str:
 @pytest.fixture
 def bus(router) -> Bus:
     """Bus settings of this test: its router, a unique rig, and the child-process environment."""
-    from services.runtime.bus import BusConfig
+    from services.bus.session import BusConfig
 
     marker = uuid.uuid4().hex[:12]
     rig = f"t{marker}"
@@ -127,7 +127,7 @@ def bus(router) -> Bus:
 @pytest.fixture
 def session(bus):
     """A Zenoh peer session of the test process on the test's bus (closed after the test)."""
-    from services.runtime.bus import open_session
+    from services.bus.session import open_session
 
     opened = open_session(bus.config)
     try:

@@ -29,7 +29,8 @@ from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
-from services.capture.calibration import read_camera_info
+from services.bus.pubsub import Role
+from services.calibration.camera_info import read_camera_info
 from services.capture.sources import (
     FrameFault,
     Source,
@@ -39,10 +40,9 @@ from services.capture.sources import (
     open_source,
     rig_camera_names,
 )
+from services.convert import camera_info, frame_transforms
 from services.geometry.camera import CameraModel
-from services.runtime.convert import camera_info, frame_transforms
 from services.runtime.node import Node, NodeError
-from services.runtime.pubsub import Role
 
 SETTLE_S = 0.3
 """Pause after the first subscriber appears, so its own outputs reach their subscribers too."""

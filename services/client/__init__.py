@@ -6,9 +6,9 @@ nodes; the ``Client`` it returns iterates poses (``poses``, ``poses_async``), ca
 (``services``, ``status``, ``calibration``). Apps never build key strings or decode bytes.
 """
 
+from services.bus.security import Security
+from services.bus.settings import BusError, BusSettings
 from services.client.client import Client, connect
-from services.client.security import Security
-from services.client.settings import BusError, BusSettings
 from services.client.streams import AsyncPoseStream, PoseStream, PoseUpdate
 
 __all__ = ["AsyncPoseStream", "BusError", "BusSettings", "Client", "PoseStream", "PoseUpdate", "Security", "connect"]

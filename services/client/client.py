@@ -31,9 +31,9 @@ from protocol.keys import Keys
 from protocol.message import Header
 from protocol.sensors import CameraInfo
 from protocol.system import ClientState, NodeStats
-from services.client.discovery import first_answers, live_nodes, node_states
-from services.client.security import Security
-from services.client.settings import BusSettings
+from services.bus.discovery import first_answers, live_nodes, node_states
+from services.bus.security import Security
+from services.bus.settings import BusSettings
 from services.client.streams import DEFAULT_DEPTH, AsyncPoseStream, Feed, PoseStream, PoseUpdate
 
 Stream = PoseStream | AsyncPoseStream

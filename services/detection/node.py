@@ -18,10 +18,10 @@ from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.sensors import Image
+from services.bus.pubsub import Role
 from services.detection.markers import MarkerFound
 from services.detection.settings import DetectorSettings
 from services.runtime.node import Node, NodeError
-from services.runtime.pubsub import Role
 
 
 class Params(DetectorSettings):

@@ -10,8 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from protocol.keys import KeyName
 from protocol.sensors import Image
+from services.bus.pubsub import Role
 from services.runtime.node import Node
-from services.runtime.pubsub import Role
 
 
 class Params(BaseModel):

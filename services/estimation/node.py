@@ -46,7 +46,9 @@ from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import CameraInfo, Image
-from services.capture.calibration import CalibrationError, read_camera_info
+from services.bus.pubsub import Inbox, Publisher, Role
+from services.calibration.camera_info import CalibrationError, read_camera_info
+from services.convert import camera_model, transform_from_matrix
 from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
@@ -54,9 +56,7 @@ from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marke
 from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, FrameEstimate, MarkerPoseEstimator
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
-from services.runtime.convert import camera_model, transform_from_matrix
 from services.runtime.node import Node, NodeError
-from services.runtime.pubsub import Inbox, Publisher, Role
 
 FIRST_INFO_WAIT_S = 0.05
 """The longest the first frame's markers wait for the camera's first CameraInfo."""

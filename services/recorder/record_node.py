@@ -29,12 +29,12 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.keys import Keys
-from services.observe import resolve_key
+from services.bus.stats import StreamCounter
+from services.launcher.observe import resolve_key
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.peek import Identity, identify
 from services.recorder.writing import RecordingWriter, Split, check_target
 from services.runtime.node import POLL_S, Node
-from services.runtime.stats import StreamCounter
 
 MB = 1 << 20
 START = "{start}"

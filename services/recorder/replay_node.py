@@ -41,11 +41,11 @@ from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.sensors import Image
 from protocol.system import ErrorReport, NodeStats
-from services.observe import resolve_key
+from services.bus.pubsub import RawPublisher, Role
+from services.launcher.observe import resolve_key
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
 from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded
 from services.runtime.node import Node
-from services.runtime.pubsub import RawPublisher, Role
 
 SETTLE_S = 0.2
 COMMANDS = ("pause", "resume", "step", "status")

@@ -34,11 +34,11 @@ from pydantic import BaseModel
 from protocol.codec import DecodeError, decode, encode
 from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats
-from services.runtime.bus import BusConfig, BusError, open_session
+from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
+from services.bus.session import BusConfig, BusError, open_session
+from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
 from services.runtime.memory import settle_heap
-from services.runtime.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.runtime.reconfig import LiveParams
-from services.runtime.stats import AgeWindow, LatencyWindow, StreamCounter
 
 M = TypeVar("M", bound=Message)
 P = TypeVar("P", bound=BaseModel)

@@ -30,8 +30,8 @@ from pathlib import Path
 from pydantic import Field, model_validator
 
 from protocol.keys import Keys
+from services.bus.pubsub import Role
 from services.runtime.node import Node
-from services.runtime.pubsub import Role
 from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
 

@@ -2,7 +2,7 @@
 
 The bench process publishes; a sink process it spawns (``tests.bench.sink``) subscribes and
 decodes. They talk peer to peer over a loopback TCP endpoint on a free port, multicast
-scouting off, no router (``services.runtime.bus.session_config``); Zenoh's default config
+scouting off, no router (``services.bus.session.session_config``); Zenoh's default config
 applies otherwise, so large payloads travel through its implicit shared memory.
 
 Measured, each figure a median over ``RUNS`` runs:

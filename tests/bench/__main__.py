@@ -26,8 +26,8 @@ from collections.abc import Callable
 from typing import Any
 
 from protocol import encode
+from services.bus.pubsub import Role
 from services.runtime.memory import tune_malloc
-from services.runtime.pubsub import Role
 from tests.accuracy.report import report_lines
 from tests.bench.apps import bench_apps
 from tests.bench.codec import bench_codec

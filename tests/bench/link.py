@@ -27,8 +27,8 @@ from typing import Any
 import zenoh
 
 from protocol.keys import Keys
-from services.client.transport import session_config
-from services.runtime.bus import BusConfig, reachable
+from services.bus.session import BusConfig, reachable
+from services.bus.transport import session_config
 from tests.bench.sink import REPLY
 
 ROOT = Path(__file__).resolve().parents[2]

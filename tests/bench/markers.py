@@ -40,15 +40,15 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from services.bus.discovery import client_states, node_states
+from services.bus.session import BusConfig, open_session
 from services.capture.scenes import make_scene
 from services.client import PoseUpdate, connect
-from services.client.discovery import client_states, node_states
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_pose import MarkerPoseEstimator
 from services.launch import node_command
-from services.observe import wait_for_nodes
-from services.runtime.bus import BusConfig, open_session
-from services.runtime.router import router_config
+from services.launcher.observe import wait_for_nodes
+from services.launcher.router import router_config
 from tests.bench.link import cpu_seconds, free_port
 
 ROOT = Path(__file__).resolve().parents[2]

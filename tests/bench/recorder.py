@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 
 from protocol import CameraInfo, Header, Image, decode
+from services.bus.pubsub import Publisher, Role
+from services.bus.session import BusConfig, open_session
 from services.recorder.reading import Scan
 from services.recorder.replay_node import Params, replay
 from services.recorder.writing import RECORDER_METADATA
-from services.runtime.bus import BusConfig, open_session
 from services.runtime.memory import tune_malloc
 from services.runtime.node import Node
-from services.runtime.pubsub import Publisher, Role
 from tests.bench.link import Bench, cpu_seconds
 
 CAMERAS = 4

@@ -24,7 +24,7 @@ from typing import Any
 
 from protocol import encode
 from protocol.keys import Keys
-from services.runtime.pubsub import Role
+from services.bus.pubsub import Role
 from tests.bench.figures import alternating, paired_median, variant_line
 from tests.bench.link import RIG, Bench, Sink, direct_app, routed_app
 from tests.bench.runs import Run, measure

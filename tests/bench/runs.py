@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from services.runtime.pubsub import Role
+from services.bus.pubsub import Role
 from tests.bench.link import BenchError, Sink
 from tests.bench.traffic import Sender, SenderFactory
 

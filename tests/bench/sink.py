@@ -32,8 +32,8 @@ from typing import Any
 
 import zenoh
 
+from services.bus.transport import session_config
 from services.client import Client, connect
-from services.client.transport import session_config
 from services.runtime.memory import tune_malloc
 from tests.bench.traffic import reader, typed_reader_spec
 

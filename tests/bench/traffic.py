@@ -3,11 +3,11 @@
 Three kinds of traffic:
 
 * ``typed`` images: for every message a ``protocol.Image`` is built around the numpy frame
-  and put through ``services.runtime.pubsub.Publisher``, which encodes it; the sink runs
+  and put through ``services.bus.pubsub.Publisher``, which encodes it; the sink runs
   ``protocol.decode`` and gets the pixels as a read-only numpy view.
 * ``raw`` images: the same frame as plain bytes, joined behind a zero-padded prefix that makes
   the payload exactly as long as the typed one (one copy of the pixels, as ``encode`` makes),
-  put through ``services.runtime.pubsub.RawPublisher`` (what ``Publisher`` puts its encoded
+  put through ``services.bus.pubsub.RawPublisher`` (what ``Publisher`` puts its encoded
   bytes through); the sink does ``payload.to_bytes()`` and ``np.frombuffer``.
 * poses: a ``protocol.Pose`` (JSON codec) built and put through ``Publisher``, decoded by the sink.
 
@@ -30,7 +30,7 @@ import numpy as np
 import zenoh
 
 from protocol import Header, Image, Pose, PoseQuality, Transform, decode, encode
-from services.runtime.pubsub import Publisher, RawPublisher, Role
+from services.bus.pubsub import Publisher, RawPublisher, Role
 
 STAMP = struct.Struct("<q")
 FRAME_ID = "cam0"

@@ -32,9 +32,9 @@ from protocol.message import Header, Message
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from protocol.spatial import Transform
-from services.observe import resolve_key
-from services.runtime.bus import BusConfig, open_session
-from services.runtime.pubsub import Publisher, Role
+from services.bus.pubsub import Publisher, Role
+from services.bus.session import BusConfig, open_session
+from services.launcher.observe import resolve_key
 
 BASE_STAMP_NS = 1_700_000_000_000_000_000
 MATCH_TIMEOUT_S = 20.0

@@ -77,14 +77,14 @@ def json_lines(text: str) -> list[dict]:
 
 def live_names(session, keys) -> set[str]:
     """Names of the nodes of ``keys.rig`` holding a liveliness token now."""
-    from services.client.discovery import live_nodes
+    from services.bus.discovery import live_nodes
 
     return {name for rig, name in live_nodes(session, keys, 0.3) if rig == keys.rig}
 
 
 def states(session, keys) -> dict:
     """``{node name: NodeStats}`` answered on the state queryables of ``keys.rig``."""
-    from services.client.discovery import node_states
+    from services.bus.discovery import node_states
 
     return {name: s for (rig, name), s in node_states(session, keys, 2.0).items() if rig == keys.rig}
 

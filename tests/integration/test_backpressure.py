@@ -9,7 +9,7 @@ import time
 import pytest
 
 from protocol.sensors import Image
-from services.runtime.pubsub import Inbox, Role
+from services.bus.pubsub import Inbox, Role
 
 from .busprobe import make_message
 from .support import START_S, probe_argv, published, wait_until
@@ -115,7 +115,7 @@ def test_result_overflow_is_counted_and_logged_not_silent(bus, procs, session, c
     count, depth = 200, 20
     key = f"{bus.keys.prefix}/probe/overflow"
     results = Inbox(session, key, Image, Role.RESULT, depth=depth)
-    caplog.set_level(logging.WARNING, logger="services.runtime.pubsub")
+    caplog.set_level(logging.WARNING, logger="services.bus.pubsub")
     publisher = _flood(procs, session, key, "result", count, rate=0)
     wait_until(lambda: published(publisher), START_S + 20.0, "the flood")  # nobody takes meanwhile
 

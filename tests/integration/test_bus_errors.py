@@ -60,8 +60,8 @@ def test_peer_started_before_its_router_joins_once_the_router_is_up(bus, procs, 
     """Peer mode does not fail when the router is missing: it runs alone and connects when one appears."""
     import zenoh
 
-    from services.runtime.bus import open_session
-    from services.runtime.router import router_config
+    from services.bus.session import open_session
+    from services.launcher.router import router_config
 
     node = procs.artrack("node", "echo", "--name", "early", env={"ARTRACK_CONNECT": unused_endpoint})
     wait_until(lambda: "node early (echo) up" in node.stderr, START_S, "the node to run without a router")
@@ -98,7 +98,7 @@ def test_retrying_gives_up_at_once_when_the_endpoint_answers_but_the_session_fai
 def opening(config, timeout_s: float) -> Exception | str:
     """What opening a session with ``config`` ends in within ``timeout_s``: the error raised,
     ``"opened"``, or ``"still trying"`` (the attempt runs on in a daemon thread)."""
-    from services.runtime.bus import open_session
+    from services.bus.session import open_session
 
     outcome: list[Exception | str] = []
 

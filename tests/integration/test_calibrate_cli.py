@@ -9,7 +9,7 @@ import re
 
 import pytest
 
-from services.capture.calibration import read_camera_info
+from services.calibration.camera_info import read_camera_info
 from tests.data import data_dir
 
 pytestmark = pytest.mark.integration

@@ -4,9 +4,9 @@ import cv2
 import numpy as np
 
 from protocol import CameraInfo, GroundTruth, Image
-from services.capture.calibration import write_camera_info
+from services.bus.pubsub import Inbox, Role
+from services.calibration.camera_info import write_camera_info
 from services.geometry.camera import CameraModel
-from services.runtime.pubsub import Inbox, Role
 from tests.integration.support import START_S, collect, start_node
 
 

@@ -14,9 +14,9 @@ import pytest
 from protocol.message import Header
 from protocol.poses import Pose
 from protocol.sensors import CameraInfo
+from services.bus.discovery import client_states
+from services.bus.pubsub import Inbox, Publisher, Role
 from services.client import BusError, BusSettings, Client, connect
-from services.client.discovery import client_states
-from services.runtime.pubsub import Inbox, Publisher, Role
 from tests.integration.support import START_S, collect, start_node, wait_live, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]

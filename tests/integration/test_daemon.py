@@ -14,8 +14,8 @@ import pytest
 
 from protocol.detections import MarkerDetections
 from protocol.poses import Pose, TrackingState
+from services.bus.pubsub import Inbox, Role
 from services.client.client import connect
-from services.runtime.pubsub import Inbox, Role
 
 from .support import START_S, collect, json_lines, pid_alive, wait_until
 

@@ -9,7 +9,7 @@ import pytest
 from protocol.codec import encode
 from protocol.sensors import Image
 from protocol.system import ErrorReport
-from services.runtime.pubsub import Inbox, Publisher, Role
+from services.bus.pubsub import Inbox, Publisher, Role
 
 from .busprobe import make_message
 from .support import START_S, start_node, states, wait_live, wait_until

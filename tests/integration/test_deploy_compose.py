@@ -11,8 +11,8 @@ import signal
 import pytest
 
 from protocol.poses import Pose, TrackingState
-from services.runtime.bus import BusConfig
-from services.runtime.pubsub import Inbox, Role
+from services.bus.pubsub import Inbox, Role
+from services.bus.session import BusConfig
 from tests.deploy_files import artrack_services, host_pipeline, instruction
 from tests.integration.support import START_S, collect, states, wait_until
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from protocol.sensors import Image
-from services.runtime.pubsub import Inbox, Role
+from services.bus.pubsub import Inbox, Role
 
 from .support import START_S, live_names, pid_alive, states, wait_live, wait_until
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from protocol import CameraInfo, Image, Pose, TrackingState
+from services.bus.pubsub import Inbox, Role
+from services.convert import camera_model, matrix_from_transform
 from services.estimation.overlay import cube_edges, to_bgr8
 from services.geometry.camera import project_points
 from services.geometry.se3 import transform_points
-from services.runtime.convert import camera_model, matrix_from_transform
-from services.runtime.pubsub import Inbox, Role
-from services.viewer.contents import RrdContents
+from tests.viewer_contents import RrdContents
 
 from .support import START_S
 

@@ -83,7 +83,7 @@ class Hosts:
 
     def reaches(self, host: str, endpoint: str) -> bool:
         """Whether a TCP connection from ``host`` to ``endpoint`` succeeds."""
-        probe = f"import sys; from services.runtime.bus import reachable; sys.exit(0 if reachable({endpoint!r}) else 1)"
+        probe = f"import sys; from services.bus.session import reachable; sys.exit(0 if reachable({endpoint!r}) else 1)"
         return subprocess.run([*self.run(host), sys.executable, "-c", probe], cwd=ROOT, timeout=30).returncode == 0
 
     def peers_of(self, host: str, port: int) -> set[str]:

@@ -23,11 +23,11 @@ from protocol import CameraInfo, Header, Image, Message, Pose, decode, encode
 from protocol.codec import MEDIA_FRAME
 from protocol.schemas import json_schema
 from protocol.spatial import Transform
+from services.bus.pubsub import Publisher, Role
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.reading import Scan, indexed
 from services.recorder.record_node import Tap
 from services.recorder.writing import RecordingWriter
-from services.runtime.pubsub import Publisher, Role
 
 from .support import START_S, live_names, states, wait_live, wait_until
 

@@ -13,8 +13,8 @@ import time
 import pytest
 
 from protocol.sensors import Image
-from services.runtime.bus import open_session, reachable
-from services.runtime.pubsub import Inbox, Role
+from services.bus.pubsub import Inbox, Role
+from services.bus.session import open_session, reachable
 
 from .support import ROOT, START_S, collect, kill_hard, start_node, start_router, wait_live, wait_until
 

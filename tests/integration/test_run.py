@@ -3,8 +3,8 @@
 from mcap.reader import make_reader
 
 from protocol import decode
-from services.viewer.contents import RrdContents
 from tests.integration.support import START_S
+from tests.viewer_contents import RrdContents
 
 
 def test_run_records_a_finite_job_and_exits_cleanly(procs, tmp_path):

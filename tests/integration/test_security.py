@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from protocol.codec import encode
+from services.bus.discovery import client_states
+from services.bus.session import reachable
 from services.client import BusError, BusSettings, Security, connect
-from services.client.discovery import client_states
-from services.runtime.bus import reachable
 from tests.conftest import free_port
 from tests.integration.busprobe import make_message
 from tests.integration.support import START_S, wait_live, wait_until

@@ -8,8 +8,8 @@ import pytest
 
 from protocol.poses import Pose
 from protocol.sensors import Image
-from services.runtime.bus import open_session
-from services.runtime.pubsub import Inbox, Role
+from services.bus.pubsub import Inbox, Role
+from services.bus.session import open_session
 
 from .busprobe import make_message
 from .support import START_S, probe_argv, published, wait_until

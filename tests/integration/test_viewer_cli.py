@@ -11,7 +11,7 @@ import pytest
 from protocol import Header, Image, decode, encode
 from services.recorder.reading import EXIT_DAMAGED, Scan
 from services.recorder.writing import RecordingWriter
-from services.viewer.contents import RrdContents
+from tests.viewer_contents import RrdContents
 
 from .support import START_S, start_node, states, wait_live, wait_until
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from protocol import Header, MarkerDetections, Pose, Transform
+from services.bus.pubsub import Publisher, Role
 from services.capture.scenes import make_scene
-from services.runtime.pubsub import Publisher, Role
-from services.viewer.contents import RrdContents
+from tests.viewer_contents import RrdContents
 
 from .support import START_S, start_node, states, wait_live, wait_until
 

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.estimation.calibration import (
+from services.calibration.intrinsics import (
     MIN_TILT_SPREAD_DEG,
     CalibrationError,
     Charuco,

@@ -13,11 +13,12 @@ from protocol.system import ConfigChange, PipelineHealth, SupervisedNode
 from services.capture.node import Params as CaptureParams
 from services.detection.node import Params as MarkerParams
 from services.launch import params_model, read_pipeline
+from services.launcher.pipeline import PipelineError
+from services.launcher.reload import plan_reload
+from services.launcher.status import Status
+from services.launcher.supervisor import RestartBudget
 from services.runtime.logs import JsonFormatter, log_format
-from services.runtime.pipeline import PipelineError
-from services.runtime.reconfig import LiveParams, Refused, changed_params, plan_reload
-from services.runtime.supervisor import RestartBudget
-from services.status import Status
+from services.runtime.reconfig import LiveParams, Refused, changed_params
 
 PIPELINE = """
 [nodes.cam]

@@ -18,11 +18,11 @@ from pathlib import PurePosixPath
 import pytest
 import zenoh
 
+from services.bus.session import BusConfig
 from services.cli import parser
 from services.launch import read_pipeline
-from services.runtime.bus import BusConfig
+from services.launcher.pipeline import PipelineError
 from services.runtime.logs import FORMAT_ENV, LEVEL_ENV, log_format
-from services.runtime.pipeline import PipelineError
 from tests.deploy_files import DOCKER, ROUTER, artrack_services, compose, host_pipeline, instruction
 
 LOG_ENV = {FORMAT_ENV, LEVEL_ENV}

@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from services.bus.session import BusConfig
 from services.launch import processes, read_pipeline
-from services.runtime.bus import BusConfig
-from services.runtime.pipeline import PipelineError
+from services.launcher.pipeline import PipelineError
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -8,12 +8,12 @@ import pytest
 from mcap.records import Channel
 
 from protocol.keys import Keys
+from services.bus.pubsub import Role
 from services.recorder.record_node import Params as RecordParams
 from services.recorder.record_node import subscriptions
 from services.recorder.replay_node import Params as ReplayParams
 from services.recorder.replay_node import Selection, role_of
 from services.recorder.writing import check_target, part_path
-from services.runtime.pubsub import Role
 
 KEYS = Keys("ar", "lab")
 

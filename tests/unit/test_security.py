@@ -10,11 +10,11 @@ import zenoh
 from pydantic import ValidationError
 
 from protocol.keys import Keys
+from services.bus.session import BusConfig
+from services.bus.transport import session_config
 from services.client import BusSettings, Security
-from services.client.transport import session_config
-from services.runtime.access import MESSAGES, access_control, read_access
-from services.runtime.bus import BusConfig
-from services.runtime.router import router_config
+from services.launcher.access import MESSAGES, access_control, read_access
+from services.launcher.router import router_config
 
 
 @pytest.fixture

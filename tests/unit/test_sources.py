@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.calibration import CalibrationError, read_camera_info, write_camera_info
+from services.calibration.camera_info import CalibrationError, read_camera_info, write_camera_info
 from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source
 from services.geometry.camera import CameraModel
 

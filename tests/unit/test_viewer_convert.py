@@ -8,9 +8,9 @@ import pytest
 from protocol import CameraInfo, Header, Image, MarkerDetections, NodeStats, Pose, Transform, encode
 from services.recorder.reading import NotMcap
 from services.recorder.writing import RecordingWriter
-from services.viewer.contents import RrdContents
 from services.viewer.convert import convert
 from services.viewer.scene import ViewOptions
+from tests.viewer_contents import RrdContents
 
 PREFIX = "ar/lab"
 FRAMES = 20

@@ -28,10 +28,10 @@ from protocol import (
     TrackingState,
     Transform,
 )
-from services.viewer.contents import RrdContents
 from services.viewer.images import RateGate
 from services.viewer.recording import SinkError, ViewLog, open_recording
 from services.viewer.scene import Scene, Trail, ViewOptions
+from tests.viewer_contents import RrdContents
 
 BASE_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 33_333_333

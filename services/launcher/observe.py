@@ -13,8 +13,8 @@ import zenoh
 from protocol.codec import DecodeError, to_json
 from protocol.keys import Keys
 from protocol.system import NodeStats
-from services.client.discovery import live_nodes
-from services.runtime.pubsub import Inbox, Received, Role
+from services.bus.discovery import live_nodes
+from services.bus.pubsub import Inbox, Received, Role
 
 
 def _ms(value: float | None) -> str:

@@ -31,8 +31,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from protocol.keys import check_name
-from services.runtime.bus import BusConfig
-from services.runtime.supervisor import SupervisorSettings
+from services.bus.session import BusConfig
+from services.launcher.supervisor import SupervisorSettings
 
 
 class PipelineError(ValueError):

@@ -1,6 +1,6 @@
 """``artrack up``: a pipeline file run as supervised processes, for days.
 
-The process supervises one process per node (``services.runtime.supervisor``: back-off and
+The process supervises one process per node (``services.launcher.supervisor``: back-off and
 restart budget from the file's ``[supervisor]`` table), answers ``PipelineHealth`` on
 ``keys.supervisor(<file stem>)`` (what ``artrack status`` reads), and on SIGHUP re-reads
 the file: reloadable parameter changes are pushed to the running nodes through their
@@ -23,11 +23,11 @@ import zenoh
 from protocol.codec import encode
 from protocol.message import Header
 from protocol.system import PipelineHealth, SupervisedNode
+from services.bus.session import BusConfig, BusError, open_session
 from services.launch import params_model, processes, read_pipeline
-from services.runtime.bus import BusConfig, BusError, open_session
-from services.runtime.pipeline import PipelineError, PipelineSpec
-from services.runtime.reconfig import plan_reload, request_change
-from services.runtime.supervisor import Supervisor
+from services.launcher.pipeline import PipelineError, PipelineSpec
+from services.launcher.reload import plan_reload, request_change
+from services.launcher.supervisor import Supervisor
 
 log = logging.getLogger("artrack.up")
 

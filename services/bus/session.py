@@ -8,7 +8,7 @@ itself a while after its last peer has gone. Peers that met through it also conn
 other directly, so data does not pass through it.
 
 Every session tries a lost endpoint again by itself (Zenoh's reconnect, see
-``services.client.transport.RECONNECT``), so a restarted router is rejoined without help. A
+``services.bus.transport.RECONNECT``), so a restarted router is rejoined without help. A
 long-running process (``retry``: nodes and ``artrack up``) also waits for a router that is not
 there yet: it logs one error naming the endpoint and keeps trying, where a one-shot command
 fails at once with ``BusError``.
@@ -29,8 +29,8 @@ from typing import Any, ClassVar
 import zenoh
 from pydantic import Field
 
-from services.client.settings import BusError, BusSettings, flag
-from services.client.transport import LOCAL_ROUTER, patient
+from services.bus.settings import BusError, BusSettings, flag
+from services.bus.transport import LOCAL_ROUTER, patient
 
 __all__ = ["LOCAL_ROUTER", "BusConfig", "BusError", "ensure_local_router", "open_session", "reachable"]
 

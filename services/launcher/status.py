@@ -22,8 +22,8 @@ import zenoh
 
 from protocol.keys import Keys
 from protocol.system import ClientState, NodeStats, PipelineHealth
-from services.client.discovery import client_states, first_answers, node_states
-from services.observe import format_table
+from services.bus.discovery import client_states, first_answers, node_states
+from services.launcher.observe import format_table
 
 HEALTHY, UNHEALTHY = 0, 1
 

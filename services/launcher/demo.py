@@ -23,12 +23,12 @@ from typing import TextIO
 import numpy as np
 
 from protocol.poses import GroundTruth, Pose, TrackingState
+from services.bus.pubsub import Inbox, Role
+from services.bus.session import BusConfig, open_session
+from services.convert import matrix_from_transform
 from services.geometry.evaluation import pose_error
-from services.jobs import RECORDING_SCHEME, Recording, run_job
+from services.launcher.job import RECORDING_SCHEME, Recording, run_job
 from services.recorder.info import summarise
-from services.runtime.bus import BusConfig, open_session
-from services.runtime.convert import matrix_from_transform
-from services.runtime.pubsub import Inbox, Role
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RECORDING = ROOT / "recordings" / "markers.mcap"

@@ -5,7 +5,7 @@ long; the router that artrack starts on demand uses it, a router started by hand
 
 A hardened router listens on ``tls/`` endpoints with its certificate (``Security``), checks
 ``user:password`` lines of a users file (Zenoh's ``usrpwd`` dictionary), and applies an access
-file (``services.runtime.access``).
+file (``services.launcher.access``).
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import zenoh
 
-from services.client.security import Security
-from services.client.settings import read_zenoh_config
-from services.client.transport import session_config
-from services.runtime.access import access_control, read_access
-from services.runtime.bus import BusError
+from services.bus.security import Security
+from services.bus.session import BusError
+from services.bus.settings import read_zenoh_config
+from services.bus.transport import session_config
+from services.launcher.access import access_control, read_access
 
 log = logging.getLogger(__name__)
 

@@ -19,17 +19,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from services.bus.discovery import node_states
+from services.bus.session import BusConfig, open_session
 from services.capture.node import Params as CaptureParams
 from services.capture.sources import camera_names
-from services.catalog import kind
-from services.client.discovery import node_states
 from services.launch import node_command
-from services.observe import wait_for_nodes
+from services.launcher.kinds import kind
+from services.launcher.observe import wait_for_nodes
+from services.launcher.supervisor import ProcessSpec, Supervisor
 from services.pipelines import PIPELINES, NodeSet
 from services.recorder.info import summarise
 from services.recorder.reading import NotMcap
-from services.runtime.bus import BusConfig, open_session
-from services.runtime.supervisor import ProcessSpec, Supervisor
 
 log = logging.getLogger(__name__)
 

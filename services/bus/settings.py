@@ -12,7 +12,7 @@ Three ways to say it, in order of precedence:
 ``namespace`` and ``rig`` (``ARTRACK_NAMESPACE``, ``ARTRACK_RIG``) say whose keys to use.
 ``security`` (``ARTRACK_TLS_ROOT_CA``, ``ARTRACK_TLS_CERT``, ``ARTRACK_TLS_KEY``,
 ``ARTRACK_TLS_MUTUAL``, ``ARTRACK_USER``, ``ARTRACK_PASSWORD`` or ``ARTRACK_PASSWORD_FILE``) adds
-TLS and credentials to the endpoints' config (see ``services.client.security``).
+TLS and credentials to the endpoints' config (see ``services.bus.security``).
 Multicast scouting is always off unless a config file turns it on.
 """
 
@@ -28,8 +28,8 @@ from pydantic import BaseModel, ConfigDict, ModelWrapValidatorHandler, Validatio
 from pydantic_core import InitErrorDetails
 
 from protocol.keys import Keys, check_name
-from services.client.security import Security, masked
-from services.client.transport import LOCAL_ROUTER, session_config
+from services.bus.security import Security, masked
+from services.bus.transport import LOCAL_ROUTER, session_config
 
 
 class BusError(RuntimeError):

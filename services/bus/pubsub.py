@@ -34,7 +34,7 @@ import zenoh
 
 from protocol.codec import DecodeError, decode, encode, media_type
 from protocol.message import Message
-from services.runtime.stats import StreamCounter
+from services.bus.stats import StreamCounter
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 The client library may depend on nothing but ``protocol`` and zenoh, and a client must open its
 session exactly as the nodes do (same endpoints, same scouting, same security), so the config
-layer lives here and ``services.runtime.bus`` builds on it.
+layer lives here and ``services.bus.session`` builds on it.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import json
 
 import zenoh
 
-from services.client.security import Security
+from services.bus.security import Security
 
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 """Where processes on one machine meet when nothing else is said."""

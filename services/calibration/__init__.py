@@ -1,0 +1,2 @@
+"""Calibration files and methods: ROS camera_info YAML in and out, intrinsic calibration from
+chessboard and ChArUco photos."""
