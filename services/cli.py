@@ -177,26 +177,95 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    from services.capture.node import Params as CaptureParams
-    from services.launcher.job import RECORDING_SCHEME, JobError, Recording, run_job
-    from services.pipelines import PIPELINES
+SOURCE_SKIP = {"scene", "wait_for_subscriber"}
+"""Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
 
-    given = {name: getattr(args, name) for name in PIPELINES["marker"].options}
-    options = {name: str(value) if isinstance(value, Path) else value for name, value in given.items()
-               if value is not None}
-    if any(uri.startswith(RECORDING_SCHEME) for uri in args.source):
-        if len(args.source) > 1:
-            raise JobError("a recording is the whole rig: give one --source recording:PATH and nothing else")
-        return run_job(_bus(args), args.pipeline, Recording.open(args.source[0]), options, args.record, args.rerun)
-    scene = {}
-    for option in args.scene_option or ():
-        name, _, value = option.partition("=")
-        scene[name] = json.loads(value) if value[:1] in "0123456789-[{tf" else value
-    capture = _params(CaptureParams, "capture", source=tuple(args.source), cameras=tuple(args.cameras or ()),
-                      fps=args.fps, frames=args.frames, loop=args.loop or None, calib=tuple(args.calib or ()),
-                      scene=scene, stamps=args.stamps)
-    return run_job(_bus(args), args.pipeline, capture, options, args.record, args.rerun)
+
+def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
+    """The parser of ``artrack run TRACKER``: source flags, the tracker's generated flags, job and bus options."""
+    from services.launcher.flags import add_flags, flags_for
+    from services.launcher.kinds import kind
+    from services.launcher.tracker import Tracker
+
+    chosen = Tracker.load(tracker)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary)
+    source = flags_for(kind("capture").params, SOURCE_SKIP)
+    add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
+                                   "rig)"), source)
+    p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option, "
+                   "converted by its type (a list as JSON: ids=[1,2])")
+    own = chosen.flags({flag.field: flag for flag in source})
+    if own:
+        add_flags(p.add_argument_group(f"{tracker} tracker (node kinds: "
+                                       f"{', '.join(k for k, _, _ in chosen.models())})"), own)
+    job = p.add_argument_group("job")
+    job.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
+    job.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
+    job.add_argument("--save-pipeline", type=Path, metavar="FILE.toml", help="write the job as a pipeline file "
+                     "(`artrack up FILE.toml` runs it as a daemon) and exit without running it")
+    _bus_options(p)
+    return p, source, own
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from services.launcher.flags import explain, given_values
+    from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job, run_job
+    from services.launcher.kinds import catalogue, kind
+    from services.launcher.pipeline import NodeSpec, read_pipeline, save_pipeline
+    from services.launcher.tracker import Tracker
+
+    if args.tracker is None or args.tracker in ("-h", "--help"):
+        trackers = catalogue().trackers
+        print("usage: artrack run TRACKER --source URI [options]   (artrack run TRACKER --help: its options)\n"
+              "       artrack run PIPELINE.toml                     (a pipeline file run as one job)\ntrackers:")
+        for name in sorted(trackers):
+            print(f"  {name:<10} {Tracker.load(name).summary}")
+        return 0 if args.tracker else 2
+    if args.tracker.endswith(".toml"):
+        run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
+        spec = read_pipeline(Path(args.tracker))
+        return run_job(_bus(run_args, **spec.bus), spec)
+    p, source_flags, own_flags = _run_parser(args.tracker)
+    run_args = p.parse_args(args.rest, namespace=args)
+    given = given_values(run_args, source_flags)
+    options = given_values(run_args, own_flags)
+    sources = given.get("source", [])
+    if not sources:
+        p.error("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
+    if any(uri.startswith(RECORDING_SCHEME) for uri in sources):
+        if len(sources) > 1 or len(given) > 1 or run_args.scene_option:
+            raise JobError("a recording is the whole rig: give one --source recording:PATH and no other source "
+                           "option")
+        source: NodeSpec | Recording = Recording.open(sources[0])
+    else:
+        scene = {}
+        for option in run_args.scene_option or ():
+            name, sep, value = option.partition("=")
+            if not sep or not name:
+                raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
+            scene[name] = value
+        try:
+            kind("capture").validate({**given, "scene": scene})
+        except ValidationError as exc:
+            raise ValueError(explain(exc, source_flags, "source")) from exc
+        source = NodeSpec(kind="capture", **given, scene=scene)
+    spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
+    if run_args.save_pipeline is not None:
+        save_pipeline(spec, run_args.save_pipeline)
+        print(f"wrote {run_args.save_pipeline}: {len(spec.nodes)} nodes ({', '.join(spec.nodes)}); "
+              f"run it with `artrack up {run_args.save_pipeline}`")
+        return 0
+    bus = _bus(run_args, **spec.bus)
+    if isinstance(source, Recording):
+        bus = source.on_bus(bus)
+    return run_job(bus, spec)
+
+
+def _pipeline_job_parser(path: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"artrack run {path}", description="a pipeline file run as one job: its "
+                                "sources start last, and the job ends when they do")
+    _bus_options(p)
+    return p
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -212,14 +281,32 @@ def cmd_node(args: argparse.Namespace) -> int:
 
     node_kind = kind(args.kind)
     try:
-        params = node_kind.params(json.loads(args.params))
+        params = node_kind.validate(json.loads(args.params))
     except json.JSONDecodeError as exc:
         raise PipelineError(f"--params is not JSON: {exc}") from exc
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
-    module = node_kind.load()
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: module.run(node, params))
+    return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: node_kind.run(node, params))
+
+
+def cmd_kinds(args: argparse.Namespace) -> int:
+    from services.launcher.kinds import catalogue, kind
+
+    for name, module in sorted(catalogue().kinds.items()):
+        print(f"{name:<12} {kind(name).summary}  ({module})")
+    return 0
+
+
+def cmd_trackers(args: argparse.Namespace) -> int:
+    from services.launcher.kinds import catalogue
+    from services.launcher.tracker import Tracker
+
+    for name, path in sorted(catalogue().trackers.items()):
+        chosen = Tracker.load(name)
+        kinds = ", ".join(k for k, _, _ in chosen.models()) or "no node: the source alone"
+        print(f"{name:<10} {chosen.summary}  [{kinds}]  ({path})")
+    return 0
 
 
 def cmd_schemas(args: argparse.Namespace) -> int:
@@ -377,9 +464,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    from services.launcher.kinds import KINDS
-    from services.pipelines import PIPELINES
-
     top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")
     top.add_argument("--log-format", choices=FORMATS, help=f"log lines as text or JSON objects (env {FORMAT_ENV}; "
                      "default text); `up` passes it on to its nodes")
@@ -432,36 +516,17 @@ def parser() -> argparse.ArgumentParser:
     _bus_options(p)
     p.set_defaults(func=cmd_echo)
 
-    p = sub.add_parser("run", help="one job: capture from a source through a pipeline, optionally recorded")
-    p.add_argument("pipeline", choices=sorted(PIPELINES),
-                   help="; ".join(f"{name}: {pipeline.summary}" for name, pipeline in PIPELINES.items()))
-    p.add_argument("--source", action="append", required=True, metavar="URI",
-                   help="camera:N, video:PATH, images:DIR or synthetic:SCENE (repeat for a rig), "
-                        "or recording:PATH.mcap (replayed on its own rig)")
-    p.add_argument("--cameras", nargs="+", metavar="NAME", help="camera names (default: the source's, or cam0...)")
-    p.add_argument("--fps", type=float, help="pace (default: the source's own timing)")
-    p.add_argument("--frames", type=int, help="stop after this many frames")
-    p.add_argument("--loop", action="store_true", help="start finite sources over when they end")
-    p.add_argument("--calib", action="append", type=Path, metavar="FILE", help="ROS camera_info YAML, per camera")
-    p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option")
-    p.add_argument("--stamps", choices=("wall", "source"), help="stamp frames with capture or source time")
-    marker = p.add_argument_group("marker pipeline")
-    marker.add_argument("--dictionary", metavar="NAME", help="OpenCV dictionary name (e.g. DICT_5X5_100, "
-                        "DICT_APRILTAG_36h11) or a custom dictionary YAML (default DICT_4X4_50)")
-    marker.add_argument("--marker-length", type=float, metavar="M", help="marker side length in metres")
-    marker.add_argument("--board", type=Path, metavar="FILE", help="a board / marker map YAML: one pose for all "
-                        "its markers (see README)")
-    marker.add_argument("--method", help="pose method (see README; default the most accurate on the tests)")
-    marker.add_argument("--overlay", action="store_true", default=None,
-                        help="also publish each camera's frames with a cube and axes drawn on every tracked "
-                             "marker/board (key <camera>/overlay; logged by --rerun)")
-    marker.add_argument("--depth", type=int, metavar="N", help="frames a marker node may queue while busy "
-                        "(default 2: one frame waits, newer ones replace it; more tracks a recording whole "
-                        "through long hiccups)")
-    p.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
-    p.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
-    _bus_options(p)
+    p = sub.add_parser("run", add_help=False, help="one job: a source through a tracker (`artrack trackers` lists "
+                       "them; `artrack run TRACKER --help` its options), optionally recorded")
+    p.add_argument("tracker", nargs="?", metavar="TRACKER")
+    p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("kinds", help="the node kinds found (with ARTRACK_PLUGINS, in those packages too)")
+    p.set_defaults(func=cmd_kinds)
+
+    p = sub.add_parser("trackers", help="the trackers found: pipeline templates `artrack run` fills")
+    p.set_defaults(func=cmd_trackers)
 
     p = sub.add_parser("demo", help="the bundled marker session tracked live and scored against ground truth")
     p.add_argument("--recording", type=Path, metavar="IN.mcap", help="the recording to play (default: "
@@ -471,7 +536,7 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("node", help="run one node in the foreground (what `up` starts per node)")
-    p.add_argument("kind", choices=sorted(KINDS), help="; ".join(f"{k.name}: {k.summary}" for k in KINDS.values()))
+    p.add_argument("kind", help="a node kind (`artrack kinds` lists them)")
     p.add_argument("--name", help="node name (default: the kind)")
     p.add_argument("--params", default="{}", metavar="JSON", help="the kind's parameters as a JSON object")
     _bus_options(p)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from protocol.keys import KeyName
 from protocol.message import Header
@@ -31,17 +31,20 @@ from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
+from services.capture.scenes import scene_options
 from services.capture.sources import (
     FrameFault,
     Source,
     SourceError,
     SourceFrame,
+    camera_names,
     check_uri,
     open_source,
     rig_camera_names,
 )
 from services.convert import camera_info, frame_transforms
 from services.geometry.camera import CameraModel
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
 SETTLE_S = 0.3
@@ -83,6 +86,17 @@ class Params(BaseModel):
         for uri in uris:
             check_uri(uri)
         return uris
+
+    @model_validator(mode="after")
+    def _typed_scene_options(self) -> Params:
+        """Scene options converted by each synthetic source's option types (text from a command line too)."""
+        typed = dict(self.scene)
+        for uri in self.source:
+            scheme, name = check_uri(uri)
+            if scheme == "synthetic":
+                typed.update(scene_options(name, self.scene))
+        self.scene = typed
+        return self
 
 
 class Rig:
@@ -231,3 +245,12 @@ class _Pacer:
             due = now
         self.count += 1
         node.wait(due - now)
+
+
+def _outputs(params: Params) -> tuple[str, ...]:
+    names = params.cameras or camera_names(params.source, params.scene)
+    return tuple(f"{name}/{stream}" for name in names for stream in ("image", "camera_info", "truth"))
+
+
+KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
+                params=Params, run=run, inputs=(), outputs=_outputs)

@@ -21,6 +21,7 @@ from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.detection.markers import MarkerFound
 from services.detection.settings import DetectorSettings
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
 
@@ -52,3 +53,7 @@ def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDet
     """``found`` in an image with ``header`` as the message that carries it."""
     return MarkerDetections(header=header, dictionary=dictionary, ids=found.ids, corners=found.corners,
                             quality=found.quality, side_m=found.side_m)
+
+
+KIND = NodeKind(name="markers", summary="detects ArUco/AprilTag markers in a camera's frames",
+                params=Params, run=run, inputs=("{camera}/image",), outputs=("{camera}/markers",))

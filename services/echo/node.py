@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.keys import KeyName
 from protocol.sensors import Image
 from services.bus.pubsub import Role
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 
 
@@ -29,3 +30,7 @@ def run(node: Node, params: Params) -> None:
     out = node.publisher(node.keys.echo(params.camera), Image, Role.FRAME)
     for image in node.inputs(frames):
         out.put(image)
+
+
+KIND = NodeKind(name="echo", summary="relays a camera's frames to its echo key",
+                params=Params, run=run, inputs=("{camera}/image",), outputs=("{camera}/echo",))

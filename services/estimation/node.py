@@ -56,6 +56,7 @@ from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marke
 from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, FrameEstimate, MarkerPoseEstimator
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
 FIRST_INFO_WAIT_S = 0.05
@@ -267,3 +268,18 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
     ) for estimate in result.poses])
     return result
+
+
+def _inputs(params: Params) -> tuple[str, ...]:
+    stream = "image" if params.input == "images" else "markers"
+    return (f"{params.camera}/{stream}", f"{params.camera}/camera_info")
+
+
+def _outputs(params: Params) -> tuple[str, ...]:
+    extra = (f"{params.camera}/markers",) if params.input == "images" else ()
+    return (f"pose/{params.camera}/**", *extra, *((f"{params.camera}/overlay",) if params.overlay else ()))
+
+
+KIND = NodeKind(name="marker_pose",
+                summary="marker and board poses from a camera's frames (or a markers node's detections)",
+                params=Params, run=run, inputs=_inputs, outputs=_outputs)

@@ -27,7 +27,8 @@ from services.bus.pubsub import Inbox, Role
 from services.bus.session import BusConfig, open_session
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import pose_error
-from services.launcher.job import RECORDING_SCHEME, Recording, run_job
+from services.launcher.job import RECORDING_SCHEME, Recording, build_job, run_job
+from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,7 +125,9 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     collector = threading.Thread(target=_collect, args=(session, bus, card, stop, out), daemon=True)
     collector.start()
     try:
-        code = run_job(bus, "marker", source, {"marker_length": MARKER_LENGTH_M, "depth": FRAME_QUEUE}, record, rerun)
+        tracker = Tracker.load("marker")
+        options = {"marker_length": MARKER_LENGTH_M, "depth": FRAME_QUEUE}
+        code = run_job(bus, build_job(tracker, source, options, tracker.flags({}), record, rerun))
     finally:
         stop.set()
         collector.join()

@@ -1,12 +1,15 @@
-"""``artrack run``: one job = a source + a named pipeline + recorder/viewer, each its own process.
+"""``artrack run``: one job = a source + a tracker's nodes + recorder/viewer, each its own process.
 
+The job is a ``PipelineSpec`` like any pipeline file (``--save-pipeline`` writes it, ``artrack
+up`` runs it as a daemon): ``build_job`` fills a tracker template for the source's cameras.
 The source is a capture node (any capture URI) or a replay node (``recording:PATH.mcap``:
 the cameras' images, calibration and ground truth, restamped with the time they go out, on
-the recording's own rig). Order of start: the pipeline's nodes and the recorder/viewer
-first; once every one of them is live (plus a moment for their subscriptions to reach the
-bus), the source. When a finite source ends, the job waits for the pipeline to go quiet (no
-pipeline node received anything for ``QUIET_S``), then stops every node, so the recorder
-closes its file with everything in it. A live source runs until SIGINT/SIGTERM.
+the recording's own rig). A job differs from a daemon only in its order and its end: the
+nodes that read the bus start first; once every one of them is live (plus a moment for their
+subscriptions to reach the bus), the sources (the nodes that read nothing). When the sources
+end, the job waits for the pipeline to go quiet (no node received anything for ``QUIET_S``),
+then stops every node, so the recorder closes its file with everything in it. A live source
+runs until SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -15,19 +18,17 @@ import logging
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from services.bus.discovery import node_states
 from services.bus.session import BusConfig, open_session
-from services.capture.node import Params as CaptureParams
-from services.capture.sources import camera_names
-from services.launch import node_command
-from services.launcher.kinds import kind
+from services.launcher.flags import Flag
 from services.launcher.observe import wait_for_nodes
-from services.launcher.supervisor import ProcessSpec, Supervisor
-from services.pipelines import PIPELINES, NodeSet
+from services.launcher.pipeline import NodeSpec, PipelineSpec, processes, resolved
+from services.launcher.supervisor import Supervisor
+from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 from services.recorder.reading import NotMcap
 
@@ -84,64 +85,65 @@ class JobError(ValueError):
     """A job that cannot start as asked; the message says why."""
 
 
-def job_nodes(pipeline: str, source: CaptureParams | Recording, options: dict[str, Any], record: Path | None,
-              rerun: Path | None) -> tuple[NodeSet, tuple[str, dict[str, Any]]]:
-    """The job's downstream nodes and its source node, all parameters validated."""
-    if pipeline not in PIPELINES:
-        raise JobError(f"unknown pipeline {pipeline!r} (known: {', '.join(sorted(PIPELINES))})")
-    chosen = PIPELINES[pipeline]
-    unknown = sorted(set(options) - set(chosen.options))
-    if unknown:
-        takes = ", ".join(f"--{o.replace('_', '-')}" for o in chosen.options) or "no options"
-        raise JobError(f"pipeline {pipeline!r} does not take {', '.join(unknown)} (it takes {takes})")
+def cameras_of(node: NodeSpec) -> list[str]:
+    """The cameras a (resolved) source node publishes images of, from its declared outputs."""
+    return [key.removesuffix("/image") for key in node.outputs or () if key.endswith("/image")]
+
+
+def source_node(source: NodeSpec | Recording) -> tuple[str, NodeSpec]:
+    """``(node name, node)`` of a job's source: a source node (capture) as given, or a recording's replay."""
     if isinstance(source, Recording):
-        cameras, source_node = list(source.cameras), source.node()
-    else:
-        cameras = list(source.cameras) or camera_names(source.source, source.scene)
-        source_node = ("capture", source.model_dump(mode="json", exclude_defaults=True))
-    nodes = chosen.nodes(cameras, options)
+        name, params = source.node()
+        return name, NodeSpec(kind=name, **params)
+    return source.kind, source
+
+
+def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str, Any], flags: list[Flag],
+              record: Path | None = None, rerun: Path | None = None) -> PipelineSpec:
+    """The job's pipeline: the source, the tracker's nodes for its cameras, a recorder and a viewer if asked;
+    every node validated, its inputs and outputs filled in."""
+    name, node = source_node(source)
+    where = f"tracker {tracker.name}"
+    cameras = cameras_of(resolved(PipelineSpec(nodes={name: node}), where).nodes[name])
+    nodes = {name: node, **tracker.expand(cameras, options, flags)}
     if record is not None:
-        nodes["recorder"] = ("recorder", {"out": str(record)})
+        nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:
-        nodes["viewer"] = ("viewer", {"rrd": str(rerun)})
-    for node_kind, params in [*nodes.values(), source_node]:
-        kind(node_kind).params(params)
-    return nodes, source_node
+        nodes["viewer"] = NodeSpec(kind="viewer", rrd=str(rerun))
+    bus = {"namespace": source.namespace, "rig": source.rig} if isinstance(source, Recording) else {}
+    return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 
 
-def run_job(bus: BusConfig, pipeline: str, source: CaptureParams | Recording, options: dict[str, Any] | None = None,
-            record: Path | None = None, rerun: Path | None = None) -> int:
-    """Run the job to the end of its source (or a signal); 0 when every node ended cleanly."""
-    nodes, (source_kind, source_params) = job_nodes(pipeline, source, options or {}, record, rerun)
-    if isinstance(source, Recording):
-        bus = source.on_bus(bus)
+def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
+    """Run the job to the end of its sources (or a signal); 0 when every source ended cleanly."""
+    sources = spec.sources()
+    if not sources:
+        raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
+    downstream = [name for name in spec.nodes if name not in sources]
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    env = bus.to_env()
-    downstream = [ProcessSpec(name, node_command(k, name, p), env) for name, (k, p) in nodes.items()]
-    origin = ProcessSpec(source_kind, node_command(source_kind, source_kind, source_params), env, restart=False)
     session = open_session(bus)
-    supervisor = Supervisor(downstream)
+    supervisor = Supervisor(processes(spec, bus, downstream))
     try:
         supervisor.start()
-        live = wait_for_nodes(session, bus.keys, set(nodes), START_LIMIT_S)
-        if live != set(nodes):
-            log.error("nodes %s did not come up within %.0f s", sorted(set(nodes) - live), START_LIMIT_S)
+        live = wait_for_nodes(session, bus.keys, set(downstream), START_LIMIT_S)
+        if live != set(downstream):
+            log.error("nodes %s did not come up within %.0f s", sorted(set(downstream) - live), START_LIMIT_S)
             return 1
         time.sleep(SETTLE_S)
-        source_supervisor = Supervisor([origin])
+        origin = [replace(p, restart=False) for p in processes(spec, bus, sources)]
+        source_supervisor = Supervisor(origin)
         source_supervisor.start()
-        log.info("job %s on %s: %s from %s", pipeline, bus.keys.prefix, source_kind,
-                 source.path if isinstance(source, Recording) else ", ".join(source.source))
+        log.info("job on %s: %s", bus.keys.prefix, ", ".join(f"{n} ({spec.nodes[n].kind})" for n in spec.nodes))
         while not stop.is_set() and source_supervisor.step():
             supervisor.step()
             stop.wait(0.05)
-        code = source_supervisor.exit_codes().get(source_kind)
+        codes = source_supervisor.exit_codes()
         source_supervisor.stop()
         if not stop.is_set():
-            _drain(session, bus, set(nodes) - set(SINKS))
-        return 0 if stop.is_set() or code == 0 else 1
+            _drain(session, bus, {n for n in downstream if spec.nodes[n].kind not in SINKS})
+        return 0 if stop.is_set() or all(codes.get(name) == 0 for name in sources) else 1
     finally:
         supervisor.stop()
         session.close()

@@ -1,6 +1,8 @@
-"""Pipeline files: which nodes ``artrack up`` starts, each as its own process.
+"""Pipelines: which nodes run, each as its own process, and what each reads and writes.
 
-A pipeline is a TOML file::
+``artrack up FILE.toml`` reads a pipeline from a file, ``artrack run TRACKER`` builds one from
+a tracker template and flags (``--save-pipeline FILE.toml`` writes it out); both give the same
+``PipelineSpec``. The file::
 
     [bus]               # optional, any BusConfig field: namespace, rig, connect, listen, mode
     rig = "demo"
@@ -13,39 +15,52 @@ A pipeline is a TOML file::
     kind = "capture"    # a node kind (``artrack kinds`` lists them)
     restart = true      # restart it when it dies (default)
     fps = 30            # every other key is a parameter of the kind
+    outputs = ["cam0/image", "cam0/camera_info", "cam0/truth"]   # optional: the keys it writes
 
     [nodes.echo]
     kind = "echo"
+    inputs = ["cam0/image"]                                      # optional: the keys it reads
 
-The whole file is validated, node parameters included, before any process starts; the
-first error names the file, the field and the reason.
+``inputs`` and ``outputs`` (keys relative to ``<namespace>/<rig>/``) follow from the kind and
+its parameters; a file may state them, and then they must agree, so a reader of the file sees
+the wiring and a file edited out of step with it is refused. The whole file is validated,
+node parameters included, before any process starts; the first error names the file, the
+field and the reason.
 """
 
 from __future__ import annotations
 
+import json
+import sys
 import tomllib
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from protocol.keys import check_name
 from services.bus.session import BusConfig
-from services.launcher.supervisor import SupervisorSettings
+from services.launcher.kinds import kind
+from services.launcher.supervisor import ProcessSpec, SupervisorSettings
+
+RESERVED = ("kind", "restart", "inputs", "outputs")
+"""Keys of a node table that are not parameters of its kind."""
 
 
 class PipelineError(ValueError):
-    """A pipeline file that cannot run; the message names the file, field and reason."""
+    """A pipeline that cannot run; the message names the file, field and reason."""
 
 
 class NodeSpec(BaseModel):
-    """One node of a pipeline: its kind, restart policy, and the kind's parameters (extra keys)."""
+    """One node of a pipeline: its kind, restart policy, declared keys and the kind's parameters (extra keys)."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
 
     kind: str
     restart: bool = True
+    inputs: tuple[str, ...] | None = None
+    outputs: tuple[str, ...] | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -66,6 +81,10 @@ class PipelineSpec(BaseModel):
             check_name(name, "node name")
         return nodes
 
+    def sources(self) -> list[str]:
+        """The nodes that read nothing from the bus (captures, replays): where data enters."""
+        return [name for name, node in self.nodes.items() if not node.inputs]
+
 
 def describe(error: ValidationError, prefix: str = "") -> str:
     """One line per problem: ``field.path: reason``."""
@@ -76,11 +95,37 @@ def describe(error: ValidationError, prefix: str = "") -> str:
     return "; ".join(lines)
 
 
-def load_pipeline(path: Path, check_node: Callable[[str, NodeSpec], None]) -> PipelineSpec:
-    """Read and validate ``path``; ``check_node(name, spec)`` validates each node's kind and params.
+def resolved(spec: PipelineSpec, where: str = "pipeline") -> PipelineSpec:
+    """``spec`` with every node's parameters validated by its kind and its inputs and outputs filled in.
 
-    ``check_node`` raises ValueError (pydantic's ValidationError included) for a bad node.
+    Raises PipelineError naming ``where``, the node and the field: an unknown kind, a bad
+    parameter, or stated keys that differ from what the kind reads and writes with those parameters.
     """
+    try:
+        BusConfig.model_validate(spec.bus)
+    except ValidationError as exc:
+        raise PipelineError(f"{where}: {describe(exc, 'bus')}") from exc
+    nodes = {}
+    for name, node in spec.nodes.items():
+        try:
+            node_kind = kind(node.kind)
+            params = node_kind.validate(node.params)
+        except ValidationError as exc:
+            raise PipelineError(f"{where}: {describe(exc, f'nodes.{name}')}") from exc
+        except ValueError as exc:
+            raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+        inputs, outputs = node_kind.keys(params)
+        for field, stated, derived in (("inputs", node.inputs, inputs), ("outputs", node.outputs, outputs)):
+            if stated is not None and tuple(stated) != derived:
+                raise PipelineError(f"{where}: nodes.{name}.{field}: a {node.kind} node with these parameters has "
+                                    f"{field} {list(derived)}, the file says {list(stated)} (keys follow from the "
+                                    f"parameters: change those, or drop {field})")
+        nodes[name] = node.model_copy(update={"inputs": inputs, "outputs": outputs})
+    return spec.model_copy(update={"nodes": nodes})
+
+
+def read_pipeline(path: Path) -> PipelineSpec:
+    """Load and fully validate a pipeline file (raises PipelineError)."""
     try:
         document = tomllib.loads(path.read_text())
     except OSError as exc:
@@ -91,15 +136,53 @@ def load_pipeline(path: Path, check_node: Callable[[str, NodeSpec], None]) -> Pi
         spec = PipelineSpec.model_validate(document)
     except ValidationError as exc:
         raise PipelineError(f"{path}: {describe(exc)}") from exc
-    try:
-        BusConfig.model_validate(spec.bus)
-    except ValidationError as exc:
-        raise PipelineError(f"{path}: {describe(exc, 'bus')}") from exc
+    return resolved(spec, str(path))
+
+
+def to_toml(spec: PipelineSpec) -> str:
+    """The pipeline file of ``spec``: what ``read_pipeline`` reads back as the same pipeline."""
+    document: dict[str, Any] = {}
+    if spec.bus:
+        document["bus"] = {k: v for k, v in spec.bus.items() if v is not None}
+    supervisor = spec.supervisor.model_dump(mode="json", exclude_defaults=True)
+    if supervisor:
+        document["supervisor"] = supervisor
+    document["nodes"] = {}
     for name, node in spec.nodes.items():
-        try:
-            check_node(name, node)
-        except ValidationError as exc:
-            raise PipelineError(f"{path}: {describe(exc, f'nodes.{name}')}") from exc
-        except ValueError as exc:
-            raise PipelineError(f"{path}: nodes.{name}: {exc}") from exc
-    return spec
+        params = kind(node.kind).validate(node.params).model_dump(mode="json", exclude_unset=True, exclude_none=True)
+        table: dict[str, Any] = {"kind": node.kind, **({} if node.restart else {"restart": False}), **params}
+        for field in ("inputs", "outputs"):
+            if getattr(node, field) is not None:
+                table[field] = list(getattr(node, field))
+        document["nodes"][name] = table
+    return tomli_w.dumps(document)
+
+
+def save_pipeline(spec: PipelineSpec, path: Path) -> None:
+    """Write ``spec`` to ``path`` as a pipeline file (ValueError naming the path when it cannot be written)."""
+    try:
+        path.write_text(to_toml(spec))
+    except OSError as exc:
+        raise PipelineError(f"cannot write {path}: {exc.strerror}") from exc
+
+
+def node_command(kind_name: str, name: str, params: dict[str, Any]) -> tuple[str, ...]:
+    """The command that runs one node in its own process."""
+    return (sys.executable, "-m", "services.cli", "node", kind_name, "--name", name,
+            "--params", json.dumps(params, default=str))
+
+
+def params_model(kind_name: str) -> type[BaseModel]:
+    """The Params model of a node kind (its ``RELOADABLE`` fields may change live)."""
+    return kind(kind_name).params
+
+
+def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None) -> list[ProcessSpec]:
+    """One ProcessSpec per pipeline node (or per node of ``names``), sharing ``bus``."""
+    env = bus.to_env()
+    return [ProcessSpec(name, node_command(node.kind, name, node.params), env, node.restart)
+            for name, node in spec.nodes.items() if names is None or name in names]
+
+
+__all__ = ["NodeSpec", "PipelineError", "PipelineSpec", "describe", "node_command", "params_model",
+           "processes", "read_pipeline", "resolved", "save_pipeline", "to_toml"]

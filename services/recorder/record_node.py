@@ -34,6 +34,7 @@ from services.launcher.observe import resolve_key
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.peek import Identity, identify
 from services.recorder.writing import RecordingWriter, Split, check_target
+from services.runtime.kind import NodeKind
 from services.runtime.node import POLL_S, Node
 
 MB = 1 << 20
@@ -169,3 +170,11 @@ def _write(node: Node, writer: RecordingWriter, arrival: Arrival) -> None:
     started = time.perf_counter()
     writer.write(*arrival)
     node.processed(time.perf_counter() - started)
+
+
+def _inputs(params: Params) -> tuple[str, ...]:
+    return tuple(params.keys) or ("**",)
+
+
+KIND = NodeKind(name="recorder", summary="records the rig's keys to MCAP files",
+                params=Params, run=run, inputs=_inputs, outputs=())

@@ -45,6 +45,7 @@ from services.bus.pubsub import RawPublisher, Role
 from services.launcher.observe import resolve_key
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
 from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 
 SETTLE_S = 0.2
@@ -251,3 +252,11 @@ def send_control(session: zenoh.Session, keys: Keys, name: str, command: str, ti
         return None
     finally:
         querier.undeclare()
+
+
+def _outputs(params: Params) -> tuple[str, ...]:
+    return tuple(params.keys) or ("**",)
+
+
+KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
+                params=Params, run=run, inputs=(), outputs=_outputs)

@@ -31,6 +31,7 @@ from pydantic import Field, model_validator
 
 from protocol.keys import Keys
 from services.bus.pubsub import Role
+from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
@@ -85,3 +86,12 @@ def run(node: Node, params: Params) -> None:
             while (received := inbox.take()) is not None:
                 view.log(received.message)
         node.log.info("logged %d rows", view.rows)
+
+
+def _inputs(params: Params) -> tuple[str, ...]:
+    return (*(f"*/{stream}" for stream in CAMERA_STREAMS), "pose/**", "bodies", "map", "node/*/stats",
+            "node/*/errors")
+
+
+KIND = NodeKind(name="viewer", summary="logs the rig to Rerun: an .rrd file and/or a gRPC server",
+                params=Params, run=run, inputs=_inputs, outputs=())

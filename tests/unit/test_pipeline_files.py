@@ -7,7 +7,7 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.estimation.marker_map import load_marker_map
-from services.launch import read_pipeline
+from services.launcher.pipeline import read_pipeline
 
 PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
 

@@ -20,7 +20,7 @@ SCENES: dict[str, type[SyntheticScene]] = {
 }
 """Scene name -> scene class; each class's ``Options`` lists its options."""
 
-__all__ = ["SCENES", "CameraModel", "Scene", "SceneFrame", "SceneOptions", "make_scene"]
+__all__ = ["SCENES", "CameraModel", "Scene", "SceneFrame", "SceneOptions", "make_scene", "scene_options"]
 
 
 def make_scene(name: str, **options) -> Scene:
@@ -29,3 +29,14 @@ def make_scene(name: str, **options) -> Scene:
         raise ValueError(f"unknown scene {name!r}; valid scenes: {', '.join(sorted(SCENES))}")
     cls = SCENES[name]
     return cls(cls.Options.parse(name, options))
+
+
+def scene_options(name: str, options: dict[str, object]) -> dict[str, object]:
+    """``options`` of scene ``name`` converted to their declared types (text is parsed by the option's type);
+    ValueError names an unknown scene or option, or a value that does not fit."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; valid scenes: {', '.join(sorted(SCENES))}")
+    cls = SCENES[name].Options
+    parsed = cls.parse(name, {key: cls.from_text(key, value) if isinstance(value, str) else value
+                              for key, value in options.items()})
+    return {key: getattr(parsed, key) for key in options}

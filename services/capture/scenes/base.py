@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import math
 import numbers
+import typing
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import ClassVar, Protocol
 
 import numpy as np
+from pydantic import TypeAdapter, ValidationError
 
 from services.capture.scenes.imaging import finish
 from services.geometry.camera import CameraModel
@@ -104,6 +106,21 @@ class SceneOptions:
             raise ValueError(f"unknown option(s) {', '.join(unknown)} for scene {scene!r}; "
                              f"valid options: {', '.join(valid)}")
         return cls(**options)
+
+    @classmethod
+    def from_text(cls, name: str, text: str) -> object:
+        """Option ``name`` given as text (``--scene-option noise_std=0.5``) converted by its declared type;
+        a tuple, list or dict option is written as JSON (``ids=[1,2,3]``). An unknown name is left to ``parse``."""
+        annotation = typing.get_type_hints(cls).get(name)
+        if annotation is None or annotation is str:
+            return text
+        adapter: TypeAdapter[object] = TypeAdapter(annotation)
+        try:
+            if typing.get_origin(annotation) in (tuple, list, dict):
+                return adapter.validate_json(text)
+            return adapter.validate_strings(text)
+        except ValidationError as exc:
+            raise ValueError(f"option {name}={text!r}: {exc.errors()[0]['msg']}") from exc
 
 
 def scene_rng(seed: int, *purpose: int) -> np.random.Generator:

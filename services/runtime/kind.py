@@ -1,0 +1,59 @@
+"""What a node kind is: the declaration every node module makes once, next to its ``run``.
+
+A node module ends with::
+
+    KIND = NodeKind(
+        name="marker_pose",
+        summary="marker and board poses from a camera's frames",
+        params=Params,
+        run=run,
+        inputs=("{camera}/image", "{camera}/camera_info"),
+        outputs=("pose/{camera}/**",),
+    )
+
+``inputs`` and ``outputs`` are the keys the node reads and writes, relative to the rig prefix
+(``ar/<rig>/``), as templates filled from the node's parameters (``{camera}`` is its
+``camera`` field), or a function of the parameters when the wiring depends on them. The
+launcher finds ``KIND`` by walking the packages it searches (no table lists the kinds), so
+``name`` must be a string literal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import BaseModel
+
+from services.runtime.node import Node
+
+Keys = tuple[str, ...] | Callable[[Any], tuple[str, ...]]
+"""Key templates (``"{camera}/image"``) or a function of the validated params giving the keys."""
+
+
+@dataclass(frozen=True)
+class NodeKind:
+    """A kind of node: its name, one-line summary, parameter model, body and declared keys."""
+
+    name: str
+    summary: str
+    params: type[BaseModel]
+    run: Callable[[Node, Any], int | None]
+    inputs: Keys = ()
+    outputs: Keys = ()
+
+    def validate(self, values: dict[str, Any]) -> BaseModel:
+        """Validated parameters (pydantic's ValidationError names the field otherwise)."""
+        return self.params.model_validate(values)
+
+    def keys(self, params: BaseModel) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """``(inputs, outputs)`` of a node with ``params``, relative to the rig prefix."""
+        return _fill(self.inputs, params), _fill(self.outputs, params)
+
+
+def _fill(keys: Keys, params: BaseModel) -> tuple[str, ...]:
+    if callable(keys):
+        return tuple(keys(params))
+    values = params.model_dump()
+    return tuple(template.format(**values) for template in keys)
