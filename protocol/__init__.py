@@ -11,7 +11,7 @@ from protocol.maps import PointCloud
 from protocol.message import Header, Message, message_type, message_types
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
-from protocol.spatial import FrameTransform, Transform
+from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
 from protocol.system import (
     ClientState,
     ConfigAnswer,
@@ -27,7 +27,7 @@ from protocol.system import (
 __all__ = [
     "BlobDetections", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError", "ErrorReport",
     "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
-    "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies",
-    "RigidBody", "StreamStats", "Subscription", "SupervisedNode", "TrackingState", "Transform", "decode", "encode",
-    "message_type", "message_types", "to_json",
+    "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RIG_FRAME", "RegionOfInterest",
+    "RigidBodies", "RigidBody", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode",
+    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
 ]

@@ -12,6 +12,8 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
     ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
     ar/rig0/map                       PointCloud       SLAM / triangulated points
+    ar/rig0/tf_static/<node>          StaticTransforms the rig's static transforms one node holds (cameras'
+                                      T_rig_camera), published once and answered on a queryable
     ar/rig0/node/<name>               (liveliness)     present while the node runs
     ar/rig0/node/<name>/stats         NodeStats        published every stats period
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
@@ -124,6 +126,14 @@ class Keys:
     def map(self) -> str:
         return f"{self.prefix}/map"
 
+    def static_transforms(self, node: str) -> str:
+        """The static transforms ``node`` publishes (once) and answers (queryable) for late joiners."""
+        return f"{self.prefix}/tf_static/{check_name(node, 'node name')}"
+
+    def rig_static_transforms(self) -> str:
+        """Static transforms of every node of the rig (query this to gather them all)."""
+        return f"{self.prefix}/tf_static/*"
+
     def node(self, name: str) -> str:
         """The node's liveliness token."""
         return f"{self.prefix}/node/{check_name(name, 'node name')}"
@@ -210,6 +220,10 @@ class Keys:
     def all_calibrations(self) -> str:
         """Calibration queryables of every camera of every rig in the namespace."""
         return f"{self.namespace}/*/*/calibration"
+
+    def all_static_transforms(self) -> str:
+        """Static transforms of every node of every rig in the namespace."""
+        return f"{self.namespace}/*/tf_static/*"
 
     def all_clients(self) -> str:
         """Liveliness tokens of every client app in the namespace, any rig."""

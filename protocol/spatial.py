@@ -4,6 +4,10 @@ A ``Transform`` named ``T_a_b`` maps coordinates in frame b to frame a
 (``p_a = R @ p_b + t``). The quaternion is ``(x, y, z, w)``; it is normalised on
 validation and refused when its norm is far from 1 (a sign of a wrong field order or
 garbage). Conversions to matrices live in ``services.geometry``; the protocol holds data only.
+
+``StaticTransforms`` is a rig's ``tf_static``: transforms that do not change while the rig
+runs (each camera's ``T_rig_camera``, with ``RIG_FRAME`` as parent and the camera's name,
+its images' ``header.frame_id``, as child).
 """
 
 from __future__ import annotations
@@ -13,12 +17,15 @@ import sys
 
 from pydantic import field_validator
 
-from protocol.message import Struct
+from protocol.message import Message, Struct
 
 Vector3 = tuple[float, float, float]
 Quaternion = tuple[float, float, float, float]
 
 IDENTITY_ROTATION: Quaternion = (0.0, 0.0, 0.0, 1.0)
+
+RIG_FRAME = "rig"
+"""The frame a rig's cameras are placed in (``CameraInfo.T_rig_camera``); world for a fixed rig."""
 
 
 class Transform(Struct):
@@ -52,3 +59,28 @@ class FrameTransform(Struct):
     parent_frame: str
     child_frame: str
     transform: Transform
+
+
+class StaticTransforms(Message):
+    """A rig's static transforms, ``T_parent_child`` each; ``header.frame_id`` is the rig frame.
+
+    Each unordered pair of frames appears at most once and no frame is its own parent.
+    """
+
+    SCHEMA = "artrack.StaticTransforms"
+    VERSION = 1
+
+    transforms: tuple[FrameTransform, ...] = ()
+
+    @field_validator("transforms")
+    @classmethod
+    def _distinct(cls, value: tuple[FrameTransform, ...]) -> tuple[FrameTransform, ...]:
+        seen: set[frozenset[str]] = set()
+        for edge in value:
+            pair = frozenset((edge.parent_frame, edge.child_frame))
+            if not edge.parent_frame or not edge.child_frame or len(pair) == 1:
+                raise ValueError(f"transform {edge.parent_frame!r} <- {edge.child_frame!r} needs two named frames")
+            if pair in seen:
+                raise ValueError(f"frames {edge.parent_frame!r} and {edge.child_frame!r} are joined more than once")
+            seen.add(pair)
+        return value

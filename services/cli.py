@@ -72,8 +72,8 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from services.launch import read_pipeline
     from services.launcher.daemon import Daemon
+    from services.launcher.pipeline import read_pipeline
 
     spec = read_pipeline(args.pipeline)
     daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, **spec.bus))

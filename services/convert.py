@@ -2,7 +2,8 @@
 
 Nodes call these at their edges: a ``protocol.Transform`` becomes a (4, 4) ``T_a_b``
 matrix and back, a ``CameraInfo`` becomes a ``CameraModel`` (K, distortion, pose in rig)
-and back. Nothing else in artrack converts between the two by hand.
+and back, ``StaticTransforms`` become a ``FrameGraph`` and back. Nothing else in artrack
+converts between the two by hand.
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ import numpy as np
 
 from protocol.message import Header
 from protocol.sensors import CameraInfo
-from protocol.spatial import FrameTransform, Transform
+from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
 from services.geometry.camera import CameraModel
+from services.geometry.frames import FrameGraph
 from services.geometry.se3 import from_quaternion_translation, to_quaternion_translation
 
 
@@ -51,3 +53,23 @@ def camera_model(info: CameraInfo, name: str | None = None) -> CameraModel:
     return CameraModel(name=name or info.header.frame_id, width=info.width, height=info.height,
                        K=np.array(info.k, dtype=np.float64).reshape(3, 3), dist=dist,
                        T_rig_camera=matrix_from_transform(info.T_rig_camera))
+
+
+def rig_static_transforms(header: Header, cameras: dict[str, CameraModel]) -> StaticTransforms:
+    """Each camera's ``T_rig_camera``: ``RIG_FRAME`` the parent, the camera's name (the key) the child."""
+    return StaticTransforms(header=header, transforms=frame_transforms(
+        [(RIG_FRAME, name, camera.T_rig_camera) for name, camera in cameras.items()]))
+
+
+def static_transforms(header: Header, graph: FrameGraph) -> StaticTransforms:
+    """Wire form of the stored edges of ``graph``."""
+    return StaticTransforms(header=header, transforms=frame_transforms(graph.edges()))
+
+
+def frame_graph(messages: list[StaticTransforms], graph: FrameGraph | None = None) -> FrameGraph:
+    """The edges of ``messages`` added to ``graph`` (a new one by default); ``FrameError`` when they contradict."""
+    graph = graph if graph is not None else FrameGraph()
+    for message in messages:
+        for edge in message.transforms:
+            graph.add(edge.parent_frame, edge.child_frame, matrix_from_transform(edge.transform))
+    return graph

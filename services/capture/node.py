@@ -12,6 +12,10 @@ data set's ground truth). CameraInfo comes from ``calib`` files (ROS camera_info
 one per camera), else from the source (synthetic scenes know theirs); a camera with
 neither publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated
 camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
+
+The calibrated cameras' ``T_rig_camera`` (parent frame ``rig``, child the camera's name) go
+out once as ``StaticTransforms`` on ``tf_static/<node name>`` before the first frame, and are
+answered on a queryable at the same key for whoever joins later.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
+from protocol.spatial import RIG_FRAME, StaticTransforms
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
 from services.capture.scenes import scene_options
@@ -42,7 +47,7 @@ from services.capture.sources import (
     open_source,
     rig_camera_names,
 )
-from services.convert import camera_info, frame_transforms
+from services.convert import camera_info, frame_transforms, rig_static_transforms
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
@@ -165,6 +170,8 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
         while node.running and not all(p.matched() for p in images.values()):
             node.wait(0.02)
         node.wait(SETTLE_S)
+    if rig.calibration:
+        _publish_static_transforms(node, rig)
     seq = 0
     while node.running and (params.frames == 0 or seq < params.frames):
         clock = _Pacer(lambda: live.value.fps)
@@ -186,6 +193,14 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
             seq += 1
         if not params.loop:
             break
+
+
+def _publish_static_transforms(node: Node, rig: Rig) -> None:
+    """Put the cameras' ``T_rig_camera`` once and answer them from now on (late joiners ask)."""
+    key = node.keys.static_transforms(node.name)
+    message = rig_static_transforms(Header(stamp_ns=time.time_ns(), frame_id=RIG_FRAME), rig.calibration)
+    node.answer(key, lambda: message)
+    node.publisher(key, StaticTransforms).put(message)
 
 
 def _calibration(camera: str, model: CameraModel) -> CameraInfo:

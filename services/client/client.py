@@ -30,11 +30,14 @@ from protocol.codec import encode
 from protocol.keys import Keys
 from protocol.message import Header
 from protocol.sensors import CameraInfo
+from protocol.spatial import StaticTransforms
 from protocol.system import ClientState, NodeStats
 from services.bus.discovery import first_answers, live_nodes, node_states
 from services.bus.security import Security
 from services.bus.settings import BusSettings
 from services.client.streams import DEFAULT_DEPTH, AsyncPoseStream, Feed, PoseStream, PoseUpdate
+from services.convert import frame_graph
+from services.geometry.frames import FrameGraph
 
 Stream = PoseStream | AsyncPoseStream
 
@@ -117,6 +120,15 @@ class Client:
         """The calibration the capture node holds for ``camera``; None when nobody answers with one."""
         found = first_answers(self.session, self.keys.calibration(camera), CameraInfo, timeout_s)
         return next(iter(found.values()), None)
+
+    def frames(self, timeout_s: float = 1.0) -> FrameGraph:
+        """The rig's static transforms, gathered from every node that answers within ``timeout_s``.
+
+        ``graph.transform("cam0", "cam1")`` is then ``T_cam0_cam1`` (4, 4); cameras hang off the
+        ``rig`` frame. Empty when nobody answers; ``FrameError`` when two nodes contradict each other.
+        """
+        found = first_answers(self.session, self.keys.rig_static_transforms(), StaticTransforms, timeout_s)
+        return frame_graph([found[key] for key in sorted(found)])
 
     def state(self) -> ClientState:
         """What this client subscribed to and what it received, as ``artrack status`` sees it."""

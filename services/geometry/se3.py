@@ -39,3 +39,27 @@ def to_quaternion_translation(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def from_quaternion_translation(q: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(4, 4) transform from a quaternion (x, y, z, w) and a (3,) translation."""
     return make_transform(matrix_from_quaternion(q), t)
+
+
+def check_transform(T: np.ndarray, name: str = "T", tolerance: float = 1e-6) -> np.ndarray:
+    """``T`` as a (4, 4) float64 array if it is a proper rigid transform, else ValueError naming ``name``.
+
+    Proper rigid: finite, ``R^T R = I`` and ``det R = +1`` for the rotation block ``R = T[:3, :3]``
+    (each within ``tolerance``), and last row ``(0, 0, 0, 1)``. A reflection (det -1), a scaled
+    or sheared block, or a projective last row is refused.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be a (4, 4) rigid transform, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be finite, got NaN or infinity")
+    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:
+        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {tuple(float(v) for v in T[3])}")
+    R = T[:3, :3]
+    off = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if off > tolerance:
+        raise ValueError(f"{name}[:3, :3] must be orthonormal (R^T R = I), off by {off:.3g}")
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > tolerance:
+        raise ValueError(f"{name}[:3, :3] must be a proper rotation (det +1), got det {det:.6g}")
+    return T

@@ -15,8 +15,8 @@ Roles, as seen by the router (ingress: from that session; egress: to it):
 
 * ``pipeline``: every message, both ways, on every key of the namespace;
 * ``app``: subscribes to poses and receives them; watches and queries node liveliness; queries
-  node state, pipeline health (``artrack status``) and camera calibration and receives the
-  replies; holds its own client token and answers its own state queryable (so ``artrack
+  node state, pipeline health (``artrack status``), camera calibration and the rig's static
+  transforms and receives the replies; holds its own client token and answers its own state queryable (so ``artrack
   status`` lists it). Nothing else: its puts and deletes on the pipeline's keys are dropped at
   the router.
 
@@ -96,7 +96,8 @@ def _rule(rule_id: str, messages: tuple[str, ...], flows: tuple[str, ...], *key_
 def _rules(keys: Keys) -> dict[str, list[dict[str, Any]]]:
     """Rule lists of each role, for the namespace of ``keys``."""
     watch = ("declare_liveliness_subscriber", "liveliness_query")
-    status = (keys.all_states(), keys.all_supervisors(), keys.all_calibrations(), keys.all_client_states())
+    status = (keys.all_states(), keys.all_supervisors(), keys.all_calibrations(), keys.all_static_transforms(),
+              keys.all_client_states())
     return {
         "pipeline": [_rule("pipeline", MESSAGES, (INGRESS, EGRESS), keys.whole_namespace())],
         "app": [

@@ -24,8 +24,7 @@ from protocol.codec import encode
 from protocol.message import Header
 from protocol.system import PipelineHealth, SupervisedNode
 from services.bus.session import BusConfig, BusError, open_session
-from services.launch import params_model, processes, read_pipeline
-from services.launcher.pipeline import PipelineError, PipelineSpec
+from services.launcher.pipeline import PipelineError, PipelineSpec, params_model, processes, read_pipeline
 from services.launcher.reload import plan_reload, request_change
 from services.launcher.supervisor import Supervisor
 

@@ -46,8 +46,8 @@ from services.capture.scenes import make_scene
 from services.client import PoseUpdate, connect
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_pose import MarkerPoseEstimator
-from services.launcher.pipeline import node_command
 from services.launcher.observe import wait_for_nodes
+from services.launcher.pipeline import node_command
 from services.launcher.router import router_config
 from tests.bench.link import cpu_seconds, free_port
 

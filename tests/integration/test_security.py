@@ -150,6 +150,7 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
             assert {"cam", "marker"} <= {name for rig, name in app.services() if rig == bus.rig}
             assert {"cam", "marker"} <= {name for rig, name in app.status() if rig == bus.rig}
             assert app.calibration("cam0") is not None
+            assert "cam0" in app.frames(timeout_s=START_S)  # the rig's static transforms, asked for
             assert (bus.rig, app.id) in client_states(pipeline, bus.keys, 2.0)  # `artrack status` sees the app
             forged = [bus.keys.pose("cam0/forged"), bus.keys.markers("cam0"), bus.keys.image("cam9")]
             genuine = bus.keys.pose("cam0/genuine")

@@ -33,6 +33,7 @@ from protocol import (
     RegionOfInterest,
     RigidBodies,
     RigidBody,
+    StaticTransforms,
     StreamStats,
     Subscription,
     SupervisedNode,
@@ -169,6 +170,10 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         st.builds(RigidBody, name=texts, transform=transforms, state=states, quality=qualities))),
     "artrack.GroundTruth": st.builds(GroundTruth, header=headers, transforms=_tuples_of(
         st.builds(FrameTransform, parent_frame=texts, child_frame=texts, transform=transforms))),
+    "artrack.StaticTransforms": st.builds(StaticTransforms, header=headers, transforms=st.lists(
+        st.builds(FrameTransform, parent_frame=texts.filter(bool), child_frame=texts.filter(bool),
+                  transform=transforms).filter(lambda edge: edge.parent_frame != edge.child_frame),
+        max_size=3, unique_by=lambda edge: frozenset((edge.parent_frame, edge.child_frame))).map(tuple)),
     "artrack.NodeStats": st.builds(
         NodeStats, header=headers, node=texts, kind=texts, host=texts, pid=st.integers(-(2**70), 2**70),
         state=st.sampled_from(["starting", "running", "stopping"]), uptime_s=non_negative,

@@ -12,8 +12,7 @@ from protocol.message import Header
 from protocol.system import ConfigChange, PipelineHealth, SupervisedNode
 from services.capture.node import Params as CaptureParams
 from services.detection.node import Params as MarkerParams
-from services.launcher.pipeline import params_model, read_pipeline
-from services.launcher.pipeline import PipelineError
+from services.launcher.pipeline import PipelineError, params_model, read_pipeline
 from services.launcher.reload import plan_reload
 from services.launcher.status import Status
 from services.launcher.supervisor import RestartBudget

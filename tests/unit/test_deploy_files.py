@@ -20,8 +20,7 @@ import zenoh
 
 from services.bus.session import BusConfig
 from services.cli import parser
-from services.launcher.pipeline import read_pipeline
-from services.launcher.pipeline import PipelineError
+from services.launcher.pipeline import PipelineError, read_pipeline
 from services.runtime.logs import FORMAT_ENV, LEVEL_ENV, log_format
 from tests.deploy_files import DOCKER, ROUTER, artrack_services, compose, host_pipeline, instruction
 

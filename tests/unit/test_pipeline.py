@@ -12,8 +12,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from services.bus.session import BusConfig
-from services.launcher.pipeline import processes, read_pipeline
-from services.launcher.pipeline import PipelineError
+from services.launcher.pipeline import PipelineError, processes, read_pipeline
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -163,6 +163,7 @@ def test_namespace_wide_patterns_match_every_rig():
     ns = Keys("ar", "rig7")
     assert zenoh.KeyExpr(ns.all_poses()).intersects(zenoh.KeyExpr(ns.pose("cam0/marker/3")))
     assert zenoh.KeyExpr(ns.all_calibrations()).intersects(zenoh.KeyExpr(ns.calibration("cam1")))
+    assert zenoh.KeyExpr(ns.all_static_transforms()).intersects(zenoh.KeyExpr(ns.static_transforms("cap")))
     assert zenoh.KeyExpr(ns.all_clients()).intersects(zenoh.KeyExpr(ns.client("abc")))
     assert not zenoh.KeyExpr(ns.all_poses()).intersects(zenoh.KeyExpr(ns.markers("cam0")))
 

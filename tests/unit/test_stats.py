@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol import StreamStats
-from services.bus.stats import AgeWindow, LatencyWindow, RateMeter, StreamCounter
 from services.bus import stats
+from services.bus.stats import AgeWindow, LatencyWindow, RateMeter, StreamCounter
 
 
 class FakeClock:
