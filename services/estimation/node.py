@@ -28,8 +28,9 @@ Outputs, each with the header of the frame the detections came from:
   (latest-wins); it costs a 3-channel copy of every frame on the bus, so it is off by
   default. With ``input = "detections"`` the node sees no frames and the option is refused.
 
-Markers that give no pose (degenerate corners, no side length, not converged) are counted by
-reason in the node's ``skipped`` statistics and reported on its errors key; nothing raises.
+Markers that give no pose (degenerate corners, no side length, not converged, ...) are counted
+by reason (``marker_pose.SkipReason``, its values as kinds) in the node's ``skipped`` statistics
+and reported on its errors key; nothing raises.
 """
 
 from __future__ import annotations
@@ -259,7 +260,8 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         return None
     result = estimator.estimate(detections.ids, detections.corners, detections.side_m, camera.K, camera.dist)
     for reason, count in result.failures.items():
-        node.report(reason, f"frame {header.seq}: {count} marker(s) gave no pose ({reason.replace('_', ' ')})",
+        kind = reason.value
+        node.report(kind, f"frame {header.seq}: {count} marker(s) gave no pose ({kind.replace('_', ' ')})",
                     node.keys.markers(header.frame_id), count)
     poses.frame(header, [Pose(
         header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
