@@ -97,7 +97,7 @@ class _Calibration:
 
     A capture node publishes a frame's CameraInfo just after the frame. The node takes in the
     CameraInfo that came meanwhile once a frame's poses are out (``refresh``), so decoding it
-    is off the frame's path (0.1 ms at 60 fps here); a change of calibration applies from the
+    is off the frame's path; a change of calibration applies from the
     next frame on. Until a first CameraInfo is known, a frame waits for it, once, at most
     ``FIRST_INFO_WAIT_S``.
     """
