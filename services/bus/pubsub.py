@@ -9,9 +9,9 @@ Streams have a role that sets their Zenoh quality of service and their queueing:
   ``depth`` (default 10 000) in order; should a consumer fall that far behind, the oldest
   are dropped, counted and logged, never silently. Not express: Zenoh then sends a frame's
   poses that are ready together in one batch, so each subscriber wakes once per frame rather
-  than once per pose. Measured (``make bench BENCH="routing apps"``): a lone pose arrives as
-  fast as express (p50 109 against 127 us), pose throughput doubles (76 000 against 35 500
-  msg/s), and five client apps slow the marker pipeline by 11-22 % instead of 45 %.
+  than once per pose. A lone pose still arrives as fast as with express, pose throughput is
+  higher and client apps slow the marker pipeline less (``make bench BENCH="routing apps"``,
+  figures in docs/benchmarks.md).
 * ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
 
 Payloads are decoded on the consumer's thread, not in Zenoh's callback, so the callback

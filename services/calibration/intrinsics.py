@@ -28,9 +28,8 @@ A set of views is refused (``CalibrationError``) when it cannot constrain the in
   lens, principal point at the image centre): ``n = normalise(K0^T l)``. Parallel planes
   give the same ``n`` whatever ``K0`` is, so the measure does not depend on the calibration
   it guards. The *tilt spread*, the largest angle between two views' normals, must reach
-  ``MIN_TILT_SPREAD_DEG`` = 3 deg. For scale: synthetic fronto-parallel or parallel sets
-  measure 0.2 to 0.3 deg; OpenCV's four ChArUco tutorial photos (a weak but usable set,
-  fx known to about 3 %) 5.6 deg; the stereo sample's 13 left chessboards 77 deg.
+  ``MIN_TILT_SPREAD_DEG`` = 3 deg: above what (nearly) parallel sets give, below the spread
+  of a weak but usable set (the spreads of sample sets are in docs/benchmarks.md).
 """
 
 from __future__ import annotations

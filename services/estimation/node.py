@@ -28,8 +28,9 @@ Outputs, each with the header of the frame the detections came from:
   (latest-wins); it costs a 3-channel copy of every frame on the bus, so it is off by
   default. With ``input = "detections"`` the node sees no frames and the option is refused.
 
-Markers that give no pose (degenerate corners, no side length, not converged) are counted by
-reason in the node's ``skipped`` statistics and reported on its errors key; nothing raises.
+Markers that give no pose (degenerate corners, no side length, not converged, ...) are counted
+by reason (``marker_pose.SkipReason``, its values as kinds) in the node's ``skipped`` statistics
+and reported on its errors key; nothing raises.
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ class _Calibration:
 
     A capture node publishes a frame's CameraInfo just after the frame. The node takes in the
     CameraInfo that came meanwhile once a frame's poses are out (``refresh``), so decoding it
-    is off the frame's path (0.1 ms at 60 fps here); a change of calibration applies from the
+    is off the frame's path; a change of calibration applies from the
     next frame on. Until a first CameraInfo is known, a frame waits for it, once, at most
     ``FIRST_INFO_WAIT_S``.
     """
@@ -260,7 +261,8 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         return None
     result = estimator.estimate(detections.ids, detections.corners, detections.side_m, camera.K, camera.dist)
     for reason, count in result.failures.items():
-        node.report(reason, f"frame {header.seq}: {count} marker(s) gave no pose ({reason.replace('_', ' ')})",
+        kind = reason.value
+        node.report(kind, f"frame {header.seq}: {count} marker(s) gave no pose ({kind.replace('_', ' ')})",
                     node.keys.markers(header.frame_id), count)
     poses.frame(header, [Pose(
         header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),

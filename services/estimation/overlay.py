@@ -23,8 +23,8 @@ edges bend as the lens bends them, and drawn anti-aliased with sub-pixel vertice
 ``cv2.drawFrameAxes`` draws the same axes unclipped (tests/unit/test_estimation_overlay.py
 compares the two).
 
-Cost (640x480, 2 px lines, 2-core VM): about 0.2 ms for the copy, then 0.5 ms per target
-(0.75 ms with distortion).
+Drawing costs a copy of the frame and then a fixed amount per target, more with distortion
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations

@@ -35,8 +35,8 @@ MIN_DAMPING = 1e-12
 MAX_DAMPING = 1e12
 LADDER = 6
 """Dampings a problem tries in one pass after a rejected step. At the optimum, where rounding noise
-decides, rejections come in streaks of up to about 8 (``markers`` scene): the first rejection and
-one pass of 6 cover nearly all of them."""
+decides, rejections come in short streaks: the first rejection and one pass of ``LADDER`` cover nearly
+all of them on the ``markers`` scene (streak lengths in docs/benchmarks.md)."""
 SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
                  [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=np.float64).reshape(3, 9)

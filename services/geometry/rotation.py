@@ -18,7 +18,7 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
 
     Shepperd's method: pick the largest of the four squared components to divide by,
     so the result stays accurate near 180 degrees. Worked on Python floats: nine numbers do
-    not repay numpy's per-call cost (2.1 us here against 5.3 us, once per published pose).
+    not repay numpy's per-call cost, paid once per published pose (docs/benchmarks.md).
     """
     R = np.asarray(R, dtype=np.float64).tolist()
     trace = R[0][0] + R[1][1] + R[2][2]

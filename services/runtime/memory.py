@@ -7,15 +7,12 @@ glibc serves a large ``malloc`` with a fresh ``mmap`` (above 128 KiB at first, a
 then raises to the largest block freed) and trims the top of its heap once more than twice
 that threshold lies free. A process that allocates and frees one image-sized buffer per
 message (``encode``'s ``bytes``, Zenoh's copy of it) falls into a cycle of returning the
-memory and page-faulting it back: measured here on the publisher of 640x480 mono8 frames,
-from the second run of a session on, 118 minor page faults per message and half the
-throughput of the same code with fixed thresholds. With 1280x720 bgr8 after 640x480 traffic
-in the same process, each ``put`` took 1.9 ms of CPU instead of 0.4 ms.
+memory and page-faulting it back: minor page faults on every message and a fraction of the
+throughput the same code reaches with fixed thresholds (docs/benchmarks.md).
 
 Every artrack process fixes the thresholds when it starts (``services.cli.main`` calls
 ``tune_malloc``), and so do both processes of the benchmarks. Set ``ARTRACK_MALLOC=default``
-to keep glibc's defaults. Numbers measured by the benchmark author on this project's 2-core
-machine (tests/bench).
+to keep glibc's defaults.
 
 ``settle_heap``: every node calls it once it is up (``services.runtime.node.run_node``).
 """
@@ -49,10 +46,9 @@ def settle_heap() -> None:
     """Collect once, then leave every object alive now out of later collections (``gc.freeze``).
 
     A node's start leaves its modules, classes and pydantic schemas behind, long-lived objects
-    that every full collection would otherwise walk again. Measured with ``gc.callbacks`` in a
-    capture and a marker node at 60 fps on this project's 2-core machine: each full collection
-    paused the node 11-15 ms (most of a frame period: the frame behind it is late, and frames
-    that pile up behind it are dropped); after the freeze, 0.6-0.8 ms.
+    that every full collection would otherwise walk again, pausing the node for a good part of
+    a frame period (the frame behind it is late, and frames that pile up behind it are
+    dropped); frozen, they are skipped (pause times in docs/benchmarks.md).
     """
     gc.collect()
     gc.freeze()

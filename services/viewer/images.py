@@ -3,9 +3,9 @@
 Pixels are handed to Rerun as they travel: mono8 and mono16 as colour model ``L``, bgr8 as
 ``BGR``, bgra8 as ``BGRA`` (the viewer swaps channels when it draws; nothing is converted
 here). With a JPEG quality, 8-bit frames are encoded with ``cv2.imencode`` and logged as an
-``EncodedImage`` (``image/jpeg``): a noisy 640x480 mono8 frame at quality 80 takes 23 KB
-instead of 240 KB and costs about 0.5 ms more to log (``tests/bench/viewer.py``). bgra8
-loses its alpha, and mono16, which JPEG cannot hold, stays raw.
+``EncodedImage`` (``image/jpeg``): a frame takes a fraction of its raw size in the viewer,
+for a little more time to log it (``tests/bench/viewer.py``, figures in docs/benchmarks.md).
+bgra8 loses its alpha, and mono16, which JPEG cannot hold, stays raw.
 """
 
 from __future__ import annotations

@@ -7,18 +7,18 @@ poses at least as accurate as OpenCV alone (ArucoDetector subpixel corners + sol
 IPPE_SQUARE per marker) on the same corners.
 
 * Rendered frames, ArucoDetector corners: the thresholds and the comparison with OpenCV hold
-  for single markers and the board. ArucoDetector's corners sit about 0.5 % of the marker's size
-  inside the true ones, so every estimator places the markers about 0.5 % too far, and that
-  bias sets the median translation error of all of them (the raw homography's happens to land
-  lower, at a far larger spread): there the refinement beats the homography in rotation and in
-  the translation error's spread (p90) and its range bias is the detector's (within 0.1 %).
+  for single markers and the board. ArucoDetector's corners sit slightly inside the true ones,
+  so every estimator places the markers slightly too far, and that bias sets the median
+  translation error of all of them (the raw homography's happens to land lower, at a far larger
+  spread): there the refinement beats the homography in rotation and in the translation
+  error's spread (p90), and its range bias is the detector's.
 * Exact corners + 0.5 px Gaussian noise per axis: the translation threshold and every
   comparison hold for single markers, but no estimator can reach 0.5 deg on one marker of
   this size: the Cramér-Rao bound (the covariance of ``refine.pose_covariance`` at the true
-  pose) puts the median RMS rotation error near 3 deg, and ours sits at that bound. The 0.5 deg
+  pose) puts the median RMS rotation error well above it, and ours sits at that bound. The 0.5 deg
   is held on the board's pose (its 6 markers at once) with the same noise.
 
-``python -m tests.accuracy.report`` prints the figures.
+``python -m tests.accuracy.report`` prints the figures (docs/benchmarks.md has them).
 """
 
 import numpy as np

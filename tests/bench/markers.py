@@ -17,10 +17,9 @@
   runs the same pipeline with client apps subscribed beside this process.
 * ``overhead``: pipeline p50 - in-process p50, against both baselines. Target: <= 1 ms over
   the paced baseline, and ``FPS`` sustained with no frame dropped. The paced loop is the one
-  judged because it gets the frames as the pipeline does, one every 1/``FPS`` s; on this
-  machine such a gap costs every code path a cold start (``tests.bench.codec``: a pose
-  decodes in 4 us back to back, 37 us as the first call after 16 ms asleep), which
-  back-to-back work never pays.
+  judged because it gets the frames as the pipeline does, one every 1/``FPS`` s; such a gap
+  costs every code path a cold start (``tests.bench.codec`` measures one: a pose decoded back
+  to back and as the first call after a sleep), which back-to-back work never pays.
 
 ``python -m tests.bench.markers`` prints the lines (about 20 s).
 """

@@ -12,9 +12,9 @@
   process (a real node on the same router), into a second ``artrack record`` process.
   Timing error = |time each publication began - time it was due|, measured at the replayer
   (p50, p99, max); ``delivered`` counts what the second recorder got of what was replayed.
-  At every frame tick the recorder logged 8 messages within about a millisecond, less than
-  the replayer needs to read and publish them (about 0.3 ms each), so the later messages of a
-  burst are late by construction; ``_after_gap`` is the p99 over the messages recorded at
+  At every frame tick the recorder logs a burst of messages closer together than the
+  replayer can read and publish them, so the later messages of a burst are late by
+  construction; ``_after_gap`` is the p99 over the messages recorded at
   least ``MIN_GAP_NS`` after the previous one: the pacing accuracy itself.
 
 ``python -m tests.bench.recorder cameras N FPS SECONDS`` is the emulator; it prints one JSON
