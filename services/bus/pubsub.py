@@ -113,18 +113,27 @@ class Received(Generic[M]):
     received_ns: int
 
 
+def decode_as(payload: bytes, cls: type[M] | None) -> M:
+    """``payload`` decoded, and of type ``cls`` unless that is None (DecodeError otherwise)."""
+    message = decode(payload)
+    if cls is not None and not isinstance(message, cls):
+        raise DecodeError(f"expected {cls.SCHEMA} on this key", schema=message.SCHEMA, size=len(payload))
+    return message  # type: ignore[return-value]
+
+
 class Inbox(Generic[M]):
     """Messages arriving on a key expression, queued by role, decoded when taken.
 
     ``cls`` restricts the inbox to one message type (anything else counts as a decode
     error); ``None`` accepts every artrack message. ``wake`` lets several inboxes share one
-    condition so a consumer can wait on all of them at once.
+    condition so a consumer can wait on all of them at once; ``notify`` is called (on Zenoh's
+    thread) after each arrival, for a consumer that waits elsewhere (an asyncio loop).
     """
 
     def __init__(self, session: zenoh.Session, key: str, cls: type[M] | None, role: Role, *,
                  depth: int | None = None, counter: StreamCounter | None = None,
                  on_decode_error: Callable[[str, DecodeError], None] | None = None,
-                 wake: threading.Condition | None = None):
+                 wake: threading.Condition | None = None, notify: Callable[[], None] | None = None):
         self.key = key
         self.cls = cls
         self.role = role
@@ -132,6 +141,7 @@ class Inbox(Generic[M]):
         self.counter = counter or StreamCounter(key, "in")
         self.wake = wake or threading.Condition()
         self._on_decode_error = on_decode_error
+        self._notify = notify
         self._queue: deque[tuple[str, bytes, int]] = deque()
         self._latest: Received[M] | None = None
         self._warned_at = -1.0
@@ -146,6 +156,8 @@ class Inbox(Generic[M]):
             self._queue.append(item)
             self.wake.notify_all()
         self.counter.count(messages=1, dropped=int(dropped))
+        if self._notify is not None:
+            self._notify()
         if dropped and self.role is not Role.FRAME and time.monotonic() - self._warned_at > 1.0:
             self._warned_at = time.monotonic()
             log.warning("%s: consumer %d messages behind, dropping the oldest (%d dropped so far)",
@@ -166,10 +178,7 @@ class Inbox(Generic[M]):
                     return None
                 key, payload, received_ns = self._queue.popleft()
             try:
-                message = decode(payload)
-                if self.cls is not None and not isinstance(message, self.cls):
-                    raise DecodeError(f"expected {self.cls.SCHEMA} on this key", schema=message.SCHEMA,
-                                      size=len(payload))
+                message = decode_as(payload, self.cls)
             except DecodeError as error:
                 self.counter.count(decode_errors=1)
                 if self._on_decode_error is not None:
@@ -198,6 +207,41 @@ class Inbox(Generic[M]):
         while self.take() is not None:
             pass
         return self._latest
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class Listener(Generic[M]):
+    """Messages on a key expression handed to ``handler`` as they arrive, decoded on Zenoh's thread.
+
+    For small messages a consumer wants at once (a callback per pose); frames belong in an
+    ``Inbox``. Payloads that fail to decode (or are not ``cls``) are counted, handed to
+    ``on_decode_error`` and skipped. ``handler`` must not block: it holds up this key's delivery.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, cls: type[M] | None,
+                 handler: Callable[[Received[M]], None], *, counter: StreamCounter | None = None,
+                 on_decode_error: Callable[[str, DecodeError], None] | None = None):
+        self.key = key
+        self.counter = counter or StreamCounter(key, "in")
+        self._cls = cls
+        self._handler = handler
+        self._on_decode_error = on_decode_error
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        received_ns = time.time_ns()
+        key = str(sample.key_expr)
+        try:
+            message = decode_as(sample.payload.to_bytes(), self._cls)
+        except DecodeError as error:
+            self.counter.count(decode_errors=1)
+            if self._on_decode_error is not None:
+                self._on_decode_error(key, error)
+            return
+        self.counter.count(messages=1)
+        self._handler(Received(key, message, received_ns))
 
     def close(self) -> None:
         self._subscriber.undeclare()

@@ -133,7 +133,7 @@ class Client:
     def state(self) -> ClientState:
         """What this client subscribed to and what it received, as ``artrack status`` sees it."""
         with self._lock:
-            subscriptions = [s.feed.state(s.dropped) for s in self._streams]
+            subscriptions = [s.state() for s in self._streams]
             subscriptions += [feed.state() for feed in [*self._callbacks, *self._latest.values()]]
         return ClientState(header=Header(stamp_ns=time.time_ns()), client=self.id, app=self.app,
                            host=socket.gethostname(), pid=os.getpid(), uptime_s=time.monotonic() - self._started,

@@ -1,24 +1,19 @@
-"""Pose streams a client app reads: decoded on arrival, handed out as ``PoseUpdate``.
+"""Pose streams a client app reads, built on the bus's inbox and listener.
 
-A ``Feed`` is one Zenoh subscriber on a pose key expression. It decodes each payload on
-Zenoh's thread (poses are a few hundred bytes), counts what it received, dropped and could
-not decode, and passes each update to a sink:
+* ``PoseStream``: an ``Inbox`` of poses read by a plain ``for`` loop;
+* ``AsyncPoseStream``: the same inbox read by ``async for`` (arrivals wake the event loop);
+* ``Feed``: a ``Listener`` that hands each pose to a callback as it arrives (``Client.on_pose``)
+  and keeps the latest (``Client.latest``).
 
-* ``PoseStream``: a bounded queue read by a plain ``for`` loop (``queue.SimpleQueue``, whose
-  put and waiting get are C code: a few lines of Python per pose instead of a ``Condition``'s
-  dozens, which matters when every pose wakes the app's thread);
-* ``AsyncPoseStream``: an asyncio queue read by ``async for``;
-* a callback (``Client.on_pose``).
-
-Poses are results, never dropped silently: a queue that overflows because the app reads too
-slowly drops its oldest update, counts it and logs it once per second.
+Poses are results, never dropped silently: an app that reads too slowly loses its oldest
+updates once ``depth`` are waiting, and the inbox counts them and logs it once per second.
+Every stream reports its counts as a ``Subscription`` (``ClientState``, ``artrack status``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import queue
 import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -26,23 +21,24 @@ from dataclasses import dataclass
 
 import zenoh
 
-from protocol.codec import DecodeError, decode
+from protocol.codec import DecodeError
 from protocol.keys import Keys
 from protocol.poses import Pose
 from protocol.system import Subscription
+from services.bus.pubsub import Inbox, Listener, Received, Role
+from services.bus.stats import StreamCounter
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DEPTH = 10_000
 POLL_S = 0.1
-WARN_EVERY_S = 1.0
 
 
 @dataclass(frozen=True)
 class PoseUpdate:
     """One pose as it reached the app.
 
-    ``target`` is the target's name under the rig (``cam0/marker_7``), ``pose`` the message
+    ``target`` is the target's name under the rig (``cam0/marker/7``), ``pose`` the message
     (``T_<pose.header.frame_id>_<pose.child_frame_id>``), ``received_ns`` the wall-clock arrival
     time in ns.
     """
@@ -57,39 +53,32 @@ class PoseUpdate:
         return (self.received_ns - self.pose.header.stamp_ns) / 1e6
 
 
+def _skipped(key: str, error: DecodeError) -> None:
+    log.warning("skipped a payload on %s: %s", key, error)
+
+
+def _subscription(counter: StreamCounter, key: str, last_stamp_ns: int | None) -> Subscription:
+    return Subscription(key=key, received=counter.messages, dropped=counter.dropped,
+                        decode_errors=counter.decode_errors, last_stamp_ns=last_stamp_ns)
+
+
 class Feed:
-    """One subscriber on ``key`` that decodes poses and hands each to ``sink`` (see the module docstring)."""
+    """Poses on ``key`` handed to ``sink`` as they arrive (on Zenoh's thread); the latest is kept."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, key: str, sink: Callable[[PoseUpdate], None],
                  on_close: Callable[[Feed], None] | None = None):
         self.key = key
-        self.received = 0
-        self.decode_errors = 0
         self.sink_errors = 0
-        self.last_stamp_ns: int | None = None
         self.latest: PoseUpdate | None = None
         self._keys = keys
         self._sink = sink
         self._arrived = threading.Event()
         self._closed = False
         self._on_close = on_close
-        self._subscriber = session.declare_subscriber(key, self._on_sample)
+        self._listener = Listener(session, key, Pose, self._on_pose, on_decode_error=_skipped)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        received_ns = time.time_ns()
-        try:
-            message = decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            self.decode_errors += 1
-            log.warning("skipped a payload on %s: %s", sample.key_expr, exc)
-            return
-        if not isinstance(message, Pose):
-            self.decode_errors += 1
-            log.warning("skipped a %s on %s: not a Pose", type(message).__name__, sample.key_expr)
-            return
-        update = PoseUpdate(self._keys.target(str(sample.key_expr)), message, received_ns)
-        self.received += 1
-        self.last_stamp_ns = message.header.stamp_ns
+    def _on_pose(self, received: Received[Pose]) -> None:
+        update = PoseUpdate(self._keys.target(received.key), received.message, received.received_ns)
         self.latest = update
         if not self._arrived.is_set():
             self._arrived.set()
@@ -104,36 +93,43 @@ class Feed:
         self._arrived.wait(timeout_s)
         return self.latest
 
-    def state(self, dropped: int = 0) -> Subscription:
-        return Subscription(key=self.key, received=self.received, dropped=dropped,
-                            decode_errors=self.decode_errors, last_stamp_ns=self.last_stamp_ns)
+    def state(self) -> Subscription:
+        latest = self.latest
+        return _subscription(self._listener.counter, self.key, latest.pose.header.stamp_ns if latest else None)
 
     def close(self) -> None:
         """Undeclare the subscriber (once; later calls do nothing)."""
         if not self._closed:
             self._closed = True
-            self._subscriber.undeclare()
+            self._listener.close()
             if self._on_close:
                 self._on_close(self)
 
 
-class _Overflow:
-    """Counts updates dropped from a full queue and logs them at most once a second."""
+class _Stream:
+    """What both stream forms share: the inbox, turning its messages into updates, and the counts."""
 
-    def __init__(self, key: str):
+    def __init__(self, session: zenoh.Session, keys: Keys, key: str, depth: int,
+                 notify: Callable[[], None] | None = None):
         self.key = key
-        self.dropped = 0
-        self._logged = -WARN_EVERY_S
+        self._keys = keys
+        self._last_stamp_ns: int | None = None
+        self.inbox: Inbox[Pose] = Inbox(session, key, Pose, Role.RESULT, depth=depth, on_decode_error=_skipped,
+                                        notify=notify)
 
-    def count(self) -> None:
-        self.dropped += 1
-        now = time.monotonic()
-        if now - self._logged >= WARN_EVERY_S:
-            self._logged = now
-            log.warning("the app reads poses on %s too slowly: dropped the oldest (%d so far)", self.key, self.dropped)
+    @property
+    def dropped(self) -> int:
+        return self.inbox.counter.dropped
+
+    def _update(self, received: Received[Pose]) -> PoseUpdate:
+        self._last_stamp_ns = received.message.header.stamp_ns
+        return PoseUpdate(self._keys.target(received.key), received.message, received.received_ns)
+
+    def state(self) -> Subscription:
+        return _subscription(self.inbox.counter, self.key, self._last_stamp_ns)
 
 
-class PoseStream:
+class PoseStream(_Stream):
     """Iterate poses of the targets matching a key: ``for update in stream``.
 
     The loop ends when the stream is closed, or when nothing arrived for ``idle_timeout_s``
@@ -143,27 +139,10 @@ class PoseStream:
 
     def __init__(self, session: zenoh.Session, keys: Keys, key: str, *, idle_timeout_s: float | None = None,
                  depth: int = DEFAULT_DEPTH, on_close: Callable[[PoseStream], None] | None = None):
+        super().__init__(session, keys, key, depth)
         self.idle_timeout_s = idle_timeout_s
-        self._queue: queue.SimpleQueue[PoseUpdate] = queue.SimpleQueue()
-        self._depth = depth
-        self._overflow = _Overflow(key)
         self._closed = threading.Event()
         self._on_close = on_close
-        self.feed = Feed(session, keys, key, self._put)
-
-    @property
-    def dropped(self) -> int:
-        return self._overflow.dropped
-
-    def _put(self, update: PoseUpdate) -> None:
-        """Queue ``update`` (Zenoh's thread, the only producer), first dropping the oldest while full."""
-        while self._queue.qsize() >= self._depth:
-            try:
-                self._queue.get_nowait()
-                self._overflow.count()
-            except queue.Empty:
-                break
-        self._queue.put(update)
 
     def __iter__(self) -> Iterator[PoseUpdate]:
         return self
@@ -171,11 +150,11 @@ class PoseStream:
     def __next__(self) -> PoseUpdate:
         idle_since = time.monotonic()
         while not self._closed.is_set():
-            try:
-                return self._queue.get(timeout=POLL_S)
-            except queue.Empty:
-                if self.idle_timeout_s is not None and time.monotonic() - idle_since >= self.idle_timeout_s:
-                    break
+            received = self.inbox.recv(POLL_S)
+            if received is not None:
+                return self._update(received)
+            if self.idle_timeout_s is not None and time.monotonic() - idle_since >= self.idle_timeout_s:
+                break
         raise StopIteration
 
     def __enter__(self) -> PoseStream:
@@ -187,51 +166,41 @@ class PoseStream:
     def close(self) -> None:
         if not self._closed.is_set():
             self._closed.set()
-            self.feed.close()
+            self.inbox.close()
             if self._on_close:
                 self._on_close(self)
 
 
-class AsyncPoseStream:
+class AsyncPoseStream(_Stream):
     """``async for update in stream``: the asyncio form of ``PoseStream`` (same ending rules).
 
-    Create it from inside the running event loop; updates cross from Zenoh's thread to the
-    loop with ``call_soon_threadsafe``.
+    Create it from inside the running event loop; each arrival sets an event on the loop
+    (``call_soon_threadsafe``) and the loop takes the poses from the inbox.
     """
 
     def __init__(self, session: zenoh.Session, keys: Keys, key: str, *, idle_timeout_s: float | None = None,
                  depth: int = DEFAULT_DEPTH, on_close: Callable[[AsyncPoseStream], None] | None = None):
-        self.idle_timeout_s = idle_timeout_s
         self._loop = asyncio.get_running_loop()
-        self._queue: asyncio.Queue[PoseUpdate | None] = asyncio.Queue(maxsize=depth)
-        self._overflow = _Overflow(key)
+        self._ready = asyncio.Event()
+        super().__init__(session, keys, key, depth, notify=lambda: self._loop.call_soon_threadsafe(self._ready.set))
+        self.idle_timeout_s = idle_timeout_s
         self._closed = False
         self._on_close = on_close
-        self.feed = Feed(session, keys, key, lambda update: self._loop.call_soon_threadsafe(self._put, update))
-
-    @property
-    def dropped(self) -> int:
-        return self._overflow.dropped
-
-    def _put(self, update: PoseUpdate | None) -> None:
-        if self._queue.full():
-            self._queue.get_nowait()
-            self._overflow.count()
-        self._queue.put_nowait(update)
 
     def __aiter__(self) -> AsyncIterator[PoseUpdate]:
         return self
 
     async def __anext__(self) -> PoseUpdate:
-        if self._closed:
-            raise StopAsyncIteration
-        try:
-            update = await asyncio.wait_for(self._queue.get(), self.idle_timeout_s)
-        except TimeoutError:
-            update = None
-        if update is None:
-            raise StopAsyncIteration
-        return update
+        while not self._closed:
+            self._ready.clear()
+            received = self.inbox.take()
+            if received is not None:
+                return self._update(received)
+            try:
+                await asyncio.wait_for(self._ready.wait(), self.idle_timeout_s)
+            except TimeoutError:
+                break
+        raise StopAsyncIteration
 
     async def __aenter__(self) -> AsyncPoseStream:
         return self
@@ -240,10 +209,10 @@ class AsyncPoseStream:
         self.close()
 
     def close(self) -> None:
-        """Stop the feed; a reader waiting in ``async for`` ends."""
+        """Stop the stream; a reader waiting in ``async for`` ends."""
         if not self._closed:
             self._closed = True
-            self.feed.close()
-            self._put(None)
+            self.inbox.close()
+            self._ready.set()
             if self._on_close:
                 self._on_close(self)
