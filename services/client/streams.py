@@ -42,7 +42,7 @@ WARN_EVERY_S = 1.0
 class PoseUpdate:
     """One pose as it reached the app.
 
-    ``target`` is the target's name under the rig (``cam0/marker_7``), ``pose`` the message
+    ``target`` is the target's name under the rig (``cam0/marker/7``), ``pose`` the message
     (``T_<pose.header.frame_id>_<pose.child_frame_id>``), ``received_ns`` the wall-clock arrival
     time in ns.
     """
