@@ -107,14 +107,14 @@ class Keys:
 
     def pose_pattern(self, target: str) -> str:
         """Poses of the targets matching ``target``: a target name whose segments may be ``*``
-        (one segment) or ``**`` (any number), e.g. ``cam0/*`` or ``**``."""
+        (one segment) or ``**`` (any number), e.g. ``cam0/marker/*``, ``cam0/**`` or ``**``."""
         for part in target.split("/"):
             if part not in ("*", "**"):
                 check_name(part, "target")
         return f"{self.prefix}/pose/{target}"
 
     def target(self, key: str) -> str:
-        """The target name of a pose key of this rig (``ar/rig0/pose/cam0/marker_7`` -> ``cam0/marker_7``)."""
+        """The target name of a pose key of this rig (``ar/rig0/pose/cam0/marker/7`` -> ``cam0/marker/7``)."""
         head = f"{self.prefix}/pose/"
         if not key.startswith(head) or len(key) == len(head):
             raise ValueError(f"{key!r} is not a pose key of {self.prefix!r}")

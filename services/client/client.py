@@ -5,7 +5,7 @@
     from services.client import connect
 
     with connect() as ar:                          # same bus options as the nodes
-        for update in ar.poses("cam0/*"):          # every target seen by cam0
+        for update in ar.poses("cam0/**"):         # every target seen by cam0 (markers, boards)
             print(update.target, update.pose.transform.translation, f"{update.latency_ms:.1f} ms")
 
 While connected, the client holds a liveliness token at ``keys.client(id)`` and answers a
@@ -71,7 +71,8 @@ class Client:
 
     def poses(self, target: str = "**", *, idle_timeout_s: float | None = None,
               depth: int = DEFAULT_DEPTH) -> PoseStream:
-        """Poses of the targets matching ``target`` (``cam0/marker_7``, ``cam0/*``, ``**``), in arrival order.
+        """Poses of the targets matching ``target`` (``cam0/marker/7``, ``cam0/marker/*``, ``cam0/**``, ``**``),
+        in arrival order; ``*`` matches one segment, ``**`` any number.
 
         The iteration ends after ``idle_timeout_s`` without a pose (None: never) or on ``close``.
         """
