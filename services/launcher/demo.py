@@ -31,7 +31,7 @@ from services.launcher.job import RECORDING_SCHEME, Recording, build_job, run_jo
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_RECORDING = ROOT / "recordings" / "markers.mcap"
 DEFAULT_RUNS = ROOT / "runs"
 MARKER_LENGTH_M = 0.05
