@@ -22,12 +22,14 @@ from protocol.system import (
     StreamStats,
     Subscription,
     SupervisedNode,
+    SyncInputStats,
+    SyncStats,
 )
 
 __all__ = [
     "BlobDetections", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError", "ErrorReport",
     "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
     "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RegionOfInterest", "RigidBodies",
-    "RigidBody", "StreamStats", "Subscription", "SupervisedNode", "TrackingState", "Transform", "decode", "encode",
-    "message_type", "message_types", "to_json",
+    "RigidBody", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats", "TrackingState",
+    "Transform", "decode", "encode", "message_type", "message_types", "to_json",
 ]
