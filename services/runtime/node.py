@@ -47,7 +47,7 @@ from services.runtime.memory import settle_heap
 from services.runtime.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.runtime.reconfig import LiveParams
 from services.runtime.stats import AgeWindow, LatencyWindow, StreamCounter
-from services.runtime.sync import JoinBy, Joiner
+from services.runtime.sync import JoinBy, Joiner, join_key, key_tolerance
 
 M = TypeVar("M", bound=Message)
 P = TypeVar("P", bound=BaseModel)
@@ -214,23 +214,21 @@ class Node:
         ``by="seq"`` joins messages with equal ``header.seq``; ``by="stamp"`` joins those whose
         ``header.stamp_ns`` lies within ``tolerance_s`` of the first input's. ``cls`` is one
         message type for all inputs or one per name. Each input keeps up to ``depth`` messages
-        waiting for partners. With ``role=Role.FRAME`` only the newest complete set waits to be
-        taken (latest-wins); otherwise up to ``depth`` sets wait, in order. Iterate the result
+        waiting for partners. ``role=Role.FRAME`` is latest-wins: each input queues up to
+        ``depth`` messages, and only the newest complete set is handed out. Any other role
+        hands out every set in order, its inputs queueing as that role does. Iterate the result
         for ``{name: message}`` dicts in ``inputs``' order, as ``inputs`` hands out messages;
-        what could not be joined is counted in ``NodeStats.synced``
-        (``services.runtime.sync`` says how).
+        what could not be joined is counted in ``NodeStats.synced`` (``services.runtime.sync``
+        says how).
         """
-        if by not in ("seq", "stamp"):
-            raise ValueError(f"by must be 'seq' or 'stamp', not {by!r}")
-        if by == "seq" and tolerance_s:
-            raise ValueError("a tolerance applies to by='stamp' only: sequence numbers join when equal")
-        if not 0 <= tolerance_s < float("inf"):
-            raise ValueError(f"tolerance_s must be a finite number >= 0, got {tolerance_s}")
+        tolerance_ns = key_tolerance(by, tolerance_s)
         types = cls if isinstance(cls, Mapping) else dict.fromkeys(inputs, cls)
         if set(types) != set(inputs):
             raise ValueError(f"cls names {sorted(types)}, but the inputs are {sorted(inputs)}")
-        inboxes = {name: self.inbox(key, types[name], role, depth) for name, key in inputs.items()}
-        synced = Synced(self, inboxes, by, round(tolerance_s * 1e9), depth, 1 if role is Role.FRAME else depth)
+        latest = role is Role.FRAME
+        joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth, ready=1 if latest else depth)
+        inboxes = {name: self.inbox(key, types[name], role, depth if latest else None) for name, key in inputs.items()}
+        synced = Synced(self, inboxes, joiner, by, latest)
         self._syncs.append(synced)
         return synced
 
@@ -341,11 +339,11 @@ class Synced(Generic[M]):
     hold into the join and returns the oldest complete set waiting, or None.
     """
 
-    def __init__(self, node: Node, inboxes: dict[str, Inbox], by: JoinBy, tolerance_ns: int, depth: int,
-                 ready: int):
+    def __init__(self, node: Node, inboxes: dict[str, Inbox], joiner: Joiner[M], by: JoinBy, latest: bool):
         self.inboxes = inboxes
+        self.joiner = joiner
         self.by = by
-        self.joiner: Joiner[M] = Joiner(list(inboxes), tolerance=tolerance_ns, depth=depth, ready=ready)
+        self.latest = latest
         self._node = node
         self._lock = threading.Lock()
 
@@ -354,11 +352,18 @@ class Synced(Generic[M]):
         return self._node._serve(self.take, list(self.inboxes.values()), lambda s: s[reference].header.stamp_ns)
 
     def take(self) -> dict[str, M] | None:
+        """Move queued messages into the join, one per input in turn (all of them when latest-wins,
+        else until a set is complete); the oldest complete set waiting, or None."""
         with self._lock:
-            for name, inbox in self.inboxes.items():
-                while (received := inbox.take()) is not None:
-                    header = received.message.header
-                    self.joiner.push(name, header.seq if self.by == "seq" else header.stamp_ns, received.message)
+            while self.latest or not self.joiner.ready():
+                moved = 0
+                for name, inbox in self.inboxes.items():
+                    received = inbox.take()
+                    if received is not None:
+                        moved += 1
+                        self.joiner.push(name, join_key(received.message.header, self.by), received.message)
+                if not moved:
+                    break
             joined = self.joiner.pop()
         return None if joined is None else joined[1]
 

@@ -33,13 +33,36 @@ import bisect
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Generic, Literal, TypeVar
+from typing import Generic, Literal, Protocol, TypeVar
 
 T = TypeVar("T")
 
 JoinBy = Literal["seq", "stamp"]
 
-__all__ = ["InputCounts", "JoinBy", "Joiner"]
+__all__ = ["InputCounts", "JoinBy", "Joiner", "join_key", "key_tolerance"]
+
+
+class Stamped(Protocol):
+    """What a key is read from: a message header."""
+
+    stamp_ns: int
+    seq: int
+
+
+def join_key(header: Stamped, by: JoinBy) -> int:
+    """The key a message joins on: its header's ``seq`` or ``stamp_ns``."""
+    return header.seq if by == "seq" else header.stamp_ns
+
+
+def key_tolerance(by: JoinBy, tolerance_s: float) -> int:
+    """The tolerance in key units (ns for ``stamp``; 0 for ``seq``) after checking ``by`` and ``tolerance_s``."""
+    if by not in ("seq", "stamp"):
+        raise ValueError(f"by must be 'seq' or 'stamp', not {by!r}")
+    if not 0 <= tolerance_s < float("inf"):
+        raise ValueError(f"tolerance_s must be a finite number of seconds >= 0, got {tolerance_s}")
+    if by == "seq" and tolerance_s:
+        raise ValueError(f"tolerance_s={tolerance_s} applies to by='stamp' only: sequence numbers join when equal")
+    return round(tolerance_s * 1e9)
 
 
 @dataclass

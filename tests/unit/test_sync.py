@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.runtime.sync import InputCounts, Joiner
+from protocol.message import Header
+from protocol.system import ErrorReport
+from services.runtime.node import Synced
+from services.runtime.pubsub import Received
+from services.runtime.sync import InputCounts, Joiner, join_key, key_tolerance
 
 MS = 1_000_000
 
@@ -174,6 +179,24 @@ def test_an_unknown_input_is_refused():
         Joiner(["a", "b"]).push("c", 1, None)
 
 
+def test_keys_are_read_from_the_header_and_the_tolerance_is_checked_and_converted_to_ns():
+    header = Header(stamp_ns=1_700_000_000_123_456_789, seq=42)
+    assert join_key(header, "seq") == 42 and join_key(header, "stamp") == header.stamp_ns
+    assert key_tolerance("stamp", 0.0025) == 2_500_000 and key_tolerance("seq", 0.0) == 0
+
+
+@pytest.mark.parametrize(("by", "tolerance_s", "match"), [
+    ("time", 0.0, "by must be 'seq' or 'stamp'"),
+    ("seq", 0.001, "applies to by='stamp' only"),
+    ("stamp", -0.001, "finite number of seconds >= 0"),
+    ("stamp", float("nan"), "finite number of seconds >= 0"),
+    ("stamp", float("inf"), "finite number of seconds >= 0"),
+])
+def test_a_bad_join_is_refused_with_a_reason(by, tolerance_s, match):
+    with pytest.raises(ValueError, match=match):
+        key_tolerance(by, tolerance_s)
+
+
 pushes = st.lists(st.tuples(st.sampled_from(["a", "b", "c"]), st.integers(0, 40)), max_size=200)
 
 
@@ -218,3 +241,41 @@ def test_in_order_streams_join_by_seq_into_exactly_the_common_sequence_numbers(s
         joiner.push(name, key, key)
     common = set.intersection(*map(set, streams))
     assert [key for key, _ in drain(joiner)] == sorted(common)
+
+
+class QueuedInbox:
+    """Stands in for an ``Inbox`` whose messages have all arrived already."""
+
+    def __init__(self, key: str, seqs: range):
+        self.key = key
+        self.queue = deque(Received(key, ErrorReport(header=Header(stamp_ns=seq, seq=seq), node="n", kind="k",
+                                                     detail=""), 0) for seq in seqs)
+
+    def take(self) -> Received | None:
+        return self.queue.popleft() if self.queue else None
+
+
+def synced_over_backlog(latest: bool) -> Synced:
+    inboxes = {"left": QueuedInbox("l", range(20)), "right": QueuedInbox("r", range(20))}
+    return Synced(None, inboxes, Joiner(list(inboxes), depth=4, ready=1 if latest else 4), "seq", latest)
+
+
+def test_a_backlog_longer_than_the_depth_is_joined_in_order_when_every_set_counts():
+    synced = synced_over_backlog(latest=False)
+    taken = [synced.take() for _ in range(21)]
+    assert [{name: m.header.seq for name, m in pair.items()} for pair in taken[:20]] == [
+        {"left": i, "right": i} for i in range(20)]
+    assert taken[20] is None
+    stats = synced.stats()
+    assert (stats.sets, stats.dropped) == (20, 0) and all(i.unjoined == 0 for i in stats.inputs)
+
+
+def test_a_backlog_joined_latest_wins_hands_out_the_newest_set_and_counts_the_rest():
+    synced = synced_over_backlog(latest=True)
+    pair = synced.take()
+    assert {name: m.header.seq for name, m in pair.items()} == {"left": 19, "right": 19}
+    assert synced.take() is None
+    stats = synced.stats()
+    assert (stats.by, stats.sets, stats.dropped) == ("seq", 20, 19)
+    assert [(i.name, i.key, i.received, i.joined, i.unjoined) for i in stats.inputs] == [
+        ("left", "l", 20, 20, 0), ("right", "r", 20, 20, 0)]
