@@ -22,6 +22,8 @@ from protocol.system import (
     StreamStats,
     Subscription,
     SupervisedNode,
+    SyncInputStats,
+    SyncStats,
 )
 
 __all__ = [
@@ -29,5 +31,6 @@ __all__ = [
     "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
     "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RIG_FRAME", "RegionOfInterest",
     "RigidBodies", "RigidBody", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode",
-    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "to_json",
+    "SyncInputStats", "SyncStats", "TrackingState", "Transform", "decode", "encode", "message_type",
+    "message_types", "to_json",
 ]

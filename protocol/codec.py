@@ -148,7 +148,7 @@ def _lookup(document: Any, size: int, *, framed: bool) -> tuple[type[Message], d
     cls = message_type(schema)
     if cls is None:
         raise DecodeError(f"unknown schema {schema!r}", schema=schema, size=size)
-    if isinstance(version, bool) or version != cls.VERSION:
+    if isinstance(version, bool) or (version != cls.VERSION and version not in cls.READS_OLDER):
         raise DecodeError(f"version {version!r} is not understood (this build reads version {cls.VERSION})",
                           schema=schema, size=size)
     if framed != is_frame(cls):

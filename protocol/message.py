@@ -52,6 +52,8 @@ class Message(Struct):
 
     SCHEMA: ClassVar[str]
     VERSION: ClassVar[int]
+    READS_OLDER: ClassVar[tuple[int, ...]] = ()
+    """Older versions this class still decodes: they differ only by fields that have a default now."""
     ARRAY_FIELDS: ClassVar[dict[str, ArraySpec]] = {}
 
     header: Header

@@ -27,6 +27,42 @@ class StreamStats(Struct):
     rate_hz: float = Field(default=0.0, ge=0)
 
 
+class SyncInputStats(Struct):
+    """What became of one input's messages in a join (see ``SyncStats``)."""
+
+    name: str
+    key: str
+    received: int = Field(default=0, ge=0)
+    joined: int = Field(default=0, ge=0)
+    evicted: int = Field(default=0, ge=0)
+    superseded: int = Field(default=0, ge=0)
+    out_of_order: int = Field(default=0, ge=0)
+
+    @property
+    def unjoined(self) -> int:
+        """Messages that ended up in no set."""
+        return self.evicted + self.superseded + self.out_of_order
+
+
+class SyncStats(Struct):
+    """One group of inputs a node joins into sets of one message each (``Node.synced``).
+
+    ``by``: joined on equal header ``seq``, or on ``stamp`` within ``tolerance_ns`` of the
+    first input's. ``sets`` complete sets were formed, ``dropped`` of them were replaced by
+    a newer one before the node took them (latest-wins), ``resets`` times an input started
+    over. Per input: ``joined`` went into a set; ``evicted`` were pushed out of a full buffer
+    while waiting for partners; ``superseded`` were still waiting when a newer set went out;
+    ``out_of_order`` arrived too old to join or repeated a pending key.
+    """
+
+    by: Literal["seq", "stamp"]
+    tolerance_ns: int = Field(default=0, ge=0)
+    sets: int = Field(default=0, ge=0)
+    dropped: int = Field(default=0, ge=0)
+    resets: int = Field(default=0, ge=0)
+    inputs: tuple[SyncInputStats, ...] = ()
+
+
 class NodeStats(Message):
     """A node's health, published periodically and answered on its state queryable.
 
@@ -39,10 +75,15 @@ class NodeStats(Message):
     ``LATENCY_AGE_MAX_S`` count: a replay stamped with the recording's time, or another
     host's clock, gives no figure (None) rather than a wrong one. ``skipped`` counts inputs
     the node could not use, by reason (``decode_error``, ``degenerate_homography``, ...).
+    ``synced`` holds one entry per group of inputs the node joins; ``unjoined`` sums the
+    messages of all groups that went into no set.
+
+    Version 2 added ``synced``; version 1 payloads (older recordings) still decode, with none.
     """
 
     SCHEMA = "artrack.NodeStats"
-    VERSION = 1
+    VERSION = 2
+    READS_OLDER = (1,)
 
     node: str
     kind: str
@@ -61,6 +102,12 @@ class NodeStats(Message):
     latency_ms_p99: float | None = None
     skipped: dict[str, int] = Field(default_factory=dict)
     streams: tuple[StreamStats, ...] = ()
+    synced: tuple[SyncStats, ...] = ()
+
+    @property
+    def unjoined(self) -> int:
+        """Messages of joined inputs that went into no set (all groups, all reasons)."""
+        return sum(i.unjoined for group in self.synced for i in group.inputs)
 
 
 class ErrorReport(Message):

@@ -22,9 +22,9 @@ def _ms(value: float | None) -> str:
 
 
 def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], NodeStats]) -> str:
-    """A table of nodes with their health figures."""
-    header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "DECODE_ERR", "P50(ms)", "P99(ms)",
-              "LAT50(ms)", "LAT99(ms)")
+    """A table of nodes with their health figures (UNJOINED: messages of synced inputs that joined no set)."""
+    header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "UNJOINED", "DECODE_ERR", "P50(ms)",
+              "P99(ms)", "LAT50(ms)", "LAT99(ms)")
     rows = [header]
     for rig, name in nodes:
         s = states.get((rig, name))
@@ -32,8 +32,8 @@ def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], Nod
             rows.append((rig, name, "?", *("-",) * (len(header) - 3)))
             continue
         rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
-                     str(s.dropped), str(s.decode_errors), _ms(s.processing_ms_p50), _ms(s.processing_ms_p99),
-                     _ms(s.latency_ms_p50), _ms(s.latency_ms_p99)))
+                     str(s.dropped), str(s.unjoined), str(s.decode_errors), _ms(s.processing_ms_p50),
+                     _ms(s.processing_ms_p99), _ms(s.latency_ms_p50), _ms(s.latency_ms_p99)))
     return format_table(rows)
 
 

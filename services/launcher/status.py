@@ -2,10 +2,11 @@
 
 It gathers, from one bus session: every ``artrack up`` process's ``PipelineHealth``
 (supervised nodes: state, pid, uptime, restarts), every node's ``NodeStats`` (rates, drops,
-decode errors, processing p50/p99, latency p50/p99: an input's age when the node was done
-with it), and every client app's ``ClientState`` with its
-subscriptions. A subscription that matches no key a live node publishes (its output
-streams in ``NodeStats.streams``) is flagged: the app waits for something nobody sends.
+messages of synced inputs that joined no set, decode errors, processing p50/p99, latency
+p50/p99: an input's age when the node was done with it), and every client app's
+``ClientState`` with its subscriptions. A subscription that matches no key a live node
+publishes (its output streams in ``NodeStats.streams``) is flagged: the app waits for
+something nobody sends.
 
 ``--check`` is the health-check contract (docker HEALTHCHECK, systemd): healthy, exit 0,
 only when at least one ``artrack up`` answered and every node it supervises is running.
@@ -89,9 +90,9 @@ def _stats_json(stats: NodeStats | None) -> dict | None:
     return {"node": stats.node, "kind": stats.kind, "pid": stats.pid, "state": stats.state,
             "uptime_s": stats.uptime_s, "in_hz": _rate(stats, "in"), "out_hz": _rate(stats, "out"),
             "received": stats.received, "published": stats.published, "dropped": stats.dropped,
-            "decode_errors": stats.decode_errors, "processing_ms_p50": stats.processing_ms_p50,
-            "processing_ms_p99": stats.processing_ms_p99, "latency_ms_p50": stats.latency_ms_p50,
-            "latency_ms_p99": stats.latency_ms_p99}
+            "unjoined": stats.unjoined, "decode_errors": stats.decode_errors,
+            "processing_ms_p50": stats.processing_ms_p50, "processing_ms_p99": stats.processing_ms_p99,
+            "latency_ms_p50": stats.latency_ms_p50, "latency_ms_p99": stats.latency_ms_p99}
 
 
 def _rate(stats: NodeStats, direction: str) -> float:
@@ -114,7 +115,7 @@ def format_status(status: Status) -> str:
     """Tables of the nodes (supervised first; IN/s and OUT/s summed over each node's keys) and
     client apps, then warnings and problems."""
     header = ("PIPELINE", "NODE", "KIND", "STATE", "PID", "UP(s)", "RESTARTS", "IN/s", "OUT/s", "DROPPED",
-              "DECODE_ERR", "P50(ms)", "P99(ms)", "LAT50(ms)", "LAT99(ms)")
+              "UNJOINED", "DECODE_ERR", "P50(ms)", "P99(ms)", "LAT50(ms)", "LAT99(ms)")
     rows = [header]
     for health in status.pipelines.values():
         for node in health.nodes:
@@ -140,7 +141,8 @@ def format_status(status: Status) -> str:
 
 def _figures(stats: NodeStats | None) -> tuple[str, ...]:
     if stats is None:
-        return ("-",) * 8
-    return (_cell(_rate(stats, "in")), _cell(_rate(stats, "out")), str(stats.dropped), str(stats.decode_errors),
+        return ("-",) * 9
+    return (_cell(_rate(stats, "in")), _cell(_rate(stats, "out")), str(stats.dropped), str(stats.unjoined),
+            str(stats.decode_errors),
             _cell(stats.processing_ms_p50, 2), _cell(stats.processing_ms_p99, 2),
             _cell(stats.latency_ms_p50, 2), _cell(stats.latency_ms_p99, 2))

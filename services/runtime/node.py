@@ -8,6 +8,13 @@ A node body is a short loop over its inputs::
         for image in node.inputs(frames):
             out.put(image)
 
+A body that needs one message from each of several inputs at once (the two images of a
+stereo rig, a frame with its detections) iterates joined sets instead::
+
+    pairs = node.synced({"left": node.keys.image("left"), "right": node.keys.image("right")}, Image)
+    for pair in pairs:
+        match(pair["left"], pair["right"])
+
 While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
 list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``,
 answers the same on the ``keys.state(name)`` queryable, and reports inputs it had to skip
@@ -25,27 +32,31 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
-from typing import Literal, TypeVar
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import asdict
+from typing import Generic, Literal, TypeVar
 
 import zenoh
 from pydantic import BaseModel
 
 from protocol.codec import DecodeError, decode, encode
 from protocol.message import Header, Message
-from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats
+from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats, SyncInputStats, SyncStats
 from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.bus.session import BusConfig, BusError, open_session
 from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
 from services.runtime.memory import settle_heap
 from services.runtime.reconfig import LiveParams
+from services.runtime.sync import JoinBy, Joiner, join_key, key_tolerance
 
 M = TypeVar("M", bound=Message)
 P = TypeVar("P", bound=BaseModel)
+T = TypeVar("T")
 
 POLL_S = 0.1
 LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
+DEFAULT_SYNC_DEPTH = 8
 
 
 class NodeError(RuntimeError):
@@ -68,6 +79,7 @@ class Node:
         self._wake = threading.Condition()
         self._started = time.monotonic()
         self._inboxes: list[Inbox] = []
+        self._syncs: list[Synced] = []
         self._publishers: list[Publisher | RawPublisher] = []
         self._answers: list[zenoh.Queryable] = []
         self._tracked: list[StreamCounter] = []
@@ -181,23 +193,59 @@ class Node:
         The time between handing out a message and being asked for the next one is the
         node's processing time for it.
         """
-        self._state = "running"
         turn = 0
-        while self.running:
-            received = None
+
+        def take() -> M | None:
+            nonlocal turn
             for i in range(len(inboxes)):
                 received = inboxes[(turn + i) % len(inboxes)].take()
                 if received is not None:
                     turn = (turn + i + 1) % len(inboxes)
-                    break
-            if received is None:
+                    return received.message
+            return None
+
+        return self._serve(take, inboxes, lambda message: message.header.stamp_ns)
+
+    def synced(self, inputs: Mapping[str, str], cls: type[M] | Mapping[str, type[Message] | None] | None,
+               role: Role = Role.FRAME, *, by: JoinBy = "seq", tolerance_s: float = 0.0,
+               depth: int = DEFAULT_SYNC_DEPTH) -> Synced:
+        """Sets of one message from each of ``inputs`` ({name: key}), joined on their headers.
+
+        ``by="seq"`` joins messages with equal ``header.seq``; ``by="stamp"`` joins those whose
+        ``header.stamp_ns`` lies within ``tolerance_s`` of the first input's. ``cls`` is one
+        message type for all inputs or one per name. Each input keeps up to ``depth`` messages
+        waiting for partners. ``role=Role.FRAME`` is latest-wins: each input queues up to
+        ``depth`` messages, and only the newest complete set is handed out. Any other role
+        hands out every set in order, its inputs queueing as that role does. Iterate the result
+        for ``{name: message}`` dicts in ``inputs``' order, as ``inputs`` hands out messages;
+        what could not be joined is counted in ``NodeStats.synced`` (``services.runtime.sync``
+        says how).
+        """
+        tolerance_ns = key_tolerance(by, tolerance_s)
+        types = cls if isinstance(cls, Mapping) else dict.fromkeys(inputs, cls)
+        if set(types) != set(inputs):
+            raise ValueError(f"cls names {sorted(types)}, but the inputs are {sorted(inputs)}")
+        latest = role is Role.FRAME
+        joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth, ready=1 if latest else depth)
+        inboxes = {name: self.inbox(key, types[name], role, depth if latest else None) for name, key in inputs.items()}
+        synced = Synced(self, inboxes, joiner, by, latest)
+        self._syncs.append(synced)
+        return synced
+
+    def _serve(self, take: Callable[[], T | None], inboxes: Sequence[Inbox], stamp: Callable[[T], int]) -> Iterator[T]:
+        """What ``take()`` hands out until the node stops, waiting on ``inboxes`` while it has nothing;
+        ``stamp(item)`` is the stamp whose age counts as the node's latency."""
+        self._state = "running"
+        while self.running:
+            item = take()
+            if item is None:
                 with self._wake:
                     if self.running and not any(inbox.pending() for inbox in inboxes):
                         self._wake.wait(POLL_S)
                 continue
             started = time.perf_counter()
-            yield received.message
-            self.processed(time.perf_counter() - started, received.message.header.stamp_ns)
+            yield item
+            self.processed(time.perf_counter() - started, stamp(item))
 
     def linger(self, seconds: float = LINGER_S) -> None:
         """Stay up a moment after a job's last message while anyone subscribes to an output.
@@ -259,6 +307,7 @@ class Node:
             processing_ms_p50=p50, processing_ms_p99=p99, latency_ms_p50=age_p50, latency_ms_p99=age_p99,
             skipped=self.skipped(),
             streams=tuple(inputs + outputs),
+            synced=tuple(synced.stats() for synced in self._syncs),
         )
 
     def _stats_loop(self) -> None:
@@ -281,6 +330,50 @@ class Node:
             queryable.undeclare()
         self._token.undeclare()
         self.session.close()
+
+
+class Synced(Generic[M]):
+    """Sets of one message per named input, joined on their headers (made by ``Node.synced``).
+
+    Iterating yields ``{name: message}`` until the node stops. ``take`` moves what the inboxes
+    hold into the join and returns the oldest complete set waiting, or None.
+    """
+
+    def __init__(self, node: Node, inboxes: dict[str, Inbox], joiner: Joiner[M], by: JoinBy, latest: bool):
+        self.inboxes = inboxes
+        self.joiner = joiner
+        self.by = by
+        self.latest = latest
+        self._node = node
+        self._lock = threading.Lock()
+
+    def __iter__(self) -> Iterator[dict[str, M]]:
+        reference = self.joiner.reference
+        return self._node._serve(self.take, list(self.inboxes.values()), lambda s: s[reference].header.stamp_ns)
+
+    def take(self) -> dict[str, M] | None:
+        """Move queued messages into the join, one per input in turn (all of them when latest-wins,
+        else until a set is complete); the oldest complete set waiting, or None."""
+        with self._lock:
+            while self.latest or not self.joiner.ready():
+                moved = 0
+                for name, inbox in self.inboxes.items():
+                    received = inbox.take()
+                    if received is not None:
+                        moved += 1
+                        self.joiner.push(name, join_key(received.message.header, self.by), received.message)
+                if not moved:
+                    break
+            joined = self.joiner.pop()
+        return None if joined is None else joined[1]
+
+    def stats(self) -> SyncStats:
+        with self._lock:
+            joiner = self.joiner
+            inputs = tuple(SyncInputStats(name=name, key=inbox.key, **asdict(joiner.counts(name)))
+                           for name, inbox in self.inboxes.items())
+            return SyncStats(by=self.by, tolerance_ns=joiner.tolerance, sets=joiner.sets, dropped=joiner.dropped,
+                             resets=joiner.resets, inputs=inputs)
 
 
 def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None]) -> int:

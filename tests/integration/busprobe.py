@@ -2,11 +2,14 @@
 
     python busprobe.py KIND COUNT [--key KEY] [--role result|frame] [--rate HZ]
                                   [--peer ZID] [--width W --height H]
+                                  [--skip I,J,...] [--offset-ms MS] [--offset-at I=MS ...]
 
 Opens a session from the ``ARTRACK_*`` environment (the test's router), waits until a
 subscriber matches ``KEY`` (and, with ``--peer``, until the session of that Zenoh id is a
 direct peer, so no message can take the longer way through the router), publishes
-``make_message(KIND, i)`` for i in 0..COUNT-1 with the given role, prints one JSON line
+``make_message(KIND, i)`` for i in 0..COUNT-1 with the given role (leaving out the indices
+of ``--skip``; stamps moved by ``--offset-ms``, or for index I by the MS of ``--offset-at I=MS``
+instead: a second camera's stream with missing and skewed frames), prints one JSON line
 ``{"published": COUNT}``, then stays until no subscriber matches any more (the test closes its
 subscriber once it has what it wants) and closes the session. The tests rebuild the same
 messages with ``make_message`` to compare what arrived. Exit code 3: nothing subscribed
@@ -69,6 +72,14 @@ def make_message(kind: str, index: int, width: int = 320, height: int = 240) -> 
     raise ValueError(f"unknown kind {kind!r}")
 
 
+def shifted(message: Message, offset_ms: float) -> Message:
+    """``message`` with its header stamp moved by ``offset_ms``."""
+    if not offset_ms:
+        return message
+    header = message.header.model_copy(update={"stamp_ns": message.header.stamp_ns + round(offset_ms * 1e6)})
+    return message.model_copy(update={"header": header})
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("kind", choices=sorted(KINDS))
@@ -79,10 +90,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--peer", help="Zenoh id of the subscriber's session; wait for a direct link to it")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--skip", default="", help="comma-separated indices not to publish")
+    parser.add_argument("--offset-ms", type=float, default=0.0, help="added to every stamp")
+    parser.add_argument("--offset-at", action="append", default=[], metavar="I=MS",
+                        help="added to the stamp of index I instead of --offset-ms (repeatable)")
     args = parser.parse_args(argv)
 
     bus = BusConfig.from_env()
-    messages = [make_message(args.kind, i, args.width, args.height) for i in range(args.count)]
+    skip = {int(i) for i in args.skip.split(",") if i}
+    offsets_ms = {int(i): float(ms) for i, ms in (spec.split("=") for spec in args.offset_at)}
+    messages = [shifted(make_message(args.kind, i, args.width, args.height), offsets_ms.get(i, args.offset_ms))
+                for i in range(args.count) if i not in skip]
     session = open_session(bus)
     try:
         publisher = Publisher(session, resolve_key(bus.keys, args.key), KINDS[args.kind], Role(args.role))

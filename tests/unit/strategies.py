@@ -37,6 +37,8 @@ from protocol import (
     StreamStats,
     Subscription,
     SupervisedNode,
+    SyncInputStats,
+    SyncStats,
     TrackingState,
     Transform,
 )
@@ -156,6 +158,11 @@ def _tuples_of(strategy: st.SearchStrategy) -> st.SearchStrategy[tuple]:
 directions = st.sampled_from(["in", "out"])
 stream_stats = st.builds(StreamStats, key=texts, direction=directions, messages=big_counts,
                          dropped=big_counts, decode_errors=big_counts, rate_hz=non_negative)
+sync_stats = st.builds(
+    SyncStats, by=st.sampled_from(["seq", "stamp"]), tolerance_ns=big_counts, sets=big_counts, dropped=big_counts,
+    resets=big_counts, inputs=_tuples_of(st.builds(
+        SyncInputStats, name=texts, key=texts, received=big_counts, joined=big_counts, evicted=big_counts,
+        superseded=big_counts, out_of_order=big_counts)))
 
 MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.Image": images(),
@@ -181,7 +188,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         decode_errors=big_counts,
         processing_ms_p50=st.none() | finite, processing_ms_p99=st.none() | finite,
         latency_ms_p50=st.none() | finite, latency_ms_p99=st.none() | finite,
-        streams=_tuples_of(stream_stats)),
+        streams=_tuples_of(stream_stats), synced=_tuples_of(sync_stats)),
     "artrack.ClientState": st.builds(
         ClientState, header=headers, client=texts, app=texts, host=texts, pid=st.integers(-(2**70), 2**70),
         uptime_s=non_negative, subscriptions=_tuples_of(st.builds(

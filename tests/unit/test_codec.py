@@ -393,3 +393,13 @@ def test_a_frame_header_with_an_inline_array_is_refused():
     payload = struct.pack("<4sB3sI", MAGIC, 1, bytes(3), len(header)) + header
     with pytest.raises(DecodeError, match="missing descriptor"):
         decode(payload)
+
+
+def test_an_older_version_a_class_still_reads_decodes_and_others_are_refused():
+    from protocol.system import NodeStats
+
+    stats = NodeStats(header=Header(stamp_ns=1), node="n", kind="k", host="h", pid=1, uptime_s=0.0)
+    old = encode(stats).replace(b'"version":2', b'"version":1', 1)
+    assert decode(old) == stats
+    with pytest.raises(DecodeError, match="version 3 is not understood"):
+        decode(encode(stats).replace(b'"version":2', b'"version":3', 1))
