@@ -1,1 +1,1 @@
-"""Accuracy against ground truth: estimators scored on synthetic scenes, and the figures the README quotes."""
+"""Accuracy against ground truth: estimators scored on synthetic scenes, and the figures docs/accuracy.md quotes."""

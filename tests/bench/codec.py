@@ -9,7 +9,7 @@ its payload; the same three for a marker ``Pose``) is timed ``CALLS`` times two 
   it, and the call finds its code and data out of the caches.
 
 p50 per step and condition, and cold / warm. The transport and marker benchmarks' typed
-overheads are sums of such steps (see the README's Benchmarks section).
+overheads are sums of such steps (see docs/benchmarks.md).
 ``python -m tests.bench codec`` prints the lines (about 15 s).
 """
 
