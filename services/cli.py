@@ -14,8 +14,9 @@ import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from services.bus.session import LOCAL_ROUTER, BusConfig, BusError, open_session
 from services.launcher.pipeline import PipelineError, describe
@@ -23,6 +24,8 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 log = logging.getLogger("artrack")
+
+M = TypeVar("M", bound=BaseModel)
 
 
 def _bus_options(parser: argparse.ArgumentParser) -> None:
@@ -318,14 +321,6 @@ def cmd_schemas(args: argparse.Namespace) -> int:
     return 0
 
 
-def _params(cls: type, what: str, **values: object) -> object:
-    """``cls`` (a node's Params) from the options given; unset (None) ones keep the model's defaults."""
-    try:
-        return cls(**{k: v for k, v in values.items() if v is not None})
-    except ValidationError as exc:
-        raise ValueError(f"{what}: {describe(exc)}") from exc
-
-
 def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[..., object]) -> int:
     """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
     from services.runtime.node import run_node
@@ -334,13 +329,39 @@ def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[..., object
     return run_node(args.name, kind, _bus(args), body)
 
 
+def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional: dict[str, str], description: str,
+                node: str | None = None) -> M:
+    """``model`` from ``artrack PROG POSITIONAL... [flags]`` (``args.rest``): a flag per field of the model but
+    the positional ones (paths), bus options and ``--name`` when it runs as a ``node``; errors name the flag."""
+    from services.launcher.flags import add_flags, explain, flags_for, given_values
+
+    p = argparse.ArgumentParser(prog=f"artrack {prog}", description=description)
+    for field, metavar in positional.items():
+        p.add_argument(field, type=Path, metavar=metavar)
+    flags = flags_for(model, set(positional))
+    add_flags(p.add_argument_group(f"{prog} options"), flags)
+    if node is not None:
+        p.add_argument("--name", default=node, help=f"node name (default {node})")
+        _bus_options(p)
+    parsed = p.parse_args(args.rest, namespace=args)
+    fields = {f: getattr(parsed, f) for f in positional if f in model.model_fields}
+    try:
+        return model.model_validate({**fields, **given_values(parsed, flags)})
+    except ValidationError as exc:
+        raise ValueError(explain(exc, flags, prog)) from exc
+
+
+RECORD_HELP = "record the rig's keys to MCAP until Ctrl-C (a node: `list` shows it)"
+REPLAY_HELP = "publish a recording's bytes on their keys with their timing; exit 3 if damaged"
+VIEW_HELP = ("a recording as a Rerun .rrd file, drawn as the live viewer draws it (open it with `rerun OUT.rrd`; "
+             "exit 3 if damaged)")
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from services.recorder.record_node import Params, run, subscriptions
     from services.recorder.writing import check_target
 
-    params = _params(Params, "record", out=args.out, keys=tuple(args.keys or ()), split_size_mb=args.split_size,
-                     split_duration_s=args.split_duration, queue_mb=args.queue_mb, flush_s=args.flush,
-                     compression=args.compression)
+    params = _from_flags(args, "record", Params, {"out": "OUT.mcap"}, RECORD_HELP, node="recorder")
     check_target(params.out)  # a bad output or overlapping keys fail here, before joining the bus
     subscriptions(_bus(args).keys, params.keys)
     return _run_as_node(args, "recorder", lambda node: run(node, params))
@@ -350,8 +371,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from services.recorder.reading import Scan
     from services.recorder.replay_node import Params, run
 
-    params = _params(Params, "replay", path=args.file, rate=args.rate, loop=args.loop, start_s=args.start,
-                     end_s=args.end, keys=tuple(args.keys or ()), paused=args.paused, wait_s=args.wait)
+    params = _from_flags(args, "replay", Params, {"path": "IN.mcap"}, REPLAY_HELP, node="replay")
     Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
     codes: list[int] = []
     failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
@@ -409,8 +429,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     from services.viewer.convert import convert
     from services.viewer.scene import ViewOptions
 
-    options = _params(ViewOptions, "view", image_hz=args.image_hz, jpeg_quality=args.jpeg,
-                      trajectory_length=args.trajectory, world_axes=args.world_axes)
+    options = _from_flags(args, "view", ViewOptions, {"file": "IN.mcap", "out": "OUT.rrd"}, VIEW_HELP)
     done = convert(args.file, args.out, options)
     log.info("wrote %s: %d rows from %d messages%s", args.out, done.rows, done.messages,
              f" ({done.undecodable} undecodable messages skipped)" if done.undecodable else "")
@@ -519,7 +538,6 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", add_help=False, help="one job: a source through a tracker (`artrack trackers` lists "
                        "them; `artrack run TRACKER --help` its options), optionally recorded")
     p.add_argument("tracker", nargs="?", metavar="TRACKER")
-    p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("kinds", help="the node kinds found (with ARTRACK_PLUGINS, in those packages too)")
@@ -546,36 +564,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("out", type=Path, metavar="DIR")
     p.set_defaults(func=cmd_schemas)
 
-    relative = "relative to ar/<rig>/ unless it starts with the namespace"
-    p = sub.add_parser("record", help="record the rig's keys to MCAP until Ctrl-C (a node: `list` shows it)")
-    p.add_argument("out", type=Path, metavar="OUT.mcap")
-    p.add_argument("--keys", nargs="+", metavar="EXPR", help=f"key expressions to record, {relative} "
-                                                             "(default: everything of the rig)")
-    split = p.add_mutually_exclusive_group()
-    split.add_argument("--split-size", type=float, metavar="MB",
-                       help="write parts OUT_000.mcap, OUT_001.mcap, ... of about MB MiB each")
-    split.add_argument("--split-duration", type=float, metavar="S", help="write parts of S seconds each (same names)")
-    p.add_argument("--queue-mb", type=float, metavar="MB",
-                   help="arrivals held while the writer is busy (default 512); beyond it they are dropped and counted")
-    p.add_argument("--flush", type=float, metavar="S",
-                   help="write out buffered data every S seconds (default 1): all a killed recorder can lose")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), help="chunk compression (default zstd)")
-    p.add_argument("--name", default="recorder", help="node name (default recorder)")
-    _bus_options(p)
+    p = sub.add_parser("record", add_help=False, help=RECORD_HELP)
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("replay", help="publish a recording's bytes on their keys with their timing; exit 3 if damaged")
-    p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--rate", type=float, metavar="R", help="speed factor (default 1)")
-    p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
-    p.add_argument("--start", type=float, metavar="S", help="begin S seconds into the recording")
-    p.add_argument("--end", type=float, metavar="S", help="stop S seconds into the recording")
-    p.add_argument("--keys", nargs="+", metavar="EXPR",
-                   help=f"key expressions to replay, {relative} (default: all but node health, <namespace>/*/node/**)")
-    p.add_argument("--paused", action="store_true", help="start paused; go on with `artrack control NAME resume`")
-    p.add_argument("--wait", type=float, metavar="S", help="wait up to S seconds for a subscriber first (default 2)")
-    p.add_argument("--name", default="replay", help="node name (default replay)")
-    _bus_options(p)
+    p = sub.add_parser("replay", add_help=False, help=REPLAY_HELP)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("control", help="pause, resume or step a replay node, or ask its status")
@@ -600,16 +592,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("view", help="a recording as a Rerun .rrd file, drawn as the live viewer draws it "
-                                    "(open it with `rerun OUT.rrd`; exit 3 if damaged)")
-    p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("out", type=Path, metavar="OUT.rrd")
-    p.add_argument("--image-hz", type=float, metavar="HZ", help="at most HZ images per camera per second of "
-                                                                 "recording (default: every frame)")
-    p.add_argument("--jpeg", type=int, metavar="Q", help="store images as JPEG of quality Q (1-100), not raw pixels")
-    p.add_argument("--trajectory", type=int, metavar="N", help="positions kept per trajectory line (default 300)")
-    p.add_argument("--world-axes", metavar="XYZ", help="where the world frame's x, y, z point, in Rerun's letters "
-                                                      "(default RDF, OpenCV's camera axes; RFU or FLU for z up)")
+    p = sub.add_parser("view", add_help=False, help=VIEW_HELP)
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("calibrate", help="camera intrinsics from photos of a chessboard or ChArUco board, "
@@ -628,8 +611,16 @@ def parser() -> argparse.ArgumentParser:
     return top
 
 
+LAZY = ("run", "record", "replay", "view")
+"""Commands whose options come from a parameter model, parsed by the command itself from ``args.rest``."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    top = parser()
+    args, rest = top.parse_known_args(argv)
+    if rest and args.command not in LAZY:
+        top.error(f"unrecognized arguments: {' '.join(rest)}")
+    args.rest = rest
     if getattr(args, "name", "") is None:
         args.name = args.kind
     try:
@@ -645,6 +636,9 @@ def main(argv: list[str] | None = None) -> int:
     except (BusError, PipelineError, ValueError) as exc:
         log.error("%s", exc)
         return 2
+    except BrokenPipeError:  # the reader went away (`artrack info FILE | head`): nothing left to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -50,8 +50,12 @@ def _bare(annotation: Any) -> Any:
 
 
 def flags_for(model: type[BaseModel], skip: set[str] | frozenset[str] = frozenset(), owner: str = "") -> list[Flag]:
-    """A flag per field of ``model`` but those in ``skip``; with an ``owner`` (a kind), ``--<owner>-<field>``."""
-    return [Flag(name, "--" + (f"{owner}_{name}" if owner else name).replace("_", "-"), info, owner)
+    """A flag per field of ``model`` but those in ``skip``; with an ``owner`` (a kind), ``--<owner>-<field>``.
+
+    A model may name some flags itself in a class variable ``FLAGS`` (field -> option name without
+    dashes), for a shorter option than the field's name (``--flush`` for ``flush_s``)."""
+    names: dict[str, str] = getattr(model, "FLAGS", {})
+    return [Flag(name, "--" + (f"{owner}_{name}" if owner else names.get(name, name)).replace("_", "-"), info, owner)
             for name, info in model.model_fields.items() if name not in skip]
 
 

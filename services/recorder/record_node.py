@@ -23,7 +23,7 @@ import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -50,6 +50,8 @@ class Params(BaseModel):
     """Where to record, what, and how to split and flush."""
 
     model_config = ConfigDict(extra="forbid")
+    FLAGS: ClassVar[dict[str, str]] = {"split_size_mb": "split_size", "split_duration_s": "split_duration",
+                                       "flush_s": "flush"}
 
     out: Path = Field(description=f"the file to write; {START} in its name becomes the UTC start time "
                                   "(e.g. 20261124T051000Z), a new name each time the node starts")

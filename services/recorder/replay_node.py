@@ -31,6 +31,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import zenoh
@@ -57,6 +58,7 @@ class Params(BaseModel):
     """What to replay, how fast, and which part."""
 
     model_config = ConfigDict(extra="forbid")
+    FLAGS: ClassVar[dict[str, str]] = {"start_s": "start", "end_s": "end", "wait_s": "wait"}
 
     path: Path
     rate: float = Field(default=1.0, gt=0, description="playback speed: 2 = twice as fast")

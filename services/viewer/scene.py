@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import rerun as rr
@@ -53,6 +53,7 @@ class ViewOptions(BaseModel):
     """How messages are drawn (shared by the viewer node and ``artrack view``)."""
 
     model_config = ConfigDict(extra="forbid")
+    FLAGS: ClassVar[dict[str, str]] = {"jpeg_quality": "jpeg", "trajectory_length": "trajectory"}
 
     image_hz: float = Field(default=0.0, ge=0, description="at most this many images per camera per second "
                                                            "of frame time; 0 = every frame")
