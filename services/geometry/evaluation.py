@@ -30,15 +30,17 @@ __all__ = [
     "ALIGNMENTS",
     "DELTA_UNITS",
     "AbsoluteError",
+    "Alignment",
+    "DeltaUnit",
     "ErrorStats",
     "RelativeError",
     "Similarity",
+    "TrajectoryScore",
     "absolute_trajectory_error",
     "apply_similarity",
     "associate",
     "error_stats",
     "pose_error",
-    "TrajectoryScore",
     "relative_pose_error",
     "rpe_pairs",
     "score_trajectory",
@@ -50,6 +52,7 @@ DeltaUnit = Literal["frames", "m"]
 ALIGNMENTS: tuple[str, ...] = ("se3", "sim3", "none")
 DELTA_UNITS: tuple[str, ...] = ("frames", "m")
 PATH_TOLERANCE_M = 1e-9
+"""Slack on the travelled distance when pairing rows ``delta`` metres apart (rounding of summed steps)."""
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
@@ -72,6 +75,7 @@ class Similarity:
 
     @classmethod
     def identity(cls) -> Similarity:
+        """``s = 1``, ``R = I``, ``t = 0``."""
         return cls(np.eye(3), np.zeros(3), 1.0)
 
     @property
@@ -225,8 +229,9 @@ def rpe_pairs(gt: np.ndarray, delta: float, unit: DeltaUnit = "frames") -> np.nd
     ``unit="frames"``: ``j = i + delta`` (``delta`` a positive whole number). ``unit="m"``: ``j`` is the
     first row at which the path travelled along the ground truth ``gt`` ((N, 4, 4) poses or (N, 3)
     positions) since row i reaches ``delta`` metres (to within ``PATH_TOLERANCE_M``, so rounding of
-    the summed steps does not skip a row); rows from which the rest of the path is shorter
-    have no pair.
+    the summed steps does not skip a row), the rule of KITTI's odometry devkit; rows from which the
+    rest of the path is shorter have no pair. (evo's ``--all_pairs`` by distance instead takes the row
+    whose distance is nearest to ``delta``, so figures over metres differ slightly; over frames they agree.)
     """
     positions = _positions("gt", gt)
     n = len(positions)
@@ -240,7 +245,8 @@ def rpe_pairs(gt: np.ndarray, delta: float, unit: DeltaUnit = "frames") -> np.nd
     if not delta > 0:
         raise ValueError(f"an RPE delta in metres must be > 0, got {delta}")
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    second = np.searchsorted(travelled, travelled + delta - PATH_TOLERANCE_M, side="left")
+    second = np.maximum(np.searchsorted(travelled, travelled + delta - PATH_TOLERANCE_M, side="left"),
+                        np.arange(1, n + 1))
     keep = second < n
     return np.stack([np.arange(n)[keep], second[keep]], axis=1).astype(np.int64).reshape(-1, 2)
 

@@ -162,6 +162,7 @@ def test_rpe_pairs_over_a_travelled_distance():
     pairs = rpe_pairs(gt, 1.0, "m")
     assert pairs.tolist() == [[0, 2], [1, 4], [2, 5], [3, 6], [4, 6], [5, 6]]
     assert rpe_pairs(gt, 3.0, "m").tolist() == [[0, 6], [1, 6], [2, 6]]  # from 1.25 m on, 3 m is never reached
+    assert rpe_pairs(gt, 1e-12, "m").tolist() == [[k, k + 1] for k in range(6)]  # never a row with itself
     assert rpe_pairs(gt, 2, "frames").tolist() == [[k, k + 2] for k in range(5)]
     with pytest.raises(ValueError, match="whole number >= 1, got 1.5"):
         rpe_pairs(gt, 1.5, "frames")
