@@ -16,6 +16,7 @@ first pose line (a text format can be forced). ``match`` pairs two trajectories 
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -32,6 +33,7 @@ __all__ = ["TEXT_FORMATS", "Trajectory", "TrajectoryError", "is_recording", "loa
            "read_recording", "read_tum", "text_format"]
 
 TEXT_FORMATS = ("tum", "kitti")
+log = logging.getLogger(__name__)
 QUATERNION_NORM_TOLERANCE = 1e-2
 ROTATION_TOLERANCE = 1e-3
 """Largest entry of ``R^T R - I`` accepted from a KITTI line."""
@@ -118,7 +120,10 @@ def read_recording(path: Path | str, key: str | None, child: str | None = None) 
     path = Path(path)
     if not key:
         raise TrajectoryError(f"{path} is a recording: name the pose key to read (--est-key / --gt-key)")
-    stamped = list(Export(path, key, "tum", child=child).transforms(estimated_only=True))
+    job = Export(path, key, "tum", child=child)
+    stamped = list(job.transforms(estimated_only=True))
+    if job.damage is not None:
+        log.warning("%s is damaged: %s; read its intact part", path, job.damage)
     poses = [from_quaternion_translation(t.rotation, t.translation) for _, t in stamped]
     name = f"{path} {key}" + (f" ({child})" if child else "")
     return _trajectory(name, poses, np.array([stamp for stamp, _ in stamped], dtype=np.int64))
