@@ -424,6 +424,24 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    from services.recorder.scoring import evaluate, format_evaluation
+    from services.recorder.trajectories import load_trajectory
+
+    est = load_trajectory(args.est, args.format, key=args.est_key, child=args.child)
+    gt = load_trajectory(args.gt, args.format, key=args.gt_key, child=args.child)
+    max_dt = {} if args.max_dt is None else {"max_dt_s": args.max_dt}
+    evaluation = evaluate(est, gt, align=args.align, delta=args.delta, unit=args.delta_unit, **max_dt)
+    if args.plot is not None:
+        from services.recorder.trajectory_plot import plot_evaluation
+
+        plot_evaluation(evaluation, args.plot)
+    print(json.dumps(evaluation.to_dict()) if args.json else format_evaluation(evaluation))
+    if args.plot is not None:
+        log.info("wrote %s", args.plot)
+    return 0
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     from services.recorder.reading import EXIT_DAMAGED
     from services.viewer.convert import convert
@@ -591,6 +609,27 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("eval", help="score an estimated trajectory against ground truth: ATE after alignment and "
+                                    "RPE (TUM, KITTI pose files or a pose key of a recording)")
+    p.add_argument("est", type=Path, metavar="EST", help="estimated trajectory: TUM, KITTI or .mcap file")
+    p.add_argument("gt", type=Path, metavar="GT", help="ground truth: TUM, KITTI or .mcap file")
+    p.add_argument("--align", default="se3", choices=("se3", "sim3", "none"),
+                   help="Umeyama alignment of the estimate onto the truth (default se3; sim3 for monocular)")
+    p.add_argument("--delta", type=float, default=1, metavar="N", help="RPE step (default 1)")
+    p.add_argument("--delta-unit", default="frames", choices=("frames", "m"),
+                   help="RPE step in matched frames or in metres travelled along the truth (default frames)")
+    p.add_argument("--max-dt", type=float, metavar="S",
+                   help="largest stamp difference of a matched pair, seconds (default 0.02, as TUM's tools)")
+    p.add_argument("--format", choices=("tum", "kitti"), help="read EST and GT, when text files, as this format "
+                                                              "(default: told apart by their column count)")
+    p.add_argument("--est-key", metavar="KEY", help="the pose key when EST is a recording")
+    p.add_argument("--gt-key", metavar="KEY", help="the pose key when GT is a recording")
+    p.add_argument("--child", metavar="FRAME", help="recordings: the child frame (needed for GroundTruth keys)")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view "
+                                                                "(needs the plot extra: matplotlib)")
+    p.add_argument("--json", action="store_true", help="one JSON object instead of text")
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("view", add_help=False, help=VIEW_HELP)
     p.set_defaults(func=cmd_view)

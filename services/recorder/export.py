@@ -27,13 +27,15 @@ from typing import Any
 
 from protocol.codec import DecodeError, decode, to_json
 from protocol.message import Message
-from protocol.poses import GroundTruth, Pose
+from protocol.poses import GroundTruth, Pose, TrackingState
 from protocol.spatial import Transform
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA
 
 FORMATS = ("tum", "csv", "jsonl")
 SUMMARISE_OVER = 16
+ESTIMATED = frozenset({TrackingState.TRACKING, TrackingState.PREDICTED})
+"""Pose states whose transform is an estimate."""
 
 
 class ExportError(ValueError):
@@ -112,10 +114,17 @@ class Export:
         if not seen & wanted:
             raise ExportError(f"no key {self.key!r} in {self.path} (keys: {', '.join(sorted(seen)) or 'none'})")
 
-    def _tum(self) -> Iterator[str]:
+    def transforms(self, *, estimated_only: bool = False) -> Iterator[tuple[int, Transform]]:
+        """``(header.stamp_ns, transform)`` of every pose on the key, as ``tum`` writes them.
+
+        ``estimated_only`` skips ``Pose`` messages that carry no estimate (states other than
+        tracking and predicted: lost, initialising, no calibration). Raises ``ExportError`` as ``lines()``.
+        """
         for _, _, message in self._messages():
             if isinstance(message, Pose):
                 if self.child is not None and message.child_frame_id != self.child:
+                    continue
+                if estimated_only and message.state not in ESTIMATED:
                     continue
                 transforms = [message.transform]
             elif isinstance(message, GroundTruth):
@@ -127,8 +136,12 @@ class Export:
             else:
                 raise ExportError(f"tum needs Pose or GroundTruth messages; {self.key} carries {message.SCHEMA}")
             for transform in transforms:
-                self.rows += 1
-                yield tum_line(message.header.stamp_ns, transform)
+                yield message.header.stamp_ns, transform
+
+    def _tum(self) -> Iterator[str]:
+        for stamp_ns, transform in self.transforms():
+            self.rows += 1
+            yield tum_line(stamp_ns, transform)
 
     def _csv(self) -> Iterator[str]:
         def rows() -> Iterator[dict[str, Any]]:

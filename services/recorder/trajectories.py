@@ -1,0 +1,177 @@
+"""Trajectories from files: TUM, KITTI pose files and pose keys of artrack recordings.
+
+* TUM (``stamp tx ty tz qx qy qz qw``): one pose ``T_world_body`` per line, stamp in seconds
+  (read exactly, to the nanosecond), quaternion x y z w (normalised; one whose norm is more than
+  ``QUATERNION_NORM_TOLERANCE`` from 1 is refused). Lines starting with ``#`` and blank lines
+  are skipped; commas and tabs separate as well as spaces.
+* KITTI (12 numbers a line): the row-major 3x4 ``[R | t]`` of ``T_world_body``, no stamps: the
+  line's index among the poses is its frame number (``stamps_ns`` is None), and a KITTI file is
+  matched to the other trajectory by index.
+* MCAP: the poses of one key, decoded as ``artrack export --format tum`` decodes them (``Pose``
+  messages in a state with an estimate; ``GroundTruth`` messages need the child frame).
+
+``load_trajectory`` tells them apart by content: the MCAP magic, else the column count of the
+first pose line (a text format can be forced). ``match`` pairs two trajectories row by row.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry.evaluation import associate
+from services.geometry.se3 import from_quaternion_translation
+from services.recorder.export import Export
+from services.recorder.reading import MAGIC
+
+__all__ = ["TEXT_FORMATS", "Trajectory", "TrajectoryError", "is_recording", "load_trajectory", "match", "read_kitti",
+           "read_recording", "read_tum", "text_format"]
+
+TEXT_FORMATS = ("tum", "kitti")
+log = logging.getLogger(__name__)
+QUATERNION_NORM_TOLERANCE = 1e-2
+ROTATION_TOLERANCE = 1e-3
+"""Largest entry of ``R^T R - I`` accepted from a KITTI line."""
+NS_PER_S = 1_000_000_000
+
+
+class TrajectoryError(ValueError):
+    """A trajectory file that cannot be read, naming the file (and line) and why."""
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """(N, 4, 4) float64 ``T_world_body`` poses with (N,) int64 stamps in nanoseconds, or None when the
+    source has no stamps (KITTI: rows are frame numbers). ``name`` says where it came from."""
+
+    poses: np.ndarray
+    stamps_ns: np.ndarray | None
+    name: str
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def _rows(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of each line of ``path`` that is not blank or a comment."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrajectoryError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from exc
+    rows = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            rows.append((number, line.replace(",", " ").split()))
+    return rows
+
+
+def _numbers(path: Path, number: int, fields: list[str], count: int, what: str) -> list[float]:
+    if len(fields) != count:
+        raise TrajectoryError(f"{path}:{number}: {what} needs {count} numbers a line, found {len(fields)}")
+    try:
+        values = [float(field) for field in fields]
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}:{number}: not a number: {exc.args[0].split(': ', 1)[-1]}") from exc
+    if not all(math.isfinite(v) for v in values):
+        raise TrajectoryError(f"{path}:{number}: numbers must be finite")
+    return values
+
+
+def read_tum(path: Path | str) -> Trajectory:
+    """The poses and stamps of a TUM trajectory file."""
+    path = Path(path)
+    poses, stamps = [], []
+    for number, fields in _rows(path):
+        values = _numbers(path, number, fields, 8, "a TUM file (stamp tx ty tz qx qy qz qw)")
+        try:
+            stamps.append(int((Decimal(fields[0]) * NS_PER_S).to_integral_value()))
+        except InvalidOperation as exc:
+            raise TrajectoryError(f"{path}:{number}: stamp {fields[0]!r} is not a number of seconds") from exc
+        q = np.array(values[4:])
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise TrajectoryError(f"{path}:{number}: quaternion (qx qy qz qw) has norm {norm:.6g}, not 1")
+        poses.append(from_quaternion_translation(q / norm, values[1:4]))
+    return _trajectory(path, poses, np.array(stamps, dtype=np.int64))
+
+
+def read_kitti(path: Path | str) -> Trajectory:
+    """The poses of a KITTI pose file (no stamps)."""
+    path = Path(path)
+    poses = []
+    for number, fields in _rows(path):
+        T = np.eye(4)
+        T[:3, :] = np.reshape(_numbers(path, number, fields, 12, "a KITTI pose file (row-major 3x4 [R|t])"), (3, 4))
+        if np.max(np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3))) > ROTATION_TOLERANCE or np.linalg.det(T[:3, :3]) < 0:
+            raise TrajectoryError(f"{path}:{number}: the 3x3 part is not a rotation")
+        poses.append(T)
+    return _trajectory(path, poses, None)
+
+
+def read_recording(path: Path | str, key: str | None, child: str | None = None) -> Trajectory:
+    """The poses of one key of an artrack recording (as ``artrack export --format tum`` reads them), their
+    stamps the source stamps of the frames they were estimated from."""
+    path = Path(path)
+    if not key:
+        raise TrajectoryError(f"{path} is a recording: name the pose key to read (--est-key / --gt-key)")
+    job = Export(path, key, "tum", child=child)
+    stamped = list(job.transforms(estimated_only=True))
+    if job.damage is not None:
+        log.warning("%s is damaged: %s; read its intact part", path, job.damage)
+    poses = [from_quaternion_translation(t.rotation, t.translation) for _, t in stamped]
+    name = f"{path} {key}" + (f" ({child})" if child else "")
+    return _trajectory(name, poses, np.array([stamp for stamp, _ in stamped], dtype=np.int64))
+
+
+def _trajectory(name: Path | str, poses: list[np.ndarray], stamps: np.ndarray | None) -> Trajectory:
+    if not poses:
+        raise TrajectoryError(f"{name} holds no poses")
+    return Trajectory(np.array(poses), stamps, str(name))
+
+
+def is_recording(path: Path | str) -> bool:
+    """Whether ``path`` starts with the MCAP magic."""
+    try:
+        with open(path, "rb") as file:
+            return file.read(len(MAGIC)) == MAGIC
+    except OSError as exc:
+        raise TrajectoryError(f"cannot read {path}: {exc.strerror or exc}") from exc
+
+
+def text_format(path: Path | str) -> str:
+    """``tum`` or ``kitti`` from the column count (8 or 12) of the first pose line of a text file."""
+    path = Path(path)
+    rows = _rows(path)
+    if not rows:
+        raise TrajectoryError(f"{path} holds no poses")
+    number, fields = rows[0]
+    columns = {8: "tum", 12: "kitti"}
+    if len(fields) not in columns:
+        raise TrajectoryError(f"{path}:{number}: {len(fields)} columns: neither TUM (8) nor KITTI (12)")
+    return columns[len(fields)]
+
+
+def load_trajectory(path: Path | str, fmt: str | None = None, *, key: str | None = None,
+                    child: str | None = None) -> Trajectory:
+    """A trajectory from an MCAP recording (its pose ``key``, GroundTruth's ``child``) or a text file read
+    as ``fmt`` (``tum`` or ``kitti``; None: told apart by ``text_format``)."""
+    if fmt is not None and fmt not in TEXT_FORMATS:
+        raise TrajectoryError(f"unknown trajectory format {fmt!r} (use {', '.join(TEXT_FORMATS)})")
+    if is_recording(path):
+        return read_recording(path, key, child)
+    return read_tum(path) if (fmt or text_format(path)) == "tum" else read_kitti(path)
+
+
+def match(est: Trajectory, gt: Trajectory, max_dt_ns: int) -> np.ndarray:
+    """(K, 2) int row pairs ``(i_est, i_gt)``: one-to-one by nearest stamp within ``max_dt_ns``
+    (``geometry.evaluation.associate``), or by index when either has no stamps (KITTI)."""
+    if est.stamps_ns is None or gt.stamps_ns is None:
+        rows = np.arange(min(len(est), len(gt)))
+        return np.stack([rows, rows], axis=1)
+    return associate(est.stamps_ns, gt.stamps_ns, max_dt_ns)
