@@ -46,6 +46,32 @@ def check_name(value: str, what: str, *, segments: bool = False) -> str:
     return value
 
 
+_WILD_NAME = re.compile(r"(?:[A-Za-z0-9_.\-]|\$\*)+")
+_NOT_CANONICAL = {"**/**": "**", "**/*": "*/**"}
+
+
+def check_expression(value: str) -> str:
+    """Return ``value`` if it is a key expression artrack can subscribe to; raise ValueError naming
+    it and why. Segments are key names, ``*`` (one segment), ``**`` (any number of them), or names
+    with ``$*`` inside (any characters within the segment), in Zenoh's canonical form."""
+    def bad(why: str) -> ValueError:
+        return ValueError(f"key expression {value!r} is not valid: {why}")
+
+    if not value:
+        raise bad("it is empty")
+    chunks = value.split("/")
+    if "" in chunks:
+        raise bad("it has an empty segment (a leading, trailing or doubled '/')")
+    for chunk in chunks:
+        if chunk not in ("*", "**") and (chunk == "$*" or "$*$*" in chunk or not _WILD_NAME.fullmatch(chunk)):
+            raise bad(f"segment {chunk!r} (use letters, digits, '_', '-', '.'; '*' or '**' as a whole segment, "
+                      "'$*' inside one)")
+    for pair, canon in _NOT_CANONICAL.items():
+        if f"/{pair}/" in f"/{value}/":
+            raise bad(f"write {canon!r} for {pair!r}")
+    return value
+
+
 KeyName = Annotated[str, AfterValidator(lambda value: check_name(value, "name"))]
 """A str field that must be one valid key segment (camera, node, rig names)."""
 
@@ -64,6 +90,13 @@ class Keys:
     @property
     def prefix(self) -> str:
         return f"{self.namespace}/{self.rig}"
+
+    def resolve(self, key: str) -> str:
+        """A key expression given by a user: as it is when it starts with the namespace, else
+        relative to the rig prefix (``cam0/image`` -> ``ar/rig0/cam0/image``); ValueError naming
+        it and why when it is not a valid expression (see ``check_expression``)."""
+        check_expression(key)
+        return key if key.startswith(self.namespace + "/") else f"{self.prefix}/{key}"
 
     def camera(self, camera: str, stream: str) -> str:
         return f"{self.prefix}/{check_name(camera, 'camera')}/{stream}"

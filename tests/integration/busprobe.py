@@ -32,7 +32,6 @@ from protocol.message import Header, Message
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from protocol.spatial import Transform
-from services.observe import resolve_key
 from services.runtime.bus import BusConfig, open_session
 from services.runtime.pubsub import Publisher, Role
 
@@ -85,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     messages = [make_message(args.kind, i, args.width, args.height) for i in range(args.count)]
     session = open_session(bus)
     try:
-        publisher = Publisher(session, resolve_key(bus.keys, args.key), KINDS[args.kind], Role(args.role))
+        publisher = Publisher(session, bus.keys.resolve(args.key), KINDS[args.kind], Role(args.role))
         deadline = time.monotonic() + MATCH_TIMEOUT_S
         while not (publisher.matched() and (args.peer is None or args.peer in
                                               {str(z) for z in session.info.peers_zid()})):
