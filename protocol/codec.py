@@ -32,8 +32,7 @@ import json
 import math
 import re
 import struct
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import ValidationError
@@ -263,8 +262,7 @@ def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str
     return array.reshape(shape).astype(np.dtype(dtype), copy=False)
 
 
-@dataclass(frozen=True, slots=True)
-class Peeked:
+class Peeked(NamedTuple):
     """What a payload is, as ``peek`` reads it: its message class, media type and header."""
 
     cls: type[Message]
@@ -294,9 +292,8 @@ def peek(payload: bytes | bytearray | memoryview) -> Peeked:
     try:
         framed = bytes(payload[:4]) == MAGIC
         end = _header_end(payload) if framed else size
-        text = payload[_PREAMBLE.size : end] if framed else payload
         try:
-            document = from_json(bytes(text) if isinstance(text, memoryview) else text)
+            document = from_json(bytes(payload[_PREAMBLE.size : end] if framed else payload))
         except ValueError as exc:
             what = "frame header is not JSON" if framed else "neither an artrack frame nor JSON"
             raise DecodeError(f"{what} ({exc})", size=size) from exc
