@@ -16,14 +16,16 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/node/<name>/stats         NodeStats        published every stats period
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
     ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
-    ar/rig0/node/<name>/control       (queryable)      replay's pause / resume / step
+    ar/rig0/node/<name>/control       (queryable)      ReplayControl -> ReplayStatus: replay's pause / resume / step
     ar/rig0/node/<name>/config        (queryable)      ConfigChange -> ConfigAnswer: live parameter changes
     ar/rig0/supervisor/<pipeline>     (queryable)      PipelineHealth of an ``artrack up`` process
     ar/rig0/client/<id>               (liveliness)     present while a client app is connected
     ar/rig0/client/<id>/state         (queryable)      ClientState: what the app subscribed to
 
 The namespace may hold several segments (``site/lab1``); names are made of letters,
-digits, ``_``, ``-`` and ``.``.
+digits, ``_``, ``-`` and ``.``. Key expressions a user gives (``artrack echo``, ``record``,
+``replay``) go through ``Keys.resolve``: relative to the rig prefix unless they start with
+the namespace, and checked by ``check_expression``.
 """
 
 from __future__ import annotations
@@ -194,7 +196,7 @@ class Keys:
         return f"{self.prefix}/node/*/{check_name(stream, 'stream')}"
 
     def control(self, name: str) -> str:
-        """The node's control queryable (pause, resume, step for replay)."""
+        """The node's control queryable (``ReplayControl`` -> ``ReplayStatus`` for replay)."""
         return f"{self.node(name)}/control"
 
     def config(self, name: str) -> str:

@@ -266,8 +266,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     params = _params(Params, "replay", path=args.file, rate=args.rate, loop=args.loop, start_s=args.start,
                      end_s=args.end, keys=tuple(args.keys or ()), paused=args.paused, wait_s=args.wait)
-    Scan(params.path)  # a missing or non-MCAP file or a bad key expression fails here, before joining the bus
-    Selection(_bus(args).keys, params.keys)
+    Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
+    Selection(_bus(args).keys, params.keys)  # and so does a bad key expression
     codes: list[int] = []
     failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
     return failed or (codes[0] if codes else 0)
