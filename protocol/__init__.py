@@ -4,7 +4,7 @@ This package depends on pydantic and numpy only, so any client can use it alone.
 Importing it registers every message type with the codec.
 """
 
-from protocol.codec import DecodeError, decode, encode, to_json
+from protocol.codec import DecodeError, Peeked, decode, encode, peek, to_json
 from protocol.detections import BlobDetections, Keypoints, MarkerDetections
 from protocol.keys import Keys
 from protocol.maps import PointCloud
@@ -19,6 +19,9 @@ from protocol.system import (
     ErrorReport,
     NodeStats,
     PipelineHealth,
+    ReplayCommand,
+    ReplayControl,
+    ReplayStatus,
     StreamStats,
     Subscription,
     SupervisedNode,
@@ -29,8 +32,8 @@ from protocol.system import (
 __all__ = [
     "BlobDetections", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError", "ErrorReport",
     "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
-    "NodeStats", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RIG_FRAME", "RegionOfInterest",
-    "RigidBodies", "RigidBody", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode",
-    "SyncInputStats", "SyncStats", "TrackingState", "Transform", "decode", "encode", "message_type",
-    "message_types", "to_json",
+    "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RIG_FRAME", "RegionOfInterest",
+    "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody", "StaticTransforms", "StreamStats",
+    "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats", "TrackingState", "Transform", "decode",
+    "encode", "message_type", "message_types", "peek", "to_json",
 ]

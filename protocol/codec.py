@@ -18,8 +18,11 @@ Two payload layouts, chosen by the message class:
   Decoding wraps the payload's own buffer: arrays are read-only numpy views into it,
   no copy, no base64, no pickle.
 
-Every failure to decode (garbage, truncation, unknown schema, wrong version, a field that
-does not validate) raises :class:`DecodeError` and nothing else.
+``peek`` says what a payload is (schema, version, header, media type) from its JSON part
+alone, without validating the message's other fields or reading its arrays.
+
+Every failure to decode or peek (garbage, truncation, unknown schema, wrong version, a field
+that does not validate) raises :class:`DecodeError` and nothing else.
 """
 
 from __future__ import annotations
@@ -29,13 +32,14 @@ import json
 import math
 import re
 import struct
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import ValidationError
+from pydantic_core import from_json
 
 from protocol.arrays import VIEWS, WIRE_DTYPES, dtype_name
-from protocol.message import Message, message_type
+from protocol.message import Header, Message, message_type
 
 MAGIC = b"ARTK"
 LAYOUT_VERSION = 1
@@ -157,12 +161,16 @@ def _lookup(document: Any, size: int, *, framed: bool) -> tuple[type[Message], d
     return cls, document
 
 
+def _problems(exc: ValidationError, within: tuple[str, ...] = ()) -> str:
+    """Each validation error as ``field.path: message`` (paths under ``within``), ``; ``-joined."""
+    return "; ".join(f"{'.'.join(map(str, (*within, *e['loc']))) or '(message)'}: {e['msg']}" for e in exc.errors())
+
+
 def _validate(cls: type[Message], document: dict[str, Any], size: int) -> Message:
     try:
         return cls.model_validate(document)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or '(message)'}: {e['msg']}" for e in exc.errors())
-        raise DecodeError(problems, schema=cls.SCHEMA, size=size) from exc
+        raise DecodeError(_problems(exc), schema=cls.SCHEMA, size=size) from exc
 
 
 _HEAD = re.compile(rb'\{"schema":"([A-Za-z0-9_.\-]+)","version":([0-9]+),')
@@ -195,7 +203,8 @@ def _decode_json(payload: bytes | bytearray | memoryview) -> Message:
     return _validate(cls, document, size)
 
 
-def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
+def _header_end(payload: bytes | bytearray | memoryview) -> int:
+    """Where a frame's JSON header ends, after checking the preamble; DecodeError for a bad one."""
     size = len(payload)
     if size < _PREAMBLE.size:
         raise DecodeError("truncated frame preamble", size=size)
@@ -207,6 +216,12 @@ def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
     end = _PREAMBLE.size + header_len
     if end > size:
         raise DecodeError(f"frame header needs {end} bytes, payload has {size}", size=size)
+    return end
+
+
+def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
+    size = len(payload)
+    end = _header_end(payload)
     header = bytes(payload[_PREAMBLE.size : end])
     fast = _fast(header, True, {VIEWS: lambda descriptor, name: _view(payload, descriptor, name, end, "")})
     if fast is not None:
@@ -217,8 +232,9 @@ def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
     return _validate(cls, document, size)
 
 
-def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str) -> np.ndarray:
-    size = len(payload)
+def _extent(descriptor: Any, name: str, header_end: int, size: int, schema: str) -> tuple[str, list[int], int, int]:
+    """``(dtype, shape, offset, count)`` of an array descriptor that lies within the payload's
+    ``size`` bytes after the header; DecodeError naming the array otherwise."""
 
     def fail(reason: str) -> DecodeError:
         return DecodeError(f"array {name!r}: {reason}", schema=schema, size=size)
@@ -236,9 +252,63 @@ def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str
     nbytes = count * WIRE_DTYPES[dtype].itemsize
     if offset + nbytes > size:
         raise fail(f"needs bytes {offset}..{offset + nbytes}, payload ends at {size}")
+    return dtype, shape, offset, count
+
+
+def _view(payload: Any, descriptor: Any, name: str, header_end: int, schema: str) -> np.ndarray:
+    dtype, shape, offset, count = _extent(descriptor, name, header_end, len(payload), schema)
     array = np.frombuffer(payload, dtype=WIRE_DTYPES[dtype], count=count, offset=offset)
     array.flags.writeable = False  # frombuffer over a bytearray is writable; messages are not
     return array.reshape(shape).astype(np.dtype(dtype), copy=False)
+
+
+class Peeked(NamedTuple):
+    """What a payload is, as ``peek`` reads it: its message class, media type and header."""
+
+    cls: type[Message]
+    media_type: str
+    stamp_ns: int
+    frame_id: str
+    seq: int
+
+    @property
+    def schema(self) -> str:
+        return self.cls.SCHEMA
+
+    @property
+    def version(self) -> int:
+        return self.cls.VERSION
+
+
+def peek(payload: bytes | bytearray | memoryview) -> Peeked:
+    """The message class, media type and header of ``payload``; DecodeError for garbage, a
+    truncated payload, an unknown schema or version, or a header that does not validate.
+
+    Only the JSON part is parsed (a frame's header, not its arrays, whose extents are checked
+    against the payload's length); the message's other fields are not validated, so a payload
+    that peeks may still fail to ``decode``.
+    """
+    size = len(payload)
+    try:
+        framed = bytes(payload[:4]) == MAGIC
+        end = _header_end(payload) if framed else size
+        try:
+            document = from_json(bytes(payload[_PREAMBLE.size : end] if framed else payload))
+        except ValueError as exc:
+            what = "frame header is not JSON" if framed else "neither an artrack frame nor JSON"
+            raise DecodeError(f"{what} ({exc})", size=size) from exc
+        cls, document = _lookup(document, size, framed=framed)
+        try:
+            header = Header.model_validate(document.get("header"))
+        except ValidationError as exc:
+            raise DecodeError(_problems(exc, ("header",)), schema=cls.SCHEMA, size=size) from exc
+        for name in cls.ARRAY_FIELDS:
+            _extent(document.get(name), name, end, size, cls.SCHEMA)
+        return Peeked(cls, media_type(cls), header.stamp_ns, header.frame_id, header.seq)
+    except DecodeError:
+        raise
+    except Exception as exc:  # any other fault of a hostile payload becomes a DecodeError
+        raise DecodeError(f"{type(exc).__name__}: {exc}", size=size) from exc
 
 
 def to_json(message: Message, max_array_elements: int | None = None) -> dict[str, Any]:

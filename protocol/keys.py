@@ -18,14 +18,16 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/node/<name>/stats         NodeStats        published every stats period
     ar/rig0/node/<name>/state         (queryable)      NodeStats on request
     ar/rig0/node/<name>/errors        ErrorReport      what the node skipped and why
-    ar/rig0/node/<name>/control       (queryable)      replay's pause / resume / step
+    ar/rig0/node/<name>/control       (queryable)      ReplayControl -> ReplayStatus: replay's pause / resume / step
     ar/rig0/node/<name>/config        (queryable)      ConfigChange -> ConfigAnswer: live parameter changes
     ar/rig0/supervisor/<pipeline>     (queryable)      PipelineHealth of an ``artrack up`` process
     ar/rig0/client/<id>               (liveliness)     present while a client app is connected
     ar/rig0/client/<id>/state         (queryable)      ClientState: what the app subscribed to
 
 The namespace may hold several segments (``site/lab1``); names are made of letters,
-digits, ``_``, ``-`` and ``.``.
+digits, ``_``, ``-`` and ``.``. Key expressions a user gives (``artrack echo``, ``record``,
+``replay``) go through ``Keys.resolve``: relative to the rig prefix unless they start with
+the namespace, and checked by ``check_expression``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,32 @@ def check_name(value: str, what: str, *, segments: bool = False) -> str:
     return value
 
 
+_WILD_NAME = re.compile(r"(?:[A-Za-z0-9_.\-]|\$\*)+")
+_NOT_CANONICAL = {"**/**": "**", "**/*": "*/**"}
+
+
+def check_expression(value: str) -> str:
+    """Return ``value`` if it is a key expression artrack can subscribe to; raise ValueError naming
+    it and why. Segments are key names, ``*`` (one segment), ``**`` (any number of them), or names
+    with ``$*`` inside (any characters within the segment), in Zenoh's canonical form."""
+    def bad(why: str) -> ValueError:
+        return ValueError(f"key expression {value!r} is not valid: {why}")
+
+    if not value:
+        raise bad("it is empty")
+    chunks = value.split("/")
+    if "" in chunks:
+        raise bad("it has an empty segment (a leading, trailing or doubled '/')")
+    for chunk in chunks:
+        if chunk not in ("*", "**") and (chunk == "$*" or "$*$*" in chunk or not _WILD_NAME.fullmatch(chunk)):
+            raise bad(f"segment {chunk!r} (use letters, digits, '_', '-', '.'; '*' or '**' as a whole segment, "
+                      "'$*' inside one)")
+    for pair, canon in _NOT_CANONICAL.items():
+        if f"/{pair}/" in f"/{value}/":
+            raise bad(f"write {canon!r} for {pair!r}")
+    return value
+
+
 KeyName = Annotated[str, AfterValidator(lambda value: check_name(value, "name"))]
 """A str field that must be one valid key segment (camera, node, rig names)."""
 
@@ -66,6 +94,13 @@ class Keys:
     @property
     def prefix(self) -> str:
         return f"{self.namespace}/{self.rig}"
+
+    def resolve(self, key: str) -> str:
+        """A key expression given by a user: as it is when it starts with the namespace, else
+        relative to the rig prefix (``cam0/image`` -> ``ar/rig0/cam0/image``); ValueError naming
+        it and why when it is not a valid expression (see ``check_expression``)."""
+        check_expression(key)
+        return key if key.startswith(self.namespace + "/") else f"{self.prefix}/{key}"
 
     def camera(self, camera: str, stream: str) -> str:
         return f"{self.prefix}/{check_name(camera, 'camera')}/{stream}"
@@ -171,7 +206,7 @@ class Keys:
         return f"{self.prefix}/node/*/{check_name(stream, 'stream')}"
 
     def control(self, name: str) -> str:
-        """The node's control queryable (pause, resume, step for replay)."""
+        """The node's control queryable (``ReplayControl`` -> ``ReplayStatus`` for replay)."""
         return f"{self.node(name)}/control"
 
     def config(self, name: str) -> str:

@@ -1,4 +1,4 @@
-"""Messages about the service itself: node statistics, error reports, client apps.
+"""Messages about the service itself: node statistics, error reports, client apps, replay control.
 
 Their header's ``stamp_ns`` is the wall-clock time they were made and ``seq`` counts
 them per node; ``frame_id`` is empty.
@@ -6,6 +6,7 @@ them per node; ``frame_id`` is empty.
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Literal
 
 from pydantic import Field
@@ -201,3 +202,43 @@ class ConfigAnswer(Message):
     applied: dict[str, str] = Field(default_factory=dict)
     refused: dict[str, str] = Field(default_factory=dict)
     params: dict[str, str] = Field(default_factory=dict)
+
+
+class ReplayCommand(StrEnum):
+    """What a replay node is asked to do: ``step`` publishes the next message now and stays
+    paused; ``status`` changes nothing."""
+
+    PAUSE = "pause"
+    RESUME = "resume"
+    STEP = "step"
+    STATUS = "status"
+
+
+class ReplayControl(Message):
+    """A request to a replay node's control queryable (``Keys.control``)."""
+
+    SCHEMA = "artrack.ReplayControl"
+    VERSION = 1
+
+    command: ReplayCommand = ReplayCommand.STATUS
+
+
+class ReplayStatus(Message):
+    """A replay node's answer to a ReplayControl, once it has obeyed it.
+
+    ``played`` counts the messages published so far (every pass), ``passes`` the passes begun
+    over the file; ``position_s`` is the log time reached, in seconds from the recording's
+    first message; ``rate`` the playback speed (2 = twice as fast). A request the node cannot
+    read is answered with an ``ErrorReport`` instead (a Zenoh error reply).
+    """
+
+    SCHEMA = "artrack.ReplayStatus"
+    VERSION = 1
+
+    node: str
+    path: str
+    state: Literal["playing", "paused", "stopped"]
+    played: int = Field(default=0, ge=0)
+    passes: int = Field(default=0, ge=0)
+    position_s: float = Field(default=0.0, ge=0)
+    rate: float = Field(gt=0)

@@ -18,6 +18,7 @@ from typing import TypeVar
 
 from pydantic import BaseModel, ValidationError
 
+from protocol.system import ReplayCommand
 from services.bus.session import LOCAL_ROUTER, BusConfig, BusError, open_session
 from services.launcher.pipeline import PipelineError, describe
 from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
@@ -162,14 +163,14 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from services.launcher.observe import echo, print_json_lines, resolve_key
+    from services.launcher.observe import echo, print_json_lines
 
     bus = _bus(args)
+    key = bus.keys.resolve(args.key)
     session = open_session(bus)
     stop_on = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        key = resolve_key(bus.keys, args.key)
         print_json_lines(echo(session, key, count=args.count, timeout_s=args.timeout,
                               max_array_elements=None if args.full else 16))
     except (KeyboardInterrupt, BrokenPipeError):
@@ -369,10 +370,11 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from services.recorder.reading import Scan
-    from services.recorder.replay_node import Params, run
+    from services.recorder.replay_node import Params, Selection, run
 
     params = _from_flags(args, "replay", Params, {"path": "IN.mcap"}, REPLAY_HELP, node="replay")
     Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
+    Selection(_bus(args).keys, params.keys)  # and so does a bad key expression
     codes: list[int] = []
     failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
     return failed or (codes[0] if codes else 0)
@@ -384,13 +386,13 @@ def cmd_control(args: argparse.Namespace) -> int:
     bus = _bus(args)
     session = open_session(bus)
     try:
-        answer = send_control(session, bus.keys, args.node, args.command, args.timeout)
+        answer = send_control(session, bus.keys, args.node, ReplayCommand(args.command), args.timeout)
     finally:
         session.close()
     if answer is None:
         log.error("no node answered on %s within %.1f s", bus.keys.control(args.node), args.timeout)
         return 1
-    print(json.dumps(answer))
+    print(json.dumps(answer.model_dump(mode="json", exclude={"header"})))
     return 0
 
 
@@ -590,7 +592,7 @@ def parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("control", help="pause, resume or step a replay node, or ask its status")
     p.add_argument("node", metavar="NODE", help="the node's name (replay unless --name was given)")
-    p.add_argument("command", choices=("pause", "resume", "step", "status"))
+    p.add_argument("command", choices=[command.value for command in ReplayCommand])
     p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for the answer")
     _bus_options(p)
     p.set_defaults(func=cmd_control)

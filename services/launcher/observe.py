@@ -43,11 +43,6 @@ def format_table(rows: list[tuple[str, ...]]) -> str:
     return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
-def resolve_key(keys: Keys, key: str) -> str:
-    """A key as given when it starts with the namespace, else relative to the rig prefix."""
-    return key if key.startswith(keys.namespace + "/") else f"{keys.prefix}/{key}"
-
-
 def echo(session: zenoh.Session, key: str, *, count: int = 0, timeout_s: float | None = None,
          max_array_elements: int | None = 16) -> Iterator[dict]:
     """Decoded messages on ``key`` as JSON-ready dicts with ``key`` and ``received_ns``, in order.

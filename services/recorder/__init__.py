@@ -1,9 +1,9 @@
 """Recording the bus to MCAP, playing recordings back, and reading them offline.
 
-Modules: ``peek`` (what a payload is, without decoding it), ``writing`` (payloads -> MCAP
-files, split into parts), ``reading`` (a sequential, damage-tolerant MCAP reader and
-``recover``), ``byte_queue`` (the recorder's bounded FIFO), ``playback`` (replay timing,
-pause and step), ``info`` and ``export`` (offline tools). ``record_node`` and ``replay_node``
+Modules: ``writing`` (payloads -> MCAP files, filed by ``protocol.codec.peek``, split into
+parts), ``reading`` (a sequential, damage-tolerant MCAP reader and ``recover``),
+``byte_queue`` (the recorder's bounded FIFO), ``playback`` (replay timing, pause and step),
+``info`` and ``export`` (offline tools). ``record_node`` and ``replay_node``
 are the two bus-side nodes; only they import the runtime and Zenoh.
 
 Recording format (MCAP 1.x, chunked, zstd by default)
@@ -20,8 +20,9 @@ Recording format (MCAP 1.x, chunked, zstd by default)
     ``protocol.codec`` for the layout of the bytes around it.
 
   Channel metadata: ``artrack.layout`` (``json`` or ``frame``) and ``artrack.version``.
-* Payloads that are not artrack messages of a known schema and version are recorded too,
-  raw: schema id 0, message encoding ``application/octet-stream``, channel metadata
+* Payloads that are not artrack messages of a known schema and version, or whose JSON part,
+  header or array extents are damaged (``protocol.codec.peek`` fails), are recorded too, raw:
+  schema id 0, message encoding ``application/octet-stream``, channel metadata
   ``artrack.layout = raw`` and ``artrack.reason`` (why the first one was not recognised).
   The recorder counts them as decode errors and reports them, and replay publishes them
   back, so downstream nodes see exactly the inputs they saw live.

@@ -1,7 +1,7 @@
 """Recorder node: what travels on the rig's keys (or chosen key expressions) into MCAP files.
 
 Each key expression gets a raw Zenoh subscriber whose callback only copies the payload,
-stamps its arrival (``time.time_ns()``), peeks at what it is (``peek.identify``) and appends
+stamps its arrival (``time.time_ns()``), peeks at what it is (``writing.identify``) and appends
 it to a ``ByteQueue``. The node body is the writer thread: it takes arrivals in order,
 writes them (``writing.RecordingWriter``) and flushes the open chunk every ``flush_s``, so a
 ``kill -9`` loses at most the last ``flush_s`` of data and leaves every earlier message
@@ -30,10 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.keys import Keys
 from services.bus.stats import StreamCounter
-from services.launcher.observe import resolve_key
 from services.recorder.byte_queue import ByteQueue
-from services.recorder.peek import Identity, identify
-from services.recorder.writing import RecordingWriter, Split, check_target
+from services.recorder.writing import Identity, RecordingWriter, Split, check_target, identify, message_class
 from services.runtime.kind import NodeKind
 from services.runtime.node import POLL_S, Node
 
@@ -97,12 +95,13 @@ class Tap:
         key, payload, arrived = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
         identity = identify(payload)
         queued = self._queue.put((key, payload, arrived, identity), len(payload))
-        self.counter.count(messages=1, dropped=int(not queued), decode_errors=int(identity.cls is None))
+        unknown = message_class(identity) is None
+        self.counter.count(messages=1, dropped=int(not queued), decode_errors=int(unknown))
         if not queued:
             self._node.report("queue_full", f"recorder queue full ({self._queue.nbytes / MB:.0f} MiB held), "
                                             f"a {len(payload)}-byte message was dropped", key)
-        if identity.cls is None:
-            self._node.report("unrecognised", f"recorded raw: {identity.reason}", key)
+        if unknown:
+            self._node.report("unrecognised", f"recorded raw: {identity}", key)
 
     def close(self) -> bool:
         """Undeclare; True once Zenoh has delivered everything it had for this subscriber."""
@@ -115,7 +114,7 @@ def subscriptions(keys: Keys, expressions: tuple[str, ...]) -> list[str]:
     another; ValueError for two that overlap otherwise, since a message on both would be
     recorded twice."""
     chosen: list[zenoh.KeyExpr] = []
-    for expression in [resolve_key(keys, e) for e in expressions] or [keys.everything()]:
+    for expression in [keys.resolve(e) for e in expressions] or [keys.everything()]:
         new = zenoh.KeyExpr(expression)
         if any(old.includes(new) for old in chosen):
             continue

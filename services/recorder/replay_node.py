@@ -14,11 +14,12 @@ the recording's first message. Before the first message the node waits up to ``w
 a subscriber to match the selection, then ``SETTLE_S``, so the first messages are not
 published before anyone can receive them.
 
-Control: the queryable ``<prefix>/node/<name>/control`` obeys ``?cmd=pause``, ``resume``,
-``step`` (publish the next message now, then stay paused) and ``status``, and answers each
-with a JSON object ``{"node", "state": "playing"|"paused"|"stopped", "played",
-"position_s"}``; ``artrack control NAME CMD`` sends them. With ``paused`` the node starts
-paused.
+Control: the queryable ``<prefix>/node/<name>/control`` takes a ``ReplayControl`` request
+(``pause``, ``resume``, ``step``: publish the next message now, then stay paused; ``status``;
+a query without payload asks for the status) and answers with a ``ReplayStatus`` once it has
+obeyed; a request it cannot read gets an ``ErrorReport`` as an error reply, and is reported
+on the node's errors key. ``artrack control NAME CMD`` sends them (``send_control``). With
+``paused`` the node starts paused.
 
 A damaged file is played up to its damage; one line then says where and why it stopped,
 and ``run`` returns ``EXIT_DAMAGED`` (3).
@@ -26,7 +27,6 @@ and ``run`` returns ``EXIT_DAMAGED`` (3).
 
 from __future__ import annotations
 
-import json
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -40,17 +40,16 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode
 from protocol.keys import Keys
+from protocol.message import Header
 from protocol.sensors import Image
-from protocol.system import ErrorReport, NodeStats
+from protocol.system import ErrorReport, NodeStats, ReplayCommand, ReplayControl, ReplayStatus
 from services.bus.pubsub import RawPublisher, Role
-from services.launcher.observe import resolve_key
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
 from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 
 SETTLE_S = 0.2
-COMMANDS = ("pause", "resume", "step", "status")
 _ROLES = {Image.SCHEMA: Role.FRAME, NodeStats.SCHEMA: Role.STATUS, ErrorReport.SCHEMA: Role.STATUS}
 
 
@@ -90,7 +89,7 @@ class Selection:
     """Which channels to replay, and the key expressions a subscriber must match to be waited for."""
 
     def __init__(self, keys: Keys, expressions: tuple[str, ...]):
-        self.include = [zenoh.KeyExpr(resolve_key(keys, e)) for e in expressions]
+        self.include = [zenoh.KeyExpr(keys.resolve(e)) for e in expressions]
         self.exclude = [] if expressions else [zenoh.KeyExpr(keys.all_node_keys())]
         self.probes = self.include or [zenoh.KeyExpr(keys.whole_namespace())]
         self._decided: dict[int, bool] = {}
@@ -176,14 +175,20 @@ def replay(node: Node, params: Params) -> Replayed:
     done = Replayed()
 
     def on_query(query: zenoh.Query) -> None:
-        command = query.parameters.get("cmd") or "status"
-        if command not in COMMANDS:
-            query.reply_err(f"unknown command {command!r} (use {', '.join(COMMANDS)})")
+        now = Header(stamp_ns=time.time_ns())
+        try:
+            payload = query.payload
+            request = ReplayControl(header=now) if payload is None else control_request(payload.to_bytes())
+        except DecodeError as exc:
+            node.report("bad_request", str(exc), str(query.key_expr))
+            query.reply_err(encode(ErrorReport(header=now, node=node.name, kind="bad_request", detail=str(exc),
+                                               key=str(query.key_expr))))
             return
-        if command != "status":
-            getattr(pacer, command)()
-        query.reply(query.key_expr, json.dumps({"node": node.name, "state": pacer.state,
-                                                "played": outputs.published, "position_s": pacer.position_ns() / 1e9}))
+        if request.command is not ReplayCommand.STATUS:
+            getattr(pacer, request.command.value)()
+        query.reply(query.key_expr, encode(ReplayStatus(
+            header=now, node=node.name, path=str(params.path), state=pacer.state, played=outputs.published,
+            passes=done.passes, position_s=max(0, pacer.position_ns()) / 1e9, rate=params.rate)))
 
     queryable = node.session.declare_queryable(node.keys.control(node.name), on_query)
     try:
@@ -233,27 +238,51 @@ def run(node: Node, params: Params) -> int:
     return EXIT_DAMAGED if done.damage is not None else 0
 
 
-def send_control(session: zenoh.Session, keys: Keys, name: str, command: str, timeout_s: float) -> dict | None:
-    """Send ``command`` to the control queryable of node ``name``; its JSON answer, or None when
-    no such queryable appeared within ``timeout_s``; ValueError with the node's reason when it refused.
+def control_request(payload: bytes) -> ReplayControl:
+    """The ReplayControl in ``payload``; DecodeError when it holds anything else."""
+    request = decode(payload)
+    if not isinstance(request, ReplayControl):
+        raise DecodeError(f"not a control request (expected {ReplayControl.SCHEMA})", schema=request.SCHEMA,
+                          size=len(payload))
+    return request
+
+
+def send_control(session: zenoh.Session, keys: Keys, name: str, command: ReplayCommand,
+                 timeout_s: float) -> ReplayStatus | None:
+    """Send ``command`` to the control queryable of node ``name``; its ReplayStatus, or None when
+    no such queryable appeared within ``timeout_s``; ValueError with the node's reason when it
+    refused, or when its answer is not a ReplayStatus.
 
     A session that has just opened learns of remote queryables only as its links come up, so
     the query is sent once the queryable is known (a query sent earlier would reach nobody).
     """
     deadline = time.monotonic() + timeout_s
     querier = session.declare_querier(keys.control(name), timeout=timeout_s)
+    request = ReplayControl(header=Header(stamp_ns=time.time_ns()), command=command)
     try:
         while not querier.matching_status.matching:
             if time.monotonic() > deadline:
                 return None
             time.sleep(0.01)
-        for reply in querier.get(parameters=f"cmd={command}"):
+        for reply in querier.get(payload=encode(request)):
             if reply.ok is None:
-                raise ValueError(f"{name}: {reply.err.payload.to_string()}")
-            return json.loads(reply.ok.payload.to_string())
+                raise ValueError(f"{name} refused {command.value}: {_refusal(reply.err.payload.to_bytes())}")
+            answer = decode(reply.ok.payload.to_bytes())
+            if not isinstance(answer, ReplayStatus):
+                raise ValueError(f"{name} answered {command.value} with {answer.SCHEMA}, not {ReplayStatus.SCHEMA}")
+            return answer
         return None
     finally:
         querier.undeclare()
+
+
+def _refusal(payload: bytes) -> str:
+    """Why a control request was refused: the ErrorReport's detail, or the error reply's text."""
+    try:
+        report = decode(payload)
+    except DecodeError:
+        return payload.decode("utf-8", "replace")
+    return report.detail if isinstance(report, ErrorReport) else f"a {report.SCHEMA} error reply"
 
 
 def _outputs(params: Params) -> tuple[str, ...]:

@@ -17,10 +17,9 @@ from typing import BinaryIO
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from protocol.codec import MEDIA_FRAME, is_frame
+from protocol.codec import MEDIA_FRAME, DecodeError, Peeked, is_frame, peek
 from protocol.message import Message
 from protocol.schemas import json_schema
-from services.recorder.peek import Identity, identify
 
 LIBRARY = f"artrack recorder; {LIBRARY_IDENTIFIER}"
 RAW_ENCODING = "application/octet-stream"
@@ -28,6 +27,27 @@ RECORDING_METADATA = "artrack.recording"
 RECORDER_METADATA = "artrack.recorder"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 CHUNK_BYTES = 1 << 20
+
+Identity = Peeked | str
+"""What the writer files a payload under: its ``peek``, or why it is not a message this build
+knows (then it is recorded raw)."""
+
+
+def identify(payload: bytes) -> Identity:
+    """``protocol.codec.peek(payload)``, or the reason it failed; never raises.
+
+    A payload that peeks is filed under its message class even if its other fields would
+    fail to decode: it is recorded as it travelled and fails again on replay as it did live.
+    """
+    try:
+        return peek(payload)
+    except DecodeError as exc:
+        return str(exc)
+
+
+def message_class(identity: Identity) -> type[Message] | None:
+    """The message class a payload is filed under; None: recorded raw."""
+    return identity.cls if isinstance(identity, Peeked) else None
 
 
 @dataclass(frozen=True)
@@ -85,10 +105,11 @@ class _Part:
         self._unwritten = 0
 
     def add(self, key: str, identity: Identity, payload: bytes, log_time_ns: int, sequence: int) -> None:
-        channel = self._channels.get((key, identity.cls))
+        cls = message_class(identity)
+        channel = self._channels.get((key, cls))
         if channel is None:
-            channel = self._channels[(key, identity.cls)] = self._register(key, identity)
-        stamp = identity.stamp_ns if identity.cls is not None and identity.stamp_ns is not None else log_time_ns
+            channel = self._channels[(key, cls)] = self._register(key, identity)
+        stamp = identity.stamp_ns if isinstance(identity, Peeked) else log_time_ns
         self._writer.add_message(channel, log_time=log_time_ns, data=payload, publish_time=stamp,
                                  sequence=sequence & 0xFFFFFFFF)
         self.messages += 1
@@ -97,17 +118,15 @@ class _Part:
         self._account(len(payload))
 
     def _register(self, key: str, identity: Identity) -> int:
+        if not isinstance(identity, Peeked):
+            encoding, metadata = channel_encoding(None)
+            return self._writer.register_channel(key, encoding, 0, {**metadata, "artrack.reason": identity})
+        name = identity.schema
+        if name not in self._schemas:
+            body = json.dumps(json_schema(identity.cls)).encode()
+            self._schemas[name] = self._writer.register_schema(name, SchemaEncoding.JSONSchema, body)
         encoding, metadata = channel_encoding(identity.cls)
-        schema_id = 0
-        if identity.cls is not None:
-            name = identity.cls.SCHEMA
-            if name not in self._schemas:
-                body = json.dumps(json_schema(identity.cls)).encode()
-                self._schemas[name] = self._writer.register_schema(name, SchemaEncoding.JSONSchema, body)
-            schema_id = self._schemas[name]
-        else:
-            metadata["artrack.reason"] = identity.reason
-        return self._writer.register_channel(key, encoding, schema_id, metadata)
+        return self._writer.register_channel(key, encoding, self._schemas[name], metadata)
 
     def _account(self, added: int) -> None:
         position = self._file.tell()
@@ -163,8 +182,9 @@ class RecordingWriter:
 
     def write(self, key: str, payload: bytes, log_time_ns: int, identity: Identity | None = None) -> None:
         """Append one payload that arrived on ``key`` at ``log_time_ns``; ``identity`` is
-        ``peek.identify(payload)``, computed here unless the caller already has it."""
-        identity = identity or identify(payload)
+        ``identify(payload)``, computed here unless the caller already has it."""
+        if identity is None:
+            identity = identify(payload)
         part = self._part
         if part is None:
             part = self._part = self._open()
@@ -172,7 +192,7 @@ class RecordingWriter:
               and log_time_ns - part.first_log_ns >= self.split.duration_ns):
             self._finish()
             part = self._part = self._open()
-        slot = (key, identity.cls)
+        slot = (key, message_class(identity))
         sequence = self._sequences.get(slot, 0)
         self._sequences[slot] = sequence + 1
         part.add(key, identity, payload, log_time_ns, sequence)

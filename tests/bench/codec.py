@@ -1,7 +1,8 @@
 """The codec's own cost per message, warm and cold, in one process.
 
 Each step (build a ``protocol.Image`` around a 640x480 mono8 frame, ``encode`` it, ``decode``
-its payload; the same three for a marker ``Pose``) is timed ``CALLS`` times two ways:
+its payload, ``peek`` at it as the recorder does; the same four for a marker ``Pose``) is timed
+``CALLS`` times two ways:
 
 * ``warm``: back to back, the figures a micro-benchmark gives;
 * ``cold``: each call the first after ``SLEEP_S`` asleep, as in a node fed at 60 fps or the
@@ -10,7 +11,7 @@ its payload; the same three for a marker ``Pose``) is timed ``CALLS`` times two 
 
 p50 per step and condition, and cold / warm. The transport and marker benchmarks' typed
 overheads are sums of such steps (see docs/benchmarks.md).
-``python -m tests.bench codec`` prints the lines (about 15 s).
+``python -m tests.bench codec`` prints the lines (about 20 s).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from protocol import decode, encode
+from protocol import decode, encode, peek
 from tests.bench.traffic import ImageCase, pose_message
 
 CALLS = 200
@@ -42,15 +43,16 @@ def timed(step: Callable[[], object], pause_s: float) -> float:
 
 
 def steps() -> dict[str, Callable[[], object]]:
-    """The steps timed, by name: each builds, encodes or decodes one message."""
+    """The steps timed, by name: each builds, encodes, decodes or peeks at one message."""
     case = ImageCase((480, 640), "mono8")
     frame = case.frame()
     image, pose = case.message(frame, 0), pose_message(0)
     image_payload, pose_payload = encode(image), encode(pose)
     return {
         "image_build": lambda: case.message(frame, 1), "image_encode": lambda: encode(image),
-        "image_decode": lambda: decode(image_payload), "pose_build": lambda: pose_message(1),
-        "pose_encode": lambda: encode(pose), "pose_decode": lambda: decode(pose_payload),
+        "image_decode": lambda: decode(image_payload), "image_peek": lambda: peek(image_payload),
+        "pose_build": lambda: pose_message(1), "pose_encode": lambda: encode(pose),
+        "pose_decode": lambda: decode(pose_payload), "pose_peek": lambda: peek(pose_payload),
     }
 
 

@@ -37,7 +37,6 @@ from protocol.sensors import Image
 from protocol.spatial import Transform
 from services.bus.pubsub import Publisher, Role
 from services.bus.session import BusConfig, open_session
-from services.launcher.observe import resolve_key
 
 BASE_STAMP_NS = 1_700_000_000_000_000_000
 MATCH_TIMEOUT_S = 20.0
@@ -103,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                 for i in range(args.count) if i not in skip]
     session = open_session(bus)
     try:
-        publisher = Publisher(session, resolve_key(bus.keys, args.key), KINDS[args.kind], Role(args.role))
+        publisher = Publisher(session, bus.keys.resolve(args.key), KINDS[args.kind], Role(args.role))
         deadline = time.monotonic() + MATCH_TIMEOUT_S
         while not (publisher.matched() and (args.peer is None or args.peer in
                                               {str(z) for z in session.info.peers_zid()})):

@@ -84,6 +84,13 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
         assert len(line["k"]) == 9 and line["k"][8] == 1.0
 
 
+def test_echo_refuses_a_bad_key_expression_in_one_line(procs):
+    refused = procs.run("echo", "a b//c", "--connect", "tcp/127.0.0.1:9", timeout=30)
+    assert refused.poll() == 2, refused.describe()
+    assert refused.stderr.count("\n") == 1, refused.stderr
+    assert "key expression 'a b//c' is not valid: it has an empty segment" in refused.stderr
+
+
 def test_demo_tracks_the_bundled_markers_and_scores_them(bus, procs, tmp_path):
     demo = procs.run("demo", "--runs", str(tmp_path), "--connect", bus.endpoint, timeout=120)
     assert demo.poll() == 0, demo.describe()

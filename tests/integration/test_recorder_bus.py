@@ -19,7 +19,7 @@ import pytest
 from mcap.decoder import DecoderFactory
 from mcap.reader import make_reader
 
-from protocol import CameraInfo, Header, Image, Message, Pose, decode, encode
+from protocol import CameraInfo, ErrorReport, Header, Image, Message, Pose, decode, encode
 from protocol.codec import MEDIA_FRAME
 from protocol.schemas import json_schema
 from protocol.spatial import Transform
@@ -318,7 +318,16 @@ def test_a_paused_replay_steps_and_resumes_on_control_commands(bus, procs, sessi
     try:
         replay = procs.artrack("replay", str(path), "--paused", "--wait", str(START_S))
         wait_live(session, bus.keys, {"replay"}, [replay])
-        assert control("status")["state"] == "paused"
+        status = control("status")
+        assert status == {"node": "replay", "path": str(path), "state": "paused", "played": 0, "passes": 0,
+                          "position_s": 0.0, "rate": 1.0}
+        garbage = {b"cmd=rewind": "neither an artrack frame nor JSON", encode(pose(0)): "not a control request"}
+        for payload, reason in garbage.items():
+            replies = list(session.get(bus.keys.control("replay"), payload=payload, timeout=5.0))
+            assert len(replies) == 1 and replies[0].ok is None
+            refusal = decode(replies[0].err.payload.to_bytes())
+            assert isinstance(refusal, ErrorReport) and refusal.kind == "bad_request", refusal
+            assert reason in refusal.detail, refusal
         time.sleep(0.5)
         assert collector.count() == 0
         assert control("step")["state"] == "paused"

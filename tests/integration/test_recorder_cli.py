@@ -119,3 +119,12 @@ def test_info_and_export_of_a_truncated_file_report_its_intact_part(recording, t
 def test_record_refuses_to_overwrite_a_recording_before_joining_the_bus(recording):
     refused = artrack("record", str(recording), "--connect", "tcp/127.0.0.1:9")
     assert refused.returncode == 2 and f"{recording} exists" in refused.stderr
+
+
+@pytest.mark.parametrize("command", ["record", "replay"])
+def test_a_bad_key_expression_is_refused_in_one_line_before_joining_the_bus(recording, tmp_path, command: str):
+    target = recording if command == "replay" else tmp_path / "new.mcap"
+    refused = artrack(command, str(target), "--keys", "cam0/image", "a b//c", "--connect", "tcp/127.0.0.1:9")
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr.count("\n") == 1 and "key expression 'a b//c' is not valid: it has an empty segment" \
+        in refused.stderr, refused.stderr

@@ -31,6 +31,9 @@ from protocol import (
     Pose,
     PoseQuality,
     RegionOfInterest,
+    ReplayCommand,
+    ReplayControl,
+    ReplayStatus,
     RigidBodies,
     RigidBody,
     StaticTransforms,
@@ -207,5 +210,9 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         refused=st.dictionaries(texts, texts, max_size=3), params=st.dictionaries(texts, texts, max_size=3)),
     "artrack.ErrorReport": st.builds(ErrorReport, header=headers, node=texts, kind=texts, detail=texts,
                                      key=texts, count=st.integers(1, 2**80)),
+    "artrack.ReplayControl": st.builds(ReplayControl, header=headers, command=st.sampled_from(ReplayCommand)),
+    "artrack.ReplayStatus": st.builds(
+        ReplayStatus, header=headers, node=texts, path=texts, state=st.sampled_from(["playing", "paused", "stopped"]),
+        played=big_counts, passes=big_counts, position_s=non_negative, rate=positive),
 }
 """One strategy per registered schema name."""

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
+import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -105,3 +108,67 @@ NOT_NODE_KEYS = ["ar/rig0/cam0/image", "ar/rig0/node", "other/rig0/node/x", "arx
 def test_split_node_refuses_other_keys(key: str):
     with pytest.raises(ValueError, match="is not a node key under 'ar'"):
         Keys().split_node(key)
+
+
+RESOLVED = [
+    ("cam0/image", "ar/rig0/cam0/image"),
+    ("pose/**", "ar/rig0/pose/**"),
+    ("*/markers", "ar/rig0/*/markers"),
+    ("cam$*/image", "ar/rig0/cam$*/image"),
+    ("ar/rig1/cam0/image", "ar/rig1/cam0/image"),
+    ("ar/*/node/*/stats", "ar/*/node/*/stats"),
+    ("ar", "ar/rig0/ar"),
+    ("arx/y", "ar/rig0/arx/y"),
+]
+
+
+@pytest.mark.parametrize(("given_key", "expected"), RESOLVED)
+def test_resolve_is_relative_to_the_rig_unless_the_key_starts_with_the_namespace(given_key: str, expected: str):
+    assert Keys().resolve(given_key) == expected
+
+
+def test_resolve_under_a_namespace_of_several_segments():
+    keys = Keys(namespace="site/lab1", rig="r")
+    assert keys.resolve("site/lab1/r2/cam0/image") == "site/lab1/r2/cam0/image"
+    assert keys.resolve("site/cam0") == "site/lab1/r/site/cam0"
+
+
+BAD_EXPRESSIONS = [
+    ("a b//c", "empty segment"),
+    ("", "it is empty"),
+    ("/cam0/image", "empty segment"),
+    ("cam0/image/", "empty segment"),
+    ("a b/c", "segment 'a b'"),
+    ("cam0/image?x=1", "segment 'image?x=1'"),
+    ("cam*/image", "segment 'cam*'"),
+    ("$*/image", "segment '$*'"),
+    ("pose/**/**", "write '**' for '**/**'"),
+    ("**/*", "write '*/**' for '**/*'"),
+]
+
+
+@pytest.mark.parametrize(("given_key", "why"), BAD_EXPRESSIONS)
+def test_resolve_refuses_a_bad_expression_naming_it_and_why(given_key: str, why: str):
+    expected = f"key expression {re.escape(repr(given_key))} is not valid: .*{re.escape(why)}"
+    with pytest.raises(ValueError, match=expected):
+        Keys().resolve(given_key)
+
+
+segments = st.sampled_from(["cam0", "*", "**", "a b", "", "x$*", "$*", "$*$*", "a?", "é", "a.b-c_d", "#"])
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(segments, min_size=1, max_size=4).map("/".join))
+def test_every_expression_resolve_accepts_is_one_zenoh_accepts_unchanged(expression: str):
+    try:
+        resolved = Keys().resolve(expression)
+    except ValueError:
+        return
+    assert str(zenoh.KeyExpr(resolved)) == resolved
+
+
+@pytest.mark.parametrize("given_key", [key for key, _ in BAD_EXPRESSIONS if key != "a b/c"])
+def test_the_bad_expressions_are_bad_for_zenoh_too(given_key: str):
+    """(Zenoh takes spaces inside a segment; artrack's names never hold one.)"""
+    with pytest.raises(zenoh.ZError):
+        zenoh.KeyExpr(f"ar/rig0/{given_key}" if given_key else given_key)
