@@ -106,7 +106,7 @@ def test_the_same_id_twice_comes_in_a_fixed_order():
     assert found.corners[0, 0, 0] < found.corners[1, 0, 0]
 
 
-@pytest.mark.parametrize("refinement", ["none", "subpix", "contour", "apriltag"])
+@pytest.mark.parametrize("refinement", ["lines", "none", "subpix", "contour", "apriltag"])
 def test_every_refinement_finds_the_corners(refinement):
     detector = MarkerDetector("DICT_APRILTAG_36h11", refinement=refinement)
     image = marker_image(detector.dictionary, 21)

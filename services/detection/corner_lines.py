@@ -1,0 +1,149 @@
+"""Marker corners as the intersections of straight lines fitted to the quad's four sides.
+
+Each side of a detected quad is sampled at ``SAMPLES`` points along its middle (clear of the
+corners, where the neighbouring side's edge blurs into the profile). At each point the image is
+read along the side's normal, ``search_px`` either way, at ``2 * STEPS + 1`` evenly spaced
+offsets (``cv2.remap``, bicubic). The edge is located by the profile's area: with the levels on
+either side (``inside``, ``outside``, each the mean of the ``PLATEAU`` samples at its end) the
+profile is scaled to run from 0 to 1, and the edge sits where a sharp step of the same area
+would, ``e = search_px - integral of the scaled profile`` (trapezoids). A symmetric blur moves
+no area across the edge, so the estimate is unbiased whatever the blur's width, and it has no
+preference for pixel centres (a gradient-peak fit on interpolated samples locks onto the pixel
+grid by up to a few tenths of a pixel on axis-aligned sides, where every sample of a side has the
+same phase). The sign of the edge (dark inside for ordinary markers, light inside for inverted
+ones) comes from each marker's mean contrast, so both polarities work. A line is fitted to each
+side's edge points by total least squares with Tukey's biweight (``fit_lines``: points off the
+edge, from glare or a neighbouring bit, lose their weight), and adjacent sides' lines meet in
+the corners.
+
+Corner detectors that look at the corner's own neighbourhood (``cv2.cornerSubPix``) drift
+inwards as blur rounds the corner; lines fitted to the sides away from it do not.
+
+Lens distortion: the lines are fitted in the distorted image. A marker's side is short and
+only its middle is sampled, so its curvature there is small; it is not modelled. A marker
+whose sides cannot all be measured (too few edge points, an edge outside the search window,
+lines that do not meet near the input corners) keeps its input corners.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["SAMPLES", "STEPS", "fit_lines", "refine_corners"]
+
+SAMPLES = 32
+"""Edge points sampled per side."""
+STEPS = 8
+"""Profile samples on each side of the input edge along its normal (``2 * STEPS + 1`` in all)."""
+END_MARGIN = 0.12
+"""Fraction of a side left out at each end, at least ``2 * search_px`` px."""
+MIN_POINTS = 0.4
+"""Share of a side's samples that must give an edge point."""
+MIN_CONTRAST = 0.3
+"""An edge point's contrast must reach this fraction of its side's median contrast."""
+TUKEY_K = 4.685
+"""Tukey's biweight cut-off in robust standard deviations of the residuals (95 % efficiency for Gaussian noise)."""
+REWEIGHTS = 2
+"""Reweighted refits of each side's line after the first, unweighted one."""
+MIN_SCALE_PX = 0.01
+"""Floor of the robust residual scale, px."""
+PLATEAU = 2
+"""Profile samples at each end averaged for the levels on either side of the edge."""
+
+
+def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np.ndarray = 2.0,
+                   iterations: int = 1) -> np.ndarray:
+    """Corners of quads in ``image`` refined to the intersections of lines fitted to their sides.
+
+    ``image``: (H, W) uint8 or float grey; ``corners``: (N, 4, 2) float px (centre of the top-left
+    pixel at (0, 0)), in order around each quad (ArUco's TL, TR, BR, BL); ``search_px``: how far
+    from each input side its edge is looked for along the normal, one number or (N,) per quad;
+    keep it below half the width of the quad's dark border so inner edges stay out of reach.
+    ``iterations``: refinement passes, each starting from the previous one's corners (one is enough
+    from cornerSubPix's corners; rougher starts gain from a second). Returns (N, 4, 2) float32; a
+    quad that cannot be refined keeps its input.
+    """
+    corners = np.asarray(corners, dtype=np.float64)
+    if corners.ndim != 3 or corners.shape[1:] != (4, 2):
+        raise ValueError(f"corners must be (N, 4, 2), got {corners.shape}")
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"image must be (H, W) grey, got shape {image.shape}")
+    search = np.broadcast_to(np.asarray(search_px, dtype=np.float64), (len(corners),)).copy()
+    if len(corners) == 0:
+        return corners.astype(np.float32)
+    grey = image.astype(np.float32)
+    current = corners.copy()
+    for _ in range(iterations):
+        refined, ok = _refine_once(grey, current, search)
+        current[ok] = refined[ok]
+    moved = np.linalg.norm(current - corners, axis=2).max(axis=1)
+    keep = np.isfinite(current).all(axis=(1, 2)) & (moved <= 2 * np.broadcast_to(search_px, moved.shape) + 1.0)
+    return np.where(keep[:, None, None], current, corners).astype(np.float32)
+
+
+def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One pass: (N, 4, 2) refined corners and (N,) bool, whether each quad's four lines were found."""
+    start = corners
+    end = np.roll(corners, -1, axis=1)
+    length = np.linalg.norm(end - start, axis=2)
+    along = (end - start) / np.maximum(length, 1e-9)[..., None]
+    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)
+    margin = np.maximum(END_MARGIN * length, 2 * search[:, None])
+    spread = np.linspace(0.0, 1.0, SAMPLES)
+    position = margin[..., None] + spread * (length - 2 * margin)[..., None]
+    base = start[:, :, None, :] + position[..., None] * along[:, :, None, :]
+    offsets = np.linspace(-1.0, 1.0, 2 * STEPS + 1)[None, :] * search[:, None]
+    points = base[:, :, :, None, :] + offsets[:, None, None, :, None] * normal[:, :, None, None, :]
+    flat = points.reshape(-1, 2 * STEPS + 1, 2).astype(np.float32)
+    profile = cv2.remap(grey, flat[..., 0], flat[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    profile = profile.reshape(points.shape[:4]).astype(np.float64)
+    inside = profile[..., :PLATEAU].mean(axis=-1)
+    outside = profile[..., -PLATEAU:].mean(axis=-1)
+    contrast = outside - inside
+    polarity = np.sign(contrast.sum(axis=(1, 2)))
+    scaled = (profile - inside[..., None]) / np.where(contrast == 0, 1.0, contrast)[..., None]
+    area = 0.5 * (scaled[..., 1:] + scaled[..., :-1]).sum(axis=-1)
+    offset = (STEPS - area) * (search / STEPS)[:, None, None]
+    edge = base + offset[..., None] * normal[:, :, None, :]
+    strong = contrast * polarity[:, None, None] >= MIN_CONTRAST * np.median(np.abs(contrast), axis=2, keepdims=True)
+    reach = STEPS - PLATEAU
+    long_enough = (length > 2 * margin + 2.0)[..., None]
+    valid = strong & (np.abs(STEPS - area) < reach) & (polarity != 0)[:, None, None] & long_enough
+    enough = valid.sum(axis=2) >= MIN_POINTS * SAMPLES
+    lines = fit_lines(edge, valid)
+    lines[~enough] = np.nan
+    meet = np.cross(np.roll(lines, 1, axis=1), lines)
+    ok = np.isfinite(meet).all(axis=(1, 2)) & (np.abs(meet[..., 2]) > 1e-9).all(axis=1)
+    refined = meet[..., :2] / np.where(ok[:, None, None], meet[..., 2:], 1.0)
+    return refined, ok
+
+
+def fit_lines(points: np.ndarray, valid: np.ndarray, iterations: int = REWEIGHTS) -> np.ndarray:
+    """Robust total-least-squares lines through batches of 2-D points: a plain fit, then ``iterations``
+    refits with Tukey's biweight of the residuals (scale: 1.4826 x their median absolute value).
+
+    ``points``: (..., S, 2) float px; ``valid``: (..., S) bool, the points to use. Returns (..., 3)
+    float64 lines ``(a, b, c)`` with ``a * x + b * y + c = 0`` and ``a**2 + b**2 = 1``; NaN where
+    fewer than two points are valid. A robust ``cv2.fitLine`` for every batch at once (one call
+    instead of one per line).
+    """
+    weight = valid.astype(np.float64)
+    count = valid.sum(axis=-1)
+    for _ in range(iterations + 1):
+        total = weight.sum(axis=-1, keepdims=True)
+        mean = (weight[..., None] * points).sum(axis=-2) / np.where(total > 0, total, 1.0)
+        centred = points - mean[..., None, :]
+        cxx, cyy = ((weight[..., None] * centred ** 2).sum(axis=-2)).transpose(-1, *range(centred.ndim - 2))
+        cxy = (weight * centred[..., 0] * centred[..., 1]).sum(axis=-1)
+        angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+        normal = np.stack([-np.sin(angle), np.cos(angle)], axis=-1)
+        residual = np.abs((centred * normal[..., None, :]).sum(axis=-1))
+        ordered = np.sort(np.where(valid, residual, np.inf), axis=-1)
+        middle = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, axis=-1)
+        scale = np.maximum(1.4826 * np.where(np.isfinite(middle), middle, 0.0), MIN_SCALE_PX)
+        weight = valid * np.clip(1.0 - (residual / (TUKEY_K * scale)) ** 2, 0.0, None) ** 2
+    lines = np.concatenate([normal, -(normal * mean).sum(axis=-1, keepdims=True)], axis=-1)
+    lines[count < 2] = np.nan
+    return lines
