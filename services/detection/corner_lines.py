@@ -67,17 +67,23 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np
     corners = np.asarray(corners, dtype=np.float64)
     if corners.ndim != 3 or corners.shape[1:] != (4, 2):
         raise ValueError(f"corners must be (N, 4, 2), got {corners.shape}")
+    if not np.isfinite(corners).all():
+        raise ValueError("corners must be finite")
     image = np.asarray(image)
     if image.ndim != 2:
         raise ValueError(f"image must be (H, W) grey, got shape {image.shape}")
     search = np.broadcast_to(np.asarray(search_px, dtype=np.float64), (len(corners),)).copy()
     if len(corners) == 0:
         return corners.astype(np.float32)
-    grey = image.astype(np.float32)
-    current = corners.copy()
+    reach = search.max() * (iterations + 1) + 4.0
+    low = np.clip(np.floor(corners.min(axis=(0, 1)) - reach), 0, None).astype(int)
+    high = np.clip(np.ceil(corners.max(axis=(0, 1)) + reach), 0, image.shape[::-1]).astype(int)
+    grey = image[low[1]:high[1], low[0]:high[0]].astype(np.float32)
+    current = corners - low
     for _ in range(iterations):
         refined, ok = _refine_once(grey, current, search)
         current[ok] = refined[ok]
+    current += low
     moved = np.linalg.norm(current - corners, axis=2).max(axis=1)
     keep = np.isfinite(current).all(axis=(1, 2)) & (moved <= 2 * np.broadcast_to(search_px, moved.shape) + 1.0)
     return np.where(keep[:, None, None], current, corners).astype(np.float32)
@@ -95,10 +101,11 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray) -> t
     position = margin[..., None] + spread * (length - 2 * margin)[..., None]
     base = start[:, :, None, :] + position[..., None] * along[:, :, None, :]
     offsets = np.linspace(-1.0, 1.0, 2 * STEPS + 1)[None, :] * search[:, None]
-    points = base[:, :, :, None, :] + offsets[:, None, None, :, None] * normal[:, :, None, None, :]
-    flat = points.reshape(-1, 2 * STEPS + 1, 2).astype(np.float32)
-    profile = cv2.remap(grey, flat[..., 0], flat[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    profile = profile.reshape(points.shape[:4]).astype(np.float64)
+    shape = (len(corners) * 4 * SAMPLES, 2 * STEPS + 1)
+    x, y = ((base[..., None, i] + offsets[:, None, None, :] * normal[:, :, None, None, i]).astype(np.float32)
+            for i in (0, 1))
+    profile = cv2.remap(grey, x.reshape(shape), y.reshape(shape), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    profile = profile.reshape(x.shape).astype(np.float64)
     inside = profile[..., :PLATEAU].mean(axis=-1)
     outside = profile[..., -PLATEAU:].mean(axis=-1)
     contrast = outside - inside
@@ -129,21 +136,26 @@ def fit_lines(points: np.ndarray, valid: np.ndarray, iterations: int = REWEIGHTS
     fewer than two points are valid. A robust ``cv2.fitLine`` for every batch at once (one call
     instead of one per line).
     """
+    x, y = np.ascontiguousarray(points[..., 0]), np.ascontiguousarray(points[..., 1])
     weight = valid.astype(np.float64)
     count = valid.sum(axis=-1)
-    for _ in range(iterations + 1):
-        total = weight.sum(axis=-1, keepdims=True)
-        mean = (weight[..., None] * points).sum(axis=-2) / np.where(total > 0, total, 1.0)
-        centred = points - mean[..., None, :]
-        cxx, cyy = ((weight[..., None] * centred ** 2).sum(axis=-2)).transpose(-1, *range(centred.ndim - 2))
-        cxy = (weight * centred[..., 0] * centred[..., 1]).sum(axis=-1)
+    middle_index = np.maximum(count - 1, 0)[..., None] // 2
+    for refit in range(iterations + 1):
+        total = weight.sum(axis=-1)
+        total = np.where(total > 0, total, 1.0)
+        mean_x, mean_y = (weight * x).sum(axis=-1) / total, (weight * y).sum(axis=-1) / total
+        dx, dy = x - mean_x[..., None], y - mean_y[..., None]
+        cxx, cyy, cxy = ((weight * dx * dx).sum(axis=-1), (weight * dy * dy).sum(axis=-1),
+                         (weight * dx * dy).sum(axis=-1))
         angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
-        normal = np.stack([-np.sin(angle), np.cos(angle)], axis=-1)
-        residual = np.abs((centred * normal[..., None, :]).sum(axis=-1))
+        normal_x, normal_y = -np.sin(angle), np.cos(angle)
+        if refit == iterations:
+            break
+        residual = np.abs(dx * normal_x[..., None] + dy * normal_y[..., None])
         ordered = np.sort(np.where(valid, residual, np.inf), axis=-1)
-        middle = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, axis=-1)
+        middle = np.take_along_axis(ordered, middle_index, axis=-1)
         scale = np.maximum(1.4826 * np.where(np.isfinite(middle), middle, 0.0), MIN_SCALE_PX)
         weight = valid * np.clip(1.0 - (residual / (TUKEY_K * scale)) ** 2, 0.0, None) ** 2
-    lines = np.concatenate([normal, -(normal * mean).sum(axis=-1, keepdims=True)], axis=-1)
+    lines = np.stack([normal_x, normal_y, -(normal_x * mean_x + normal_y * mean_y)], axis=-1)
     lines[count < 2] = np.nan
     return lines

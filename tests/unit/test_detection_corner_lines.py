@@ -82,6 +82,7 @@ def test_a_quad_without_edges_keeps_its_corners():
 @pytest.mark.parametrize(("image", "corners", "message"), [
     (np.zeros((10, 10), np.uint8), np.zeros((1, 3, 2)), "corners must be"),
     (np.zeros((10, 10, 3), np.uint8), np.zeros((1, 4, 2)), "image must be"),
+    (np.zeros((10, 10), np.uint8), np.full((1, 4, 2), np.nan), "corners must be finite"),
 ])
 def test_bad_shapes_are_named(image, corners, message):
     with pytest.raises(ValueError, match=message):
