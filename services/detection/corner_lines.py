@@ -4,10 +4,10 @@ Each side of a detected quad is sampled at ``SAMPLES`` points along its middle (
 corners, where the neighbouring side's edge blurs into the profile). At each point the image is
 read along the side's normal, ``search_px`` either way, at ``2 * STEPS + 1`` evenly spaced
 offsets (``cv2.remap``, bicubic). The edge is located by the profile's area: with the levels on
-either side (``inside``, ``outside``, each the mean of the ``PLATEAU`` samples at its end) the
-profile is scaled to run from 0 to 1, and the edge sits where a sharp step of the same area
-would, ``e = search_px - integral of the scaled profile`` (trapezoids). A symmetric blur moves
-no area across the edge, so the estimate is unbiased whatever the blur's width, and it has no
+either side (each the mean of the ``PLATEAU`` samples at that end) the profile is scaled to run
+from 0 to 1, and the edge sits where a sharp step of the same area would,
+``e = search_px - integral of the scaled profile`` (trapezoids). A symmetric blur moves no area
+across the edge, so the estimate is unbiased whatever the blur's width, and it has no
 preference for pixel centres (a gradient-peak fit on interpolated samples locks onto the pixel
 grid by up to a few tenths of a pixel on axis-aligned sides, where every sample of a side has the
 same phase). The sign of the edge (dark inside for ordinary markers, light inside for inverted
@@ -19,9 +19,12 @@ the corners.
 Corner detectors that look at the corner's own neighbourhood (``cv2.cornerSubPix``) drift
 inwards as blur rounds the corner; lines fitted to the sides away from it do not.
 
-Lens distortion: the lines are fitted in the distorted image. A marker's side is short and
-only its middle is sampled, so its curvature there is small; it is not modelled. A marker
-whose sides cannot all be measured (too few edge points, an edge outside the search window,
+Lens distortion: the edges are always searched in the image as it is, along the straight
+sides of the input quad (a side bent by distortion stays well within the search window). Without
+a calibration the lines are fitted there too, which holds on short sides near the image centre;
+with one (``K``, ``dist``) the edge points are undistorted first, the lines fitted and
+intersected in undistorted pixels, and the corners distorted back. A marker whose sides cannot
+all be measured (too few edge points, an edge outside the search window,
 lines that do not meet near the input corners) keeps its input corners.
 """
 
@@ -29,6 +32,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from services.geometry.camera import UNDISTORT_CRITERIA, project_points
 
 __all__ = ["SAMPLES", "STEPS", "fit_lines", "refine_corners"]
 
@@ -53,7 +58,7 @@ PLATEAU = 2
 
 
 def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np.ndarray = 2.0,
-                   iterations: int = 1) -> np.ndarray:
+                   iterations: int = 1, K: np.ndarray | None = None, dist: np.ndarray | None = None) -> np.ndarray:
     """Corners of quads in ``image`` refined to the intersections of lines fitted to their sides.
 
     ``image``: (H, W) uint8 or float grey; ``corners``: (N, 4, 2) float px (centre of the top-left
@@ -61,8 +66,11 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np
     from each input side its edge is looked for along the normal, one number or (N,) per quad;
     keep it below half the width of the quad's dark border so inner edges stay out of reach.
     ``iterations``: refinement passes, each starting from the previous one's corners (one is enough
-    from cornerSubPix's corners; rougher starts gain from a second). Returns (N, 4, 2) float32; a
-    quad that cannot be refined keeps its input.
+    from cornerSubPix's corners; rougher starts gain from a second). ``K`` (3, 3) and ``dist``
+    (OpenCV distortion coefficients), when both are given and ``dist`` is not all zero: the edge
+    points are undistorted before the lines are fitted and the corners distorted back, so sides
+    that distortion bends still meet where they should. Returns (N, 4, 2) float32 px of
+    ``image``; a quad that cannot be refined keeps its input.
     """
     corners = np.asarray(corners, dtype=np.float64)
     if corners.ndim != 3 or corners.shape[1:] != (4, 2):
@@ -79,9 +87,14 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np
     low = np.clip(np.floor(corners.min(axis=(0, 1)) - reach), 0, None).astype(int)
     high = np.clip(np.ceil(corners.max(axis=(0, 1)) + reach), 0, image.shape[::-1]).astype(int)
     grey = image[low[1]:high[1], low[0]:high[0]].astype(np.float32)
+    if grey.size == 0:
+        return corners.astype(np.float32)
     current = corners - low
+    lens = None
+    if K is not None and dist is not None and np.any(dist):
+        lens = (np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel())
     for _ in range(iterations):
-        refined, ok = _refine_once(grey, current, search)
+        refined, ok = _refine_once(grey, current, search, low, lens)
         current[ok] = refined[ok]
     current += low
     moved = np.linalg.norm(current - corners, axis=2).max(axis=1)
@@ -89,13 +102,16 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np
     return np.where(keep[:, None, None], current, corners).astype(np.float32)
 
 
-def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One pass: (N, 4, 2) refined corners and (N,) bool, whether each quad's four lines were found."""
+def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, origin: np.ndarray,
+                 lens: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """One pass on ``grey``, the image window whose top-left pixel is ``origin`` (x, y): (N, 4, 2) refined
+    corners (window px) and (N,) bool, whether each quad's four lines were found. ``lens``: (K, dist)
+    to fit the lines in undistorted pixels, or None."""
     start = corners
     end = np.roll(corners, -1, axis=1)
     length = np.linalg.norm(end - start, axis=2)
     along = (end - start) / np.maximum(length, 1e-9)[..., None]
-    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)
+    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)  # outwards when the quad turns clockwise
     margin = np.maximum(END_MARGIN * length, 2 * search[:, None])
     spread = np.linspace(0.0, 1.0, SAMPLES)
     position = margin[..., None] + spread * (length - 2 * margin)[..., None]
@@ -106,11 +122,10 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray) -> t
             for i in (0, 1))
     profile = cv2.remap(grey, x.reshape(shape), y.reshape(shape), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     profile = profile.reshape(x.shape).astype(np.float64)
-    inside = profile[..., :PLATEAU].mean(axis=-1)
-    outside = profile[..., -PLATEAU:].mean(axis=-1)
-    contrast = outside - inside
+    first = profile[..., :PLATEAU].mean(axis=-1)
+    contrast = profile[..., -PLATEAU:].mean(axis=-1) - first
     polarity = np.sign(contrast.sum(axis=(1, 2)))
-    scaled = (profile - inside[..., None]) / np.where(contrast == 0, 1.0, contrast)[..., None]
+    scaled = (profile - first[..., None]) / np.where(contrast == 0, 1.0, contrast)[..., None]
     area = 0.5 * (scaled[..., 1:] + scaled[..., :-1]).sum(axis=-1)
     offset = (STEPS - area) * (search / STEPS)[:, None, None]
     edge = base + offset[..., None] * normal[:, :, None, :]
@@ -119,12 +134,28 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray) -> t
     long_enough = (length > 2 * margin + 2.0)[..., None]
     valid = strong & (np.abs(STEPS - area) < reach) & (polarity != 0)[:, None, None] & long_enough
     enough = valid.sum(axis=2) >= MIN_POINTS * SAMPLES
+    if lens is not None:
+        edge = undistort_pixels(edge + origin, *lens)
     lines = fit_lines(edge, valid)
     lines[~enough] = np.nan
     meet = np.cross(np.roll(lines, 1, axis=1), lines)
     ok = np.isfinite(meet).all(axis=(1, 2)) & (np.abs(meet[..., 2]) > 1e-9).all(axis=1)
     refined = meet[..., :2] / np.where(ok[:, None, None], meet[..., 2:], 1.0)
+    if lens is not None:
+        refined = distort_pixels(np.where(ok[:, None, None], refined, corners + origin), *lens) - origin
     return refined, ok
+
+
+def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(..., 2) undistorted pixels (same ``K``) of (..., 2) distorted ones (cv2.undistortPoints)."""
+    flat = pixels.reshape(-1, 1, 2).astype(np.float64)
+    return cv2.undistortPoints(flat, K, dist, P=K, criteria=UNDISTORT_CRITERIA).reshape(pixels.shape)
+
+
+def distort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(..., 2) distorted pixels of (..., 2) undistorted ones (same ``K``), ``project_points`` of their rays."""
+    rays = np.linalg.solve(K, np.c_[pixels.reshape(-1, 2), np.ones(pixels[..., 0].size)].T).T
+    return project_points(rays, K, dist).reshape(pixels.shape)
 
 
 def fit_lines(points: np.ndarray, valid: np.ndarray, iterations: int = REWEIGHTS) -> np.ndarray:

@@ -144,7 +144,9 @@ class MarkerDetector:
 
     ``dictionary``: a predefined name, a dictionary file path or a cv2.aruco.Dictionary.
     ``marker_length``: side of every marker's black square in metres (0 = unknown);
-    ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS``.
+    ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS`` (default ``lines``:
+    OpenCV's ``subpix`` corners moved to the intersections of lines fitted to each side's edge,
+    searched ``SEARCH_CELLS`` of a cell either side; the lines are fitted in the distorted image).
     ``parameters``: cv2.aruco.DetectorParameters fields to override, by their OpenCV names
     (e.g. ``{"adaptiveThreshWinSizeMax": 33, "detectInvertedMarker": True}``); the corner
     refinement method is set through ``refinement`` only. Raises ValueError naming whatever
@@ -181,10 +183,12 @@ class MarkerDetector:
         cells = self.dictionary.markerSize + 2 * self._detector.getDetectorParameters().markerBorderBits
         return np.clip(SEARCH_CELLS * side / cells, *SEARCH_PX)
 
-    def detect(self, image: np.ndarray) -> MarkerFound:
+    def detect(self, image: np.ndarray, K: np.ndarray | None = None, dist: np.ndarray | None = None) -> MarkerFound:
         """The markers in ``image`` (mono8 / bgr8 / bgra8 / mono16 array, see ``to_grey``), sorted by id.
 
-        Several markers with one id come in the order of their first corner (x, then y).
+        Several markers with one id come in the order of their first corner (x, then y). ``K``
+        (3, 3) and ``dist`` (OpenCV distortion coefficients), when known, let the ``lines``
+        refinement fit the sides in undistorted pixels (corners stay distorted pixels).
         """
         grey = to_grey(image)
         corners, ids, confidence, _ = self._detector.detectMarkersWithConfidence(grey)
@@ -194,7 +198,7 @@ class MarkerDetector:
         ids = np.asarray(ids, dtype=np.int32).reshape(-1)
         corners = np.asarray(corners, dtype=np.float32).reshape(-1, 4, 2)
         if self.refinement == "lines":
-            corners = refine_corners(grey, corners, self.search_px(corners))
+            corners = refine_corners(grey, corners, self.search_px(corners), K=K, dist=dist)
         quality = np.asarray(confidence, dtype=np.float32).reshape(-1)
         order = np.lexsort((corners[:, 0, 1], corners[:, 0, 0], ids))
         ids = ids[order]

@@ -79,14 +79,15 @@ def pose_difference(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float, flo
             float(100 * (np.linalg.norm(T[:3, 3]) - distance) / distance))
 
 
-def photo_poses(folder: Path, name: str, refinement: str) -> dict[str, float]:
-    """One photo's figures with ``refinement``: the marker corners' board pose (cv2.solvePnP) and its
-    reprojection RMS, its difference from the ChArUco reference pose, and the difference between
-    ``MarkerPoseEstimator``'s board pose and cv2.solvePnP's on the same marker corners."""
+def photo_poses(folder: Path, name: str, refinement: str, calibrated: bool = True) -> dict[str, float]:
+    """One photo's figures with ``refinement`` (``lines`` given the calibration when ``calibrated``):
+    the marker corners' board pose (cv2.solvePnP) and its reprojection RMS, its difference from the
+    ChArUco reference pose, and the difference between ``MarkerPoseEstimator``'s board pose and
+    cv2.solvePnP's on the same marker corners."""
     detector, board = charuco(refinement)
     K, dist = intrinsics(folder / CALIBRATION)
     image = cv2.imread(str(folder / name))
-    found = detector.detect(image)
+    found = detector.detect(image, K, dist) if calibrated else detector.detect(image)
     corners, corner_ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(
         image, markerCorners=list(found.corners), markerIds=found.ids)
     charuco_rms, rvec, tvec = reprojection_rms(*board.matchImagePoints(corners, corner_ids), K, dist)

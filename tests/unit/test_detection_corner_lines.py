@@ -137,3 +137,24 @@ def test_the_batch_line_fit_resists_outliers_as_well_as_cv2_fit_line():
     assert max(ours) < 0.06 and np.median(ours) <= np.median(theirs)
     plain = fit_lines(points, valid, iterations=0)
     assert np.median(ours) < 0.25 * np.median([line_gap(plain[n], truth[n], points[n]) for n in range(len(points))])
+
+
+def test_with_the_calibration_corners_of_a_quad_bent_by_distortion_land_on_the_true_ones():
+    K = np.array([[150.0, 0.0, 20.0], [0.0, 150.0, 15.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.35, 0.12, 0.0, 0.0, 0.0])
+    truth_undistorted = np.array([[45.0, 40.3], [95.4, 42.0], [93.8, 93.1], [44.2, 91.7]])
+    straight = render_quad(truth_undistorted).astype(np.float32)
+    u, v = np.meshgrid(np.arange(SIZE, dtype=np.float64), np.arange(SIZE, dtype=np.float64))
+    source = cv2.undistortPoints(np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2), K, dist, P=K,
+                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12))
+    source = source.reshape(SIZE, SIZE, 2).astype(np.float32)
+    bent = cv2.remap(straight, source[..., 0], source[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    rays = np.c_[truth_undistorted, np.ones(4)] @ np.linalg.inv(K).T
+    truth = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)[0].reshape(4, 2)
+    start = truth + np.random.default_rng(2).normal(0, START_NOISE_PX, truth.shape)
+    with_lens = refine_corners(bent, start[None], 2.0, iterations=2, K=K, dist=dist)[0]
+    without = refine_corners(bent, start[None], 2.0, iterations=2)[0]
+    assert np.abs(with_lens - truth).max() < MAX_ERROR_PX
+    assert np.abs(without - truth).max() > 2 * np.abs(with_lens - truth).max()
+    assert np.array_equal(refine_corners(bent, start[None], 2.0, K=K, dist=np.zeros(5)),
+                          refine_corners(bent, start[None], 2.0))
