@@ -2,10 +2,10 @@
 
 The board: 5x7 squares of 0.04 m, markers of 0.02 m, DICT_6X6_250, intrinsics
 ``tutorial_camera_charuco.yml``. There is no ground truth; a photo's reference pose is the one
-its interpolated ChArUco corners give (cv2.solvePnP, 0.14-0.24 px RMS), which the marker
-corners only seed. ``photo_poses`` scores the board pose from the marker corners alone, per
-corner refinement, against that reference, and compares ``MarkerPoseEstimator``'s board pose
-with cv2.solvePnP's on the same corners.
+its interpolated ChArUco corners give (cv2.solvePnP), which the marker corners only seed.
+``photo_poses`` scores the board pose from the marker corners alone, per corner refinement,
+against that reference, and compares ``MarkerPoseEstimator``'s board pose with cv2.solvePnP's
+on the same corners.
 """
 
 from __future__ import annotations
