@@ -35,17 +35,28 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.detection.corner_lines import refine_corners
+
 DICTIONARY_NAMES: tuple[str, ...] = tuple(sorted(name for name in dir(cv2.aruco) if name.startswith("DICT_")))
 """Every predefined cv2.aruco dictionary name (AprilTag and MIP names in both spellings OpenCV has)."""
 
 REFINEMENTS: dict[str, int] = {
+    "lines": cv2.aruco.CORNER_REFINE_SUBPIX,
     "none": cv2.aruco.CORNER_REFINE_NONE,
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
     "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
 }
-"""Corner refinement names -> cv2.aruco.CORNER_REFINE_* (``subpix``: cornerSubPix on the grey image;
-``contour``: lines fitted to the marker's contour; ``apriltag``: AprilTag's quad detection and fit)."""
+"""Corner refinement names -> the cv2.aruco.CORNER_REFINE_* the detector runs (``subpix``: cornerSubPix
+on the grey image; ``contour``: lines fitted to the marker's contour; ``apriltag``: AprilTag's quad
+detection and fit; ``lines`` (default): ``subpix``, then lines fitted to subpixel edge points of each
+side, intersected (``services.detection.corner_lines``), which removes the inward pull cornerSubPix
+has on blurred corners)."""
+DEFAULT_REFINEMENT = "lines"
+SEARCH_CELLS = 0.4
+"""``lines``: how far from each side its edge is looked for, in marker cells (the dark border is one
+cell wide), clipped to ``SEARCH_PX``."""
+SEARCH_PX = (0.75, 3.0)
 
 _DICTIONARY_SUFFIXES = (".yml", ".yaml", ".json", ".xml")
 _PROBE_IMAGE = np.zeros((64, 64), np.uint8)
@@ -133,7 +144,9 @@ class MarkerDetector:
 
     ``dictionary``: a predefined name, a dictionary file path or a cv2.aruco.Dictionary.
     ``marker_length``: side of every marker's black square in metres (0 = unknown);
-    ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS``.
+    ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS`` (default ``lines``:
+    OpenCV's ``subpix`` corners moved to the intersections of lines fitted to each side's edge,
+    searched ``SEARCH_CELLS`` of a cell either side; the lines are fitted in the distorted image).
     ``parameters``: cv2.aruco.DetectorParameters fields to override, by their OpenCV names
     (e.g. ``{"adaptiveThreshWinSizeMax": 33, "detectInvertedMarker": True}``); the corner
     refinement method is set through ``refinement`` only. Raises ValueError naming whatever
@@ -142,7 +155,7 @@ class MarkerDetector:
     """
 
     def __init__(self, dictionary: str | Path | cv2.aruco.Dictionary, *, marker_length: float = 0.0,
-                 lengths: Mapping[int, float] | None = None, refinement: str = "subpix",
+                 lengths: Mapping[int, float] | None = None, refinement: str = DEFAULT_REFINEMENT,
                  parameters: Mapping[str, object] | None = None):
         self.dictionary = dictionary if isinstance(dictionary, cv2.aruco.Dictionary) else aruco_dictionary(dictionary)
         size = len(self.dictionary.bytesList)
@@ -164,17 +177,28 @@ class MarkerDetector:
         """(N,) float32 side lengths in metres of markers ``ids`` ((N,) ints); 0 when unknown."""
         return np.array([self.lengths.get(int(i), self.marker_length) for i in ids], dtype=np.float32)
 
-    def detect(self, image: np.ndarray) -> MarkerFound:
+    def search_px(self, corners: np.ndarray) -> np.ndarray:
+        """(N,) px: how far ``lines`` looks for each side's edge on quads ``corners`` (N, 4, 2) px."""
+        side = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2).mean(axis=1)
+        cells = self.dictionary.markerSize + 2 * self._detector.getDetectorParameters().markerBorderBits
+        return np.clip(SEARCH_CELLS * side / cells, *SEARCH_PX)
+
+    def detect(self, image: np.ndarray, K: np.ndarray | None = None, dist: np.ndarray | None = None) -> MarkerFound:
         """The markers in ``image`` (mono8 / bgr8 / bgra8 / mono16 array, see ``to_grey``), sorted by id.
 
-        Several markers with one id come in the order of their first corner (x, then y).
+        Several markers with one id come in the order of their first corner (x, then y). ``K``
+        (3, 3) and ``dist`` (OpenCV distortion coefficients), when known, let the ``lines``
+        refinement fit the sides in undistorted pixels (corners stay distorted pixels).
         """
-        corners, ids, confidence, _ = self._detector.detectMarkersWithConfidence(to_grey(image))
+        grey = to_grey(image)
+        corners, ids, confidence, _ = self._detector.detectMarkersWithConfidence(grey)
         if ids is None or len(ids) == 0:
             return MarkerFound(np.zeros(0, np.int32), np.zeros((0, 4, 2), np.float32),
                                np.zeros(0, np.float32), np.zeros(0, np.float32))
         ids = np.asarray(ids, dtype=np.int32).reshape(-1)
         corners = np.asarray(corners, dtype=np.float32).reshape(-1, 4, 2)
+        if self.refinement == "lines":
+            corners = refine_corners(grey, corners, self.search_px(corners), K=K, dist=dist)
         quality = np.asarray(confidence, dtype=np.float32).reshape(-1)
         order = np.lexsort((corners[:, 0, 1], corners[:, 0, 0], ids))
         ids = ids[order]

@@ -7,7 +7,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.detection.markers import MarkerDetector
+from services.detection.markers import DEFAULT_REFINEMENT, MarkerDetector
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 
@@ -25,7 +25,9 @@ class DetectorSettings(BaseModel):
     marker_length: float = Field(default=0.0, ge=0.0, allow_inf_nan=False,
                                  description="side of a marker's black square, metres; 0 = unknown")
     lengths: dict[int, float] = Field(default_factory=dict, description="side lengths of single ids, metres")
-    refinement: Literal["none", "subpix", "contour", "apriltag"] = "subpix"
+    refinement: Literal["lines", "none", "subpix", "contour", "apriltag"] = Field(
+        default=DEFAULT_REFINEMENT, description="corner refinement: lines (subpix, then lines fitted to each side), "
+        "or OpenCV's none, subpix, contour, apriltag")
     parameters: dict[str, Any] = Field(default_factory=dict,
                                        description="cv2.aruco.DetectorParameters fields to override, by name")
 

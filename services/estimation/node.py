@@ -221,7 +221,7 @@ def run(node: Node, params: Params) -> None:
     else:
         frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
         found = _detected(node, frames, live, params.dictionary_name(board.dictionary if board else None),
-                          node.publisher(keys.markers(params.camera), MarkerDetections))
+                          node.publisher(keys.markers(params.camera), MarkerDetections), calibration)
     for image, detections in found:
         camera = calibration.current()
         result = _estimate(node, detections, camera, estimator, poses)
@@ -238,12 +238,15 @@ def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float
 
 
 def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
-              out: Publisher[MarkerDetections]) -> Iterator[tuple[Image, MarkerDetections]]:
+              out: Publisher[MarkerDetections], calibration: _Calibration) -> Iterator[tuple[Image, MarkerDetections]]:
     """Each frame from ``frames`` with its detections by ``live["detector"]`` (replaced by live
-    changes), published on ``out`` once the frame's poses are out: the detections are a side
-    output, and the poses should not wait for them."""
+    changes; given the current calibration, if any, for its corner refinement), published on
+    ``out`` once the frame's poses are out: the detections are a side output, and the poses
+    should not wait for them."""
     for image in node.inputs(frames):
-        detections = as_message(image.header, dictionary, live["detector"].detect(image.data))
+        camera = calibration.current()
+        lens = (camera.K, camera.dist) if camera is not None else (None, None)
+        detections = as_message(image.header, dictionary, live["detector"].detect(image.data, *lens))
         yield image, detections
         out.put(detections)
 

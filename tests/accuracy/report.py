@@ -5,7 +5,8 @@ width, frames taken in order along the camera path so the estimator's ambiguity 
 as it would live):
 
 * ``projected``: the true corners projected exactly, plus Gaussian noise of ``NOISE_PX`` per axis.
-* ``rendered``: rendered frames, corners from cv2.aruco.ArucoDetector with CORNER_REFINE_SUBPIX.
+* ``rendered``: rendered frames, corners from cv2.aruco.ArucoDetector with CORNER_REFINE_SUBPIX
+  (``MarkerDetector(refinement="subpix")``).
 
 Estimators, all on the same corners: ``homography`` (raw normalised-DLT homography pose),
 ``opencv`` (cv2.solvePnP with SOLVEPNP_IPPE_SQUARE per marker: what OpenCV alone gives),
@@ -15,8 +16,17 @@ translation error (% of the true distance), the median signed range error (% of 
 positive = too far), and the share of views flagged ambiguous. Board lines score the whole
 board's pose from all its visible markers (``opencv``: cv2.solvePnP on all their corners).
 
+Corner refinements (``corner_refinement`` lines): the rendered frames again, corners from
+``MarkerDetector`` with each refinement (``lines``, the default, and OpenCV's ``none``,
+``subpix``, ``contour``, ``apriltag``): per-corner error against the true projected corners
+(median, p90, px), the mean offset along the sides' inward normals (px, positive = inside), and
+the median rotation (deg), translation (mm and % of distance) and signed range (%) errors of
+``MarkerPoseEstimator``'s default method, per marker and for the board. ``photo_board_pose``
+lines: the same refinements on OpenCV's ChArUco tutorial photos (``charuco_photos``), when the
+data set is there.
+
 ``python -m tests.accuracy.report`` prints one JSON line per data set, target kind (``marker``,
-``board``) and estimator (about 6 s).
+``board``) and estimator, then per refinement (about 20 s).
 """
 
 from __future__ import annotations
@@ -29,12 +39,15 @@ import numpy as np
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.markers import MarkersScene
+from services.detection.markers import REFINEMENTS, MarkerDetector
 from services.estimation.marker_map import map_from_poses, marker_corners
 from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, TargetPose
 from services.geometry.camera import project_points
 from services.geometry.homography import homography_dlt, pose_from_homography
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
+from tests.accuracy.charuco_photos import CHARUCO_PHOTOS, DATA_SET, OCCLUDED_PHOTO, photo_poses
+from tests.data import data_root
 
 NOISE_PX = 0.5
 WIDTH_RANGE = (0.05, 0.30)
@@ -89,27 +102,48 @@ def projected_views(scene: MarkersScene, frames: range = PROJECTED_FRAMES, noise
             for n in frames]
 
 
-def detected_views(scene: MarkersScene, frames: range = RENDERED_FRAMES) -> list[Frame]:
-    """The rendered frames, their views with the corners ArucoDetector (CORNER_REFINE_SUBPIX) finds."""
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    detector = cv2.aruco.ArucoDetector(scene.dictionary, params)
+def rendered_images(scene: MarkersScene, frames: range = RENDERED_FRAMES) -> dict[int, np.ndarray]:
+    """Frame index -> its rendered (H, W) uint8 image."""
+    return {n: scene.render(n).images["cam0"] for n in frames}
+
+
+def detected_views(scene: MarkersScene, frames: range = RENDERED_FRAMES, refinement: str = "subpix",
+                   images: dict[int, np.ndarray] | None = None) -> list[Frame]:
+    """The rendered frames (``images``, else rendered here), their views with the corners MarkerDetector
+    finds with ``refinement`` (``subpix``: ArucoDetector with CORNER_REFINE_SUBPIX, OpenCV alone)."""
+    detector = MarkerDetector(scene.dictionary, refinement=refinement)
+    images = images if images is not None else rendered_images(scene, frames)
     result = []
     for n in frames:
-        corners, ids, _ = detector.detectMarkers(scene.render(n).images["cam0"])
-        found = {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(np.ravel(ids), corners, strict=True)}
+        detected = detector.detect(images[n])
+        found = dict(zip(detected.ids.tolist(), detected.corners, strict=True))
         views = [View(i, T, found[i].astype(np.float64)) for i, T, _ in true_views(scene, n) if i in found]
         result.append(Frame(n, invert(scene.camera_pose(n)), views))
     return result
 
 
-def errors_deg_pct(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float, float]:
+def corner_errors(frames: list[Frame], length: float, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per corner of every view: its error length (px) and its offset along the inward normals of its
+    two sides (px, the mean over both; positive = inside the true quad). Both (4 V,)."""
+    lengths, inward = [], []
+    for view in (view for frame in frames for view in frame.views):
+        exact = project_points(transform_points(view.T_cam_marker, marker_corners(length)), K)
+        error = view.corners - exact
+        lengths.append(np.linalg.norm(error, axis=1))
+        side = np.roll(exact, -1, axis=0) - exact
+        normal = np.stack([-side[:, 1], side[:, 0]], axis=1) / np.linalg.norm(side, axis=1)[:, None]
+        normal *= np.sign(np.sum(normal * (exact.mean(axis=0) - exact), axis=1))[:, None]
+        inward.append(0.5 * (np.sum(error * normal, axis=1) + np.sum(error * np.roll(normal, 1, axis=0), axis=1)))
+    return np.concatenate(lengths), np.concatenate(inward)
+
+
+def pose_errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float, float, float]:
     """Rotation error (deg), translation error and signed range error (both % of the true distance)
-    of ``T`` against ``T_true``."""
+    and translation error (mm) of ``T`` against ``T_true``."""
     distance = np.linalg.norm(T_true[:3, 3])
-    return (float(np.degrees(rotation_angle(T[:3, :3], T_true[:3, :3]))),
-            float(100 * np.linalg.norm(T[:3, 3] - T_true[:3, 3]) / distance),
-            float(100 * (np.linalg.norm(T[:3, 3]) - distance) / distance))
+    miss = np.linalg.norm(T[:3, 3] - T_true[:3, 3])
+    return (float(np.degrees(rotation_angle(T[:3, :3], T_true[:3, :3]))), float(100 * miss / distance),
+            float(100 * (np.linalg.norm(T[:3, 3]) - distance) / distance), float(1e3 * miss))
 
 
 def baseline_poses(views: list[View], K: np.ndarray, length: float) -> dict[str, list[np.ndarray]]:
@@ -177,13 +211,13 @@ def estimate(estimator: MarkerPoseEstimator, frame: Frame, K: np.ndarray, length
 
 def scores(poses: dict[str, list[np.ndarray]], flags: dict[str, list[bool]],
            truth: list[np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
-    """Per estimator, the rotation (deg), translation and signed range (%) errors of its poses and its
-    ambiguity flags."""
+    """Per estimator, the rotation (deg), translation and signed range (%), translation (mm) errors of
+    its poses and its ambiguity flags."""
     result = {}
     for name, estimates in poses.items():
-        pairs = np.array([errors_deg_pct(T, T_true) for T, T_true in zip(estimates, truth, strict=True)])
+        pairs = np.array([pose_errors(T, T_true) for T, T_true in zip(estimates, truth, strict=True)])
         result[name] = {"rotation_deg": pairs[:, 0], "translation_pct": pairs[:, 1], "range_pct": pairs[:, 2],
-                        "ambiguous": np.array(flags[name], dtype=bool)}
+                        "translation_mm": pairs[:, 3], "ambiguous": np.array(flags[name], dtype=bool)}
     return result
 
 
@@ -201,17 +235,53 @@ def summary(errors: dict[str, np.ndarray]) -> dict[str, float | int]:
             "ambiguous_share": round(float(np.mean(errors["ambiguous"])), 4)}
 
 
-def report_lines() -> list[dict]:
-    """One JSON-able line per data set, target kind and estimator."""
-    scene = make_scene("markers")
+def refinement_lines(scene: MarkersScene, images: dict[int, np.ndarray]) -> list[dict]:
+    """Per corner refinement, on the rendered frames: corner errors against the true corners and the
+    poses ``MarkerPoseEstimator`` (default method) gives from them, single markers and board."""
     K, length = scene.cameras[0].K, scene.marker_length
     lines = []
-    for data, frames in (("projected", projected_views(scene)), ("rendered", detected_views(scene))):
+    for refinement in REFINEMENTS:
+        frames = detected_views(scene, refinement=refinement, images=images)
+        error, inward = corner_errors(frames, length, K)
+        line = {"bench": "corner_refinement", "refinement": refinement, "corners": int(len(error)),
+                "median_corner_px": round(float(np.median(error)), 4),
+                "p90_corner_px": round(float(np.percentile(error, 90)), 4),
+                "mean_inward_px": round(float(np.mean(inward)), 4)}
+        for target, results in (("marker", evaluate(frames, K, length)), ("board", evaluate_board(frames, scene))):
+            errors = results["ours"]
+            line |= {f"{target}_median_rotation_deg": round(float(np.median(errors["rotation_deg"])), 4),
+                     f"{target}_median_translation_mm": round(float(np.median(errors["translation_mm"])), 3),
+                     f"{target}_median_translation_pct": round(float(np.median(errors["translation_pct"])), 4),
+                     f"{target}_median_range_error_pct": round(float(np.median(errors["range_pct"])), 4)}
+        lines.append(line)
+    return lines
+
+
+def photo_lines() -> list[dict]:
+    """Per ChArUco tutorial photo and refinement, the board pose figures of ``charuco_photos.photo_poses``
+    (none when the data set is absent)."""
+    folder = data_root() / DATA_SET
+    if not folder.is_dir():
+        return []
+    return [{"bench": "photo_board_pose", "photo": name, "refinement": refinement,
+             **{key: round(value, 4) if isinstance(value, float) else value
+                for key, value in photo_poses(folder, name, refinement).items()}}
+            for name in (*CHARUCO_PHOTOS, OCCLUDED_PHOTO) for refinement in REFINEMENTS]
+
+
+def report_lines() -> list[dict]:
+    """One JSON-able line per data set, target kind and estimator; then per corner refinement on the
+    rendered frames and on the ChArUco photos."""
+    scene = make_scene("markers")
+    K, length = scene.cameras[0].K, scene.marker_length
+    images = rendered_images(scene)
+    lines = []
+    for data, frames in (("projected", projected_views(scene)), ("rendered", detected_views(scene, images=images))):
         for target, results in (("marker", evaluate(frames, K, length)), ("board", evaluate_board(frames, scene))):
             for name, errors in results.items():
                 lines.append({"bench": "marker_accuracy", "data": data, "target": target, "estimator": name,
                               "noise_px": NOISE_PX if data == "projected" else None, **summary(errors)})
-    return lines
+    return lines + refinement_lines(scene, images) + photo_lines()
 
 
 if __name__ == "__main__":

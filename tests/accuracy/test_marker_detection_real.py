@@ -5,15 +5,17 @@ must fit the known board layout through one pose (or one plane homography) to a 
 
 ChArUco photos (5x7 squares, 0.04 / 0.02 m, DICT_6X6_250, ``tutorial_camera_charuco.yml``):
 the interpolated ChArUco corners give board poses that reproject to a fraction of a pixel, the
-marker corners alone to under a pixel, and the two poses agree.
+marker corners alone to under a pixel, and the two poses agree
+(tests/accuracy/test_marker_pose_real.py compares the corner refinements and the pose estimators).
 
 ``gboriginal.png`` does not match what the tutorial says of it. Fitting one homography from
 the GridBoard layout to its 140 corners, the marker separation that fits is not the
-tutorial's 10:1 (which fits several times worse), and the two single-view constraints of that
-homography put the focal length well away from ``tutorial_camera_params.yml``'s (with which no
-separation brings a PnP pose within a couple of pixels). So the photo is checked against a
-plane-to-image homography of the layout, separation measured. The figures of both findings
-are in docs/benchmarks.md.
+tutorial's 10:1 (which fits several times worse) but a fifth of the marker side (with OpenCV's
+``subpix`` corners, which sit inside the true ones and so shrink the markers, a little more), and
+the two single-view constraints of that homography put the focal length well away from
+``tutorial_camera_params.yml``'s (with which no separation brings a PnP pose within a couple of
+pixels). So the photo is checked against a plane-to-image homography of the layout, separation
+measured. The figures of both findings are in docs/benchmarks.md.
 """
 
 import cv2
@@ -21,35 +23,24 @@ import numpy as np
 import pytest
 
 from services.detection.markers import MarkerDetector
+from tests.accuracy.charuco_photos import (
+    CALIBRATION,
+    CHARUCO_PHOTOS,
+    DATA_SET,
+    OCCLUDED_PHOTO,
+    charuco,
+    intrinsics,
+    reprojection_rms,
+)
 from tests.data import data_dir
 
-CHARUCO_PHOTOS = ("choriginal.jpg", "img_00.jpg", "img_01.jpg", "img_02.jpg", "img_03.jpg")
-OCCLUDED_PHOTO = "chocclusion_original.jpg"
 CHARUCO_MARKERS = 17
 """A 5x7 ChArUco board has a marker in 17 of its 35 squares."""
 
 
 @pytest.fixture(scope="module")
 def folder():
-    return data_dir("aruco_charuco_opencv_tutorial")
-
-
-def intrinsics(path) -> tuple[np.ndarray, np.ndarray]:
-    """``(K (3, 3), dist (N,))`` of an OpenCV calibration YAML."""
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        return storage.getNode("camera_matrix").mat(), storage.getNode("distortion_coefficients").mat().ravel()
-    finally:
-        storage.release()
-
-
-def reprojection_rms(board_points, image_points, K, dist) -> tuple[float, np.ndarray, np.ndarray]:
-    """``(RMS px, rvec, tvec)`` of the cv2.solvePnP pose of (N, 3) board points seen at (N, 2) pixels."""
-    board_points, image_points = board_points.reshape(-1, 3), image_points.reshape(-1, 2)
-    ok, rvec, tvec = cv2.solvePnP(board_points, image_points, K, dist)
-    assert ok
-    projected, _ = cv2.projectPoints(board_points, rvec, tvec, K, dist)
-    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1)))), rvec, tvec
+    return data_dir(DATA_SET)
 
 
 def test_single_markers_photo_gives_exactly_its_six_ids(folder):
@@ -77,13 +68,7 @@ def test_gridboard_photo_fits_one_board_plane(folder):
         return float(np.sqrt(np.mean(np.sum((fitted - image_points) ** 2, axis=1))))
 
     rms, separation = min((homography_rms(s), s) for s in np.arange(0.05, 0.40, 0.002))
-    assert rms <= 1.0 and 0.20 < separation < 0.24
-
-
-def charuco():
-    detector = MarkerDetector("DICT_6X6_250")
-    board = cv2.aruco.CharucoBoard((5, 7), 0.04, 0.02, detector.dictionary)
-    return detector, board
+    assert rms <= 0.6 and 0.19 < separation < 0.21
 
 
 @pytest.mark.parametrize("name", CHARUCO_PHOTOS)
@@ -103,7 +88,7 @@ def test_the_occluded_charuco_photo_gives_the_uncovered_markers(folder):
 @pytest.mark.parametrize("name", (*CHARUCO_PHOTOS, OCCLUDED_PHOTO))
 def test_charuco_board_poses_reproject_within_a_pixel(folder, name):
     detector, board = charuco()
-    K, dist = intrinsics(folder / "tutorial_camera_charuco.yml")
+    K, dist = intrinsics(folder / CALIBRATION)
     image = cv2.imread(str(folder / name))
     found = detector.detect(image)
     corners, corner_ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(

@@ -15,6 +15,9 @@
   the node was done with it: capture stamp -> its poses and detections published).
   The processes meet through an in-process router on a free loopback port. ``tests.bench.apps``
   runs the same pipeline with client apps subscribed beside this process.
+* ``in_process_subpix``: as ``in_process`` with OpenCV's ``subpix`` corner refinement instead of
+  the default ``lines`` (which runs ``subpix`` and then fits lines to the sides): what the
+  default refinement costs.
 * ``overhead``: pipeline p50 - in-process p50, against both baselines. Target: <= 1 ms over
   the paced baseline, and ``FPS`` sustained with no frame dropped. The paced loop is the one
   judged because it gets the frames as the pipeline does, one every 1/``FPS`` s; such a gap
@@ -169,11 +172,13 @@ def wait_for_apps(session: zenoh.Session, bus: BusConfig, count: int) -> None:
 def bench_markers() -> list[dict[str, Any]]:
     settings = DetectorSettings(marker_length=MARKER_LENGTH)
     local, paced, live = in_process(settings), in_process(settings, 1.0 / FPS), pipeline(settings)
+    subpix = in_process(settings.model_copy(update={"refinement": "subpix"}))
     common = {"bench": "marker_tracking", "width": 640, "height": 480, "fps": FPS, "frames": FRAMES}
     over, over_paced = live["p50_ms"] - local["p50_ms"], live["p50_ms"] - paced["p50_ms"]
     return [
         {**common, "variant": "in_process", **local},
         {**common, "variant": "in_process_paced", **paced},
+        {**common, "variant": "in_process_subpix", **subpix},
         {**common, "variant": "pipeline", "hops": 2, **live},
         {**common, "variant": "overhead", "p50_ms": round(over, 3), "p50_ms_vs_paced": round(over_paced, 3),
          "target_ms": 1.0, "met": over_paced <= 1.0,

@@ -106,7 +106,7 @@ def test_the_same_id_twice_comes_in_a_fixed_order():
     assert found.corners[0, 0, 0] < found.corners[1, 0, 0]
 
 
-@pytest.mark.parametrize("refinement", ["none", "subpix", "contour", "apriltag"])
+@pytest.mark.parametrize("refinement", ["lines", "none", "subpix", "contour", "apriltag"])
 def test_every_refinement_finds_the_corners(refinement):
     detector = MarkerDetector("DICT_APRILTAG_36h11", refinement=refinement)
     image = marker_image(detector.dictionary, 21)
@@ -168,3 +168,13 @@ def test_parameter_overrides_take_effect():
     inverted = 255 - marker_image(dictionary, 8)
     assert len(MarkerDetector(dictionary).detect(inverted)) == 0
     assert list(MarkerDetector(dictionary, parameters={"detectInvertedMarker": True}).detect(inverted).ids) == [8]
+
+
+def test_lines_refinement_takes_the_calibration():
+    scene = make_scene("markers")
+    image, camera = scene.render(120).images["cam0"], scene.cameras[0]
+    detector = MarkerDetector("DICT_4X4_50")
+    plain, with_lens = detector.detect(image), detector.detect(image, camera.K, np.zeros(5))
+    assert len(plain) > 0 and np.array_equal(plain.corners, with_lens.corners)
+    bent = detector.detect(image, camera.K, np.array([0.2, 0.0, 0.0, 0.0, 0.0]))
+    assert np.array_equal(bent.ids, plain.ids) and 0 < np.abs(bent.corners - plain.corners).max() < 0.5
