@@ -97,4 +97,4 @@ def test_overlay_is_refused_without_frames(procs):
 def test_run_refuses_overlay_for_a_pipeline_that_draws_nothing(procs):
     job = procs.run("run", "echo", "--source", "synthetic:pattern", "--overlay")
     assert job.poll() == 2, job.describe()
-    assert "does not take overlay" in job.stderr
+    assert "unrecognized arguments: --overlay" in job.stderr
