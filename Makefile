@@ -25,6 +25,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check protocol services tests
+	$(BIN)/mypy
 
 # docker/ checked without a Docker engine: hadolint, compose config, systemd-analyze, the image's
 # install step in a fresh venv, tests/unit/test_deploy_files.py (see docker/check.sh).

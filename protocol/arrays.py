@@ -1,7 +1,8 @@
 """Numpy array fields for pydantic messages.
 
-An array field is declared with :func:`ndarray`, which states the dtypes and the shape
-the field accepts (``None`` in a shape means "any length on this axis"). On the wire an
+An array field is declared as ``Annotated[np.ndarray, array_field(dtypes, *shapes)]``, which
+states the dtypes and the shape the field accepts (``None`` in a shape means "any length on
+this axis"). On the wire an
 array never goes through JSON: the codec lifts it out of the message and sends its raw
 little-endian bytes next to the JSON header (see ``protocol.codec``). In JSON views of a
 message (``model_dump(mode="json")``, ``artrack echo``) an array is written as nested lists,
@@ -11,9 +12,11 @@ as a short summary ``{"dtype", "shape"}``.
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
+from annotated_types import GroupedMetadata
 from pydantic import PlainSerializer, PlainValidator, SerializationInfo, ValidationInfo, WithJsonSchema
 
 WIRE_DTYPES: dict[str, np.dtype] = {
@@ -26,7 +29,7 @@ VIEWS = "artrack.views"
 """Validation-context key under which the codec passes its descriptor -> array resolver."""
 
 _NAMES: dict[np.dtype, str] = {
-    np.dtype(name).newbyteorder(order): name for name in WIRE_DTYPES for order in "<>="
+    np.dtype(name).newbyteorder(order): name for name in WIRE_DTYPES for order in ("<", ">", "=")
 }
 
 
@@ -49,8 +52,9 @@ ARRAY_DESCRIPTOR_SCHEMA: dict[str, Any] = {
 }
 
 
-class ArraySpec:
-    """Marker placed in a field's metadata so the codec can find array fields."""
+class ArraySpec(GroupedMetadata):
+    """An array field's metadata: the codec finds array fields by it, pydantic expands it into
+    the field's validator, serialiser and JSON schema."""
 
     def __init__(self, dtypes: tuple[str, ...], shapes: tuple[tuple[int | None, ...], ...]):
         unknown = set(dtypes) - set(WIRE_DTYPES)
@@ -86,6 +90,11 @@ class ArraySpec:
             value = resolve(value, info.field_name)
         return self.check(value)
 
+    def __iter__(self) -> Iterator[object]:
+        yield PlainValidator(self.check_in_context)
+        yield PlainSerializer(self.serialize, when_used="json", return_type=Any)
+        yield WithJsonSchema(ARRAY_DESCRIPTOR_SCHEMA)
+
     def serialize(self, array: np.ndarray, info: SerializationInfo) -> Any:
         limit = (info.context or {}).get("max_array_elements") if info.context else None
         if limit is not None and array.size > limit:
@@ -101,20 +110,13 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
     return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
 
 
-def ndarray(dtypes: str | tuple[str, ...], *shapes: tuple[int | None, ...]) -> Any:
-    """Annotated ndarray type accepting ``dtypes`` and any of ``shapes``.
+def array_field(dtypes: str | tuple[str, ...], *shapes: tuple[int | None, ...]) -> ArraySpec:
+    """Metadata of an ndarray field accepting ``dtypes`` and any of ``shapes``.
 
-    ``ndarray("float32", (None, 2))`` is an (N, 2) float32 array; a list input is converted
-    when exactly one dtype is allowed; an ndarray of another dtype is refused.
+    ``Annotated[np.ndarray, array_field("float32", (None, 2))]`` is an (N, 2) float32 array; a
+    list input is converted when exactly one dtype is allowed; an ndarray of another dtype is refused.
     """
-    spec = ArraySpec((dtypes,) if isinstance(dtypes, str) else tuple(dtypes), tuple(shapes))
-    return Annotated[
-        np.ndarray,
-        spec,
-        PlainValidator(spec.check_in_context),
-        PlainSerializer(spec.serialize, when_used="json", return_type=Any),
-        WithJsonSchema(ARRAY_DESCRIPTOR_SCHEMA),
-    ]
+    return ArraySpec((dtypes,) if isinstance(dtypes, str) else tuple(dtypes), tuple(shapes))
 
 
 def array_spec(metadata: list[Any]) -> ArraySpec | None:

@@ -96,7 +96,7 @@ def encode(message: Message) -> bytes:
         body = message.model_dump_json()
         return (_prefix(cls) + "," + body[1:]).encode()
     arrays = [(name, _wire(getattr(message, name))) for name in cls.ARRAY_FIELDS]
-    fields = message.model_dump_json(exclude=_array_names(cls))
+    fields = message.model_dump_json(exclude=_array_names(cls))  # type: ignore[arg-type]  # any set works
     head = _prefix(cls) + "," + fields[1:-1] + ("," if len(fields) > 2 else "")
     # Array offsets depend on the header's length and the header holds the offsets:
     # lay out after a first guess and move the arrays back until the header fits.
@@ -120,7 +120,10 @@ def encode(message: Message) -> bytes:
 
 
 def _wire(array: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(array.astype(WIRE_DTYPES[dtype_name(array.dtype)], copy=False))
+    name = dtype_name(array.dtype)
+    if name is None:
+        raise TypeError(f"dtype {array.dtype} may not travel (message built without validation?)")
+    return np.ascontiguousarray(array.astype(WIRE_DTYPES[name], copy=False))
 
 
 def _align(n: int) -> int:
@@ -181,7 +184,9 @@ def _fast(document: bytes, framed: bool, context: dict[str, Any] | None = None) 
     ``encode`` writes it and validates; None sends the caller down the careful path, which says
     exactly what is wrong."""
     head = _HEAD.match(document)
-    cls = message_type(head.group(1).decode()) if head else None
+    if head is None:
+        return None
+    cls = message_type(head.group(1).decode())
     if cls is None or int(head.group(2)) != cls.VERSION or is_frame(cls) != framed:
         return None
     try:

@@ -7,9 +7,12 @@ with nothing found still gets a message with zero rows, so consumers know it was
 
 from __future__ import annotations
 
+from typing import Annotated
+
+import numpy as np
 from pydantic import model_validator
 
-from protocol.arrays import ndarray
+from protocol.arrays import array_field
 from protocol.message import Message
 
 
@@ -32,10 +35,10 @@ class MarkerDetections(Message):
     VERSION = 1
 
     dictionary: str
-    ids: ndarray("int32", (None,))
-    corners: ndarray("float32", (None, 4, 2))
-    quality: ndarray("float32", (None,))
-    side_m: ndarray("float32", (None,))
+    ids: Annotated[np.ndarray, array_field("int32", (None,))]
+    corners: Annotated[np.ndarray, array_field("float32", (None, 4, 2))]
+    quality: Annotated[np.ndarray, array_field("float32", (None,))]
+    side_m: Annotated[np.ndarray, array_field("float32", (None,))]
 
     @model_validator(mode="after")
     def _aligned(self) -> MarkerDetections:
@@ -53,9 +56,9 @@ class BlobDetections(Message):
     SCHEMA = "artrack.BlobDetections"
     VERSION = 1
 
-    centers: ndarray("float32", (None, 2))
-    radii: ndarray("float32", (None,))
-    intensity: ndarray("float32", (None,))
+    centers: Annotated[np.ndarray, array_field("float32", (None, 2))]
+    radii: Annotated[np.ndarray, array_field("float32", (None,))]
+    intensity: Annotated[np.ndarray, array_field("float32", (None,))]
 
     @model_validator(mode="after")
     def _aligned(self) -> BlobDetections:
@@ -76,11 +79,11 @@ class Keypoints(Message):
     VERSION = 1
 
     descriptor_type: str = ""
-    points: ndarray("float32", (None, 2))
-    sizes: ndarray("float32", (None,))
-    angles: ndarray("float32", (None,))
-    responses: ndarray("float32", (None,))
-    descriptors: ndarray(("uint8", "float32"), (None, None))
+    points: Annotated[np.ndarray, array_field("float32", (None, 2))]
+    sizes: Annotated[np.ndarray, array_field("float32", (None,))]
+    angles: Annotated[np.ndarray, array_field("float32", (None,))]
+    responses: Annotated[np.ndarray, array_field("float32", (None,))]
+    descriptors: Annotated[np.ndarray, array_field(("uint8", "float32"), (None, None))]
 
     @model_validator(mode="after")
     def _aligned(self) -> Keypoints:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
+import numpy as np
 from pydantic import model_validator
 
-from protocol.arrays import ndarray
+from protocol.arrays import array_field
 from protocol.message import Message
 
 
@@ -18,9 +21,9 @@ class PointCloud(Message):
     SCHEMA = "artrack.PointCloud"
     VERSION = 1
 
-    points: ndarray("float32", (None, 3))
-    ids: ndarray("int64", (None,))
-    colors: ndarray("uint8", (None, 3))
+    points: Annotated[np.ndarray, array_field("float32", (None, 3))]
+    ids: Annotated[np.ndarray, array_field("int64", (None,))]
+    colors: Annotated[np.ndarray, array_field("uint8", (None, 3))]
 
     @model_validator(mode="after")
     def _aligned(self) -> PointCloud:

@@ -8,11 +8,12 @@ camera's pose in its rig for multi-camera set-ups.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 
-from protocol.arrays import dtype_name, ndarray
+from protocol.arrays import array_field, dtype_name
 from protocol.message import Message, Struct
 from protocol.spatial import Transform
 
@@ -33,7 +34,7 @@ class Image(Message):
     VERSION = 1
 
     encoding: ImageEncoding
-    data: ndarray(("uint8", "uint16"), (None, None), (None, None, 3), (None, None, 4))
+    data: Annotated[np.ndarray, array_field(("uint8", "uint16"), (None, None), (None, None, 3), (None, None, 4))]
 
     @model_validator(mode="after")
     def _layout_matches(self) -> Image:

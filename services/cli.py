@@ -14,7 +14,7 @@ import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -23,6 +23,9 @@ from services.bus.session import LOCAL_ROUTER, BusConfig, BusError, open_session
 from services.launcher.pipeline import PipelineError, describe
 from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
+
+if TYPE_CHECKING:
+    from services.runtime.node import Node
 
 log = logging.getLogger("artrack")
 
@@ -46,7 +49,7 @@ def _bus_options(parser: argparse.ArgumentParser) -> None:
                        help="file holding the user's password (env ARTRACK_PASSWORD_FILE, or ARTRACK_PASSWORD)")
 
 
-def _tls_options(group: argparse._ActionGroup) -> None:
+def _tls_options(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--tls-ca", type=Path, metavar="PEM", help="root CA of tls/ endpoints (env ARTRACK_TLS_ROOT_CA)")
     group.add_argument("--tls-cert", type=Path, metavar="PEM", help="own certificate (env ARTRACK_TLS_CERT)")
     group.add_argument("--tls-key", type=Path, metavar="PEM", help="own private key (env ARTRACK_TLS_KEY)")
@@ -322,7 +325,7 @@ def cmd_schemas(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[..., object]) -> int:
+def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[[Node], object]) -> int:
     """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
     from services.runtime.node import run_node
 
@@ -479,11 +482,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     import cv2
 
     from services.calibration.camera_info import write_camera_info
-    from services.calibration.intrinsics import Charuco, Chessboard, calibrate_images
+    from services.calibration.intrinsics import Charuco, Chessboard, Pattern, calibrate_images
 
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
         raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
+    pattern: Pattern
     if args.pattern == "chessboard":
         pattern = Chessboard(int(columns), int(rows), args.square)
     elif args.marker is None or args.dictionary is None:

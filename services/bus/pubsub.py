@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Generic, TypeVar
+from typing import Generic, TypedDict, TypeVar
 
 import zenoh
 
@@ -47,7 +47,12 @@ class Role(StrEnum):
     STATUS = "status"
 
 
-_QOS = {
+class _Qos(TypedDict):
+    priority: zenoh.Priority
+    congestion_control: zenoh.CongestionControl
+
+
+_QOS: dict[Role, _Qos] = {
     Role.FRAME: {"priority": zenoh.Priority.DATA, "congestion_control": zenoh.CongestionControl.DROP},
     Role.RESULT: {"priority": zenoh.Priority.DATA_HIGH, "congestion_control": zenoh.CongestionControl.BLOCK},
     Role.STATUS: {"priority": zenoh.Priority.DATA_LOW, "congestion_control": zenoh.CongestionControl.DROP},
@@ -75,7 +80,7 @@ class RawPublisher:
 
     def matched(self) -> bool:
         """True while at least one subscriber matches this key."""
-        return self._publisher.matching_status.matching
+        return self._publisher.matching_status.matching  # type: ignore[attr-defined]  # a MatchingStatus, not a bool
 
     def close(self) -> None:
         self._publisher.undeclare()
@@ -133,7 +138,7 @@ class Inbox(Generic[M]):
     def __init__(self, session: zenoh.Session, key: str, cls: type[M] | None, role: Role, *,
                  depth: int | None = None, counter: StreamCounter | None = None,
                  on_decode_error: Callable[[str, DecodeError], None] | None = None,
-                 wake: threading.Condition | None = None, notify: Callable[[], None] | None = None):
+                 wake: threading.Condition | None = None, notify: Callable[[], object] | None = None):
         self.key = key
         self.cls = cls
         self.role = role

@@ -21,11 +21,12 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, Self
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, ModelWrapValidatorHandler, ValidationError, field_validator, model_validator
 from pydantic_core import InitErrorDetails
+from zenoh import Session
 
 from protocol.keys import Keys, check_name
 from services.bus.security import Security, masked
@@ -124,8 +125,12 @@ class BusSettings(BaseModel):
         try:
             return handler(data)
         except ValidationError as exc:
-            details = [InitErrorDetails(type=e["type"], loc=e["loc"], input=masked(e["input"]), **(
-                {"ctx": e["ctx"]} if "ctx" in e else {})) for e in exc.errors()]
+            details = []
+            for e in exc.errors():
+                detail = InitErrorDetails(type=e["type"], loc=e["loc"], input=masked(e["input"]))
+                if "ctx" in e:
+                    detail["ctx"] = e["ctx"]
+                details.append(detail)
             raise ValidationError.from_exception_data(exc.title, details) from None
 
     @property
@@ -147,7 +152,7 @@ class BusSettings(BaseModel):
         return str(self.zenoh_config) if self.zenoh_config else ", ".join(self.endpoints)
 
     @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> BusSettings:
+    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> Self:
         """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset).
 
         A dict override of a nested model (``security={"root_ca": ...}``) updates what the
@@ -195,7 +200,7 @@ class BusSettings(BaseModel):
         listen = self.listen or (("tcp/127.0.0.1:0",) if self.mode == "peer" else ())
         return session_config(self.mode, listen=listen, connect=connect, security=self.security)
 
-    def open(self) -> zenoh.Session:
+    def open(self) -> Session:
         """Open the session (BusError naming where and why when Zenoh refuses)."""
         config = self.zenoh()
         try:

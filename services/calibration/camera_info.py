@@ -29,11 +29,10 @@ class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the field."""
 
 
-def _matrix(document: dict, field: str, rows: int, cols: int, path: Path, required: bool = True) -> np.ndarray | None:
+def _matrix(document: dict, field: str, rows: int, cols: int | None, path: Path) -> np.ndarray | None:
+    """``field`` as a (rows, cols) array, (N,) when ``cols`` is None; None when the document lacks it."""
     entry = document.get(field)
     if entry is None:
-        if required:
-            raise CalibrationError(f"{path}: missing {field}")
         return None
     data = entry.get("data") if isinstance(entry, dict) else None
     if not isinstance(data, list) or not all(isinstance(v, int | float) for v in data):
@@ -62,13 +61,15 @@ def read_camera_info(path: Path) -> CameraModel:
     if model != "plumb_bob":
         raise CalibrationError(f"{path}: distortion_model {model!r} is not supported (plumb_bob only)")
     K = _matrix(document, "camera_matrix", 3, 3, path)
+    if K is None:
+        raise CalibrationError(f"{path}: missing camera_matrix")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
         raise CalibrationError(f"{path}: camera_matrix must have fx, fy > 0 and a final 1")
-    dist = _matrix(document, "distortion_coefficients", 1, None, path, required=False)
+    dist = _matrix(document, "distortion_coefficients", 1, None, path)
     dist = np.zeros(5) if dist is None else dist
     if len(dist) not in (0, 4, 5):
         raise CalibrationError(f"{path}: plumb_bob takes 4 or 5 distortion coefficients, has {len(dist)}")
-    T = _matrix(document, "T_rig_camera", 4, 4, path, required=False)
+    T = _matrix(document, "T_rig_camera", 4, 4, path)
     return CameraModel(
         name=str(document.get("camera_name") or Path(path).stem),
         width=document["image_width"], height=document["image_height"], K=K,

@@ -112,7 +112,7 @@ class Charuco:
         corners, ids, _, _ = self._detector.detectBoard(grey)
         if ids is None or len(ids) < MIN_CHARUCO_CORNERS or self._board.checkCharucoCornersCollinear(ids):
             return None
-        board, image = self._board.matchImagePoints(corners, ids)
+        board, image = self._board.matchImagePoints(corners, ids)  # type: ignore[call-overload]  # an (N, 1, 2) array
         return image.reshape(-1, 2).astype(np.float32), board.reshape(-1, 3).astype(np.float32)
 
 
@@ -236,7 +236,8 @@ def calibrate(views: list[View], image_size: tuple[int, int], name: str = "cam0"
                                "determined; add views with the board tilted by 20 to 45 deg in different directions")
     try:
         rms, K, dist, rvecs, tvecs, std_intrinsics, _, per_view = cv2.calibrateCameraExtended(
-            [v.board_points for v in views], [v.image_points for v in views], image_size, None, None)
+            [v.board_points for v in views], [v.image_points for v in views], image_size,
+            None, None)  # type: ignore[call-overload]  # K and dist are outputs: None is accepted
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV could not calibrate from these views: {exc.err}") from exc
     width, height = image_size

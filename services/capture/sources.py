@@ -112,7 +112,7 @@ def _folder_entries(folder: Path) -> list[tuple[Path, float | None]]:
     """``(file, time_s)`` per image: from rgb.txt (TUM), times.txt (KITTI), numeric names, or none."""
     listing = folder / "rgb.txt"
     if listing.is_file():
-        entries = []
+        entries: list[tuple[Path, float | None]] = []
         for line in listing.read_text().splitlines():
             parts = line.split()
             if len(parts) >= 2 and not line.lstrip().startswith("#"):
@@ -125,7 +125,7 @@ def _folder_entries(folder: Path) -> list[tuple[Path, float | None]]:
             if len(values) == len(files):
                 return list(zip(files, values, strict=True))
     if files and all(re.fullmatch(r"\d+\.\d+", p.stem) for p in files):
-        return sorted(((p, float(p.stem)) for p in files), key=lambda e: e[1])
+        return [(p, float(p.stem)) for p in sorted(files, key=lambda p: float(p.stem))]
     return [(p, None) for p in files]
 
 
@@ -209,7 +209,7 @@ def rig_camera_names(own: list[tuple[str, ...]]) -> list[str]:
 
 def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
     """The names the capture node gives the cameras of ``uris``, without opening devices or files."""
-    own = []
+    own: list[tuple[str, ...]] = []
     for uri in uris:
         scheme, rest = check_uri(uri)
         if scheme != "synthetic":

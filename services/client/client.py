@@ -145,9 +145,11 @@ class Client:
 
     def _forget(self, closed: Stream | Feed) -> None:
         with self._lock:
-            for held in (self._streams, self._callbacks):
-                if closed in held:
-                    held.remove(closed)
+            if isinstance(closed, Feed):
+                if closed in self._callbacks:
+                    self._callbacks.remove(closed)
+            elif closed in self._streams:
+                self._streams.remove(closed)
 
     def close(self) -> None:
         """Stop every stream and callback, leave the bus."""

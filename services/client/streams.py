@@ -110,7 +110,7 @@ class _Stream:
     """What both stream forms share: the inbox, turning its messages into updates, and the counts."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, key: str, depth: int,
-                 notify: Callable[[], None] | None = None):
+                 notify: Callable[[], object] | None = None):
         self.key = key
         self._keys = keys
         self._last_stamp_ns: int | None = None

@@ -117,7 +117,7 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     if image.dtype == np.uint8 and channels == 4:
         return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
     if image.dtype == np.uint16 and channels == 1:
-        return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
+        return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)  # type: ignore[call-overload]
     raise ValueError(f"images must be mono8, bgr8, bgra8 or mono16; got {image.dtype} of shape {image.shape}")
 
 
@@ -191,12 +191,12 @@ class MarkerDetector:
         refinement fit the sides in undistorted pixels (corners stay distorted pixels).
         """
         grey = to_grey(image)
-        corners, ids, confidence, _ = self._detector.detectMarkersWithConfidence(grey)
-        if ids is None or len(ids) == 0:
+        found, found_ids, confidence, _ = self._detector.detectMarkersWithConfidence(grey)
+        if found_ids is None or len(found_ids) == 0:
             return MarkerFound(np.zeros(0, np.int32), np.zeros((0, 4, 2), np.float32),
                                np.zeros(0, np.float32), np.zeros(0, np.float32))
-        ids = np.asarray(ids, dtype=np.int32).reshape(-1)
-        corners = np.asarray(corners, dtype=np.float32).reshape(-1, 4, 2)
+        ids = np.asarray(found_ids, dtype=np.int32).reshape(-1)
+        corners = np.asarray(found, dtype=np.float32).reshape(-1, 4, 2)
         if self.refinement == "lines":
             corners = refine_corners(grey, corners, self.search_px(corners), K=K, dist=dist)
         quality = np.asarray(confidence, dtype=np.float32).reshape(-1)
@@ -243,13 +243,13 @@ def parameter_fields() -> dict[str, type]:
 
 def _length(what: str, value: object, *, allow_zero: bool) -> float:
     if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(float(value))
-            and (value > 0 or (allow_zero and value == 0))):
+            and (float(value) > 0 or (allow_zero and float(value) == 0))):
         bound = ">= 0" if allow_zero else "> 0"
         raise ValueError(f"{what} must be a finite length in metres {bound}, got {value!r}")
     return float(value)
 
 
 def _marker_id(value: object, size: int) -> int:
-    if not (isinstance(value, numbers.Integral) and not isinstance(value, bool) and 0 <= value < size):
+    if not (isinstance(value, numbers.Integral) and not isinstance(value, bool) and 0 <= int(value) < size):
         raise ValueError(f"marker id {value!r} is not in the dictionary (ids 0 to {size - 1})")
     return int(value)

@@ -152,7 +152,7 @@ def parse_grid(grid: object, fail: Fail) -> dict:
     unknown = sorted(set(grid) - {"columns", "rows", "length", "separation", "first_id"})
     if unknown:
         raise fail(f"grid.{unknown[0]}", "unknown field (valid: columns, rows, length, separation, first_id)")
-    values = {"first_id": require_int(grid.get("first_id", 0), "grid.first_id", 0, fail)}
+    values: dict[str, float] = {"first_id": require_int(grid.get("first_id", 0), "grid.first_id", 0, fail)}
     for key in ("columns", "rows"):
         values[key] = require_int(grid.get(key), f"grid.{key}", 1, fail)
     if values["columns"] * values["rows"] > MAX_GRID_MARKERS:
@@ -199,8 +199,8 @@ def require_int(value: object, where: str, low: int, fail: Fail) -> int:
 
 def require_number(value: object, where: str, fail: Fail, positive: bool = False) -> float:
     """``value`` as a finite float (> 0 when ``positive``), or the error ``fail(where, why)``."""
-    valid = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if not valid or (positive and value <= 0):
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
+            or (positive and value <= 0):
         raise fail(where, f"must be a finite number{' > 0 (metres)' if positive else ''}, got {value!r}")
     return float(value)
 

@@ -159,7 +159,8 @@ class MarkerPoseEstimator:
         """Forget every target's previous pose."""
         self.ambiguity.reset()
 
-    def estimate(self, ids: Sequence[int], corners: np.ndarray, side_lengths: Sequence[float] | float,
+    def estimate(self, ids: Sequence[int] | np.ndarray, corners: np.ndarray,
+                 side_lengths: Sequence[float] | np.ndarray | float,
                  K: np.ndarray, dist: np.ndarray | None = None) -> FrameEstimate:
         """Poses of one frame.
 
@@ -176,7 +177,7 @@ class MarkerPoseEstimator:
         sides = (np.zeros(len(ids)) + np.asarray(side_lengths, dtype=np.float64)).tolist()
         failures: Counter[SkipReason] = Counter()
         counts = Counter(ids.tolist())
-        finite = np.isfinite(corners).all(axis=(1, 2))
+        finite = np.all(np.isfinite(corners), axis=(1, 2))
         if not finite.all():
             corners = np.where(finite[:, None, None], corners, 0.0)
         undistorted = undistort(corners, K, dist)
@@ -195,7 +196,7 @@ class MarkerPoseEstimator:
             else:
                 singles.append(single_observation(marker_id, sides[n], undistorted[n]))
         groups = [singles]
-        if map_rows:
+        if map_rows and self.marker_map is not None:
             groups.append([map_observation(self.marker_map, ids[map_rows], undistorted[map_rows])])
         poses = []
         for group in groups:

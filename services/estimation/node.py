@@ -199,7 +199,7 @@ def run(node: Node, params: Params) -> None:
     except (MarkerMapError, CalibrationError, ValueError) as exc:
         raise NodeError(str(exc)) from exc
     estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
-    live = {"detector": detector}
+    live: dict[str, MarkerDetector] = {} if detector is None else {"detector": detector}
 
     def apply(new: Params) -> None:
         """Put a live change to work: the covariance's corner noise, and the detector's tuning."""
@@ -215,6 +215,7 @@ def run(node: Node, params: Params) -> None:
     calibration = _Calibration(infos, fixed)
     poses = _Poses(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
+    found: Iterator[tuple[Image | None, MarkerDetections]]
     if detector is None:
         found = ((None, d) for d in node.inputs(node.inbox(keys.markers(params.camera), MarkerDetections,
                                                             Role.RESULT)))

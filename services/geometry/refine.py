@@ -194,10 +194,10 @@ def refine_poses(T: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, K: n
             for _ in range(tries[-1]):
                 dampings.append(rung_damping)
                 rung_damping *= 10
-        owners = np.array(owners)
-        steps, singular = damped_steps(normal.take(owners, axis=0), np.array(dampings))
-        candidate = T.take(owners, axis=0) @ increments(steps)
-        candidate_rows, front = augmented_rows(candidate, basis.take(owners, axis=0), pixels.take(owners, axis=0), K)
+        picks = np.array(owners)
+        steps, singular = damped_steps(normal.take(picks, axis=0), np.array(dampings))
+        candidate = T.take(picks, axis=0) @ increments(steps)
+        candidate_rows, front = augmented_rows(candidate, basis.take(picks, axis=0), pixels.take(picks, axis=0), K)
         candidate_normal = normal_equations(candidate_rows)
         step_sizes, costs, fronts = np.abs(steps).max(axis=1).tolist(), candidate_normal[:, 6, 6].tolist(), \
             front.tolist()
@@ -226,7 +226,6 @@ def refine_poses(T: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, K: n
             if not done and iterations[b] < max_iterations:
                 still.append(b)
         if accepted:
-            accepted, taken = np.array(accepted), np.array(taken)
             T[accepted], normal[accepted] = candidate.take(taken, axis=0), candidate_normal.take(taken, axis=0)
         running = still
     return RefineResults(T, np.sqrt(normal[:, 6, 6] / n), np.array(iterations), normal[:, :6, :6].copy(),

@@ -83,8 +83,9 @@ class Daemon:
     def _leave(self) -> None:
         with self._lock:
             self._left = True
-            if self.session is not None:
+            if self._queryable is not None:
                 self._queryable.undeclare()
+            if self.session is not None:
                 self.session.close()
 
     def reload(self) -> bool:

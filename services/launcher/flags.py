@@ -59,7 +59,7 @@ def flags_for(model: type[BaseModel], skip: set[str] | frozenset[str] = frozense
             for name, info in model.model_fields.items() if name not in skip]
 
 
-def add_flags(group: argparse._ActionGroup, flags: list[Flag]) -> None:
+def add_flags(group: argparse._ArgumentGroup, flags: list[Flag]) -> None:
     """Add ``flags`` to ``group``; each defaults to None (not given)."""
     for flag in flags:
         annotation = _bare(flag.info.annotation)

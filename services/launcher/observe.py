@@ -12,6 +12,7 @@ import zenoh
 
 from protocol.codec import DecodeError, to_json
 from protocol.keys import Keys
+from protocol.message import Message
 from protocol.system import NodeStats
 from services.bus.discovery import live_nodes
 from services.bus.pubsub import Inbox, Received, Role
@@ -25,7 +26,7 @@ def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], Nod
     """A table of nodes with their health figures (UNJOINED: messages of synced inputs that joined no set)."""
     header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "UNJOINED", "DECODE_ERR", "P50(ms)",
               "P99(ms)", "LAT50(ms)", "LAT99(ms)")
-    rows = [header]
+    rows: list[tuple[str, ...]] = [header]
     for rig, name in nodes:
         s = states.get((rig, name))
         if s is None:
@@ -51,7 +52,7 @@ def echo(session: zenoh.Session, key: str, *, count: int = 0, timeout_s: float |
     limit) or when nothing arrives for ``timeout_s``.
     """
     errors: list[tuple[str, DecodeError]] = []
-    inbox = Inbox(session, key, None, Role.RESULT, on_decode_error=lambda k, e: errors.append((k, e)))
+    inbox: Inbox[Message] = Inbox(session, key, None, Role.RESULT, on_decode_error=lambda k, e: errors.append((k, e)))
     seen = 0
     idle_since = time.monotonic()
     try:

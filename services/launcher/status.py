@@ -116,7 +116,7 @@ def format_status(status: Status) -> str:
     client apps, then warnings and problems."""
     header = ("PIPELINE", "NODE", "KIND", "STATE", "PID", "UP(s)", "RESTARTS", "IN/s", "OUT/s", "DROPPED",
               "UNJOINED", "DECODE_ERR", "P50(ms)", "P99(ms)", "LAT50(ms)", "LAT99(ms)")
-    rows = [header]
+    rows: list[tuple[str, ...]] = [header]
     for health in status.pipelines.values():
         for node in health.nodes:
             rows.append((Path(health.pipeline).name, node.name, node.kind, node.state, str(node.pid or "-"),
@@ -127,7 +127,7 @@ def format_status(status: Status) -> str:
                          *_figures(stats)))
     lines = [format_table(rows)]
     if status.clients:
-        clients = [("APP", "CLIENT", "HOST", "PID", "SUBSCRIPTION", "RECEIVED")]
+        clients: list[tuple[str, ...]] = [("APP", "CLIENT", "HOST", "PID", "SUBSCRIPTION", "RECEIVED")]
         for c in status.clients.values():
             for sub in c.subscriptions or ():
                 clients.append((c.app, c.client, c.host, str(c.pid), sub.key, str(sub.received)))

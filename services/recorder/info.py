@@ -68,7 +68,8 @@ class RecordingInfo:
 
     @property
     def duration_s(self) -> float:
-        return 0.0 if self.first_ns is None else (self.last_ns - self.first_ns) / 1e9
+        first, last = self.first_ns, self.last_ns
+        return 0.0 if first is None or last is None else (last - first) / 1e9
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the derived figures included."""
@@ -118,7 +119,7 @@ def format_info(info: RecordingInfo) -> str:
     if info.first_ns is not None:
         start = datetime.fromtimestamp(info.first_ns / 1e9, UTC).isoformat(timespec="milliseconds")
         lines.append(f"start      {start} (log time of the first message)")
-    rows = [("KEY", "SCHEMA", "ENCODING", "MESSAGES", "RATE(Hz)", "PAYLOAD(MiB)")]
+    rows: list[tuple[str, ...]] = [("KEY", "SCHEMA", "ENCODING", "MESSAGES", "RATE(Hz)", "PAYLOAD(MiB)")]
     rows += [(c.key, c.schema or "(raw)", c.encoding, str(c.messages),
               "-" if c.rate_hz is None else f"{c.rate_hz:.2f}", f"{c.payload_bytes / MIB:.3f}") for c in info.channels]
     return "\n".join([*lines, "", *_table(rows, numeric_from=3)])

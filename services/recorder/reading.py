@@ -15,7 +15,7 @@ is arrival order. ``recover`` copies the intact part into a new, finished and in
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
@@ -32,7 +32,7 @@ EXIT_DAMAGED = 3
 """Exit code of the commands that read a recording when it is damaged (its intact part was used)."""
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
-_PARSERS = {
+_PARSERS: dict[int, Callable[[ReadDataStream], Record | Chunk]] = {
     Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
     Opcode.CHUNK: Chunk.read, Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read,
 }
@@ -156,10 +156,11 @@ def _parse(opcode: int, body: bytes) -> list[Record]:
         raise _Bad(f"malformed {_name(opcode)} record ({type(exc).__name__}: {exc})") from exc
     if isinstance(record, Chunk):
         try:
-            return breakup_chunk(record, validate_crc=True)
+            parts = breakup_chunk(record, validate_crc=True)
         except Exception as exc:  # zstd / lz4 / CRC / parse errors: the chunk is unusable either way
             raise _Bad(f"corrupt {record.compression or 'uncompressed'} chunk ({type(exc).__name__}: {exc})") \
                 from exc
+        return [part for part in parts if isinstance(part, Schema | Channel | Message)]
     return [record]
 
 

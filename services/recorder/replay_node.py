@@ -217,7 +217,7 @@ def _wait_for_subscriber(node: Node, probes: list[zenoh.KeyExpr], wait_s: float)
     publishers = [node.session.declare_publisher(probe) for probe in probes]
     try:
         deadline = time.monotonic() + wait_s
-        while not any(p.matching_status.matching for p in publishers):
+        while not any(p.matching_status.matching for p in publishers):  # type: ignore[attr-defined]
             if time.monotonic() > deadline or not node.wait(0.01):
                 node.log.info("no subscriber on %s after %.1f s; replaying anyway", ", ".join(map(str, probes)), wait_s)
                 return
@@ -260,7 +260,7 @@ def send_control(session: zenoh.Session, keys: Keys, name: str, command: ReplayC
     querier = session.declare_querier(keys.control(name), timeout=timeout_s)
     request = ReplayControl(header=Header(stamp_ns=time.time_ns()), command=command)
     try:
-        while not querier.matching_status.matching:
+        while not querier.matching_status.matching:  # type: ignore[attr-defined]  # a MatchingStatus
             if time.monotonic() > deadline:
                 return None
             time.sleep(0.01)

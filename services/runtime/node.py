@@ -376,7 +376,7 @@ class Synced(Generic[M]):
                              resets=joiner.resets, inputs=inputs)
 
 
-def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], None]) -> int:
+def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object]) -> int:
     """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code."""
     log = logging.getLogger(f"artrack.{kind}")
     try:

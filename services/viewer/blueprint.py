@@ -24,7 +24,7 @@ def blueprint(cameras: Sequence[str]) -> rrb.Blueprint:
     """The viewer's layout for the cameras seen so far."""
     health = rrb.Tabs(*(rrb.TimeSeriesView(origin=layout.stats(metric), name=name) for metric, name in HEALTH),
                       rrb.TextLogView(origin=layout.LOGS, name="errors"))
-    main = rrb.Vertical(rrb.Spatial3DView(origin=layout.WORLD, name="rig"), health, row_shares=[3, 2])
+    main: rrb.Container = rrb.Vertical(rrb.Spatial3DView(origin=layout.WORLD, name="rig"), health, row_shares=[3, 2])
     if cameras:
         images = rrb.Grid(*(rrb.Spatial2DView(origin=layout.image(camera), name=camera) for camera in cameras))
         main = rrb.Horizontal(main, images)

@@ -10,12 +10,14 @@ bgra8 loses its alpha, and mono16, which JPEG cannot hold, stays raw.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import cv2
 import rerun as rr
 
 from protocol.sensors import Image
 
-_COLOR_MODELS = {"mono8": "L", "mono16": "L", "bgr8": "BGR", "bgra8": "BGRA"}
+_COLOR_MODELS: dict[str, Literal["L", "BGR", "BGRA"]] = {"mono8": "L", "mono16": "L", "bgr8": "BGR", "bgra8": "BGRA"}
 
 
 def image_archetype(image: Image, jpeg_quality: int = 0) -> rr.Image | rr.EncodedImage:

@@ -30,7 +30,8 @@ from pathlib import Path
 from pydantic import Field, model_validator
 
 from protocol.keys import Keys
-from services.bus.pubsub import Role
+from protocol.message import Message
+from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 from services.viewer.recording import Serve, ViewLog, open_recording
@@ -73,7 +74,7 @@ def subscriptions(keys: Keys) -> list[tuple[str, Role]]:
 
 
 def run(node: Node, params: Params) -> None:
-    inboxes = [node.inbox(key, None, role, params.image_depth if role is Role.FRAME else None)
+    inboxes: list[Inbox[Message]] = [node.inbox(key, None, role, params.image_depth if role is Role.FRAME else None)
                for key, role in subscriptions(node.keys)]
     serve = params.server()
     recording = open_recording(f"{node.keys.prefix} ({node.name})", out=params.rrd, serve=serve)

@@ -13,7 +13,7 @@ import typing
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
@@ -42,7 +42,9 @@ class SceneFrame:
 
 
 class Scene(Protocol):
-    name: str
+    @property
+    def name(self) -> str: ...
+
     cameras: tuple[CameraModel, ...]
 
     def render(self, index: int) -> SceneFrame: ...
@@ -78,7 +80,7 @@ class SceneOptions:
     def check_int(self, name: str, low: int, high: int) -> None:
         """Require option ``name`` to be an integer in [low, high]."""
         value = getattr(self, name)
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= int(value) <= high:
             raise ValueError(f"option {name}={value!r}: must be an integer in [{low}, {high}]")
         object.__setattr__(self, name, int(value))
 
@@ -98,7 +100,7 @@ class SceneOptions:
             raise ValueError(f"option {name}={value!r}: must be true or false")
 
     @classmethod
-    def parse(cls, scene: str, options: Mapping[str, object]) -> SceneOptions:
+    def parse(cls, scene: str, options: Mapping[str, Any]) -> SceneOptions:
         """Options of ``scene`` from keyword values; ValueError names any unknown or invalid option."""
         valid = sorted(f.name for f in fields(cls))
         unknown = sorted(set(options) - set(valid))

@@ -21,7 +21,7 @@ def finish(image: np.ndarray, exposure: float, blur_px: float, noise_std: float,
     if noise_std > 0.0:
         noise = np.empty(image.shape, np.int16)
         cv2.setRNGSeed(noise_seed)
-        cv2.randn(noise, 0.0, noise_std)
+        cv2.randn(noise, 0.0, noise_std)  # type: ignore[call-overload]  # mean and stddev may be numbers
         image = cv2.add(image, noise, dtype=cv2.CV_8U)
     return image
 

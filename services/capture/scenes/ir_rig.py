@@ -81,6 +81,7 @@ class IrRigScene(SyntheticScene):
 
     name = "ir_rig"
     Options = IrRigOptions
+    options: IrRigOptions
 
     def __init__(self, options: IrRigOptions | None = None):
         super().__init__(options)
@@ -111,7 +112,7 @@ class IrRigScene(SyntheticScene):
             dist = (np.array([rng.uniform(-0.08, -0.04), rng.uniform(0.0, 0.02), *rng.uniform(-5e-4, 5e-4, 2), 0.0])
                     if o.distortion else np.zeros(5))
             eye = np.array([(i - (o.camera_count - 1) / 2) * o.baseline, 0.0, 0.0])
-            T_rig_camera = look_at(eye, (0.0, 0.0, o.convergence), (0.0, -1.0, 0.0))
+            T_rig_camera = look_at(eye, np.array([0.0, 0.0, o.convergence]), np.array([0.0, -1.0, 0.0]))
             cameras.append(CameraModel(f"cam{i}", o.width, o.height, K, dist, T_rig_camera))
         return tuple(cameras)
 

@@ -65,6 +65,7 @@ class MarkersScene(SyntheticScene):
 
     name = "markers"
     Options = MarkersOptions
+    options: MarkersOptions
 
     def __init__(self, options: MarkersOptions | None = None):
         super().__init__(options)

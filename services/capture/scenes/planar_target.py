@@ -60,6 +60,7 @@ class PlanarTargetScene(SyntheticScene):
 
     name = "planar_target"
     Options = PlanarTargetOptions
+    options: PlanarTargetOptions
 
     def __init__(self, options: PlanarTargetOptions | None = None):
         super().__init__(options)

@@ -77,8 +77,6 @@ class PlaneTexture:
         scale = 2.0 ** level
         window_from_level = (np.array([[1.0, 0.0, -origin[0]], [0.0, 1.0, -origin[1]], [0.0, 0.0, 1.0]])
                              @ image_from_texel @ np.diag([scale, scale, 1.0]))
-        if border_value is None:
-            border = {"borderMode": cv2.BORDER_REPLICATE}
-        else:
-            border = {"borderMode": cv2.BORDER_CONSTANT, "borderValue": border_value}
-        return cv2.warpPerspective(self.levels[level], window_from_level, size, flags=cv2.INTER_LINEAR, **border)
+        mode = cv2.BORDER_REPLICATE if border_value is None else cv2.BORDER_CONSTANT
+        return cv2.warpPerspective(self.levels[level], window_from_level, size, flags=cv2.INTER_LINEAR,
+                                   borderMode=mode, borderValue=border_value or 0)

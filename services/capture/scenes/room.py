@@ -79,6 +79,7 @@ class RoomScene(SyntheticScene):
 
     name = "room"
     Options = RoomOptions
+    options: RoomOptions
 
     def __init__(self, options: RoomOptions | None = None):
         super().__init__(options)
@@ -109,8 +110,8 @@ class RoomScene(SyntheticScene):
             ("wall_east", np.array([lx, 0.0, h / 2]), np.array([-1.0, 0.0, 0.0]), (WIDTH_M, h)),
             ("wall_west", np.array([-lx, 0.0, h / 2]), np.array([1.0, 0.0, 0.0]), (WIDTH_M, h)),
         ]
-        for b, ((x, y), size) in enumerate(BOXES[:self.options.boxes]):
-            size = np.array(size)
+        for b, ((x, y), box) in enumerate(BOXES[:self.options.boxes]):
+            size = np.array(box)
             middle = np.array([x, y, size[2] / 2])
             faces.append((f"box{b}_top", middle + UP * size[2] / 2, UP, (size[0], size[1])))
             for k, normal in enumerate(SIDE_NORMALS):
@@ -151,8 +152,8 @@ def paint_checker(image: np.ndarray, size: tuple[float, float]) -> np.ndarray:
     left = int(round(centre[0] + 0.5 - poster.shape[1] / 2))
     top = int(round(centre[1] + 0.5 - poster.shape[0] / 2))
     image[top:top + poster.shape[0], left:left + poster.shape[1]] = poster
-    c, r = np.meshgrid(np.arange(columns), np.arange(rows))
-    texels = np.stack([left + (c.ravel() + 2) * square - 0.5, top + (r.ravel() + 2) * square - 0.5,
-                       np.ones(c.size)], axis=1)
+    cs, rs = np.meshgrid(np.arange(columns), np.arange(rows))
+    texels = np.stack([left + (cs.ravel() + 2) * square - 0.5, top + (rs.ravel() + 2) * square - 0.5,
+                       np.ones(cs.size)], axis=1)
     plane = np.linalg.solve(from_plane, texels.T).T
     return np.column_stack([plane[:, :2], np.zeros(len(plane))])
