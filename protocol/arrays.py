@@ -2,12 +2,11 @@
 
 An array field is declared as ``Annotated[np.ndarray, array_field(dtypes, *shapes)]``, which
 states the dtypes and the shape the field accepts (``None`` in a shape means "any length on
-this axis"). On the wire an
-array never goes through JSON: the codec lifts it out of the message and sends its raw
-little-endian bytes next to the JSON header (see ``protocol.codec``). In JSON views of a
-message (``model_dump(mode="json")``, ``artrack echo``) an array is written as nested lists,
-or, when the serialisation context sets ``max_array_elements`` and the array is larger,
-as a short summary ``{"dtype", "shape"}``.
+this axis"). On the wire an array never goes through JSON: the codec lifts it out of the
+message and sends its raw little-endian bytes next to the JSON header (see ``protocol.codec``).
+In JSON views of a message (``model_dump(mode="json")``, ``artrack echo``) an array is written
+as nested lists, or, when the serialisation context sets ``max_array_elements`` and the array
+is larger, as a short summary ``{"dtype", "shape"}``.
 """
 
 from __future__ import annotations

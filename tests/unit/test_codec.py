@@ -403,3 +403,10 @@ def test_an_older_version_a_class_still_reads_decodes_and_others_are_refused():
     assert decode(old) == stats
     with pytest.raises(DecodeError, match="version 3 is not understood"):
         decode(encode(stats).replace(b'"version":2', b'"version":3', 1))
+
+
+def test_encode_names_an_array_dtype_that_may_not_travel():
+    unchecked = BlobDetections.model_construct(header=Header(stamp_ns=1), centers=np.zeros((1, 2), np.float16),
+                                               radii=np.zeros(1, np.float32), intensity=np.zeros(1, np.float32))
+    with pytest.raises(TypeError, match="dtype float16 may not travel"):
+        encode(unchecked)

@@ -10,8 +10,10 @@ import pytest
 
 from protocol.message import Header
 from protocol.system import ConfigChange, PipelineHealth, SupervisedNode
+from services.bus.session import BusConfig
 from services.capture.node import Params as CaptureParams
 from services.detection.node import Params as MarkerParams
+from services.launcher import daemon
 from services.launcher.pipeline import PipelineError, params_model, read_pipeline
 from services.launcher.reload import plan_reload
 from services.launcher.status import Status
@@ -146,3 +148,26 @@ def test_a_health_check_here_ignores_other_hosts_pipelines():
     assert status.on_host("box-a").problems() == []
     assert status.on_host("box-b").problems() == ["node box-b-cam is failed"]
     assert status.on_host("box-c").problems() == ["no `artrack up` answered on this rig"]
+
+
+class _RefusingSession:
+    """A session that opens but refuses the health queryable."""
+
+    def __init__(self) -> None:
+        self.closed = False
+
+    def declare_queryable(self, key: str, handler: object) -> None:
+        raise RuntimeError("queryable refused")
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_leaving_closes_a_session_whose_health_queryable_was_refused(tmp_path, monkeypatch):
+    session = _RefusingSession()
+    monkeypatch.setattr(daemon, "open_session", lambda bus: session)
+    pipeline = daemon.Daemon(tmp_path / "p.toml", _spec(tmp_path), BusConfig())
+    with pytest.raises(RuntimeError, match="queryable refused"):
+        pipeline._join()
+    pipeline._leave()
+    assert session.closed
