@@ -33,4 +33,4 @@ deploy-check: $(STAMP)
 	bash docker/check.sh
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache build *.egg-info
