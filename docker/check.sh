@@ -41,7 +41,7 @@ install_step() {
     fi
     "$venv/bin/artrack" --help >/dev/null || return 1
     local dev
-    dev=$("$venv/bin/pip" list --format=freeze 2>/dev/null | grep -iE '^(pytest|hypothesis|ruff)==')
+    dev=$("$venv/bin/pip" list --format=freeze 2>/dev/null | grep -iE '^(pytest|hypothesis|ruff|mypy)==')
     if [ -n "$dev" ]; then echo "dev packages in the runtime install: $dev"; return 1; fi
     echo "artrack --help runs from a wheel installed without the dev extra ($venv)"
 }
