@@ -139,7 +139,7 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, orig
     lines = fit_lines(edge, valid)
     lines[~enough] = np.nan
     meet = np.cross(np.roll(lines, 1, axis=1), lines)
-    ok = np.isfinite(meet).all(axis=(1, 2)) & (np.abs(meet[..., 2]) > 1e-9).all(axis=1)
+    ok = np.all(np.isfinite(meet), axis=(1, 2)) & (np.abs(meet[..., 2]) > 1e-9).all(axis=1)
     refined = meet[..., :2] / np.where(ok[:, None, None], meet[..., 2:], 1.0)
     if lens is not None:
         refined = distort_pixels(np.where(ok[:, None, None], refined, corners + origin), *lens) - origin

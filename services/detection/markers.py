@@ -31,6 +31,7 @@ import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Final
 
 import cv2
 import numpy as np
@@ -52,7 +53,7 @@ on the grey image; ``contour``: lines fitted to the marker's contour; ``apriltag
 detection and fit; ``lines`` (default): ``subpix``, then lines fitted to subpixel edge points of each
 side, intersected (``services.detection.corner_lines``), which removes the inward pull cornerSubPix
 has on blurred corners)."""
-DEFAULT_REFINEMENT = "lines"
+DEFAULT_REFINEMENT: Final = "lines"
 SEARCH_CELLS = 0.4
 """``lines``: how far from each side its edge is looked for, in marker cells (the dark border is one
 cell wide), clipped to ``SEARCH_PX``."""

@@ -266,7 +266,8 @@ def send_control(session: zenoh.Session, keys: Keys, name: str, command: ReplayC
             time.sleep(0.01)
         for reply in querier.get(payload=encode(request)):
             if reply.ok is None:
-                raise ValueError(f"{name} refused {command.value}: {_refusal(reply.err.payload.to_bytes())}")
+                reason = _refusal(reply.err.payload.to_bytes()) if reply.err is not None else "no reason given"
+                raise ValueError(f"{name} refused {command.value}: {reason}")
             answer = decode(reply.ok.payload.to_bytes())
             if not isinstance(answer, ReplayStatus):
                 raise ValueError(f"{name} answered {command.value} with {answer.SCHEMA}, not {ReplayStatus.SCHEMA}")

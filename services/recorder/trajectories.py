@@ -97,7 +97,7 @@ def read_tum(path: Path | str) -> Trajectory:
         norm = float(np.linalg.norm(q))
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise TrajectoryError(f"{path}:{number}: quaternion (qx qy qz qw) has norm {norm:.6g}, not 1")
-        poses.append(from_quaternion_translation(q / norm, values[1:4]))
+        poses.append(from_quaternion_translation(q / norm, np.array(values[1:4])))
     return _trajectory(path, poses, np.array(stamps, dtype=np.int64))
 
 
@@ -124,7 +124,7 @@ def read_recording(path: Path | str, key: str | None, child: str | None = None) 
     stamped = list(job.transforms(estimated_only=True))
     if job.damage is not None:
         log.warning("%s is damaged: %s; read its intact part", path, job.damage)
-    poses = [from_quaternion_translation(t.rotation, t.translation) for _, t in stamped]
+    poses = [from_quaternion_translation(np.array(t.rotation), np.array(t.translation)) for _, t in stamped]
     name = f"{path} {key}" + (f" ({child})" if child else "")
     return _trajectory(name, poses, np.array([stamp for stamp, _ in stamped], dtype=np.int64))
 

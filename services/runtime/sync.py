@@ -181,8 +181,9 @@ class Joiner(Generic[T]):
         i = 0
         while i < len(reference.entries):
             key = reference.entries[i][0]
-            picks = {name: self._nearest(name, key) for name in self.names[1:]}
-            if any(pick is None for pick in picks.values()):
+            found = {name: self._nearest(name, key) for name in self.names[1:]}
+            picks = {name: pick for name, pick in found.items() if pick is not None}
+            if len(picks) < len(found):
                 i += 1
                 continue
             items = {self.reference: reference.entries.pop(i)[2]}
