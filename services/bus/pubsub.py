@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Generic, TypedDict, TypeVar
+from typing import Generic, TypedDict, TypeVar, cast
 
 import zenoh
 
@@ -123,7 +123,7 @@ def decode_as(payload: bytes, cls: type[M] | None) -> M:
     message = decode(payload)
     if cls is not None and not isinstance(message, cls):
         raise DecodeError(f"expected {cls.SCHEMA} on this key", schema=message.SCHEMA, size=len(payload))
-    return message  # type: ignore[return-value]
+    return cast(M, message)
 
 
 class Inbox(Generic[M]):

@@ -53,6 +53,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -73,8 +74,9 @@ from services.geometry.planar_pnp import (
 )
 from services.geometry.refine import pose_covariances, refine_poses
 
-METHODS = ("lm", "ippe", "ippe+lm")
-DEFAULT_METHOD = "ippe+lm"
+Method = Literal["lm", "ippe", "ippe+lm"]
+METHODS: tuple[Method, ...] = get_args(Method)
+DEFAULT_METHOD: Method = "ippe+lm"
 MIN_TURN = 1e-6
 """A quadrilateral's turn at each corner (edge cross product) must exceed this fraction of its mean squared edge."""
 NEXT_CORNER = np.array([1, 2, 3, 0])

@@ -54,7 +54,7 @@ from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marker_map
-from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, FrameEstimate, MarkerPoseEstimator
+from services.estimation.marker_pose import DEFAULT_METHOD, FrameEstimate, MarkerPoseEstimator, Method
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
@@ -77,7 +77,7 @@ class Params(DetectorSettings):
     input: Literal["images", "detections"] = Field(
         default="images", description="detect here from images, or take a markers node's detections")
     board: Path | None = Field(default=None, description="board / marker map YAML: one pose for all its markers")
-    method: Literal[METHODS] = DEFAULT_METHOD  # type: ignore[valid-type]
+    method: Method = DEFAULT_METHOD
     corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (images input; as the "

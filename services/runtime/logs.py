@@ -16,7 +16,7 @@ import logging
 import os
 import sys
 from datetime import UTC, datetime
-from typing import Literal
+from typing import Literal, cast
 
 FORMAT_ENV = "ARTRACK_LOG_FORMAT"
 LEVEL_ENV = "ARTRACK_LOG_LEVEL"
@@ -53,7 +53,7 @@ def log_format(given: str | None = None) -> LogFormat:
     value = (given or os.environ.get(FORMAT_ENV) or "text").lower()
     if value not in FORMATS:
         raise ValueError(f"log format {value!r} ({FORMAT_ENV} or --log-format) is not one of {', '.join(FORMATS)}")
-    return value  # type: ignore[return-value]
+    return cast(LogFormat, value)
 
 
 def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, node: str | None = None) -> None:
