@@ -70,18 +70,20 @@ def open_session(bus: BusConfig) -> zenoh.Session:
 def _open_retrying(bus: BusConfig) -> zenoh.Session:
     """Open the session, trying again until the bus answers; the first failure is logged once.
 
-    Only an absent bus is waited for: when every endpoint accepts a TCP connection and the
-    session still fails (credentials or TLS refused, a listen port in use), waiting cannot
-    help, so the BusError comes at once.
+    Only an absent bus is waited for: when every endpoint accepted a TCP connection before an
+    attempt and the session still fails (credentials or TLS refused, a listen port in use),
+    waiting cannot help, so the BusError comes at once. (Checked before the attempt, not after:
+    a router that starts while an attempt runs is a bus that just came up, not one that refuses.)
     """
     config = patient(bus.zenoh(), RETRY_ATTEMPT_MS)
     failed_at = None
     while True:
         attempt_ends = time.monotonic() + RETRY_ATTEMPT_MS / 1000
+        answered = bool(bus.endpoints) and all(reachable(endpoint) for endpoint in bus.endpoints)
         try:
             session = zenoh.open(config)
         except zenoh.ZError as exc:
-            if bus.endpoints and all(reachable(endpoint) for endpoint in bus.endpoints):
+            if answered:
                 raise BusError(f"cannot open the Zenoh session ({bus.mode} via {bus.where}), which answers, so "
                                f"waiting will not help: {exc}") from exc
             if failed_at is None:
