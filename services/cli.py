@@ -8,6 +8,7 @@ import itertools
 import json
 import logging
 import os
+import shlex
 import signal
 import socket
 import sys
@@ -255,10 +256,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             kind("capture").validate({**given, "scene": scene})
         except ValidationError as exc:
             raise ValueError(explain(exc, source_flags, "source")) from exc
-        source = NodeSpec(kind="capture", **given, scene=scene)
+        source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
     spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
     if run_args.save_pipeline is not None:
-        save_pipeline(spec, run_args.save_pipeline)
+        made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
+        save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "
+                      f"{shlex.quote(str(run_args.save_pipeline))}")
         print(f"wrote {run_args.save_pipeline}: {len(spec.nodes)} nodes ({', '.join(spec.nodes)}); "
               f"run it with `artrack up {run_args.save_pipeline}`")
         return 0
@@ -266,6 +269,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
     return run_job(bus, spec)
+
+
+def _command_line(argv: list[str], without: str) -> str:
+    """``artrack ARGV...`` as a shell would take it, less the option ``without`` and its value."""
+    kept, skip = [], False
+    for arg in argv:
+        if skip or arg == without or arg.startswith(without + "="):
+            skip = arg == without and not skip
+            continue
+        kept.append(arg)
+    return " ".join(shlex.quote(arg) for arg in ["artrack", *kept])
 
 
 def _pipeline_job_parser(path: str) -> argparse.ArgumentParser:

@@ -22,14 +22,13 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import zenoh
 from pydantic import Field
 
-from services.bus.settings import BusError, BusSettings, flag
+from services.bus.settings import BusEnvironment, BusError, BusSettings
 from services.bus.transport import LOCAL_ROUTER, patient
 
 __all__ = ["LOCAL_ROUTER", "BusConfig", "BusError", "ensure_local_router", "open_session", "reachable"]
@@ -41,15 +40,18 @@ RETRY_ATTEMPT_MS = 1000
 """How long one attempt to open a retrying session waits before Python gets control back (signals)."""
 
 
+class ProcessEnvironment(BusEnvironment):
+    """The bus variables, plus those of starting the local router and waiting for the bus."""
+
+    autostart_router: str | None = Field(None, alias="ARTRACK_ROUTER_AUTOSTART")
+    router_wait_s: str | None = Field(None, alias="ARTRACK_ROUTER_WAIT_S")
+    retry: str | None = Field(None, alias="ARTRACK_RETRY")
+
+
 class BusConfig(BusSettings):
     """Bus settings of an artrack process: the shared ones, plus starting the local router on demand."""
 
-    ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
-        **BusSettings.ENV,
-        "ARTRACK_ROUTER_AUTOSTART": ("autostart_router", flag),
-        "ARTRACK_ROUTER_WAIT_S": ("router_wait_s", str),
-        "ARTRACK_RETRY": ("retry", flag),
-    }
+    ENVIRONMENT: ClassVar[type[BusEnvironment]] = ProcessEnvironment
 
     autostart_router: bool = True
     router_wait_s: float = Field(default=5.0, ge=0)

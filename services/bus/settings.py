@@ -18,14 +18,22 @@ Multicast scouting is always off unless a config file turns it on.
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, ClassVar, Literal, Self
+from typing import Annotated, Any, ClassVar, Literal, Self
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, ModelWrapValidatorHandler, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ModelWrapValidatorHandler,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import InitErrorDetails
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from zenoh import Session
 
 from protocol.keys import Keys, check_name
@@ -47,15 +55,6 @@ def read_zenoh_config(path: Path) -> zenoh.Config:
         raise BusError(f"Zenoh config file {path} is invalid: {exc}") from exc
 
 
-def _endpoints(text: str) -> tuple[str, ...]:
-    return tuple(part.strip() for part in text.split(",") if part.strip())
-
-
-def flag(text: str) -> bool:
-    """An environment switch: anything but ``0``, ``false`` or ``no`` is on."""
-    return text not in ("0", "false", "no")
-
-
 def _nest(values: dict[str, Any], field: str, value: object) -> None:
     """Set ``values[a][b] = value`` for a dotted ``field`` ``a.b``."""
     *parents, last = field.split(".")
@@ -64,27 +63,65 @@ def _nest(values: dict[str, Any], field: str, value: object) -> None:
     values[last] = value
 
 
+Listed = Annotated[tuple[str, ...] | None, NoDecode]
+"""A variable holding a comma-separated list (pydantic-settings would otherwise expect JSON)."""
+
+
+class BusEnvironment(BaseSettings):
+    """The environment variables of ``BusSettings``, read by pydantic-settings.
+
+    Each field is named for the settings field it sets (``security__root_ca`` sets
+    ``security.root_ca``) and aliased to its variable. Values stay text (lists are split at
+    commas): ``BusSettings`` converts and checks them, so an error names its field. Empty
+    variables count as unset.
+    """
+
+    model_config = SettingsConfigDict(case_sensitive=True, env_ignore_empty=True, extra="ignore", frozen=True)
+
+    mode: str | None = Field(None, alias="ARTRACK_MODE")
+    connect: Listed = Field(None, alias="ARTRACK_CONNECT")
+    listen: Listed = Field(None, alias="ARTRACK_LISTEN")
+    zenoh_config: str | None = Field(None, alias="ZENOH_CONFIG")
+    namespace: str | None = Field(None, alias="ARTRACK_NAMESPACE")
+    rig: str | None = Field(None, alias="ARTRACK_RIG")
+    security__root_ca: str | None = Field(None, alias="ARTRACK_TLS_ROOT_CA")
+    security__cert: str | None = Field(None, alias="ARTRACK_TLS_CERT")
+    security__key: str | None = Field(None, alias="ARTRACK_TLS_KEY")
+    security__mutual: str | None = Field(None, alias="ARTRACK_TLS_MUTUAL")
+    security__user: str | None = Field(None, alias="ARTRACK_USER")
+    security__password: str | None = Field(None, alias="ARTRACK_PASSWORD")
+    security__password_file: str | None = Field(None, alias="ARTRACK_PASSWORD_FILE")
+
+    @field_validator("connect", "listen", mode="before")
+    @classmethod
+    def _comma_separated(cls, value: object) -> object:
+        if isinstance(value, str):
+            return tuple(part.strip() for part in value.split(",") if part.strip())
+        return value
+
+    @classmethod
+    def variables(cls) -> dict[str, str]:
+        """Variable -> the dotted settings field it sets."""
+        return {str(info.alias): name.replace("__", ".") for name, info in cls.model_fields.items()}
+
+    @classmethod
+    def values(cls, environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+        """The variables set in ``environ`` (default: the process's environment) as nested settings values."""
+        given = None if environ is None else {name: text for name, text in environ.items() if text}
+        found = cls() if given is None else cls.model_validate(given)
+        values: dict[str, Any] = {}
+        for name, value in found.model_dump(exclude_none=True).items():
+            _nest(values, name.replace("__", "."), value)
+        return values
+
+
 class BusSettings(BaseModel):
     """Mode, endpoints or config file, namespace, rig and security of one process's Zenoh session."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    ENV: ClassVar[dict[str, tuple[str, Callable[[str], Any]]]] = {
-        "ARTRACK_MODE": ("mode", str),
-        "ARTRACK_CONNECT": ("connect", _endpoints),
-        "ARTRACK_LISTEN": ("listen", _endpoints),
-        "ZENOH_CONFIG": ("zenoh_config", str),
-        "ARTRACK_NAMESPACE": ("namespace", str),
-        "ARTRACK_RIG": ("rig", str),
-        "ARTRACK_TLS_ROOT_CA": ("security.root_ca", str),
-        "ARTRACK_TLS_CERT": ("security.cert", str),
-        "ARTRACK_TLS_KEY": ("security.key", str),
-        "ARTRACK_TLS_MUTUAL": ("security.mutual", flag),
-        "ARTRACK_USER": ("security.user", str),
-        "ARTRACK_PASSWORD": ("security.password", str),
-        "ARTRACK_PASSWORD_FILE": ("security.password_file", str),
-    }
-    """Environment variable -> (field, parser); a dotted field is one of a nested model's. Subclasses add their own."""
+    ENVIRONMENT: ClassVar[type[BusEnvironment]] = BusEnvironment
+    """The variables these settings are read from; a subclass with fields of its own names a subclass."""
 
     mode: Literal["peer", "client"] = "peer"
     connect: tuple[str, ...] = ()
@@ -153,16 +190,13 @@ class BusSettings(BaseModel):
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> Self:
-        """Settings from the ``ENV`` variables that are set, then ``overrides`` (None or () = unset).
+        """Settings from the environment variables that are set (``ENVIRONMENT``), then ``overrides``
+        (None or () = unset).
 
         A dict override of a nested model (``security={"root_ca": ...}``) updates what the
         environment said field by field; a model instance replaces it whole.
         """
-        env = os.environ if environ is None else environ
-        values: dict[str, Any] = {}
-        for name, (field, parse) in cls.ENV.items():
-            if env.get(name):
-                _nest(values, field, parse(env[name]))
+        values = cls.ENVIRONMENT.values(environ)
         for field, value in overrides.items():
             if value is None or value == ():
                 continue
@@ -176,7 +210,7 @@ class BusSettings(BaseModel):
     def to_env(self) -> dict[str, str]:
         """The variables that make ``from_env`` rebuild these settings in a child process."""
         env = {}
-        for name, (field, _) in self.ENV.items():
+        for name, field in self.ENVIRONMENT.variables().items():
             value: Any = self
             for part in field.split("."):
                 value = getattr(value, part)

@@ -15,7 +15,7 @@ import argparse
 import json
 import types
 from dataclasses import dataclass
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
@@ -49,6 +49,23 @@ def _bare(annotation: Any) -> Any:
     return annotation
 
 
+def type_name(annotation: Any) -> str:
+    """A short name of a field's type for help texts: ``float``, ``path``, ``list of str``, ``int -> float``."""
+    annotation = _bare(annotation)
+    origin = get_origin(annotation)
+    if origin in (tuple, list):
+        return f"list of {type_name(get_args(annotation)[0])}"
+    if origin is dict:
+        key, value = get_args(annotation)
+        return f"{type_name(key)} -> {'JSON' if value is Any else type_name(value)}"
+    if origin is Literal:
+        return "choice"
+    if get_origin(annotation) is Annotated:
+        return type_name(get_args(annotation)[0])
+    name = getattr(annotation, "__name__", str(annotation))
+    return "path" if name.endswith("Path") else name
+
+
 def flags_for(model: type[BaseModel], skip: set[str] | frozenset[str] = frozenset(), owner: str = "") -> list[Flag]:
     """A flag per field of ``model`` but those in ``skip``; with an ``owner`` (a kind), ``--<owner>-<field>``.
 
@@ -65,8 +82,9 @@ def add_flags(group: argparse._ArgumentGroup, flags: list[Flag]) -> None:
         annotation = _bare(flag.info.annotation)
         origin = get_origin(annotation)
         default = flag.info.get_default(call_default_factory=True)
-        shown = "" if default in (None, (), {}, "") else f" (default {default})"
-        text = (flag.info.description or flag.field.replace("_", " ")) + shown
+        written = " ".join(map(str, default)) if isinstance(default, tuple) else default
+        shown = "" if default in (None, (), {}, "") else f"; default {written}"
+        text = f"{flag.info.description or flag.field.replace('_', ' ')} ({type_name(flag.info.annotation)}{shown})"
         if annotation is bool:
             group.add_argument(flag.option, dest=flag.dest, action=argparse.BooleanOptionalAction, default=None,
                                help=text)

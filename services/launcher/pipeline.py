@@ -139,8 +139,9 @@ def read_pipeline(path: Path) -> PipelineSpec:
     return resolved(spec, str(path))
 
 
-def to_toml(spec: PipelineSpec) -> str:
-    """The pipeline file of ``spec``: what ``read_pipeline`` reads back as the same pipeline."""
+def to_toml(spec: PipelineSpec, header: str = "") -> str:
+    """The pipeline file of ``spec``: what ``read_pipeline`` reads back as the same pipeline;
+    ``header`` (lines of text) opens it as comments."""
     document: dict[str, Any] = {}
     if spec.bus:
         document["bus"] = {k: v for k, v in spec.bus.items() if v is not None}
@@ -155,13 +156,14 @@ def to_toml(spec: PipelineSpec) -> str:
             if getattr(node, field) is not None:
                 table[field] = list(getattr(node, field))
         document["nodes"][name] = table
-    return tomli_w.dumps(document)
+    comments = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines())
+    return comments + ("\n" if comments else "") + tomli_w.dumps(document)
 
 
-def save_pipeline(spec: PipelineSpec, path: Path) -> None:
+def save_pipeline(spec: PipelineSpec, path: Path, header: str = "") -> None:
     """Write ``spec`` to ``path`` as a pipeline file (ValueError naming the path when it cannot be written)."""
     try:
-        path.write_text(to_toml(spec))
+        path.write_text(to_toml(spec, header))
     except OSError as exc:
         raise PipelineError(f"cannot write {path}: {exc.strerror}") from exc
 

@@ -3,7 +3,9 @@
 from mcap.reader import make_reader
 
 from protocol import decode
-from tests.integration.support import START_S
+from protocol.sensors import Image
+from services.bus.pubsub import Inbox, Role
+from tests.integration.support import START_S, collect
 from tests.viewer_contents import RrdContents
 
 
@@ -45,3 +47,16 @@ def test_run_with_rerun_writes_a_recording_rerun_reads_back(procs, tmp_path):
     images = contents.rows("world/cam0/image", "Image:buffer")
     assert 3 <= len(images) <= 12, len(images)  # 0.6 s of frames at the default 10 Hz image limit
     assert contents.rows("world/cam0/image", "Pinhole:image_from_camera")
+
+
+def test_run_takes_a_pipeline_file_as_one_job(procs, session, bus, tmp_path):
+    """The other way round: a file `artrack up` runs is accepted by `artrack run`, which starts its source
+    last and ends when the source does."""
+    path = tmp_path / "echo.toml"
+    path.write_text('[nodes.cam]\nkind = "capture"\nsource = ["synthetic:pattern"]\nframes = 15\nfps = 30\n'
+                    'scene = { width = 64, height = 64 }\n\n[nodes.echo]\nkind = "echo"\ncamera = "cam0"\n')
+    echoed = Inbox(session, bus.keys.echo("cam0"), Image, Role.RESULT, depth=100)
+    job = procs.artrack("run", str(path), name="job")
+    assert job.wait(3 * START_S) == 0, job.describe()
+    seqs = [image.header.seq for image in collect(echoed, 10)]
+    assert seqs == sorted(seqs) and set(seqs) <= set(range(15))

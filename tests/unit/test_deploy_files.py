@@ -72,7 +72,7 @@ def test_services_join_the_router_in_client_mode_with_variables_the_bus_reads():
     port = json.loads(router_port)[0].rsplit(":", 1)[1]
     for name, service in artrack_services().items():
         environment = service["environment"]
-        unknown = set(environment) - set(BusConfig.ENV) - LOG_ENV
+        unknown = set(environment) - set(BusConfig.ENVIRONMENT.variables()) - LOG_ENV
         assert not unknown, f"{name}: no artrack code reads {sorted(unknown)}"
         if FORMAT_ENV in environment:
             assert log_format(str(environment[FORMAT_ENV])) == "json", name
@@ -153,5 +153,6 @@ def test_the_image_and_the_unit_set_only_variables_artrack_reads():
     for where, environment in (("Dockerfile", image), ("artrack.service", service)):
         ours = {name: value for name, value in environment.items() if name.startswith("ARTRACK_")}
         assert ours, where
-        assert not set(ours) - set(BusConfig.ENV) - LOG_ENV, f"{where}: no artrack code reads {sorted(ours)}"
+        read = set(BusConfig.ENVIRONMENT.variables()) | LOG_ENV
+        assert not set(ours) - read, f"{where}: no artrack code reads {sorted(ours)}"
         assert log_format(ours.get(FORMAT_ENV)) == "json", where

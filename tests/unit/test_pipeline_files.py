@@ -1,11 +1,13 @@
 """The pipeline files and board shipped in ``pipelines/`` are valid and describe what they say."""
 
+import shlex
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
+from services.cli import main
 from services.estimation.marker_map import load_marker_map
 from services.launcher.pipeline import read_pipeline
 
@@ -25,3 +27,15 @@ def test_the_bundled_board_is_the_markers_scene_board():
     for marker_id, marker in board.markers.items():
         assert marker.length == scene.marker_length
         assert np.allclose(marker.T_map_marker, scene.marker_poses[marker_id])
+
+
+def test_the_marker_pipeline_file_is_what_artrack_run_marker_saves(tmp_path):
+    """`artrack run marker ...` and `artrack up pipelines/marker.toml` run the same pipeline: the file is
+    the saved form of the one-liner written in its first line."""
+    first = (PIPELINES / "marker.toml").read_text().splitlines()[0]
+    assert first.startswith("# Written by: artrack run marker ")
+    saved = tmp_path / "saved.toml"
+    argv = [*shlex.split(first.removeprefix("# Written by: "))[1:], "--save-pipeline", str(saved)]
+    assert main(argv) == 0
+    assert read_pipeline(saved).nodes == read_pipeline(PIPELINES / "marker.toml").nodes
+    assert saved.read_text().split("\n\n", 1)[1] in (PIPELINES / "marker.toml").read_text()

@@ -1,0 +1,131 @@
+"""Flags generated from parameter models, and tracker templates filled from them."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import pytest
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from services.launcher.flags import add_flags, explain, flags_for, given_values, type_name
+from services.launcher.kinds import DiscoveryError, catalogue, kind, search_roots
+from services.launcher.pipeline import PipelineError
+from services.launcher.tracker import Tracker
+
+
+class Sample(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    FLAGS: ClassVar[dict[str, str]] = {"wait_s": "wait"}
+
+    rate: float = Field(default=1.0, gt=0, description="how fast")
+    count: int = 0
+    loop: bool = False
+    names: tuple[str, ...] = ()
+    where: Path | None = None
+    mode: Literal["fast", "slow"] = "fast"
+    lengths: dict[int, float] = Field(default_factory=dict)
+    extra: dict[str, Any] = Field(default_factory=dict)
+    wait_s: float = 2.0
+
+
+def parse(argv: list[str], skip: frozenset[str] = frozenset()) -> tuple[dict[str, Any], list]:
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    flags = flags_for(Sample, skip)
+    add_flags(parser.add_argument_group("sample"), flags)
+    return given_values(parser.parse_args(argv), flags), flags
+
+
+def test_each_field_is_a_flag_and_only_given_ones_are_set():
+    values, flags = parse(["--rate", "2.5", "--loop", "--names", "a", "b", "--names", "c", "--mode", "slow"])
+    assert {f.option for f in flags} >= {"--rate", "--count", "--loop", "--names", "--where", "--wait"}
+    assert values == {"rate": "2.5", "loop": True, "names": ["a", "b", "c"], "mode": "slow"}
+    model = Sample.model_validate(values)
+    assert (model.rate, model.loop, model.names, model.mode) == (2.5, True, ("a", "b", "c"), "slow")
+
+
+def test_values_are_converted_by_the_field_type_not_by_their_look():
+    values, _ = parse(["--count", "7", "--where", "12", "--lengths", "3=0.05", "--extra", 'name="x"',
+                       "--extra", "n=4", "--no-loop"])
+    model = Sample.model_validate(values)
+    assert model.count == 7 and model.where == Path("12") and model.loop is False
+    assert model.lengths == {3: 0.05}
+    assert model.extra == {"name": "x", "n": 4}
+
+
+def test_an_untyped_dict_value_must_be_json():
+    with pytest.raises(ValueError, match="--extra 'name=x': VALUE must be JSON"):
+        parse(["--extra", "name=x"])
+
+
+def test_a_refused_value_is_named_by_its_flag():
+    values, flags = parse(["--rate", "-1", "--wait", "soon"])
+    with pytest.raises(ValidationError) as caught:
+        Sample.model_validate(values)
+    text = explain(caught.value, flags, "sample")
+    assert "--rate: Input should be greater than 0" in text
+    assert "--wait: Input should be a valid number" in text
+
+
+def test_skipped_fields_get_no_flag():
+    _, flags = parse([], frozenset({"rate", "names"}))
+    assert {"--rate", "--names"}.isdisjoint(f.option for f in flags)
+
+
+@pytest.mark.parametrize(("annotation", "expected"), [(float, "float"), (Path | None, "path"),
+                                                      (tuple[int, ...], "list of int"),
+                                                      (dict[int, float], "int -> float"),
+                                                      (dict[str, Any], "str -> JSON"),
+                                                      (Literal["a", "b"], "choice")])
+def test_type_names_for_help(annotation, expected):
+    assert type_name(annotation) == expected
+
+
+def test_the_built_in_kinds_and_trackers_are_found_where_they_are_declared():
+    found = catalogue()
+    assert found.kinds["marker_pose"] == "services.estimation.node"
+    assert found.kinds["capture"] == "services.capture.node"
+    assert found.trackers["marker"].parent.parent.name == "estimation"
+    assert kind("echo").keys(kind("echo").validate({"camera": "cam3"})) == (("cam3/image",), ("cam3/echo",))
+
+
+def test_an_unknown_kind_lists_the_known_ones():
+    with pytest.raises(ValueError, match=r"unknown node kind 'teleport' \(known: .*marker_pose"):
+        kind("teleport")
+
+
+def test_a_plugin_root_that_is_not_a_package_is_refused():
+    assert search_roots({"ARTRACK_PLUGINS": " a, b ,"}) == ("services", "a", "b")
+    with pytest.raises(DiscoveryError, match="ARTRACK_PLUGINS: 'json.decoder' is not an importable package"):
+        catalogue(("services", "json.decoder"))
+
+
+def test_a_tracker_expands_per_camera_and_applies_the_options_to_every_node_having_the_field():
+    marker = Tracker.load("marker")
+    flags = marker.flags({})
+    nodes = marker.expand(["left", "right"], {"marker_length": "0.05", "depth": "3"}, flags)
+    assert set(nodes) == {"marker-left", "marker-right"}
+    assert nodes["marker-right"].kind == "marker_pose"
+    assert nodes["marker-right"].params == {"camera": "right", "marker_length": "0.05", "depth": "3"}
+
+
+def test_a_field_of_another_type_than_the_sources_gets_the_kinds_prefix():
+    source = {f.field: f for f in flags_for(kind("capture").params)}
+    options = {f.option for f in Tracker.load("marker").flags(source)}
+    assert "--marker-pose-calib" in options and "--calib" not in options
+
+
+def test_a_bad_option_for_a_template_node_names_the_flag():
+    marker = Tracker.load("marker")
+    with pytest.raises(ValueError, match="--method: Input should be 'lm', 'ippe' or 'ippe\\+lm' \\(given 'best'\\)"):
+        marker.expand(["cam0"], {"method": "best"}, marker.flags({}))
+
+
+def test_a_template_without_kinds_is_refused(tmp_path, monkeypatch):
+    broken = tmp_path / "trackers" / "broken.toml"
+    broken.parent.mkdir()
+    broken.write_text('[nodes.a]\ncamera = "x"\n')
+    monkeypatch.setattr("services.launcher.tracker.catalogue", lambda: type("C", (), {"trackers": {"broken": broken}}))
+    with pytest.raises(PipelineError, match="each \\[nodes.NAME\\] table needs a kind"):
+        Tracker.load("broken")
