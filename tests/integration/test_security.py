@@ -141,14 +141,14 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
     pipeline = settings(endpoint, bus, root_ca=pki.ca, user="tracker", password=USERS["tracker"]).open()
     other = settings(endpoint, bus, root_ca=pki.ca, user="tracker", password=USERS["tracker"]).open()
     try:
-        wait_live(pipeline, bus.keys, {"cam", "marker"}, (up,))
+        wait_live(pipeline, bus.keys, {"capture", "marker-cam0"}, (up,))
         seen = collect_keys(pipeline, bus.keys.everything())
         credentials = Security(root_ca=pki.ca, user="dashboard", password_file=pki.password_file("dashboard"))
         with connect(mode="client", connect=endpoint, rig=bus.rig, app="dashboard", security=credentials) as app:
             with app.poses("cam0/**", idle_timeout_s=START_S) as stream:
                 assert next(stream).target.startswith("cam0/marker/")
-            assert {"cam", "marker"} <= {name for rig, name in app.services() if rig == bus.rig}
-            assert {"cam", "marker"} <= {name for rig, name in app.status() if rig == bus.rig}
+            assert {"capture", "marker-cam0"} <= {name for rig, name in app.services() if rig == bus.rig}
+            assert {"capture", "marker-cam0"} <= {name for rig, name in app.status() if rig == bus.rig}
             assert app.calibration("cam0") is not None
             assert "cam0" in app.frames(timeout_s=START_S)  # the rig's static transforms, asked for
             assert (bus.rig, app.id) in client_states(pipeline, bus.keys, 2.0)  # `artrack status` sees the app
@@ -164,12 +164,13 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
             assert not [key for key in seen if key.startswith("forged")], "an app's put reached the pipeline"
         listed = procs.run("list", "--mode", "client", "--connect", endpoint, "--rig", bus.rig, "--tls-ca", str(pki.ca),
                            "--user", "tracker", "--password-file", str(pki.password_file("tracker")))
-        assert listed.wait(0) == 0 and {"cam", "marker"} <= set(listed.stdout.split()), listed.describe()
+        assert listed.wait(0) == 0 and {"capture", "marker-cam0"} <= set(listed.stdout.split()), listed.describe()
         status = procs.run("status", "--check", "--json", "--mode", "client", "--connect", endpoint, "--rig", bus.rig,
                            "--tls-ca", str(pki.ca), "--user", "dashboard",
                            "--password-file", str(pki.password_file("dashboard")))
         assert status.wait(0) == 0, status.describe()  # an app user may ask for the pipeline's health
-        assert {n["name"] for p in json.loads(status.stdout)["pipelines"] for n in p["nodes"]} == {"cam", "marker"}
+        names = {n["name"] for p in json.loads(status.stdout)["pipelines"] for n in p["nodes"]}
+        assert names == {"capture", "marker-cam0"}
     finally:
         other.close()
         pipeline.close()
