@@ -241,11 +241,11 @@ def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float
 def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
               out: Publisher[MarkerDetections], calibration: _Calibration) -> Iterator[tuple[Image, MarkerDetections]]:
     """Each frame from ``frames`` with its detections by ``live["detector"]`` (replaced by live
-    changes; given the current calibration, if any, for its corner refinement), published on
+    changes; given the calibration known so far, if any, for its corner refinement), published on
     ``out`` once the frame's poses are out: the detections are a side output, and the poses
     should not wait for them."""
     for image in node.inputs(frames):
-        camera = calibration.current()
+        camera = calibration.model  # known now: the first frame does not wait for a CameraInfo to detect
         lens = (camera.K, camera.dist) if camera is not None else (None, None)
         detections = as_message(image.header, dictionary, live["detector"].detect(image.data, *lens))
         yield image, detections

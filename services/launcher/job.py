@@ -31,6 +31,7 @@ from services.launcher.supervisor import Supervisor
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 from services.recorder.reading import NotMcap
+from services.runtime.memory import settle_heap
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +133,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
             log.error("nodes %s did not come up within %.0f s", sorted(set(downstream) - live), START_LIMIT_S)
             return 1
         time.sleep(SETTLE_S)
+        settle_heap()  # this process may be a client too (the demo's): no full collection of its start-up mid-run
         origin = [replace(p, restart=False) for p in processes(spec, bus, sources)]
         source_supervisor = Supervisor(origin)
         source_supervisor.start()
