@@ -100,7 +100,8 @@ class Params(BaseModel):
             scheme, name = check_uri(uri)
             if scheme == "synthetic":
                 typed.update(scene_options(name, self.scene))
-        self.scene = typed
+        if typed != self.scene:  # only when something changed: an untouched field stays unset
+            self.scene = typed
         return self
 
 

@@ -174,3 +174,32 @@ def test_bad_environment_values_name_the_field(variable: str, value: str, field:
         BusConfig.from_env({variable: value})
     assert [error["loc"][0] for error in caught.value.errors()] == [field]
     assert value in str(caught.value)
+
+
+def test_inputs_and_outputs_follow_from_the_kinds_and_sources_read_nothing(tmp_path):
+    spec = read_pipeline(write(tmp_path, PIPELINE))
+    assert (spec.nodes["cam"].inputs, spec.nodes["cam"].outputs) == ((), ("left/image", "left/camera_info",
+                                                                         "left/truth"))
+    assert (spec.nodes["relay"].inputs, spec.nodes["relay"].outputs) == (("left/image",), ("left/echo",))
+    assert spec.sources() == ["cam"]
+
+
+def test_stated_keys_that_disagree_with_the_parameters_are_refused_naming_both(tmp_path):
+    path = write(tmp_path, PIPELINE + 'inputs = ["right/image"]\n')
+    message = pipeline_error(path)
+    assert "nodes.relay.inputs" in message and "['left/image']" in message and "['right/image']" in message
+    assert read_pipeline(write(tmp_path, PIPELINE + 'inputs = ["left/image"]\n')).nodes["relay"].inputs == (
+        "left/image",)
+
+
+def test_a_saved_pipeline_reads_back_as_the_same_pipeline(tmp_path):
+    from services.launcher.pipeline import save_pipeline, to_toml
+
+    spec = read_pipeline(write(tmp_path, PIPELINE))
+    saved = tmp_path / "saved.toml"
+    save_pipeline(spec, saved, "made by a test\nsecond line")
+    assert saved.read_text().startswith("# made by a test\n# second line\n\n")
+    again = read_pipeline(saved)
+    assert (again.bus, again.supervisor, list(again.nodes)) == (spec.bus, spec.supervisor, list(spec.nodes))
+    assert to_toml(again) == to_toml(spec)
+    assert "scene" not in saved.read_text()  # what was not given is not written
