@@ -76,7 +76,20 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
              "security": _security(args) or None}
     # Only options actually given may override ``base``: an unset option must not erase a pipeline value.
     overrides = {**base, **{k: v for k, v in given.items() if v is not None and v != ()}}
-    return BusConfig.from_env(**overrides)
+    try:
+        return BusConfig.from_env(**overrides)
+    except ValidationError as exc:
+        variables = {field: name for name, field in BusConfig.ENVIRONMENT.variables().items()}
+        problems = []
+        for problem in exc.errors():
+            field = ".".join(str(part) for part in problem["loc"])
+            message = problem["msg"].removeprefix("Value error, ")
+            if not field:
+                problems.append(message)
+                continue
+            where = f"{field} (env {variables[field]})" if field in variables else field
+            problems.append(f"{where}: {message} (given {problem['input']!r})")
+        raise ValueError("bus settings: " + "; ".join(problems)) from exc
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -56,6 +56,15 @@ def test_a_missing_or_invalid_zenoh_config_file_is_named(procs, tmp_path, comman
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.parametrize(("variable", "value", "field"), [("ARTRACK_RETRY", "maybe", "retry"),
+                                                        ("ARTRACK_RIG", "a/b", "rig")])
+def test_a_bad_environment_variable_is_one_line_naming_it(procs, variable, value, field):
+    done = procs.run("list", "--timeout", "0.5", env={variable: value}, timeout=30)
+    assert done.poll() == 2, done.describe()
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"{field} (env {variable})" in lines[0] and repr(value) in lines[0], done.stderr
+
+
 def test_peer_started_before_its_router_joins_once_the_router_is_up(bus, procs, unused_endpoint):
     """Peer mode does not fail when the router is missing: it runs alone and connects when one appears."""
     import zenoh
