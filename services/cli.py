@@ -128,10 +128,7 @@ def cmd_config(args: argparse.Namespace) -> int:
         name, sep, text = option.partition("=")
         if not sep or not name:
             raise ValueError(f"--set {option!r}: give FIELD=VALUE")
-        try:
-            values[name] = json.loads(text)
-        except json.JSONDecodeError:
-            values[name] = text
+        values[name] = text  # the node converts it by the field's type
     bus = _bus(args)
     session = open_session(bus)
     try:
@@ -557,8 +554,8 @@ def parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("config", help="change a running node's live parameters (or show them, without --set)")
     p.add_argument("node", metavar="NODE", help="the node's name")
-    p.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a parameter to change, VALUE as JSON "
-                   "(a bare word is a string); repeatable, applied all or none")
+    p.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a parameter to change, VALUE converted "
+                   "by the field's type (a list or mapping as JSON); repeatable, applied all or none")
     p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for the answer")
     _bus_options(p)
     p.set_defaults(func=cmd_config)

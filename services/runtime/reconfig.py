@@ -15,8 +15,9 @@ from __future__ import annotations
 import json
 import threading
 import time
+import types
 from collections.abc import Callable
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
 
@@ -83,11 +84,19 @@ class LiveParams(Generic[P]):
         return {name: json.dumps(dumped[name]) for name in sorted(reloadable(type(self.value)))}
 
     def answer(self, node: str, change: ConfigChange) -> ConfigAnswer:
-        """Apply ``change`` (values as JSON text) and say what happened."""
+        """Apply ``change`` (values as JSON text) and say what happened.
+
+        A value that arrives as a JSON string for a list or mapping field is that field's JSON
+        (``artrack config --set`` sends what was typed as text; the node knows the field's type).
+        """
         values, bad = {}, {}
+        fields = type(self.value).model_fields
         for name, text in change.values.items():
             try:
-                values[name] = json.loads(text)
+                value = json.loads(text)
+                if isinstance(value, str) and name in fields and _container(fields[name].annotation):
+                    value = json.loads(value)
+                values[name] = value
             except json.JSONDecodeError as exc:
                 bad[name] = f"not JSON: {exc}"
         try:
@@ -101,3 +110,10 @@ class LiveParams(Generic[P]):
     def _answer(self, node: str, **outcome: dict[str, str]) -> ConfigAnswer:
         return ConfigAnswer(header=Header(stamp_ns=time.time_ns()), node=node, params=self.reloadable_values(),
                             **outcome)
+
+
+def _container(annotation: Any) -> bool:
+    """True for a list, tuple, set or dict type, optional or not."""
+    if get_origin(annotation) in (Union, types.UnionType):
+        return any(_container(arg) for arg in get_args(annotation) if arg is not type(None))
+    return get_origin(annotation) in (list, tuple, set, dict)

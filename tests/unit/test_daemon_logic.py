@@ -99,6 +99,19 @@ def test_live_params_answer_is_all_or_nothing_and_apply_may_refuse():
     assert "not JSON" in not_json.refused["marker_length"]
 
 
+def test_values_given_as_text_are_converted_by_the_fields_types():
+    live = LiveParams(MarkerParams(marker_length=0.05))
+    text = {"marker_length": "0.06", "refinement": "subpix", "lengths": '{"3": 0.1}',
+            "parameters": '{"minMarkerPerimeterRate": 0.05}'}
+    answer = live.answer("m", ConfigChange(header=Header(stamp_ns=1),
+                                           values={k: json.dumps(v) for k, v in text.items()}))
+    assert answer.refused == {}, answer.refused
+    assert (live.value.marker_length, live.value.refinement) == (0.06, "subpix")
+    assert (live.value.lengths, live.value.parameters) == ({3: 0.1}, {"minMarkerPerimeterRate": 0.05})
+    bad = live.answer("m", ConfigChange(header=Header(stamp_ns=1), values={"lengths": json.dumps("{3: x")}))
+    assert "lengths" in bad.refused and "not JSON" in bad.refused["lengths"]
+
+
 def test_plan_reload_yields_live_changes(tmp_path):
     running = _spec(tmp_path, markers='camera = "cam0"')
     wanted = _spec(tmp_path, markers='camera = "cam0"\nmarker_length = 0.1', name="q.toml", fps=25)
