@@ -103,11 +103,3 @@ def kind(name: str) -> NodeKind:
     if not isinstance(declared, NodeKind) or declared.name != name:
         raise DiscoveryError(f"{modules[name]}: KIND is not a NodeKind named {name!r}")
     return declared
-
-
-def kind_module(name: str) -> str:
-    """The module declaring node kind ``name`` (ValueError listing the known kinds)."""
-    modules = catalogue().kinds
-    if name not in modules:
-        raise ValueError(f"unknown node kind {name!r} (known: {', '.join(sorted(modules))})")
-    return modules[name]

@@ -136,10 +136,6 @@ class Supervisor:
                                 now - c.started if c.process else 0.0, c.restarts, c.exit_code)
                     for name, c in self._children.items()]
 
-    def pids(self) -> dict[str, int]:
-        """Pid of every child that is running now."""
-        return {name: c.process.pid for name, c in self._children.items() if c.process and c.process.poll() is None}
-
     def exit_codes(self) -> dict[str, int | None]:
         """The code each child last exited with (None while it never has)."""
         return {name: c.exit_code for name, c in self._children.items()}
