@@ -20,12 +20,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--idle-timeout", type=float, metavar="S", help="stop after S seconds without a pose")
     args = parser.parse_args(argv)
     with connect(app="track_marker") as ar:
-        for n, update in enumerate(ar.poses(args.target, idle_timeout_s=args.idle_timeout), start=1):
-            x, y, z = update.pose.transform.translation
-            print(f"{update.target} frame {update.pose.header.seq}: {update.pose.state.value} "
-                  f"t = ({x:+.3f}, {y:+.3f}, {z:+.3f}) m, latency {update.latency_ms:.1f} ms", flush=True)
-            if n == args.count:
-                break
+        try:
+            for n, update in enumerate(ar.poses(args.target, idle_timeout_s=args.idle_timeout), start=1):
+                x, y, z = update.pose.transform.translation
+                print(f"{update.target} frame {update.pose.header.seq}: {update.pose.state.value} "
+                      f"t = ({x:+.3f}, {y:+.3f}, {z:+.3f}) m, latency {update.latency_ms:.1f} ms", flush=True)
+                if n == args.count:
+                    break
+        except KeyboardInterrupt:  # Ctrl-C is how a user stops following
+            pass
     return 0
 
 

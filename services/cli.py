@@ -14,6 +14,7 @@ import socket
 import sys
 import threading
 from collections.abc import Callable
+from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -139,9 +140,14 @@ def cmd_config(args: argparse.Namespace) -> int:
         log.error("no node answered on %s within %.1f s (is %s running, and does its kind take live changes?)",
                   bus.keys.config(args.node), args.timeout, args.node)
         return 1
-    print(json.dumps({"node": answer.node, "applied": answer.applied, "refused": answer.refused,
-                      "params": answer.params}))
+    print(json.dumps({"node": answer.node, "applied": _from_json(answer.applied), "refused": answer.refused,
+                      "params": _from_json(answer.params)}))
     return 1 if answer.refused else 0
+
+
+def _from_json(values: dict[str, str]) -> dict[str, object]:
+    """Values that travel as JSON text, as values (so they are not quoted twice when printed)."""
+    return {name: json.loads(text) for name, text in values.items()}
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -532,6 +538,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")
+    top.add_argument("--version", action="version", version=f"artrack {metadata.version('artrack')}")
     top.add_argument("--log-format", choices=FORMATS, help=f"log lines as text or JSON objects (env {FORMAT_ENV}; "
                      "default text); `up` passes it on to its nodes")
     sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -115,17 +115,18 @@ class Export:
         if not seen & wanted:
             raise ExportError(f"no key {self.key!r} in {self.path} (keys: {', '.join(sorted(seen)) or 'none'})")
 
-    def transforms(self, *, estimated_only: bool = False) -> Iterator[tuple[int, Transform]]:
-        """``(header.stamp_ns, transform)`` of every pose on the key, as ``tum`` writes them.
+    def transforms(self) -> Iterator[tuple[int, Transform]]:
+        """``(header.stamp_ns, transform)`` of every estimated pose on the key, as ``tum`` writes them.
 
-        ``estimated_only`` skips ``Pose`` messages that carry no estimate (states other than
-        tracking and predicted: lost, initialising, no calibration). Raises ``ExportError`` as ``lines()``.
+        ``Pose`` messages that carry no estimate (states other than tracking and predicted: lost,
+        initialising, no calibration) are left out: their transform is a placeholder, no place
+        on a trajectory. Raises ``ExportError`` as ``lines()``.
         """
         for _, _, message in self._messages():
             if isinstance(message, Pose):
                 if self.child is not None and message.child_frame_id != self.child:
                     continue
-                if estimated_only and message.state not in ESTIMATED:
+                if message.state not in ESTIMATED:
                     continue
                 transforms = [message.transform]
             elif isinstance(message, GroundTruth):

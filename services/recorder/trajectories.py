@@ -121,7 +121,7 @@ def read_recording(path: Path | str, key: str | None, child: str | None = None) 
     if not key:
         raise TrajectoryError(f"{path} is a recording: name the pose key to read (--est-key / --gt-key)")
     job = Export(path, key, "tum", child=child)
-    stamped = list(job.transforms(estimated_only=True))
+    stamped = list(job.transforms())
     if job.damage is not None:
         log.warning("%s is damaged: %s; read its intact part", path, job.damage)
     poses = [from_quaternion_translation(np.array(t.rotation), np.array(t.translation)) for _, t in stamped]

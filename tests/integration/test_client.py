@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -47,6 +48,15 @@ def test_the_example_app_prints_marker_poses_with_their_latency(bus, procs, sess
     latencies = [float(row[6]) for row in rows]
     assert all(0.05 < z < 5.0 for z in depths), depths  # the scene's camera stays 0.2-2 m from its board
     assert all(0.0 < ms < 2000.0 for ms in latencies), latencies
+
+
+def test_ctrl_c_stops_the_example_app_quietly(bus, procs, session):
+    start_pipeline(procs, session, bus.keys)
+    app = procs.start([sys.executable, str(EXAMPLE), "cam0/**"], name="example")
+    wait_until(lambda: "frame" in app.stdout, START_S, "the app's first pose")
+    app.popen.send_signal(signal.SIGINT)
+    assert app.wait(START_S) == 0, app.describe()
+    assert "Traceback" not in app.stderr and "KeyboardInterrupt" not in app.stderr, app.stderr
 
 
 def test_iterators_callbacks_latest_and_queries(bus, procs, session):

@@ -148,7 +148,7 @@ def test_sighup_and_config_change_live_parameters(bus, procs, session, tmp_path)
         wait_until(lambda: "running pipeline is unchanged" in launcher.stderr, START_S, "the reload to be refused")
         assert "node cam: field scene is not reloadable" in launcher.stderr
         shown = procs.run("config", "cam", timeout=30)
-        assert shown.poll() == 0 and json.loads(shown.stdout)["params"] == {"fps": "40.0"}
+        assert shown.poll() == 0 and json.loads(shown.stdout)["params"] == {"fps": 40.0}
 
         # artrack config: a detector threshold no marker passes -> detections go empty.
         done = procs.run("config", "markers", "--set", 'parameters={"minMarkerPerimeterRate": 3.9}', timeout=30)
@@ -196,6 +196,7 @@ marker_length = 0.05
         # Corner noise 0.5 -> 2 px: covariances 16 times larger (the view moves a little meanwhile).
         done = procs.run("config", "marker", "--set", "corner_sigma_px=2.0", timeout=30)
         assert done.poll() == 0 and json.loads(done.stdout)["refused"] == {}, done.describe()
+        assert json.loads(done.stdout)["params"]["corner_sigma_px"] == 2.0  # a value, not JSON text
         applied_by = max(p.header.seq for p in [before, *collect(poses, 0)]) + 1  # frames after it saw the change
         after = _tracking_after(poses, applied_by, before.child_frame_id)
         scale = np.diag(np.reshape(after.covariance, (6, 6))) / np.diag(np.reshape(before.covariance, (6, 6)))

@@ -129,3 +129,14 @@ def test_a_template_without_kinds_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr("services.launcher.tracker.catalogue", lambda: type("C", (), {"trackers": {"broken": broken}}))
     with pytest.raises(PipelineError, match="each \\[nodes.NAME\\] table needs a kind"):
         Tracker.load("broken")
+
+
+def test_artrack_version_names_the_installed_release(capsys):
+    from importlib import metadata
+
+    from services.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.strip() == f"artrack {metadata.version('artrack')}"

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from protocol import Header, Image, Pose, encode, to_json
+from protocol.poses import TrackingState
 from protocol.spatial import Transform
 from services.recorder.export import Export, ExportError, flatten, tum_line
 from services.recorder.info import format_info, summarise
@@ -53,6 +54,17 @@ def test_tum_lines_are_exact():
 
 def test_flatten_names_nested_fields_by_path():
     assert flatten({"a": {"b": [1, {"c": None}]}, "d": "x", "e": []}) == {"a.b.0": 1, "a.b.1.c": None, "d": "x"}
+
+
+def test_tum_export_leaves_out_poses_without_an_estimate(tmp_path):
+    path = tmp_path / "lost.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "r"})
+    for i in range(4):
+        lost = pose(i).model_copy(update={"state": TrackingState.LOST, "transform": Transform()}) if i == 2 else pose(i)
+        writer.write("ar/r/pose/m", encode(lost), (i + 1) * MS)
+    writer.close()
+    assert list(Export(path, "pose/m", "tum").lines()) == [
+        tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 1, 3)]
 
 
 def test_tum_export_of_poses_with_and_without_a_child_filter(recording):
