@@ -232,6 +232,8 @@ def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None)
         return VideoSource(uri, int(rest), live=True)
     if scheme == "video":
         path = Path(rest).expanduser()
+        if path.is_dir():
+            raise SourceError(f"{uri}: a folder, not a video file (a folder of images is images:{rest})")
         if not path.is_file():
             raise SourceError(f"{uri}: no such file")
         return VideoSource(uri, str(path), live=False)

@@ -81,6 +81,7 @@ def test_synthetic_scene_frames_carry_truth_and_calibration():
 @pytest.mark.parametrize(("uri", "expected"), [
     ("camera:97", "cannot open video device 97"),
     ("video:/no/such/clip.mp4", "no such file"),
+    ("video:/tmp", "a folder, not a video file \\(a folder of images is images:/tmp\\)"),
     ("images:/no/such/folder", "no such folder"),
     ("synthetic:teapot", "unknown scene 'teapot'"),
     ("webcam:0", "is not a source URI"),
