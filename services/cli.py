@@ -95,9 +95,10 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
 
 def cmd_up(args: argparse.Namespace) -> int:
     from services.launcher.daemon import Daemon
-    from services.launcher.pipeline import read_pipeline
+    from services.launcher.pipeline import preflight, read_pipeline
 
     spec = read_pipeline(args.pipeline)
+    preflight(spec, str(args.pipeline))
     daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, **spec.bus))
     stop, hup = threading.Event(), threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -43,6 +43,7 @@ from services.capture.sources import (
     SourceError,
     SourceFrame,
     camera_names,
+    check_source,
     check_uri,
     open_source,
     rig_camera_names,
@@ -268,5 +269,15 @@ def _outputs(params: Params) -> tuple[str, ...]:
     return tuple(f"{name}/{stream}" for name in names for stream in ("image", "camera_info", "truth"))
 
 
+def _check(params: Params) -> None:
+    try:
+        for uri in params.source:
+            check_source(uri)
+    except SourceError as exc:
+        raise ValueError(str(exc)) from exc
+    for path in params.calib:
+        read_camera_info(path)
+
+
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
-                params=Params, run=run, inputs=(), outputs=_outputs)
+                params=Params, run=run, inputs=(), outputs=_outputs, check=_check)

@@ -222,21 +222,30 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
     return rig_camera_names(own)
 
 
-def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None) -> Source:
-    """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless)."""
+def check_source(uri: str) -> tuple[str, str]:
+    """``(scheme, rest)`` of ``uri`` once what can be told without opening it is right: the URI's
+    form, a video file that exists, an image folder that exists (SourceError otherwise)."""
     try:
         scheme, rest = check_uri(uri)
     except ValueError as exc:
         raise SourceError(str(exc)) from exc
+    path = Path(rest).expanduser()
+    if scheme == "video" and path.is_dir():
+        raise SourceError(f"{uri}: a folder, not a video file (a folder of images is images:{rest})")
+    if scheme == "video" and not path.is_file():
+        raise SourceError(f"{uri}: no such file")
+    if scheme == "images" and not path.is_dir():
+        raise SourceError(f"{uri}: no such folder")
+    return scheme, rest
+
+
+def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None) -> Source:
+    """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless)."""
+    scheme, rest = check_source(uri)
     if scheme == "camera":
         return VideoSource(uri, int(rest), live=True)
     if scheme == "video":
-        path = Path(rest).expanduser()
-        if path.is_dir():
-            raise SourceError(f"{uri}: a folder, not a video file (a folder of images is images:{rest})")
-        if not path.is_file():
-            raise SourceError(f"{uri}: no such file")
-        return VideoSource(uri, str(path), live=False)
+        return VideoSource(uri, str(Path(rest).expanduser()), live=False)
     if scheme == "images":
         return ImageFolderSource(uri, Path(rest).expanduser())
     return SceneSource(uri, rest, frames, scene_options or {})

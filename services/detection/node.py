@@ -55,5 +55,9 @@ def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDet
                             quality=found.quality, side_m=found.side_m)
 
 
+def _check(params: Params) -> None:
+    params.detector()
+
+
 KIND = NodeKind(name="markers", summary="detects ArUco/AprilTag markers in a camera's frames",
-                params=Params, run=run, inputs=("{camera}/image",), outputs=("{camera}/markers",))
+                params=Params, run=run, inputs=("{camera}/image",), outputs=("{camera}/markers",), check=_check)

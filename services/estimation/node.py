@@ -48,12 +48,12 @@ from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.calibration.camera_info import CalibrationError, read_camera_info
+from services.calibration.camera_info import read_camera_info
 from services.convert import camera_model, transform_from_matrix
 from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
-from services.estimation.marker_map import MarkerMap, MarkerMapError, load_marker_map
+from services.estimation.marker_map import MarkerMap, load_marker_map
 from services.estimation.marker_pose import DEFAULT_METHOD, FrameEstimate, MarkerPoseEstimator, Method
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
@@ -191,12 +191,22 @@ class _Overlay:
         self._out.put(Image(header=header, encoding="bgr8", data=drawn))
 
 
+def _prepare(params: Params) -> tuple[MarkerMap | None, CameraModel | None, MarkerDetector | None]:
+    """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be had."""
+    board = load_marker_map(params.board) if params.board else None
+    fixed = read_camera_info(params.calib) if params.calib else None
+    detector = params.detector(*_board_markers(board)) if params.input == "images" else None
+    return board, fixed, detector
+
+
+def _check(params: Params) -> None:
+    _prepare(params)
+
+
 def run(node: Node, params: Params) -> None:
     try:
-        board = load_marker_map(params.board) if params.board else None
-        fixed = read_camera_info(params.calib) if params.calib else None
-        detector = params.detector(*_board_markers(board)) if params.input == "images" else None
-    except (MarkerMapError, CalibrationError, ValueError) as exc:
+        board, fixed, detector = _prepare(params)
+    except ValueError as exc:
         raise NodeError(str(exc)) from exc
     estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
     live: dict[str, MarkerDetector] = {} if detector is None else {"detector": detector}
@@ -288,4 +298,4 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 KIND = NodeKind(name="marker_pose",
                 summary="marker and board poses from a camera's frames (or a markers node's detections)",
-                params=Params, run=run, inputs=_inputs, outputs=_outputs)
+                params=Params, run=run, inputs=_inputs, outputs=_outputs, check=_check)

@@ -26,7 +26,7 @@ from services.bus.discovery import node_states
 from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
 from services.launcher.observe import wait_for_nodes
-from services.launcher.pipeline import NodeSpec, PipelineSpec, processes, resolved
+from services.launcher.pipeline import NodeSpec, PipelineSpec, preflight, processes, resolved
 from services.launcher.supervisor import Supervisor
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
@@ -120,6 +120,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
     sources = spec.sources()
     if not sources:
         raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
+    preflight(spec, "job")
     downstream = [name for name in spec.nodes if name not in sources]
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

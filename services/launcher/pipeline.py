@@ -124,6 +124,18 @@ def resolved(spec: PipelineSpec, where: str = "pipeline") -> PipelineSpec:
     return spec.model_copy(update={"nodes": nodes})
 
 
+def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
+    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name),
+    so a pipeline that cannot start is refused before any process starts: PipelineError naming
+    ``where``, the node and the reason."""
+    for name, node in spec.nodes.items():
+        node_kind = kind(node.kind)
+        try:
+            node_kind.preflight(node_kind.validate(node.params))
+        except (ValueError, OSError) as exc:
+            raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+
+
 def read_pipeline(path: Path) -> PipelineSpec:
     """Load and fully validate a pipeline file (raises PipelineError)."""
     try:
@@ -187,4 +199,4 @@ def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None
 
 
 __all__ = ["NodeSpec", "PipelineError", "PipelineSpec", "describe", "node_command", "params_model",
-           "processes", "read_pipeline", "resolved", "save_pipeline", "to_toml"]
+           "preflight", "processes", "read_pipeline", "resolved", "save_pipeline", "to_toml"]

@@ -177,5 +177,9 @@ def _inputs(params: Params) -> tuple[str, ...]:
     return tuple(params.keys) or ("**",)
 
 
+def _check(params: Params) -> None:
+    check_target(params.out)
+
+
 KIND = NodeKind(name="recorder", summary="records the rig's keys to MCAP files",
-                params=Params, run=run, inputs=_inputs, outputs=())
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check)

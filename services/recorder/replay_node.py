@@ -45,7 +45,7 @@ from protocol.sensors import Image
 from protocol.system import ErrorReport, NodeStats, ReplayCommand, ReplayControl, ReplayStatus
 from services.bus.pubsub import RawPublisher, Role
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
-from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded
+from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded, Scan
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node
 
@@ -290,5 +290,9 @@ def _outputs(params: Params) -> tuple[str, ...]:
     return tuple(params.keys) or ("**",)
 
 
+def _check(params: Params) -> None:
+    Scan(params.path)
+
+
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
-                params=Params, run=run, inputs=(), outputs=_outputs)
+                params=Params, run=run, inputs=(), outputs=_outputs, check=_check)

@@ -16,6 +16,10 @@ A node module ends with::
 ``camera`` field), or a function of the parameters when the wiring depends on them. The
 launcher finds ``KIND`` by walking the packages it searches (no table lists the kinds), so
 ``name`` must be a string literal.
+
+``check`` (optional) looks at what the parameters name outside the process, files, folders,
+dictionaries, so a launcher can refuse a pipeline before any process starts; it raises
+ValueError with one line saying what and why.
 """
 
 from __future__ import annotations
@@ -42,10 +46,16 @@ class NodeKind:
     run: Callable[[Node, Any], int | None]
     inputs: Keys = ()
     outputs: Keys = ()
+    check: Callable[[Any], None] | None = None
 
     def validate(self, values: dict[str, Any]) -> BaseModel:
         """Validated parameters (pydantic's ValidationError names the field otherwise)."""
         return self.params.model_validate(values)
+
+    def preflight(self, params: BaseModel) -> None:
+        """Run ``check`` on validated ``params`` (ValueError naming the problem); nothing without one."""
+        if self.check is not None:
+            self.check(params)
 
     def keys(self, params: BaseModel) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """``(inputs, outputs)`` of a node with ``params``, relative to the rig prefix."""

@@ -94,5 +94,10 @@ def _inputs(params: Params) -> tuple[str, ...]:
             "node/*/errors")
 
 
+def _check(params: Params) -> None:
+    if params.rrd is not None and not params.rrd.parent.is_dir():
+        raise ValueError(f"cannot write {params.rrd}: folder {params.rrd.parent} does not exist")
+
+
 KIND = NodeKind(name="viewer", summary="logs the rig to Rerun: an .rrd file and/or a gRPC server",
-                params=Params, run=run, inputs=_inputs, outputs=())
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check)

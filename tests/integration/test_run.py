@@ -1,5 +1,6 @@
 """``artrack run``: a whole job in processes, recorded, ending with its finite source."""
 
+import pytest
 from mcap.reader import make_reader
 
 from protocol import decode
@@ -60,3 +61,22 @@ def test_run_takes_a_pipeline_file_as_one_job(procs, session, bus, tmp_path):
     assert job.wait(3 * START_S) == 0, job.describe()
     seqs = [image.header.seq for image in collect(echoed, 10)]
     assert seqs == sorted(seqs) and set(seqs) <= set(range(15))
+
+
+@pytest.mark.parametrize(("options", "expected"), [
+    (["--record", "{existing}"], "nodes.recorder: {existing} exists"),
+    (["--record", "/no/such/folder/x.mcap"], "nodes.recorder: cannot record to /no/such/folder/x.mcap"),
+    (["--rerun", "/no/such/folder/x.rrd"], "nodes.viewer: cannot write /no/such/folder/x.rrd"),
+    (["--dictionary", "DICT_FOO"], "nodes.marker-cam0: unknown marker dictionary 'DICT_FOO'"),
+    (["--board", "/no/such/board.yaml"], "nodes.marker-cam0: /no/such/board.yaml: cannot read"),
+    (["--calib", "/no/such/cam0.yaml"], "nodes.capture: /no/such/cam0.yaml: cannot read"),
+])
+def test_run_refuses_what_its_nodes_could_not_start_with_before_starting_any(procs, tmp_path, options, expected):
+    existing = tmp_path / "taken.mcap"
+    existing.write_bytes(b"")
+    options = [o.format(existing=existing) for o in options]
+    job = procs.run("run", "marker", "--source", "synthetic:markers", "--frames", "5", "--marker-length", "0.05",
+                    *options)
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and expected.format(existing=existing) in lines[0], job.stderr
