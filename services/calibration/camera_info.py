@@ -37,6 +37,8 @@ def _matrix(document: dict, field: str, rows: int, cols: int | None, path: Path)
     data = entry.get("data") if isinstance(entry, dict) else None
     if not isinstance(data, list) or not all(isinstance(v, int | float) for v in data):
         raise CalibrationError(f"{path}: {field}.data must be a list of numbers")
+    if not np.isfinite(np.asarray(data, dtype=np.float64)).all():
+        raise CalibrationError(f"{path}: {field}.data holds a value that is not finite (nan or inf)")
     if cols is None:
         return np.asarray(data, dtype=np.float64)
     if len(data) != rows * cols:

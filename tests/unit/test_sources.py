@@ -122,6 +122,9 @@ def test_camera_info_yaml_round_trip(tmp_path):
     ("image_width: 0\n", "image_width must be a positive integer"),
     ("image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: [1, 2]}\n", "needs 9 numbers"),
     ("image_width: 640\nimage_height: 480\ndistortion_model: equidistant\n", "plumb_bob only"),
+    ("image_width: 640\nimage_height: 480\n"
+     "camera_matrix: {rows: 3, cols: 3, data: [.nan, 0, 320, 0, 500, 240, 0, 0, 1]}\n",
+     "camera_matrix.data holds a value that is not finite"),
     ("[unclosed", "not valid YAML"),
 ])
 def test_bad_camera_info_names_the_field(tmp_path: Path, text: str, expected: str):
