@@ -239,13 +239,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.pipeline import NodeSpec, read_pipeline, save_pipeline
     from services.launcher.tracker import Tracker
 
-    if args.tracker is None or args.tracker in ("-h", "--help"):
+    asked = args.tracker in ("-h", "--help") or (args.tracker is None and {"-h", "--help"} & set(args.rest))
+    if args.tracker is None or asked:
         trackers = catalogue().trackers
         print("usage: artrack run TRACKER --source URI [options]   (artrack run TRACKER --help: its options)\n"
               "       artrack run PIPELINE.toml                     (a pipeline file run as one job)\ntrackers:")
         for name in sorted(trackers):
             print(f"  {name:<10} {Tracker.load(name).summary}")
-        return 0 if args.tracker else 2
+        return 0 if asked else 2
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = read_pipeline(Path(args.tracker))

@@ -19,7 +19,7 @@ the same in all of them; a flag set on the command line applies to every node ha
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +83,7 @@ class Tracker:
                 if clash is None:
                     chosen[flag.field] = flag
                 elif clash.info.annotation != flag.info.annotation:
-                    renamed = flags_for(model, set(model.model_fields) - {flag.field}, owner=kind_name)[0]
+                    renamed = replace(flag, option=f"--{kind_name}-{flag.field}".replace("_", "-"), owner=kind_name)
                     chosen[renamed.key] = renamed
         return list(chosen.values())
 

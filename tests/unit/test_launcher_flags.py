@@ -140,3 +140,12 @@ def test_artrack_version_names_the_installed_release(capsys):
         main(["--version"])
     assert done.value.code == 0
     assert capsys.readouterr().out.strip() == f"artrack {metadata.version('artrack')}"
+
+
+def test_artrack_run_help_lists_the_trackers_and_succeeds_while_no_tracker_is_an_error(capsys):
+    from services.cli import main
+
+    assert main(["run", "--help"]) == 0
+    listed = capsys.readouterr().out
+    assert "marker" in listed and "echo" in listed and "artrack run TRACKER --help" in listed
+    assert main(["run"]) == 2
