@@ -24,6 +24,7 @@ from typing import Literal
 
 import numpy as np
 
+from services.geometry.absolute_orientation import umeyama_alignment
 from services.geometry.rotation import rotation_angle
 
 __all__ = [
@@ -118,28 +119,16 @@ def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False)
 
     ``source``, ``target``: (N, 3) float64 matched points (N >= 2), or (N, 4, 4) poses whose positions
     are used. ``with_scale=False`` keeps ``s = 1`` (SE(3)); ``True`` also solves for the scale (Sim(3)).
-    Closed form of Umeyama (1991): SVD of the cross-covariance, with the reflection removed. Points on
-    one line leave the rotation about that line free (any of them fits equally well).
+    Closed form of Umeyama (1991), ``absolute_orientation.umeyama_alignment``. Points on one line leave
+    the rotation about that line free (any of them fits equally well).
     """
     src, dst = _positions("source", source), _positions("target", target)
     _same_length(src, dst)
     if len(src) < 2:
         raise ValueError(f"an alignment needs at least 2 matched positions, got {len(src)}")
-    mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
-    src_c, dst_c = src - mu_src, dst - mu_dst
-    covariance = dst_c.T @ src_c / len(src)
-    U, D, Vt = np.linalg.svd(covariance)
-    S = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2] = -1.0
-    R = U @ np.diag(S) @ Vt
-    s = 1.0
-    if with_scale:
-        variance = float(np.mean(np.sum(src_c**2, axis=1)))
-        if variance <= 0.0:
-            raise ValueError("a Sim(3) alignment needs estimated positions that are not all the same point")
-        s = float(np.dot(D, S) / variance)
-    return Similarity(R, mu_dst - s * R @ mu_src, s)
+    if with_scale and not np.any(src != src[0]):
+        raise ValueError("a Sim(3) alignment needs estimated positions that are not all the same point")
+    return Similarity(*umeyama_alignment(src, dst, with_scale))
 
 
 def apply_similarity(alignment: Similarity, poses: np.ndarray) -> np.ndarray:

@@ -1,0 +1,249 @@
+"""Rigid bodies of spheres found among measured 3D points, and their poses.
+
+A body is (N, 3) float64 sphere centres in its own frame (N >= 3). The points are (M, 3) float64
+sphere centres measured in the world frame, in no particular order, among them ghosts, other
+bodies' spheres and stray markers. Matching runs in three steps:
+
+1. ``body_candidates``: for one body, every assignment of spheres to points whose pairwise
+   distances all agree with the body's to within ``distance_tolerance`` (an interpretation tree:
+   spheres taken in order, each new one tried only on points at the right distance from every
+   point already chosen). A body of four or more spheres may leave one sphere unassigned
+   (hidden); a three-sphere body needs all three. Each assignment is verified by a rigid fit
+   (``fit_rigid``, least squares): its residual RMS must be within ``gate_rms``.
+2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
+   whole set at once: the most bodies, then the most spheres, then the least total squared
+   residual (a branch and bound over the bodies), so a body listed first never takes a point
+   another body needs.
+3. Each chosen body carries its ``RigidFit``: ``T_world_body``, residual RMS and, when point
+   covariances are given, the pose covariance. Points no body took are listed as unassigned.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.geometry.absolute_orientation import RigidFit, fit_rigid
+
+__all__ = [
+    "DEFAULT_OPTIONS",
+    "BodyMatch",
+    "Candidate",
+    "Matching",
+    "MatchOptions",
+    "body_candidates",
+    "check_points",
+    "match_bodies",
+    "pairwise_distances",
+]
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """``distance_tolerance``: largest difference (m) between a measured and a body's pairwise distance;
+    ``gate_rms``: largest residual RMS (m) of a body's rigid fit; ``allow_missing``: a body of four or more
+    spheres may be matched with one sphere hidden; ``max_candidates``: assignments kept per body (the
+    best: most spheres, then least residual) for the global choice."""
+
+    distance_tolerance: float = 0.003
+    gate_rms: float = 0.002
+    allow_missing: bool = True
+    max_candidates: int = 32
+
+    def __post_init__(self) -> None:
+        for name in ("distance_tolerance", "gate_rms"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0 (metres), got {value!r}")
+        if isinstance(self.max_candidates, bool) or not isinstance(self.max_candidates, int) \
+                or self.max_candidates < 1:
+            raise ValueError(f"max_candidates must be an integer >= 1, got {self.max_candidates!r}")
+
+
+DEFAULT_OPTIONS = MatchOptions()
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One verified assignment of a body: ``indices`` (N,) int64, the point index per sphere (-1: hidden),
+    and the rigid fit over the assigned spheres."""
+
+    indices: np.ndarray
+    fit: RigidFit
+
+    @property
+    def used(self) -> np.ndarray:
+        """(K,) int64 point indices this assignment takes."""
+        return self.indices[self.indices >= 0]
+
+    @property
+    def squared_error(self) -> float:
+        """Sum of squared residuals (m^2) of the fit."""
+        return self.fit.residual_rms**2 * self.fit.count
+
+
+@dataclass(frozen=True)
+class BodyMatch:
+    """A body found: ``name``, ``indices`` (N,) int64 point index per sphere (-1 where the sphere was not
+    seen) and ``fit`` (``T_world_body``, residual RMS in metres, spheres used, optional 6x6 covariance)."""
+
+    name: str
+    indices: np.ndarray
+    fit: RigidFit
+
+    @property
+    def spheres_used(self) -> int:
+        return int(np.count_nonzero(self.indices >= 0))
+
+
+@dataclass(frozen=True)
+class Matching:
+    """``bodies``: name -> BodyMatch for every body found (bodies not found are absent);
+    ``unassigned``: (K,) int64 sorted indices of the points no body took."""
+
+    bodies: dict[str, BodyMatch] = field(default_factory=dict)
+    unassigned: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    """``points`` as an (M, 3) float64 array of finite values, else ValueError naming ``name``."""
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must be (M, 3) points, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite, got NaN or infinity")
+    return array
+
+
+def pairwise_distances(points: np.ndarray) -> np.ndarray:
+    """(M, M) float64 Euclidean distances between the rows of (M, 3) ``points``."""
+    difference = points[:, None, :] - points[None, :, :]
+    return np.sqrt(np.sum(difference**2, axis=2))
+
+
+def body_candidates(spheres: np.ndarray, points: np.ndarray, options: MatchOptions = DEFAULT_OPTIONS,
+                    covariances: np.ndarray | None = None,
+                    distances: np.ndarray | None = None) -> list[Candidate]:
+    """Every verified assignment of one body's spheres to points, best first (most spheres, least residual).
+
+    ``spheres``: (N, 3) float64, body frame, N >= 3; ``points``: (M, 3) float64, world frame;
+    ``covariances``: (M, 3, 3) of the points (m^2) for the fits' covariances, or None; ``distances``:
+    the points' (M, M) ``pairwise_distances`` when already known. At most ``options.max_candidates``.
+    """
+    spheres = check_points(spheres, "spheres")
+    points = check_points(points)
+    n = len(spheres)
+    if n < 3:
+        raise ValueError(f"a body needs at least 3 spheres, got {n}")
+    body_distances = pairwise_distances(spheres)
+    point_distances = pairwise_distances(points) if distances is None else distances
+    may_miss = 1 if options.allow_missing and n >= 4 else 0
+    tolerance = options.distance_tolerance
+    assignments: list[list[int]] = []
+
+    def extend(assigned: list[int], missing: int) -> None:
+        k = len(assigned)
+        if k == n:
+            assignments.append(list(assigned))
+            return
+        allowed = np.ones(len(points), bool)
+        for sphere, point in enumerate(assigned):
+            if point >= 0:
+                allowed &= np.abs(point_distances[point] - body_distances[k, sphere]) <= tolerance
+                allowed[point] = False
+        for candidate in np.flatnonzero(allowed).tolist():
+            assigned.append(candidate)
+            extend(assigned, missing)
+            assigned.pop()
+        if missing < may_miss:
+            assigned.append(-1)
+            extend(assigned, missing + 1)
+            assigned.pop()
+
+    extend([], 0)
+    candidates = []
+    for assignment in assignments:
+        indices = np.array(assignment, dtype=np.int64)
+        seen = indices >= 0
+        try:
+            fit = fit_rigid(spheres[seen], points[indices[seen]],
+                            None if covariances is None else covariances[indices[seen]])
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if fit.residual_rms <= options.gate_rms:
+            candidates.append(Candidate(indices, fit))
+    candidates.sort(key=lambda c: (-c.fit.count, c.fit.residual_rms))
+    return candidates[:options.max_candidates]
+
+
+def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
+                 covariances: np.ndarray | None = None, options: MatchOptions = DEFAULT_OPTIONS) -> Matching:
+    """Find the bodies among the points, each point used by at most one body.
+
+    ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points_world``: (M, 3) float64,
+    world frame; ``covariances``: (M, 3, 3) float64 point covariances (m^2), or None (then the fits
+    carry no covariance). The choice maximises, over all bodies together, the number of bodies found,
+    then the number of spheres used, then minimises the total squared residual.
+    """
+    points = check_points(points_world, "points_world")
+    if covariances is not None:
+        covariances = np.asarray(covariances, dtype=np.float64)
+        if covariances.shape != (len(points), 3, 3):
+            raise ValueError(f"covariances must be ({len(points)}, 3, 3), one per point, got shape "
+                             f"{covariances.shape}")
+    distances = pairwise_distances(points)
+    names = list(bodies)
+    options_per_body = [body_candidates(bodies[name], points, options, covariances, distances) for name in names]
+    choice = _best_choice(options_per_body, len(points))
+    matched = {names[k]: BodyMatch(names[k], c.indices, c.fit) for k, c in enumerate(choice) if c is not None}
+    taken = np.zeros(len(points), bool)
+    for match in matched.values():
+        taken[match.indices[match.indices >= 0]] = True
+    return Matching(matched, np.flatnonzero(~taken).astype(np.int64))
+
+
+Score = tuple[int, int, float]
+"""(bodies found, spheres used, minus the total squared residual): larger is better."""
+
+
+def _best_choice(candidates: list[list[Candidate]], point_count: int) -> list[Candidate | None]:
+    """One candidate or None per body, disjoint in points, with the largest ``Score`` (branch and bound)."""
+    # What the bodies from k on could add at best: every one found, each with its best candidate.
+    bodies_left = _suffix_sums([1 if c else 0 for c in candidates])
+    spheres_left = _suffix_sums([max((x.fit.count for x in c), default=0) for c in candidates])
+    error_left = _suffix_sums([min((x.squared_error for x in c), default=0.0) for c in candidates])
+    best_score: Score = (-1, -1, -np.inf)
+    best_choice: list[Candidate | None] = []
+    chosen: list[Candidate | None] = []
+    used = np.zeros(point_count, bool)
+
+    def search(k: int, found: int, spheres: int, error: float) -> None:
+        nonlocal best_score, best_choice
+        bound = (found + bodies_left[k], spheres + spheres_left[k], -(error + error_left[k]))
+        if bound <= best_score:
+            return
+        if k == len(candidates):
+            best_score, best_choice = (found, spheres, -error), list(chosen)
+            return
+        for candidate in candidates[k]:
+            taken = candidate.used
+            if used[taken].any():
+                continue
+            used[taken] = True
+            chosen.append(candidate)
+            search(k + 1, found + 1, spheres + candidate.fit.count, error + candidate.squared_error)
+            chosen.pop()
+            used[taken] = False
+        chosen.append(None)
+        search(k + 1, found, spheres, error)
+        chosen.pop()
+
+    search(0, 0, 0, 0.0)
+    return best_choice
+
+
+def _suffix_sums(values: list) -> list:
+    """``[sum(values[k:]) for k in 0..len(values)]`` (the last is 0)."""
+    return [sum(values[k:]) for k in range(len(values) + 1)]

@@ -1,0 +1,199 @@
+"""Absolute orientation: the rigid transform that carries matched points of one frame onto another.
+
+Given sphere centres ``points_body`` (N, 3) in a body frame and the same spheres measured as
+``points_world`` (N, 3) in the world frame (row i of one matched to row i of the other), find
+``T_world_body`` with ``points_world ~ R points_body + t``:
+
+* ``three_point_transform``: the closed form from exactly three points (Horn's triad method): an
+  orthonormal frame is built on each triangle (x along the first edge, z normal to the triangle,
+  y completing it), the rotation is the one taking the body triad onto the world triad, and the
+  translation takes the body centroid onto the world centroid.
+* ``umeyama_alignment`` / ``least_squares_transform``: the least-squares solution over all points
+  (SVD of the cross-covariance, reflection removed; Umeyama 1991, Kabsch without scale). This is
+  the default of ``fit_rigid``.
+
+``fit_rigid`` returns the pose with its residual and a 6x6 covariance propagated to first order
+from the (N, 3, 3) covariances of the world points (the body points are taken as exact).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from services.geometry.se3 import make_transform
+
+__all__ = [
+    "METHODS",
+    "Method",
+    "RigidFit",
+    "fit_rigid",
+    "least_squares_transform",
+    "pose_covariance",
+    "pose_jacobians",
+    "three_point_transform",
+    "umeyama_alignment",
+]
+
+Method = Literal["svd", "three_point"]
+METHODS: tuple[str, ...] = ("svd", "three_point")
+COLLINEAR_TOLERANCE = 1e-9
+"""Smallest accepted ratio of a point set's second extent to its first (a triangle's doubled area to its
+squared longest side; the centred points' second singular value to their first)."""
+
+
+def _matched(points_body: np.ndarray, points_world: np.ndarray, least: int) -> tuple[np.ndarray, np.ndarray]:
+    """Both point sets as (N, 3) float64 arrays of the same length N >= ``least``; ValueError otherwise."""
+    body = np.asarray(points_body, dtype=np.float64)
+    world = np.asarray(points_world, dtype=np.float64)
+    for name, array in (("points_body", body), ("points_world", world)):
+        if array.ndim != 2 or array.shape[1] != 3:
+            raise ValueError(f"{name} must be (N, 3) points, got shape {array.shape}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{name} must be finite, got NaN or infinity")
+    if len(body) != len(world):
+        raise ValueError(f"points_body and points_world must be matched row by row: {len(body)} against "
+                         f"{len(world)} points")
+    if len(body) < least:
+        raise ValueError(f"absolute orientation needs at least {least} matched points, got {len(body)}")
+    return body, world
+
+
+def umeyama_alignment(source: np.ndarray, target: np.ndarray,
+                      with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` minimising ``sum_i |target_i - (s R source_i + t)|^2``.
+
+    ``source``, ``target``: (N, 3) float64 matched points, N >= 2. ``R``: (3, 3) proper rotation,
+    ``t``: (3,), ``s``: 1.0 unless ``with_scale``. Closed form of Umeyama (1991): SVD of the
+    cross-covariance with the reflection removed. Points on one line leave the rotation about that
+    line free; with ``with_scale`` the source points must not all coincide (ValueError).
+    """
+    src, dst = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
+    src_c, dst_c = src - mu_src, dst - mu_dst
+    U, D, Vt = np.linalg.svd(dst_c.T @ src_c / len(src))
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = U @ np.diag(S) @ Vt
+    s = 1.0
+    if with_scale:
+        variance = float(np.mean(np.sum(src_c**2, axis=1)))
+        if variance <= 0.0:
+            raise ValueError("a scaled alignment needs source points that are not all the same point")
+        s = float(np.dot(D, S) / variance)
+    return R, mu_dst - s * R @ mu_src, s
+
+
+def least_squares_transform(points_body: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(4, 4) ``T_world_body`` minimising ``sum_i |points_world_i - T_world_body points_body_i|^2``.
+
+    ``points_body``: (N, 3) float64, body frame; ``points_world``: (N, 3) float64, world frame; N >= 3.
+    """
+    body, world = _matched(points_body, points_world, 3)
+    R, t, _ = umeyama_alignment(body, world)
+    return make_transform(R, t)
+
+
+def _triad(points: np.ndarray, name: str) -> np.ndarray:
+    """(3, 3) orthonormal frame (columns x, y, z) of a triangle: x along p1 - p0, z normal to the triangle."""
+    first, second = points[1] - points[0], points[2] - points[0]
+    normal = np.cross(first, second)
+    longest = max(float(np.sum(first**2)), float(np.sum(second**2)), float(np.sum((points[2] - points[1]) ** 2)))
+    if longest == 0.0 or np.linalg.norm(normal) <= COLLINEAR_TOLERANCE * longest:
+        raise ValueError(f"{name}: the three points are collinear (or coincide), no frame can be built on them")
+    x = first / np.linalg.norm(first)
+    z = normal / np.linalg.norm(normal)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def three_point_transform(points_body: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(4, 4) ``T_world_body`` from three matched points (Horn's triad method).
+
+    ``points_body``: (3, 3) float64, rows are points, body frame; ``points_world``: (3, 3) float64,
+    world frame. The rotation takes the body triangle's triad onto the world triangle's; the
+    translation takes the body centroid onto the world centroid. Exact for noise-free points.
+    """
+    body, world = _matched(points_body, points_world, 3)
+    if len(body) != 3:
+        raise ValueError(f"the three-point method takes exactly 3 matched points, got {len(body)}")
+    R = _triad(world, "points_world") @ _triad(body, "points_body").T
+    return make_transform(R, world.mean(axis=0) - R @ body.mean(axis=0))
+
+
+def pose_jacobians(T_world_body: np.ndarray, points_body: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) derivatives of the predicted world points ``T_world_body points_body_i`` by the pose.
+
+    The pose perturbation is ``(dtheta, dt)``: ``R = exp([dtheta]x) R_hat`` and ``t = t_hat + dt``,
+    both in the world frame (see ``fit_rigid``), so the block is ``[-[R_hat b_i]x, I]``.
+    """
+    rotated = np.asarray(points_body, dtype=np.float64) @ np.asarray(T_world_body)[:3, :3].T
+    J = np.zeros((len(rotated), 3, 6))
+    x, y, z = rotated[:, 0], rotated[:, 1], rotated[:, 2]
+    J[:, 0, 1], J[:, 0, 2] = z, -y
+    J[:, 1, 0], J[:, 1, 2] = -z, x
+    J[:, 2, 0], J[:, 2, 1] = y, -x
+    J[:, :, 3:] = np.eye(3)
+    return J
+
+
+def pose_covariance(T_world_body: np.ndarray, points_body: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """(6, 6) first-order covariance of the least-squares pose from (N, 3, 3) world-point covariances.
+
+    The unweighted least-squares estimate moves by ``dx = H^-1 sum_i J_i^T dp_i`` with
+    ``H = sum_i J_i^T J_i`` (``J_i`` from ``pose_jacobians``), so its covariance is the sandwich
+    ``H^-1 (sum_i J_i^T Sigma_i J_i) H^-1``; it equals the inverse information ``(sum_i J_i^T Sigma_i^-1 J_i)^-1``
+    when every ``Sigma_i`` is the same isotropic matrix. Order and frame as in ``fit_rigid``.
+    """
+    J = pose_jacobians(T_world_body, points_body)
+    sigma = np.asarray(covariances, dtype=np.float64)
+    if sigma.shape != (len(J), 3, 3):
+        raise ValueError(f"covariances must be ({len(J)}, 3, 3), one per point, got shape {sigma.shape}")
+    H = np.einsum("nki,nkj->ij", J, J)
+    B = np.einsum("nki,nkl,nlj->ij", J, sigma, J)
+    H_inv = np.linalg.inv(H)
+    covariance = H_inv @ B @ H_inv
+    return (covariance + covariance.T) / 2
+
+
+@dataclass(frozen=True)
+class RigidFit:
+    """A fitted ``T_world_body`` (4, 4); ``residual_rms``: RMS of ``|p_world_i - T p_body_i|`` (m) over the
+    ``count`` points used; ``covariance``: (6, 6) or None when no point covariances were given.
+
+    Covariance order and frame: ``(dtheta_x, dtheta_y, dtheta_z, dt_x, dt_y, dt_z)``, radians then metres,
+    the true pose being ``R = exp([dtheta]x) R_est`` and ``t = t_est + dt``: a small rotation vector about
+    the world axes applied on the left, and the body origin's displacement along the world axes.
+    """
+
+    T_world_body: np.ndarray
+    residual_rms: float
+    count: int
+    covariance: np.ndarray | None = None
+
+
+def fit_rigid(points_body: np.ndarray, points_world: np.ndarray, covariances: np.ndarray | None = None,
+              method: Method = "svd") -> RigidFit:
+    """Fit ``T_world_body`` to matched points and report its residual and, with ``covariances``, its covariance.
+
+    ``points_body``: (N, 3) float64, body frame; ``points_world``: (N, 3) float64, world frame; N >= 3, not
+    all on one line. ``covariances``: (N, 3, 3) float64 covariances of ``points_world`` (m^2), or None.
+    ``method``: ``"svd"`` (least squares over all points, the default) or ``"three_point"`` (N = 3 only).
+    The covariance (see ``RigidFit``) is that of the least-squares solution (``pose_covariance``).
+    """
+    body, world = _matched(points_body, points_world, 3)
+    spread = np.linalg.svd(body - body.mean(axis=0), compute_uv=False)
+    if spread[1] <= COLLINEAR_TOLERANCE * max(spread[0], 1e-300):
+        raise ValueError("points_body lie on one line: the rotation about it is not determined")
+    if method == "svd":
+        T = least_squares_transform(body, world)
+    elif method == "three_point":
+        T = three_point_transform(body, world)
+    else:
+        raise ValueError(f"unknown absolute orientation method {method!r} (use {', '.join(METHODS)})")
+    residual = world - (body @ T[:3, :3].T + T[:3, 3])
+    rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+    covariance = None if covariances is None else pose_covariance(T, body, covariances)
+    return RigidFit(T, rms, len(body), covariance)
