@@ -378,12 +378,10 @@ def write_pdf(sheet: Sheet, path: str | Path, dpi: float = 300) -> None:
     """Write the page as a one-page PDF of the paper's size, each item's image (drawn at ``dpi``) placed at its
     exact size, text and scale bar as vectors. Needs matplotlib (the ``plot`` extra)."""
     try:
-        import matplotlib
+        from matplotlib.figure import Figure
+        from matplotlib.patches import Rectangle
     except ImportError as exc:
         raise ValueError("a PDF sheet needs matplotlib: pip install 'artrack[plot]' (or write a .png)") from exc
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Rectangle
 
     width, height = sheet.size
     figure = Figure(figsize=(width / INCH_M, height / INCH_M))
