@@ -55,6 +55,7 @@ from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
 from services.estimation.marker_map import MarkerMap, load_marker_map
 from services.estimation.marker_pose import DEFAULT_METHOD, FrameEstimate, MarkerPoseEstimator, Method
+from services.estimation.marker_tracking import TargetTracks, marker_detector
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
@@ -142,7 +143,7 @@ class _Poses:
         self._node = node
         self._camera = camera
         self._publishers: dict[str, Publisher[Pose]] = {}
-        self._tracked: set[str] = set()
+        self._tracks = TargetTracks()
 
     def publish(self, poses: list[Pose]) -> None:
         """Send ``poses`` (one frame's), each on its target's key."""
@@ -156,11 +157,9 @@ class _Poses:
     def frame(self, header: Header, tracking: list[Pose]) -> None:
         """Send one frame's ``tracking`` poses, plus one ``lost`` pose for each target tracked in the
         previous frame and not in this one."""
-        tracked = {pose.child_frame_id for pose in tracking}
         lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
-                for child in sorted(self._tracked - tracked)]
+                for child in self._tracks.update(pose.child_frame_id for pose in tracking)]
         self.publish(tracking + lost)
-        self._tracked = tracked
 
 
 class _Overlay:
@@ -195,7 +194,7 @@ def _prepare(params: Params) -> tuple[MarkerMap | None, CameraModel | None, Mark
     """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be had."""
     board = load_marker_map(params.board) if params.board else None
     fixed = read_camera_info(params.calib) if params.calib else None
-    detector = params.detector(*_board_markers(board)) if params.input == "images" else None
+    detector = marker_detector(params, board) if params.input == "images" else None
     return board, fixed, detector
 
 
@@ -216,7 +215,7 @@ def run(node: Node, params: Params) -> None:
         if detector is None and new.tuning() != params.tuning():
             raise ValueError("this node takes a markers node's detections: change that node's detector")
         if detector is not None:
-            live["detector"] = new.detector(*_board_markers(board))
+            live["detector"] = marker_detector(new, board)
         estimator.corner_sigma_px = new.corner_sigma_px
 
     node.configurable(params, apply)
@@ -239,13 +238,6 @@ def run(node: Node, params: Params) -> None:
         if overlay is not None and image is not None:
             overlay.put(image, detections, camera, result)
         calibration.refresh()
-
-
-def _board_markers(board: MarkerMap | None) -> tuple[str | None, dict[int, float]]:
-    """The board's dictionary (None when it names none) and its markers' side lengths."""
-    if board is None:
-        return None, {}
-    return board.dictionary, {marker_id: marker.length for marker_id, marker in board.markers.items()}
 
 
 def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
