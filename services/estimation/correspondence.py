@@ -30,20 +30,30 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from services.geometry.camera import CameraModel, undistort_pixels
 from services.geometry.epipolar import epipolar_distances, fundamental_matrix
 from services.geometry.se3 import invert
-from services.geometry.triangulation import TriangulatedPoint, reproject, triangulate
+from services.geometry.triangulation import (
+    TriangulatedPoint,
+    projection_matrix,
+    reproject,
+    triangulate,
+    triangulate_dlt,
+)
 
-__all__ = ["CorrespondenceOptions", "gated_assignment", "fundamental_matrices", "triangulate_blobs"]
+__all__ = ["CorrespondenceOptions", "gated_assignment", "unambiguous", "fundamental_matrices", "triangulate_blobs"]
 
 
 @dataclass(frozen=True)
 class CorrespondenceOptions:
     """``epipolar_gate_px``: largest epipolar distance of a pair; ``reprojection_gate_px``: largest
     reprojection error of a view (and RMS of a point); ``sigma_px``: centroid noise, per
-    coordinate, for the covariances."""
+    coordinate, for the covariances; ``ambiguity``: a pair is left unmade when the best
+    assignment without it costs less than this much more (in units of the epipolar gate);
+    ``min_views``: fewest views of a point kept (2; 3 refuses points no third camera confirms)."""
 
     epipolar_gate_px: float = 1.5
     reprojection_gate_px: float = 2.0
     sigma_px: float = 0.1
+    ambiguity: float = 0.2
+    min_views: int = 2
 
 
 def gated_assignment(cost: np.ndarray, gate: float) -> list[tuple[int, int]]:
@@ -97,6 +107,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     blobs = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in blobs]
     ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
     F = fundamental_matrices(cameras)
+    projections = np.array([projection_matrix(c.K, invert(c.T_rig_camera)) for c in cameras])
     gate = options.reprojection_gate_px
 
     def solve(views: list[tuple[int, int]]) -> TriangulatedPoint:
@@ -115,6 +126,32 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             point = solve(views)
         return point if point.rms_px <= gate else None
 
+    unmatched = 1.0 + (len(cameras) - 2)
+
+    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> np.ndarray:
+        """(len(free), len(single)) cost of pairing blob ``free[r]`` of camera c with ``single[k]``:
+        epipolar distance over its gate, plus for each other camera the distance from the pair's
+        point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed."""
+        cost = np.full((len(free), len(single)), np.inf)
+        if not free:
+            return cost
+        for column, (a, j) in enumerate(single):
+            distance = epipolar_distances(F[(c, a)], ideal[a][j:j + 1], ideal[c][free])[0]
+            for row in np.flatnonzero(distance < options.epipolar_gate_px):
+                pair = np.array([ideal[a][j], ideal[c][free[row]]])
+                point = triangulate_dlt(projections[[a, c]], pair)
+                if not (_in_front(cameras[a], point) and _in_front(cameras[c], point)):
+                    continue
+                support = sum(_nearest(reproject(cameras[e], point)[0], blobs[e]) for e in range(len(cameras))
+                              if e not in (a, c))
+                cost[row, column] = distance[row] / options.epipolar_gate_px + support
+        return cost
+
+    def _nearest(pixel: np.ndarray, observed: np.ndarray) -> float:
+        if len(observed) == 0 or not np.all(np.isfinite(pixel)):
+            return 1.0
+        return min(float(np.min(np.linalg.norm(observed - pixel, axis=1))) / gate, 1.0)
+
     clusters: list[list[tuple[int, int]]] = []
     points: list[np.ndarray] = []
     single: list[tuple[int, int]] = [(0, i) for i in range(len(blobs[0]))]
@@ -128,12 +165,9 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                 points[k] = solve(clusters[k]).point
                 taken.add(i)
         free = [i for i in range(len(blobs[c])) if i not in taken]
-        cost = np.full((len(free), len(single)), np.inf)
-        if free:
-            for column, (a, j) in enumerate(single):
-                cost[:, column] = epipolar_distances(F[(c, a)], ideal[a][j:j + 1], ideal[c][free])[0]
+        cost = pairing_costs(c, free, single)
         used: set[int] = set()
-        for row, column in gated_assignment(cost, options.epipolar_gate_px):
+        for row, column in unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity):
             views = [single[column], (c, free[row])]
             point = solve(views)
             if point.rms_px <= gate and all(_in_front(cameras[v], point.point) for v, _ in views):
@@ -143,4 +177,23 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                 taken.add(free[row])
         single = [s for column, s in enumerate(single) if column not in used]
         single += [(c, i) for i in range(len(blobs[c])) if i not in taken]
-    return [p for p in map(final, clusters) if p is not None]
+    return [p for p in map(final, clusters) if p is not None and p.views >= options.min_views]
+
+
+def unambiguous(matches: list[tuple[int, int]], cost: np.ndarray, unmatched: float,
+                margin: float) -> list[tuple[int, int]]:
+    """The ``matches`` of ``gated_assignment(cost, unmatched)`` whose removal raises the total
+    cost by at least ``margin``: a match that a different assignment explains almost as well
+    (two blobs on one epipolar line, say) is dropped rather than guessed."""
+    def total(found: list[tuple[int, int]], table: np.ndarray) -> float:
+        rows, columns = table.shape
+        return float(sum(table[r, k] for r, k in found) + unmatched * (rows + columns - 2 * len(found)))
+
+    best = total(matches, cost)
+    kept = []
+    for row, column in matches:
+        without = cost.copy()
+        without[row, column] = np.inf
+        if total(gated_assignment(without, unmatched), without) - best >= margin:
+            kept.append((row, column))
+    return kept
