@@ -7,16 +7,25 @@ camera c, every blob of cameras 0..c belongs to exactly one cluster:
 1. the clusters that already have a 3D point (two views or more) take blobs of camera c by
    a global assignment (``linear_sum_assignment``) on the reprojection distance, gated;
 2. the blobs of camera c still free are paired with the free blobs of earlier cameras by a
-   second global assignment on the epipolar distance (undistorted pixels), gated; each pair is
-   a new two-view cluster, triangulated, and kept only in front of both cameras and under
-   the reprojection gate;
+   second global assignment; a pair is allowed under the epipolar gate (undistorted pixels)
+   with its point in front of both cameras, and costs its epipolar distance (over the gate)
+   plus, for every other camera, the distance from the pair's point to that camera's nearest
+   blob (over the reprojection gate, at most 1): a third camera's blob confirms the right
+   pairing where two blobs lie on one epipolar line, while a point no other camera sees
+   (occluded) can still be made. A pair that another assignment explains almost as well
+   (``ambiguity``) is left unmade rather than guessed. Each pair is a new two-view cluster;
 3. blobs left over stay single (a point needs two views).
 
-Unmatched rows and columns cost the gate, so a match is made only when it lowers the total
-cost: two blobs near one epipolar line go to the pairing that explains both best, not to
-whichever comes first. No blob is used twice. Finally each cluster is refined over all its
-views; a view whose residual breaks the reprojection gate is dropped (the worst first) while
-two remain, and the point is kept if its RMS is within the gate.
+Unmatched rows and columns cost the most a match may cost, so a match is made only when it
+lowers the total: blobs go to the pairing that explains all of them best, not to whichever
+comes first, and no blob is used twice. Finally each cluster is refined over all its views;
+a view whose residual breaks the reprojection gate is dropped (the worst first) while more
+than two remain, and the point is kept if its RMS is within the gate and it has
+``min_views`` views.
+
+With two cameras, two spheres on one epipolar plane cannot be told apart from their blobs
+alone: both are left out. Two spurious blobs near one epipolar line make a phantom point
+unless ``min_views`` is 3.
 """
 
 from __future__ import annotations
@@ -138,16 +147,19 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         for column, (a, j) in enumerate(single):
             distance = epipolar_distances(F[(c, a)], ideal[a][j:j + 1], ideal[c][free])[0]
             for row in np.flatnonzero(distance < options.epipolar_gate_px):
-                pair = np.array([ideal[a][j], ideal[c][free[row]]])
-                point = triangulate_dlt(projections[[a, c]], pair)
+                try:
+                    point = triangulate_dlt(projections[[a, c]], np.array([ideal[a][j], ideal[c][free[row]]]))
+                except ValueError:
+                    continue
                 if not (_in_front(cameras[a], point) and _in_front(cameras[c], point)):
                     continue
-                support = sum(_nearest(reproject(cameras[e], point)[0], blobs[e]) for e in range(len(cameras))
+                support = sum(nearest(reproject(cameras[e], point)[0], blobs[e]) for e in range(len(cameras))
                               if e not in (a, c))
                 cost[row, column] = distance[row] / options.epipolar_gate_px + support
         return cost
 
-    def _nearest(pixel: np.ndarray, observed: np.ndarray) -> float:
+    def nearest(pixel: np.ndarray, observed: np.ndarray) -> float:
+        """Distance from ``pixel`` to the nearest of (M, 2) ``observed`` over the reprojection gate, at most 1."""
         if len(observed) == 0 or not np.all(np.isfinite(pixel)):
             return 1.0
         return min(float(np.min(np.linalg.norm(observed - pixel, axis=1))) / gate, 1.0)
