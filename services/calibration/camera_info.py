@@ -29,7 +29,7 @@ class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the field."""
 
 
-def _matrix(document: dict, field: str, rows: int, cols: int | None, path: Path) -> np.ndarray | None:
+def _matrix(document: dict, field: str, rows: int, cols: int | None, path: Path | str) -> np.ndarray | None:
     """``field`` as a (rows, cols) array, (N,) when ``cols`` is None; None when the document lacks it."""
     entry = document.get(field)
     if entry is None:
@@ -56,6 +56,12 @@ def read_camera_info(path: Path) -> CameraModel:
         raise CalibrationError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(document, dict):
         raise CalibrationError(f"{path}: not a camera_info mapping")
+    return camera_from_document(document, path, Path(path).stem)
+
+
+def camera_from_document(document: dict, path: Path | str, default_name: str) -> CameraModel:
+    """A CameraModel from one camera_info mapping; ``path`` prefixes error messages (the file, and
+    the entry within it); ``T_rig_camera`` is the identity when the mapping lacks it."""
     for field in ("image_width", "image_height"):
         if not isinstance(document.get(field), int) or document[field] <= 0:
             raise CalibrationError(f"{path}: {field} must be a positive integer")
@@ -73,7 +79,7 @@ def read_camera_info(path: Path) -> CameraModel:
         raise CalibrationError(f"{path}: plumb_bob takes 4 or 5 distortion coefficients, has {len(dist)}")
     T = _matrix(document, "T_rig_camera", 4, 4, path)
     return CameraModel(
-        name=str(document.get("camera_name") or Path(path).stem),
+        name=str(document.get("camera_name") or default_name),
         width=document["image_width"], height=document["image_height"], K=K,
         dist=np.pad(dist, (0, 5 - len(dist))), T_rig_camera=np.eye(4) if T is None else T,
     )
@@ -81,17 +87,21 @@ def read_camera_info(path: Path) -> CameraModel:
 
 def write_camera_info(path: Path, camera: CameraModel) -> None:
     """Write ``camera`` as a ROS camera_info YAML file."""
+    Path(path).write_text(yaml.safe_dump(camera_document(camera), sort_keys=False, default_flow_style=None))
+
+
+def camera_document(camera: CameraModel) -> dict:
+    """``camera`` as a camera_info mapping (with ``T_rig_camera``), ready for ``yaml.safe_dump``."""
     P = np.hstack([camera.K, np.zeros((3, 1))])
 
     def block(M: np.ndarray) -> dict:
         M = np.atleast_2d(M)
         return {"rows": M.shape[0], "cols": M.shape[1], "data": [float(v) for v in M.ravel()]}
 
-    document = {
+    return {
         "image_width": camera.width, "image_height": camera.height, "camera_name": camera.name,
         "camera_matrix": block(camera.K), "distortion_model": "plumb_bob",
         "distortion_coefficients": block(camera.dist.reshape(1, -1)),
         "rectification_matrix": block(np.eye(3)), "projection_matrix": block(P),
         "T_rig_camera": block(camera.T_rig_camera),
     }
-    Path(path).write_text(yaml.safe_dump(document, sort_keys=False, default_flow_style=None))

@@ -104,3 +104,12 @@ def clip_polygon_near(polygon_cam: np.ndarray, z_near: float) -> np.ndarray:
         if current_in:
             kept.append(current)
     return np.array(kept).reshape(-1, 3)
+
+
+def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N, 2) ideal pinhole pixels (same ``K``, no distortion) of (N, 2) observed pixels (cv2.undistortPoints)."""
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if len(pixels) == 0:
+        return np.zeros((0, 2))
+    return cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.asarray(dist, dtype=np.float64), P=K,
+                               criteria=UNDISTORT_CRITERIA).reshape(-1, 2)

@@ -1,0 +1,42 @@
+"""Epipolar geometry of two calibrated cameras: the fundamental matrix and point-to-line distances.
+
+Pixels here are ideal pinhole pixels (undistorted, see ``camera.undistort_pixels``). For a
+point seen at ``x_a`` in camera a and ``x_b`` in camera b (homogeneous (3,) pixels),
+``x_b^T F_b_a x_a = 0``; ``F_b_a @ x_a`` is the epipolar line of ``x_a`` in image b.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["skew", "fundamental_matrix", "epipolar_distances"]
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3, 3) matrix ``[v]x`` with ``[v]x @ w = cross(v, w)`` for a (3,) vector ``v``."""
+    x, y, z = np.asarray(v, dtype=np.float64).ravel()
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def fundamental_matrix(K_a: np.ndarray, K_b: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
+    """(3, 3) ``F_b_a = K_b^-T [t]x R K_a^-1`` from the (3, 3) intrinsics and the (4, 4) ``T_b_a``
+    (camera a's frame into camera b's), scaled to unit Frobenius norm."""
+    E = skew(T_b_a[:3, 3]) @ T_b_a[:3, :3]
+    F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
+    return F / np.linalg.norm(F)
+
+
+def epipolar_distances(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
+    """(Na, Nb) symmetric epipolar distance, px: for each pair, the larger of the distance from
+    ``pixels_b[j]`` to the line of ``pixels_a[i]`` in image b and the reverse distance in image a.
+
+    ``pixels_a``: (Na, 2), ``pixels_b``: (Nb, 2) ideal pinhole pixels.
+    """
+    xa = np.hstack([np.asarray(pixels_a, dtype=np.float64).reshape(-1, 2), np.ones((len(pixels_a), 1))])
+    xb = np.hstack([np.asarray(pixels_b, dtype=np.float64).reshape(-1, 2), np.ones((len(pixels_b), 1))])
+    lines_b = xa @ F_b_a.T
+    lines_a = xb @ F_b_a
+    algebraic = np.abs(xa @ F_b_a.T @ xb.T)
+    in_b = algebraic / np.maximum(np.linalg.norm(lines_b[:, :2], axis=1), 1e-300)[:, None]
+    in_a = algebraic / np.maximum(np.linalg.norm(lines_a[:, :2], axis=1), 1e-300)[None, :]
+    return np.maximum(in_a, in_b)

@@ -1,0 +1,87 @@
+"""Blob correspondences: the gated assignment is global (not greedy), ambiguous pairs are left unmade, and a
+third camera resolves what two cannot."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+from services.estimation.correspondence import CorrespondenceOptions, gated_assignment, triangulate_blobs, unambiguous
+from services.geometry.se3 import transform_points
+from services.geometry.triangulation import reproject
+
+
+def brute_force(cost: np.ndarray, gate: float) -> float:
+    """Least total cost over every partial one-to-one matching (entries >= gate not allowed)."""
+    rows, columns = cost.shape
+    best = gate * (rows + columns)
+    for k in range(1, min(rows, columns) + 1):
+        for chosen_rows in itertools.combinations(range(rows), k):
+            for chosen_columns in itertools.permutations(range(columns), k):
+                entries = cost[list(chosen_rows), list(chosen_columns)]
+                if np.all(entries < gate):
+                    best = min(best, float(entries.sum()) + gate * (rows + columns - 2 * k))
+    return best
+
+
+def total(cost: np.ndarray, gate: float, matches) -> float:
+    return sum(cost[r, c] for r, c in matches) + gate * (sum(cost.shape) - 2 * len(matches))
+
+
+def test_assignment_is_global_where_greedy_fails():
+    cost = np.array([[0.1, 0.2], [0.3, np.inf]])
+    assert sorted(gated_assignment(cost, 1.0)) == [(0, 1), (1, 0)]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_assignment_is_the_least_cost_partial_matching(seed):
+    rng = np.random.default_rng(seed)
+    cost = rng.uniform(0.0, 2.0, (rng.integers(1, 5), rng.integers(1, 5)))
+    cost[rng.random(cost.shape) < 0.2] = np.inf
+    matches = gated_assignment(cost, 1.0)
+    assert len({r for r, _ in matches}) == len({c for _, c in matches}) == len(matches)
+    assert all(cost[r, c] < 1.0 for r, c in matches)
+    assert total(cost, 1.0, matches) == pytest.approx(brute_force(cost, 1.0))
+
+
+def test_a_near_tie_is_left_unmade():
+    tie = np.array([[0.10, 0.12], [0.11, 0.10], [np.inf, np.inf]])
+    assert unambiguous(gated_assignment(tie, 1.0), tie, 1.0, 0.2) == []
+    clear = np.array([[0.10, 0.90], [0.85, 0.10]])
+    assert sorted(unambiguous(gated_assignment(clear, 1.0), clear, 1.0, 0.2)) == [(0, 0), (1, 1)]
+
+
+ON_ONE_EPIPOLAR_PLANE = np.array([[-0.2, 0.0, 2.0], [0.25, 0.0, 2.4]])
+"""Two points in the plane y = 0, which holds every camera centre of the bar: every camera pair
+sees them on one epipolar line, so two cameras cannot tell which blob is which."""
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_third_camera_resolves_an_epipolar_ambiguity(count):
+    scene = make_scene("ir_rig", camera_count=count, width=1280, height=1024, baseline=1.0)
+    truth = ON_ONE_EPIPOLAR_PLANE
+    blobs = [reproject(c, truth) for c in scene.cameras]
+    points = triangulate_blobs(scene.cameras, blobs, CorrespondenceOptions(sigma_px=0.05))
+    if count == 2:
+        assert points == []
+    else:
+        assert sorted(p.blob_indices for p in points) == [(0, 0, 0), (1, 1, 1)]
+        for p in points:
+            np.testing.assert_allclose(p.point, truth[p.blob_indices[0]], atol=1e-6)
+
+
+def test_blobs_are_never_used_twice():
+    scene = make_scene("ir_rig", camera_count=3, width=1280, height=1024, baseline=1.0)
+    rng = np.random.default_rng(4)
+    truth = np.concatenate([transform_points(T, scene.bodies[n]) for n, T in scene.body_poses(0).items()])
+    blobs = [np.vstack([reproject(c, truth), rng.uniform((0, 0), (1280, 1024), (30, 2))]) for c in scene.cameras]
+    used = [(c, i) for p in triangulate_blobs(scene.cameras, blobs) for c, i in zip(p.camera_indices, p.blob_indices,
+                                                                                   strict=True)]
+    assert len(used) == len(set(used)) >= 2 * len(truth)
+
+
+def test_blob_lists_must_match_the_cameras():
+    scene = make_scene("ir_rig", camera_count=2)
+    with pytest.raises(ValueError, match="2 cameras and 1 blob lists"):
+        triangulate_blobs(scene.cameras, [np.zeros((0, 2))])
