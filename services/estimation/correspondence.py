@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
+from scipy.optimize import linear_sum_assignment
 
 from services.geometry.camera import CameraModel, undistort_pixels
 from services.geometry.epipolar import epipolar_distances, fundamental_matrix
