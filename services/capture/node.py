@@ -8,15 +8,15 @@ Timing: with ``fps`` the node paces frames at that rate; without, it follows the
 own timing (a video's timestamps, a TUM list, a scene's clock), devices pace themselves,
 and image folders without times go at 30 fps. A source slower than its pace (a scene that
 cannot render 1000 frames a second) sends each frame as soon as it has it: frames that go out
-more than ``LATE_S`` after their time are counted as ``late`` (in the node's ``skipped``
-statistics and on its errors key, at the first one and then at most every ``LATE_REPORT_S``),
-and when the source ends, one line says the rate it delivered against the one asked.
-Stamps are the wall-clock time of capture (``stamps = "wall"``) or the source's own time
-(``"source"``, for evaluating against a data set's ground truth). CameraInfo comes from
-``calib`` files (ROS camera_info YAML, one per camera), else from the source (synthetic
-scenes know theirs); a camera with neither publishes no CameraInfo, and trackers report it
-uncalibrated. Each calibrated
-camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
+more than a frame period after their time (at least ``LATE_MIN_S``; ``LATE_S`` when paced by
+the source's own timing) are counted as ``late`` (in the node's ``skipped`` statistics and on
+its errors key, at the first one and then at most every ``LATE_REPORT_S``), and when the
+source ends, one line says the rate it delivered against the one asked. Stamps are the
+wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
+evaluating against a data set's ground truth). CameraInfo comes from ``calib`` files (ROS
+camera_info YAML, one per camera), else from the source (synthetic scenes know theirs); a
+camera with neither publishes no CameraInfo, and trackers report it uncalibrated. Each
+calibrated camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
 
 The calibrated cameras' ``T_rig_camera`` (parent frame ``rig``, child the camera's name) go
 out once as ``StaticTransforms`` on ``tf_static/<node name>`` before the first frame, and are
@@ -62,7 +62,8 @@ SETTLE_S = 0.3
 """Pause after the first subscriber appears, so its own outputs reach their subscribers too."""
 UNTIMED_FPS = 30.0
 LATE_S = 0.05
-"""A frame going out later than this after its paced time counts as late."""
+"""Without an asked ``fps``, a frame going out later than this after its time counts as late."""
+LATE_MIN_S = 0.005
 LATE_REPORT_S = 10.0
 """Late frames are reported at the first, then in batches at most this often, and at the end."""
 
@@ -294,7 +295,7 @@ class _Lateness:
         now = time.monotonic()
         self.first = now if self.first is None else self.first
         self.last = now
-        if behind_s <= LATE_S:
+        if behind_s <= max(LATE_MIN_S, LATE_S if fps is None else 1.0 / fps):
             return
         self.late += 1
         self.unreported += 1

@@ -291,8 +291,8 @@ class JobWatch:
             pose_errors = self.figures.pose_errors
             rate = delivered_rate(self.figures, self.wall_stamps)
         lines = [f"job summary ({time.monotonic() - self._started:.1f} s):", "  " + self._source_line(stats, rate)]
-        lines += ["  " + row for row in _node_table(self.spec, stats).splitlines()]
-        lines += ["  " + row for row in _pose_table(poses, pose_errors).splitlines()]
+        lines += ["  nodes:", *("    " + row for row in _node_table(self.spec, stats).splitlines())]
+        lines += ["  poses by target:", *("    " + row for row in _pose_table(poses, pose_errors).splitlines())]
         for name, s in sorted(stats.items()):
             if s.dropped and s.kind not in SINKS:
                 lines.append(f"  {name} dropped {_drop_detail(s)}: it could not keep up, and frames are "
