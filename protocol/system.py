@@ -75,7 +75,8 @@ class NodeStats(Message):
     capture, the pipeline's own latency up to this node. Only ages from 0 to
     ``LATENCY_AGE_MAX_S`` count: a replay stamped with the recording's time, or another
     host's clock, gives no figure (None) rather than a wrong one. ``skipped`` counts inputs
-    the node could not use, by reason (``decode_error``, ``degenerate_homography``, ...).
+    the node could not use, by reason (``decode_error``, ``degenerate_homography``, ...);
+    a source counts there too the frames it sent late, behind the pace asked (``late``).
     ``synced`` holds one entry per group of inputs the node joins; ``unjoined`` sums the
     messages of all groups that went into no set.
 

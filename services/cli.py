@@ -228,8 +228,21 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     job.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
     job.add_argument("--save-pipeline", type=Path, metavar="FILE.toml", help="write the job as a pipeline file "
                      "(`artrack up FILE.toml` runs it as a daemon) and exit without running it")
+    _display_options(job)
     _bus_options(p)
     return p, source, own
+
+
+def _display_options(group: argparse._ArgumentGroup) -> None:
+    group.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
+                       help="a progress line redrawn on standard error (auto: when it is a terminal)")
+    group.add_argument("--quiet", action="store_true", help="no progress and no summary at the end")
+
+
+def _display(args: argparse.Namespace):
+    from services.launcher.progress import Display
+
+    return Display.choose(args.progress, args.quiet)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -250,7 +263,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = read_pipeline(Path(args.tracker))
-        return run_job(_bus(run_args, **spec.bus), spec)
+        return run_job(_bus(run_args, **spec.bus), spec, _display(run_args))
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
@@ -286,7 +299,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus = _bus(run_args, **spec.bus)
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
-    return run_job(bus, spec)
+    return run_job(bus, spec, _display(run_args))
 
 
 def _command_line(argv: list[str], without: str) -> str:
@@ -303,6 +316,7 @@ def _command_line(argv: list[str], without: str) -> str:
 def _pipeline_job_parser(path: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"artrack run {path}", description="a pipeline file run as one job: its "
                                 "sources start last, and the job ends when they do")
+    _display_options(p.add_argument_group("job"))
     _bus_options(p)
     return p
 

@@ -6,12 +6,17 @@ from. Several URIs make a rig: their frames are taken in step, one from each.
 
 Timing: with ``fps`` the node paces frames at that rate; without, it follows the source's
 own timing (a video's timestamps, a TUM list, a scene's clock), devices pace themselves,
-and image folders without times go at 30 fps. Stamps are the wall-clock time of capture
-(``stamps = "wall"``) or the source's own time (``"source"``, for evaluating against a
-data set's ground truth). CameraInfo comes from ``calib`` files (ROS camera_info YAML,
-one per camera), else from the source (synthetic scenes know theirs); a camera with
-neither publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated
-camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
+and image folders without times go at 30 fps. A source slower than its pace (a scene that
+cannot render 1000 frames a second) sends each frame as soon as it has it: frames that go out
+more than a frame period after their time (at least ``LATE_MIN_S``; ``LATE_S`` when paced by
+the source's own timing) are counted as ``late`` (in the node's ``skipped`` statistics and on
+its errors key, at the first one and then at most every ``LATE_REPORT_S``), and when the
+source ends, one line says the rate it delivered against the one asked. Stamps are the
+wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
+evaluating against a data set's ground truth). CameraInfo comes from ``calib`` files (ROS
+camera_info YAML, one per camera), else from the source (synthetic scenes know theirs); a
+camera with neither publishes no CameraInfo, and trackers report it uncalibrated. Each
+calibrated camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
 
 The calibrated cameras' ``T_rig_camera`` (parent frame ``rig``, child the camera's name) go
 out once as ``StaticTransforms`` on ``tf_static/<node name>`` before the first frame, and are
@@ -51,11 +56,16 @@ from services.capture.sources import (
 from services.convert import camera_info, frame_transforms, rig_static_transforms
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
-from services.runtime.node import Node, NodeError
+from services.runtime.node import REPORT_EVERY_S, Node, NodeError
 
 SETTLE_S = 0.3
 """Pause after the first subscriber appears, so its own outputs reach their subscribers too."""
 UNTIMED_FPS = 30.0
+LATE_S = 0.05
+"""Without an asked ``fps``, a frame going out later than this after its time counts as late."""
+LATE_MIN_S = 0.005
+LATE_REPORT_S = 10.0
+"""Late frames are reported at the first, then in batches at most this often, and at the end."""
 
 _ENCODINGS = {(np.dtype(np.uint8), 1): "mono8", (np.dtype(np.uint16), 1): "mono16",
               (np.dtype(np.uint8), 3): "bgr8", (np.dtype(np.uint8), 4): "bgra8"}
@@ -175,6 +185,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     if rig.calibration:
         _publish_static_transforms(node, rig)
     seq = 0
+    late = _Lateness(node, keys.image(rig.names[0]))
     while node.running and (params.frames == 0 or seq < params.frames):
         clock = _Pacer(lambda: live.value.fps)
         for instant in rig.instants():
@@ -186,7 +197,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
                     node.report("frame_fault", f"frame {fault.index}: {fault.reason}", source.uri)
             if faults:
                 continue
-            clock.wait_for(node, instant[0].time_s, untimed=not _live(rig))
+            late.count(clock.wait_for(node, instant[0].time_s, untimed=not _live(rig)), live.value.fps)
             started = time.perf_counter()
             header_stamp = _stamp(params, instant[0])
             for frame, rename in zip(instant, rig.renames, strict=True):
@@ -195,6 +206,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
             seq += 1
         if not params.loop:
             break
+    late.end(seq, live.value.fps)
 
 
 def _publish_static_transforms(node: Node, rig: Rig) -> None:
@@ -246,7 +258,8 @@ class _Pacer:
         self.start_source: float | None = None
         self.count = 0
 
-    def wait_for(self, node: Node, time_s: float | None, untimed: bool) -> None:
+    def wait_for(self, node: Node, time_s: float | None, untimed: bool) -> float:
+        """Sleep until the next frame is due; return how late it is already (seconds, 0 when on time)."""
         now = time.monotonic()
         fps = self.fps()
         period = None if fps is None else 1.0 / fps
@@ -262,6 +275,56 @@ class _Pacer:
             due = now
         self.count += 1
         node.wait(due - now)
+        return max(0.0, now - due)
+
+
+class _Lateness:
+    """Counts frames that went out late (``wait_for`` said so) and reports them on ``key``: the first at
+    once, then at most every LATE_REPORT_S; ``end`` reports the rest and the rate delivered."""
+
+    def __init__(self, node: Node, key: str):
+        self.node = node
+        self.key = key
+        self.late = 0
+        self.unreported = 0
+        self.reported_at: float | None = None
+        self.first: float | None = None
+        self.last = 0.0
+
+    def count(self, behind_s: float, fps: float | None) -> None:
+        now = time.monotonic()
+        self.first = now if self.first is None else self.first
+        self.last = now
+        if behind_s <= max(LATE_MIN_S, LATE_S if fps is None else 1.0 / fps):
+            return
+        self.late += 1
+        self.unreported += 1
+        if self.reported_at is None or now - self.reported_at >= LATE_REPORT_S:
+            asked = f"the {fps:g} fps asked" if fps is not None else "its own timing"
+            self._report(f"the source cannot keep up with {asked}: frames go out late ({behind_s:.2f} s behind)")
+
+    def end(self, frames: int, fps: float | None) -> None:
+        """Report what is left, with the rate the ``frames`` sent went out at against the one asked."""
+        if self.first is None:
+            return
+        span = self.last - self.first
+        rate = (frames - 1) / span if frames > 1 and span > 0 else None
+        delivered = f"{rate:.1f} fps" if rate is not None else "?"
+        asked = f" of the {fps:g} asked" if fps is not None else ""
+        if not self.late:
+            self.node.log.info("%d frames sent at %s%s", frames, delivered, asked)
+            return
+        detail = f"{self.late} of {frames} frames late: the source delivered {delivered}{asked}"
+        if not self._report(detail):  # too soon after the last report for the node to log this one
+            self.node.log.warning("late on %s (%d so far): %s", self.key, self.late, detail)
+
+    def _report(self, detail: str) -> bool:
+        """Report the late frames not reported yet; whether the node logs it (at most once a second)."""
+        logged = self.reported_at is None or time.monotonic() - self.reported_at >= REPORT_EVERY_S
+        self.node.report("late", detail, self.key, self.unreported)
+        self.unreported = 0
+        self.reported_at = time.monotonic()
+        return logged
 
 
 def _outputs(params: Params) -> tuple[str, ...]:

@@ -27,6 +27,7 @@ from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import NodeSpec, PipelineSpec, preflight, processes, resolved
+from services.launcher.progress import Display, JobWatch
 from services.launcher.supervisor import Supervisor
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
@@ -115,8 +116,10 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
     return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 
 
-def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
-    """Run the job to the end of its sources (or a signal); 0 when every source ended cleanly."""
+def run_job(bus: BusConfig, spec: PipelineSpec, display: Display | None = None) -> int:
+    """Run the job to the end of its sources (or a signal); 0 when every source ended cleanly.
+
+    With ``display``, progress and a summary go where it says (``services.launcher.progress``)."""
     sources = spec.sources()
     if not sources:
         raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
@@ -126,6 +129,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     session = open_session(bus)
+    watch = _watch(session, bus, spec, display)
     supervisor = Supervisor(processes(spec, bus, downstream))
     try:
         supervisor.start()
@@ -148,8 +152,19 @@ def run_job(bus: BusConfig, spec: PipelineSpec) -> int:
             _drain(session, bus, {n for n in downstream if spec.nodes[n].kind not in SINKS})
         return 0 if stop.is_set() or all(codes.get(name) == 0 for name in sources) else 1
     finally:
+        if watch is not None:
+            watch.gather()
         supervisor.stop()
+        if watch is not None:
+            watch.close()
         session.close()
+
+
+def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None) -> JobWatch | None:
+    """Progress and summary of the job, when a display is given and it shows either."""
+    if display is None or not (display.progress or display.summary):
+        return None
+    return JobWatch(session, bus, spec, display)
 
 
 def _drain(session, bus: BusConfig, names: set[str]) -> None:

@@ -16,12 +16,12 @@ stereo rig, a frame with its detections) iterates joined sets instead::
         match(pair["left"], pair["right"])
 
 While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
-list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``,
-answers the same on the ``keys.state(name)`` queryable, and reports inputs it had to skip
-(``report``) on ``keys.errors(name)``. A body that calls ``configurable`` also answers
-live parameter changes on ``keys.config(name)`` (``services.runtime.reconfig``).
-``run_node`` adds SIGINT/SIGTERM handling: the loop ends within a poll period (0.1 s) and
-everything is undeclared and closed.
+list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``
+(and once more as it closes, its final counts), answers the same on the ``keys.state(name)``
+queryable, and reports inputs it had to skip (``report``) on ``keys.errors(name)``. A body
+that calls ``configurable`` also answers live parameter changes on ``keys.config(name)``
+(``services.runtime.reconfig``). ``run_node`` adds SIGINT/SIGTERM handling: the loop ends
+within a poll period (0.1 s) and everything is undeclared and closed.
 """
 
 from __future__ import annotations
@@ -312,10 +312,13 @@ class Node:
 
     def _stats_loop(self) -> None:
         while not self._stop.wait(self._stats_period_s):
-            try:
-                self._stats_pub.put(self.stats())
-            except zenoh.ZError as exc:  # the session is closing under us
-                self.log.debug("stats not published: %s", exc)
+            self._publish_stats()
+
+    def _publish_stats(self) -> None:
+        try:
+            self._stats_pub.put(self.stats())
+        except zenoh.ZError as exc:  # the session is closing under us
+            self.log.debug("stats not published: %s", exc)
 
     def _on_state_query(self, query: zenoh.Query) -> None:
         query.reply(self.keys.state(self.name), encode(self.stats()))
@@ -324,6 +327,7 @@ class Node:
         """Stop, undeclare everything and close the session (well within 2 s)."""
         self.stop()
         self._stats_thread.join(timeout=1.0)
+        self._publish_stats()  # the last counts, for whoever sums a run up after this node has gone
         for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub]:
             entity.close()
         for queryable in [*self._answers, self._queryable]:
