@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, SPHERE_PEAK
+from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, SPHERE_PEAK, WAND_BODY
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 
@@ -131,3 +131,34 @@ def test_rig_geometry():
     distorted = make_scene("ir_rig").cameras
     assert all(np.abs(c.dist[:2]).max() > 0 for c in distorted)
     assert not np.array_equal(distorted[0].K, distorted[1].K)
+
+
+def test_wand_motion_waves_one_collinear_wand_through_the_volume():
+    scene = make_scene("ir_rig", motion="wand", camera_count=3, wand_spheres=(0.0, 0.2, 0.6))
+    assert list(scene.bodies) == [WAND_BODY]
+    spheres = scene.bodies[WAND_BODY]
+    assert np.allclose(spheres[:, 1:], 0.0) and np.allclose(spheres[:, 0], [0.0, 0.2, 0.6])
+    frame = scene.render(11)
+    assert [(p, c) for p, c, _ in frame.truth["cam2"]] == [("world", f"body/{WAND_BODY}")]
+    middles, directions = [], []
+    for index in range(0, 3000, 10):
+        T = scene.body_poses(index)[WAND_BODY]
+        middles.append(transform_points(T, spheres).mean(axis=0))
+        directions.append(T[:3, 0])
+    middles, directions = np.array(middles), np.array(directions)
+    assert middles[:, 2].min() > 1.3 and middles[:, 2].max() < 3.5
+    assert np.ptp(middles[:, 0]) > 1.2 and np.ptp(middles[:, 1]) > 0.8 and np.ptp(middles[:, 2]) > 1.2
+    assert np.abs(directions).max(axis=0).min() > 0.9
+    assert make_scene("ir_rig").bodies.keys() == {"wand", "tool", "head"}
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"motion": "walk"}, "motion='walk'"),
+    ({"wand_spheres": (0.1, 0.3, 0.5)}, r"wand_spheres=\(0.1, 0.3, 0.5\)"),
+    ({"wand_spheres": (0.0, 0.5, 0.2)}, "wand_spheres="),
+    ({"wand_spheres": (0.0,)}, "wand_spheres="),
+    ({"wand_spheres": "0,1"}, "wand_spheres="),
+])
+def test_invalid_wand_options_are_rejected(options, message):
+    with pytest.raises(ValueError, match=f"option {message}"):
+        make_scene("ir_rig", **options)

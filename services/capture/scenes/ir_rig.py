@@ -15,6 +15,11 @@ move smoothly about 1.8 to 2.6 m in front of the bar. Occlusion: time is cut int
 half-second windows; in a fraction ``occlusion_rate`` of them one sphere, chosen per
 window, is hidden from one camera (see ``occlusions``). Ground truth, listed under every
 camera: ``("world", "body/<name>", T_world_body)`` for every body.
+
+``motion=wand`` replaces the bodies by one calibration wand (body ``WAND_BODY``): spheres on
+its x axis at ``wand_spheres`` metres from its first end (the origin), waved through the
+volume in front of the bar (1.5 to 3.3 m deep, about the width the cameras see) with its direction
+sweeping every way, as when calibrating a rig's extrinsics.
 """
 
 from __future__ import annotations
@@ -42,6 +47,10 @@ LAYOUTS: dict[str, np.ndarray] = {
 least 50 mm apart and no two pairwise distances are within 4 mm; no triangle of spheres of one
 body matches one of another body to within 5 mm (side by side)."""
 
+WAND_BODY = "calibration_wand"
+MOTIONS = ("bodies", "wand")
+WAND_DEPTH_M, WAND_SPREAD_M = 2.4, (1.0, 0.65, 0.9)
+
 HFOV_DEG = 56.0
 BACKGROUND, SPHERE_PEAK = 12, 240
 OCCLUSION_WINDOW_S = 0.5
@@ -54,7 +63,10 @@ class IrRigOptions(SceneOptions):
     """``camera_count`` cameras ``baseline`` metres apart, toed in to cross at ``convergence`` metres;
     ``distortion``: small plumb_bob distortion (else none); ``body_count`` bodies (the first of
     ``LAYOUTS``); ``sphere_radius``: metres; ``occlusion_rate``: fraction of half-second windows
-    with one sphere hidden from one camera."""
+    with one sphere hidden from one camera; ``motion``: ``bodies`` (the layouts moving about) or
+    ``wand`` (one calibration wand waved through the volume, ``body_count`` unused);
+    ``wand_spheres``: the wand's sphere positions along it, metres from its first end (2 or 3,
+    increasing, the first 0)."""
 
     camera_count: int = 2
     baseline: float = 0.3
@@ -63,6 +75,8 @@ class IrRigOptions(SceneOptions):
     body_count: int = 3
     sphere_radius: float = 0.008
     occlusion_rate: float = 0.25
+    motion: str = "bodies"
+    wand_spheres: tuple[float, ...] = (0.0, 0.15, 0.5)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -73,6 +87,16 @@ class IrRigOptions(SceneOptions):
         self.check_int("body_count", 1, len(LAYOUTS))
         self.check_float("sphere_radius", 0.001, 0.05)
         self.check_float("occlusion_rate", 0.0, 1.0)
+        if self.motion not in MOTIONS:
+            raise ValueError(f"option motion={self.motion!r}: must be one of {', '.join(MOTIONS)}")
+        try:
+            spheres = tuple(float(x) for x in self.wand_spheres)
+        except (TypeError, ValueError):
+            spheres = ()
+        if not 2 <= len(spheres) <= 3 or spheres[0] != 0.0 or np.diff(spheres).min() < 0.05 or spheres[-1] > 2.0:
+            raise ValueError(f"option wand_spheres={self.wand_spheres!r}: must be 2 or 3 positions in metres, "
+                             "the first 0, increasing by at least 0.05, at most 2")
+        object.__setattr__(self, "wand_spheres", spheres)
 
 
 class IrRigScene(SyntheticScene):
@@ -87,13 +111,24 @@ class IrRigScene(SyntheticScene):
         super().__init__(options)
         o = self.options
         self.sphere_radius = o.sphere_radius
-        self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
         self.cameras = self.make_cameras()
         self.rays = {c.name: pixel_rays(c.K, c.dist, c.width, c.height) for c in self.cameras}
         self.T_camera_world = {c.name: invert(c.T_rig_camera) for c in self.cameras}
         rng = scene_rng(o.seed, PATH_PURPOSE)
-        spread = np.linspace(-0.35, 0.35, o.body_count) if o.body_count > 1 else np.zeros(1)
-        self.paths = {
+        self.bodies: dict[str, np.ndarray]
+        self.paths: dict[str, RigidPath]
+        if o.motion == "wand":
+            self.bodies = {WAND_BODY: np.array([[x, 0.0, 0.0] for x in o.wand_spheres])}
+            self.paths = {WAND_BODY: wand_path(rng, o.wand_spheres[-1])}
+        else:
+            self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
+            self.paths = self.body_paths(rng)
+
+    def body_paths(self, rng: np.random.Generator) -> dict[str, RigidPath]:
+        """The bodies' paths, side by side about ``BODY_DEPTH_M`` in front of the bar."""
+        count = len(self.bodies)
+        spread = np.linspace(-0.35, 0.35, count) if count > 1 else np.zeros(1)
+        return {
             name: RigidPath(SinePath.random(rng, (x, 0.1 * (-1) ** k, BODY_DEPTH_M), (0.25, 0.2, 0.35), (4.0, 10.0)),
                             SinePath.random(rng, (0.0, 0.0, 0.0), (0.6, 0.6, 0.8), (5.0, 12.0)),
                             matrix_from_rotvec(rng.normal(0.0, 1.0, 3)))
@@ -148,6 +183,30 @@ class IrRigScene(SyntheticScene):
                 draw_sphere(image, self.rays[camera.name], centre, self.sphere_radius, pixel, camera.K[0, 0])
             images[camera.name] = image
         return images, {camera.name: list(truth) for camera in self.cameras}
+
+
+def wand_path(rng: np.random.Generator, length: float) -> RigidPath:
+    """A wand waved about: its middle sweeps the volume in front of the bar, its direction turns every way.
+
+    The path moves the wand's origin (its first end); the offset keeps the wand's middle on the sweep.
+    """
+    middle = SinePath.random(rng, (0.0, 0.0, WAND_DEPTH_M), WAND_SPREAD_M, (3.0, 9.0), terms=3)
+    turn = SinePath.random(rng, (0.0, 0.0, 0.0), (2.5, 2.5, 2.5), (4.0, 11.0), terms=2)
+    R_base = matrix_from_rotvec(rng.normal(0.0, 1.0, 3))
+    return WandPath(middle, turn, R_base, 0.5 * length)
+
+
+@dataclass(frozen=True)
+class WandPath(RigidPath):
+    """A RigidPath whose ``position`` is the wand's middle, ``half_length`` metres along its x axis from the origin."""
+
+    half_length: float = 0.0
+
+    def pose(self, t: float) -> np.ndarray:
+        """(4, 4) ``T_world_body`` at time ``t`` seconds (the body origin is the wand's first end)."""
+        T = super().pose(t)
+        T[:3, 3] -= self.half_length * T[:3, 0]
+        return T
 
 
 def draw_sphere(image: np.ndarray, rays: np.ndarray, centre_cam: np.ndarray, radius: float,
