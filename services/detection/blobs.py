@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
-__all__ = ["BlobFlag", "Blobs", "IrBlobParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
+__all__ = ["BlobFlag", "Blobs", "IrBlobParams", "ShapeParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
 
 WINDOW_PAD = 2
 """Pixels around a component's bounding box in the window its centroid and shape are measured in."""
@@ -108,34 +108,45 @@ class Blobs:
 
 
 @dataclass(frozen=True)
-class IrBlobParams:
-    """Settings of ``detect_ir_blobs`` (see the module docstring).
+class ShapeParams:
+    """Filters and flags every method that measures its blobs' pixels shares: components of
+    ``min_area`` to ``max_area`` px^2 with at least ``min_circularity`` are kept; a blob with a
+    roundness below ``min_roundness`` is flagged, MERGED when it has a waist of ``waist_depth``."""
+
+    min_area: float = 3.0
+    max_area: float = 10000.0
+    min_circularity: float = 0.3
+    min_roundness: float = 0.8
+    waist_depth: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_settings(self, ("min_area", "max_area"), ("min_circularity", "min_roundness", "waist_depth"))
+        if self.min_area > self.max_area:
+            raise ValueError(f"area range [{self.min_area}, {self.max_area}] is empty")
+
+
+@dataclass(frozen=True)
+class IrBlobParams(ShapeParams):
+    """Settings of ``detect_ir_blobs`` (see the module docstring), beside ``ShapeParams``'s.
 
     ``threshold``: grey level a blob's pixels exceed; ``background``: grey level subtracted
     from the weights (None: estimated per image, the median of a pixel grid);
-    ``min_area``/``max_area``: px^2; ``min_radius``/``max_radius``: px; ``min_circularity``;
-    ``min_roundness``, ``min_solidity``, ``waist_depth``: when a blob is flagged.
+    ``min_radius``/``max_radius``: px; ``min_solidity``: below it a blob is flagged.
     """
 
     threshold: float = 60.0
     background: float | None = None
-    min_area: float = 3.0
-    max_area: float = 10000.0
     min_radius: float = 0.0
     max_radius: float = math.inf
-    min_circularity: float = 0.3
-    min_roundness: float = 0.8
     min_solidity: float = 0.85
-    waist_depth: float = 0.05
 
     def __post_init__(self) -> None:
-        check_settings(self, ("threshold", "min_area", "max_area", "min_radius", "max_radius"),
-                       ("min_circularity", "min_roundness", "min_solidity", "waist_depth"))
+        super().__post_init__()
+        check_settings(self, ("threshold", "min_radius", "max_radius"), ("min_solidity",))
         if self.background is not None and not self.background >= 0.0:
             raise ValueError(f"background must be a grey level >= 0 or None, not {self.background!r}")
-        if self.min_area > self.max_area or self.min_radius > self.max_radius:
-            raise ValueError(f"area range [{self.min_area}, {self.max_area}] or radius range "
-                             f"[{self.min_radius}, {self.max_radius}] is empty")
+        if self.min_radius > self.max_radius:
+            raise ValueError(f"radius range [{self.min_radius}, {self.max_radius}] is empty")
 
 
 def check_settings(settings: object, non_negative: Sequence[str], fractions: Sequence[str]) -> None:
