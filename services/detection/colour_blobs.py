@@ -17,8 +17,8 @@ pixels, centroid the mean of its pixel centres, perimeter from its border pixels
 sides a blob pixel shares with a pixel outside it, counted, times ``pi / 4`` (over all
 directions, a curve is on average ``pi / 4`` of its length along the pixel axes), so a disc of
 radius r measures about ``2 pi r``. Circularity ``4 pi area / perimeter**2`` (capped at 1),
-radius ``sqrt(area / pi)``. Shape, flags and quality as ``services.detection.blobs`` makes them
-for IR blobs, with every pixel of a blob weighted 1 and solidity not tested.
+radius ``sqrt(area / pi)``. Roundness and flags as ``services.detection.blobs`` makes them for
+IR blobs, with every pixel of a blob weighted 1 and solidity not tested; quality = roundness.
 """
 
 from __future__ import annotations
