@@ -199,7 +199,7 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Bl
         weights = np.zeros(mask.shape, np.float32)
         cv2.subtract(image[y0:y1, x0:x1], background, dst=weights, mask=rim,  # type: ignore[call-overload]
                      dtype=cv2.CV_32F)
-        cv2.threshold(weights, 0.0, 0.0, cv2.THRESH_TOZERO, dst=weights)
+        np.maximum(weights, 0.0, out=weights)
         moments = cv2.moments(weights)
         if moments["m00"] <= 0.0:
             continue
@@ -215,32 +215,31 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Bl
     return Blobs.from_rows(rows)
 
 
-def moment_shape(moments: dict[str, float]) -> tuple[np.ndarray, np.ndarray, float]:
-    """From ``cv2.moments`` of a weight window: the centroid ((2,) px, window pixels), the
-    major axis ((2,) unit vector) and the roundness ``sqrt(l_min / l_max)`` of the covariance."""
+def moment_shape(moments: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float], float]:
+    """From ``cv2.moments`` of a weight window: the centroid ``(x, y)`` px in the window, the major
+    axis ``(cos, sin)`` (a unit vector) and the roundness ``sqrt(l_min / l_max)`` of the covariance."""
     m00 = moments["m00"]
-    centroid = np.array([moments["m10"] / m00, moments["m01"] / m00])
     a, b, c = moments["mu20"] / m00, moments["mu11"] / m00, moments["mu02"] / m00
     half_gap = math.hypot((a - c) / 2.0, b)
     l_max, l_min = (a + c) / 2.0 + half_gap, max((a + c) / 2.0 - half_gap, 0.0)
     angle = 0.5 * math.atan2(2.0 * b, a - c)
     roundness = math.sqrt(l_min / l_max) if l_max > 0 else 1.0
-    return centroid, np.array([math.cos(angle), math.sin(angle)]), roundness
+    return (moments["m10"] / m00, moments["m01"] / m00), (math.cos(angle), math.sin(angle)), roundness
 
 
-def shape_flags(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, irregular: bool,
+def shape_flags(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], irregular: bool,
                 waist_depth: float) -> BlobFlag:
     """MERGED, OCCLUDED or no flag for one blob (see the module docstring).
 
-    ``weights``: (h, w) float window, 0 outside the blob; ``centroid``: (2,) px in the window;
-    ``axis``: (2,) unit major axis; ``irregular``: the blob failed the roundness or solidity test.
+    ``weights``: (h, w) float window, 0 outside the blob; ``centroid``: ``(x, y)`` px in the window;
+    ``axis``: unit major axis ``(cos, sin)``; ``irregular``: the blob failed the roundness or solidity test.
     """
     if not irregular:
         return BlobFlag(0)
     return BlobFlag.MERGED if has_waist(weights, centroid, axis, waist_depth) else BlobFlag.OCCLUDED
 
 
-def has_waist(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, depth: float) -> bool:
+def has_waist(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], depth: float) -> bool:
     """Whether the weight summed across ``axis`` in 1 px slices (each pixel shared linearly between
     the two nearest slices) dips, somewhere inside, below ``1 - depth`` of the heaviest slice on each side."""
     ys, xs = np.nonzero(weights)
