@@ -162,11 +162,11 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run") -> int:
                                    spec.supervisor)
     supervising = [supervisor]
     health = _answer_health(session, bus, title, spec, supervising)
+    why: str | None = None  # said last, once every node has stopped
     try:
         supervisor.start()
-        cannot_start = _come_up(session, bus, supervisor, set(downstream), stop)
-        if cannot_start is not None:
-            log.error("%s", cannot_start)
+        why = _come_up(session, bus, supervisor, set(downstream), stop)
+        if why is not None:
             return JobExit.CANNOT_START
         if stop.is_set():
             return interrupted
@@ -179,8 +179,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run") -> int:
         log.info("job on %s: %s", bus.keys.prefix, ", ".join(f"{n} ({spec.nodes[n].kind})" for n in spec.nodes))
         while not stop.is_set() and source_supervisor.step():
             supervisor.step()
-            if (failed := _failed(supervisor)) is not None:
-                log.error("%s", failed)
+            if (why := _failed(supervisor)) is not None:
                 return JobExit.NODE_FAILED
             stop.wait(0.05)
         if stop.is_set():
@@ -194,6 +193,8 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run") -> int:
         supervisor.stop()
         health.undeclare()
         session.close()
+        if why is not None:
+            log.error("%s", why)
 
 
 def _endless(node: NodeSpec) -> bool:
@@ -229,7 +230,7 @@ def _come_up(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, nam
         supervisor.step()
         ended = next((child for child in supervisor.health() if child.exit_code is not None), None)
         if ended is not None:
-            return f"node {ended.name} could not start: {ended.reason}"
+            return f"node {ended.name} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
         live = wait_for_nodes(session, bus.keys, names, 0.0)
         if live == names:
             return None

@@ -10,8 +10,8 @@ SIGKILLs what is left and reaps everything. On Linux each child also asks the ke
 SIGTERM should the supervisor die without stopping it, so no child outlives it.
 
 Each child's stderr passes through the supervisor line by line (to its own stderr), and the
-last line a child wrote before it exited is kept as the reason it exited (``reason``, a JSON
-log line reduced to its message; the signal, when one killed it): a job can say why a node
+last line a child wrote before it exited is kept as the reason it exited (``reason``, a log
+line reduced to its message; the signal, when one killed it): a job can say why a node
 ended in one line. Every child
 is started with ``ARTRACK_RESTART`` set to the number of times it was restarted before
 (``services.runtime.restarts``).
@@ -23,6 +23,7 @@ import ctypes
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -132,12 +133,17 @@ class _Child:
         return "backing_off" if self.process is None else "running"
 
 
+_TEXT_LOG = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ [A-Z]+ (?:\[[^\]]*\] )?\S+: (?P<message>.*)")
+"""A text log line (``services.runtime.logs``): time, level, [node], logger, then the message."""
+
+
 def reason_of(line: str) -> str:
-    """What a log line says: a JSON log line's message (and its exception's last line), any other line as is."""
+    """What a log line says: its message (a JSON line's with its exception's last line); any other line as is."""
     try:
         entry = json.loads(line)
     except ValueError:
-        return line
+        text = _TEXT_LOG.fullmatch(line)
+        return text["message"] if text else line
     if not isinstance(entry, dict) or "message" not in entry:
         return line
     exception = str(entry.get("exception") or "").strip().splitlines()
