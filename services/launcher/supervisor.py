@@ -19,6 +19,7 @@ is started with ``ARTRACK_RESTART`` set to the number of times it was restarted 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import logging
@@ -165,8 +166,9 @@ def _relay(child: _Child, pipe) -> None:
     with pipe:
         for raw in pipe:
             line = raw.decode(errors="replace")
-            sys.stderr.write(line)
-            sys.stderr.flush()
+            with contextlib.suppress(OSError, ValueError):  # our stderr gone: keep reading, so the child never blocks
+                sys.stderr.write(line)
+                sys.stderr.flush()
             if line.strip():
                 child.last_line = line.strip()
 
