@@ -202,6 +202,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+RUN_EXITS = ("exit codes: 0 done (or a live source stopped), 1 a node failed while running, 2 a bad option or "
+             "a node that could not start, 3 the source is a damaged recording (played up to the damage), "
+             "130 interrupted before a finite source ended (docs/configuration.md)")
+
 SOURCE_SKIP = {"scene", "wait_for_subscriber"}
 """Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
 
@@ -213,7 +217,7 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     from services.launcher.tracker import Tracker
 
     chosen = Tracker.load(tracker)
-    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
     source = flags_for(kind("capture").params, SOURCE_SKIP)
     add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
                                    "rig)"), source)

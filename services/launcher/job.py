@@ -184,7 +184,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run") -> int:
             stop.wait(0.05)
         if stop.is_set():
             return interrupted
-        ended = _sources_ended(source_supervisor.health())
+        ended, why = _sources_ended(source_supervisor.health())
         if ended == JobExit.DONE:
             _drain(session, bus, {n for n in downstream if spec.nodes[n].kind not in SINKS})
         return ended
@@ -245,17 +245,17 @@ def _failed(supervisor: Supervisor) -> str | None:
     return None if failed is None else f"node {failed} failed: {supervisor.failure(failed)}"
 
 
-def _sources_ended(children: list[ChildHealth]) -> JobExit:
-    """The job's exit once its sources all ended: DONE when each exited 0, else after the worst of them."""
+def _sources_ended(children: list[ChildHealth]) -> tuple[JobExit, str | None]:
+    """The job's exit once its sources all ended, and why when not DONE (the sources that did not exit 0)."""
     codes = {child.exit_code for child in children}
-    for child in children:
-        if child.exit_code != 0:
-            log.error("source %s ended with code %s: %s", child.name, child.exit_code, child.reason)
+    why = "; ".join(f"source {child.name} ended with code {child.exit_code}: {child.reason}"
+                    for child in children if child.exit_code != 0) or None
     if codes == {0}:
-        return JobExit.DONE
+        return JobExit.DONE, None
     if JobExit.CANNOT_START in codes:
-        return JobExit.CANNOT_START
-    return JobExit.DAMAGED_SOURCE if codes == {0, EXIT_DAMAGED} or codes == {EXIT_DAMAGED} else JobExit.NODE_FAILED
+        return JobExit.CANNOT_START, why
+    damaged = codes <= {0, EXIT_DAMAGED}
+    return (JobExit.DAMAGED_SOURCE, why) if damaged else (JobExit.NODE_FAILED, why)
 
 
 def _drain(session, bus: BusConfig, names: set[str]) -> None:
