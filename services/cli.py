@@ -202,6 +202,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+RUN_EXITS = ("exit codes: 0 done (or a live source stopped), 1 a node failed while running, 2 a bad option or "
+             "a node that could not start, 3 the source is a damaged recording (played up to the damage), "
+             "130 interrupted before a finite source ended (docs/configuration.md)")
+
 SOURCE_SKIP = {"scene", "wait_for_subscriber"}
 """Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
 
@@ -213,7 +217,7 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     from services.launcher.tracker import Tracker
 
     chosen = Tracker.load(tracker)
-    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
     source = flags_for(kind("capture").params, SOURCE_SKIP)
     add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
                                    "rig)"), source)
@@ -263,7 +267,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = read_pipeline(Path(args.tracker))
-        return run_job(_bus(run_args, **spec.bus), spec, _display(run_args))
+        return run_job(_bus(run_args, **spec.bus), spec, args.tracker, _display(run_args))
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
@@ -299,7 +303,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus = _bus(run_args, **spec.bus)
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
-    return run_job(bus, spec, _display(run_args))
+    return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
 
 
 def _command_line(argv: list[str], without: str) -> str:
@@ -330,7 +334,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_node(args: argparse.Namespace) -> int:
     from services.launcher.kinds import kind
-    from services.runtime.node import run_node
 
     node_kind = kind(args.kind)
     try:
@@ -340,7 +343,17 @@ def cmd_node(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: node_kind.run(node, params))
+    return _node_exit(args.name, args.kind, _bus(args, daemon=True), lambda node: node_kind.run(node, params))
+
+
+def _node_exit(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object]) -> int:
+    """``run_node``'s exit code, or the one ``body`` returned (a replay's 3 for a damaged file) when it is 0."""
+    from services.runtime.node import run_node
+
+    returned: list[object] = []
+    failed = run_node(name, kind, bus, lambda node: returned.append(body(node)))
+    code = returned[0] if returned else 0
+    return failed or (code if isinstance(code, int) else 0)
 
 
 def cmd_kinds(args: argparse.Namespace) -> int:
@@ -372,11 +385,9 @@ def cmd_schemas(args: argparse.Namespace) -> int:
 
 
 def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[[Node], object]) -> int:
-    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
-    from services.runtime.node import run_node
-
+    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name); see ``_node_exit``."""
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return run_node(args.name, kind, _bus(args), body)
+    return _node_exit(args.name, kind, _bus(args), body)
 
 
 def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional: dict[str, str], description: str,
@@ -424,9 +435,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     params = _from_flags(args, "replay", Params, {"path": "IN.mcap"}, REPLAY_HELP, node="replay")
     Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
     Selection(_bus(args).keys, params.keys)  # and so does a bad key expression
-    codes: list[int] = []
-    failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
-    return failed or (codes[0] if codes else 0)
+    return _run_as_node(args, "replay", lambda node: run(node, params))
 
 
 def cmd_control(args: argparse.Namespace) -> int:
@@ -622,8 +631,8 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("status", help="every supervised node's state, restarts and rates, client apps and "
                                       "their subscriptions; --check: exit 0 only when all nodes run")
     p.add_argument("--json", action="store_true", help="one JSON object instead of tables")
-    p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` answered and every node "
-                   "it supervises is running (a health check)")
+    p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` or `artrack run` answered "
+                   "and every node it supervises is running (a health check)")
     p.add_argument("--here", action="store_true", help="only the `artrack up` processes of this host")
     p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers")
     _bus_options(p)
