@@ -227,8 +227,8 @@ def _live(rig: Rig) -> bool:
 
 
 def _stamp(params: Params, frame: SourceFrame) -> int:
-    if params.stamps == "source" and frame.time_s is not None:
-        return round(frame.time_s * 1e9)
+    if params.stamps == "source" and frame.time_ns is not None:
+        return frame.time_ns
     return time.time_ns()
 
 
