@@ -27,6 +27,7 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.recorder.export import Export
     from services.runtime.node import Node
 
 log = logging.getLogger("artrack")
@@ -458,21 +459,45 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from services.recorder.export import Export
+    from services.recorder.export import export_path, is_expression, matching_keys
     from services.recorder.reading import EXIT_DAMAGED
 
-    job = Export(args.file, args.key, args.format, child=args.child, full=args.full)
-    lines = job.lines()
-    first = next(lines, None)  # a wrong key or format fails here, before the output is created
-    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
-        for line in itertools.chain([] if first is None else [first], lines):
-            out.write(line + "\n")
-    log.info("exported %d rows of %s%s", job.rows, args.key,
-             f" ({job.skipped} undecodable messages skipped)" if job.skipped else "")
+    if not is_expression(args.key):
+        job = _export_key(args, args.key, args.output)
+        log.info("exported %d rows of %s%s", job.rows, args.key, _skipped(job.skipped))
+    else:
+        keys, prefix = matching_keys(args.file, args.key)
+        folder = args.output or Path(".")
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"-o {folder}: a key expression writes one file per key: give a folder")
+        for key in keys:
+            target = export_path(folder, key, prefix, args.format)
+            job = _export_key(args, key, target)
+            log.info("wrote %s: %d rows of %s%s", target, job.rows, key, _skipped(job.skipped))
+        log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
     if job.damage is not None:
         log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
         return EXIT_DAMAGED
     return 0
+
+
+def _skipped(count: int) -> str:
+    return f" ({count} undecodable messages skipped)" if count else ""
+
+
+def _export_key(args: argparse.Namespace, key: str, output: Path | None) -> Export:
+    """Export one recorded ``key`` of ``args.file`` into ``output`` (its folders made; None: standard output)."""
+    from services.recorder.export import Export
+
+    job = Export(args.file, key, args.format, child=args.child, full=args.full)
+    lines = job.lines()
+    first = next(lines, None)  # a wrong key or format fails here, before the output is created
+    if output is not None:
+        output.parent.mkdir(parents=True, exist_ok=True)
+    with open(output, "w", newline="") if output else contextlib.nullcontext(sys.stdout) as out:
+        for line in itertools.chain([] if first is None else [first], lines):
+            out.write(line + "\n")
+    return job
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -708,11 +733,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--recover", type=Path, metavar="OUT.mcap", help="copy the intact part into a new, indexed file")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("export", help="one key of a recording as a TUM trajectory, CSV or JSON lines")
+    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", required=True, help="a recorded key, absolute or relative to the recording's ar/<rig>/")
+    p.add_argument("--key", required=True, help="a recorded key, or a key expression (pose/cam0/**) for one file "
+                   "per matching key; absolute or relative to the recording's ar/<rig>/")
     p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
-    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output)")
+    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
+                   "a key expression, the folder of the files, each named after its key (default: .)")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.set_defaults(func=cmd_export)
