@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -27,6 +27,7 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.launcher.flags import Flag
     from services.recorder.export import Export
     from services.runtime.node import Node
 
@@ -285,10 +286,11 @@ def cmd_run(args: argparse.Namespace) -> int:
                 raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
             scene[name] = value
         try:
-            kind("capture").validate({**given, "scene": scene})
+            captured = kind("capture").validate({**given, "scene": scene})
         except ValidationError as exc:
             raise ValueError(explain(exc, source_flags, "source")) from exc
         source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
+        options = _with_known_settings(options, own_flags, captured)
     spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
@@ -301,6 +303,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
     return run_job(bus, spec, _display(run_args))
+
+
+def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
+    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
+    tracker's flags not given; each value taken said in one line."""
+    from services.capture.sources import known_settings
+
+    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
+    taken = dict(options)
+    for flag in flags:
+        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
+            value, uri = known[flag.field]
+            taken[flag.key] = value
+            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, value, uri, flag.option)
+    return taken
 
 
 def _command_line(argv: list[str], without: str) -> str:

@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -257,6 +258,21 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
         except ValueError as exc:
             raise SourceError(f"{uri}: {exc}") from exc
     return rig_camera_names(own)
+
+
+def known_settings(uris: tuple[str, ...] | list[str], scene_options: dict) -> dict[str, tuple[Any, str]]:
+    """Node parameters the sources settle by what they show, by field: ``(value, the URI that says so)``
+    (``synthetic:markers``: its ``marker_length``). Devices, files and folders settle nothing."""
+    known: dict[str, tuple[Any, str]] = {}
+    for uri in uris:
+        scheme, rest = check_uri(uri)
+        if scheme == "synthetic":
+            try:
+                settings = make_scene(rest, **scene_options).known_settings()
+            except ValueError as exc:
+                raise SourceError(f"{uri}: {exc}") from exc
+            known.update({name: (value, uri) for name, value in settings.items()})
+    return known
 
 
 def check_source(uri: str) -> tuple[str, str]:

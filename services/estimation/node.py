@@ -191,7 +191,11 @@ class _Overlay:
 
 
 def _prepare(params: Params) -> tuple[MarkerMap | None, CameraModel | None, MarkerDetector | None]:
-    """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be had."""
+    """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be
+    had, or when detecting here with no side length at all (every marker would fail to give a pose)."""
+    if params.input == "images" and params.marker_length is None and not params.lengths and params.board is None:
+        raise ValueError("no marker side length, so no pose could be given: marker_length is needed (artrack run: "
+                         "--marker-length METRES, > 0), or lengths of single ids, or a board")
     board = load_marker_map(params.board) if params.board else None
     fixed = read_camera_info(params.calib) if params.calib else None
     detector = marker_detector(params, board) if params.input == "images" else None
