@@ -275,6 +275,31 @@ def known_settings(uris: tuple[str, ...] | list[str], scene_options: dict) -> di
     return known
 
 
+def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, int] | None]:
+    """``(width, height)`` of each camera's frames, in rig order, where known before capturing: a
+    scene's cameras, an image folder's first image, a video file's frames; None for devices (and
+    for what cannot be read). Raises SourceError for a URI that cannot name a source."""
+    sizes: list[tuple[int, int] | None] = []
+    for uri in uris:
+        scheme, rest = check_source(uri)
+        path = Path(rest).expanduser()
+        if scheme == "synthetic":
+            try:
+                sizes.extend((c.width, c.height) for c in make_scene(rest, **scene_options).cameras)
+            except ValueError as exc:
+                raise SourceError(f"{uri}: {exc}") from exc
+        elif scheme == "images":
+            sizes.append(ImageFolderSource(uri, path).first_image_size())
+        elif scheme == "video":
+            capture = cv2.VideoCapture(str(path))
+            width, height = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            capture.release()
+            sizes.append((width, height) if width > 0 and height > 0 else None)
+        else:
+            sizes.append(None)
+    return sizes
+
+
 def check_source(uri: str) -> tuple[str, str]:
     """``(scheme, rest)`` of ``uri`` once what can be told without opening it is right: the URI's
     form, a video file that exists, an image folder that exists (SourceError otherwise)."""
