@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -27,6 +27,8 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.launcher.flags import Flag
+    from services.recorder.export import Export
     from services.runtime.node import Node
 
 log = logging.getLogger("artrack")
@@ -288,10 +290,11 @@ def cmd_run(args: argparse.Namespace) -> int:
                 raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
             scene[name] = value
         try:
-            kind("capture").validate({**given, "scene": scene})
+            captured = kind("capture").validate({**given, "scene": scene})
         except ValidationError as exc:
             raise ValueError(explain(exc, source_flags, "source")) from exc
         source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
+        options = _with_known_settings(options, own_flags, captured)
     spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
@@ -304,6 +307,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
     return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
+
+
+def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
+    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
+    tracker's flags not given; each value taken said in one line."""
+    from services.capture.sources import known_settings
+
+    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
+    taken = dict(options)
+    for flag in flags:
+        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
+            value, uri = known[flag.field]
+            taken[flag.key] = value
+            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, value, uri, flag.option)
+    return taken
 
 
 def _command_line(argv: list[str], without: str) -> str:
@@ -467,21 +485,45 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from services.recorder.export import Export
+    from services.recorder.export import export_path, is_expression, matching_keys
     from services.recorder.reading import EXIT_DAMAGED
 
-    job = Export(args.file, args.key, args.format, child=args.child, full=args.full)
-    lines = job.lines()
-    first = next(lines, None)  # a wrong key or format fails here, before the output is created
-    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
-        for line in itertools.chain([] if first is None else [first], lines):
-            out.write(line + "\n")
-    log.info("exported %d rows of %s%s", job.rows, args.key,
-             f" ({job.skipped} undecodable messages skipped)" if job.skipped else "")
+    if not is_expression(args.key):
+        job = _export_key(args, args.key, args.output)
+        log.info("exported %d rows of %s%s", job.rows, args.key, _skipped(job.skipped))
+    else:
+        keys, prefix = matching_keys(args.file, args.key)
+        folder = args.output or Path(".")
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"-o {folder}: a key expression writes one file per key: give a folder")
+        for key in keys:
+            target = export_path(folder, key, prefix, args.format)
+            job = _export_key(args, key, target)
+            log.info("wrote %s: %d rows of %s%s", target, job.rows, key, _skipped(job.skipped))
+        log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
     if job.damage is not None:
         log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
         return EXIT_DAMAGED
     return 0
+
+
+def _skipped(count: int) -> str:
+    return f" ({count} undecodable messages skipped)" if count else ""
+
+
+def _export_key(args: argparse.Namespace, key: str, output: Path | None) -> Export:
+    """Export one recorded ``key`` of ``args.file`` into ``output`` (its folders made; None: standard output)."""
+    from services.recorder.export import Export
+
+    job = Export(args.file, key, args.format, child=args.child, full=args.full)
+    lines = job.lines()
+    first = next(lines, None)  # a wrong key or format fails here, before the output is created
+    if output is not None:
+        output.parent.mkdir(parents=True, exist_ok=True)
+    with open(output, "w", newline="") if output else contextlib.nullcontext(sys.stdout) as out:
+        for line in itertools.chain([] if first is None else [first], lines):
+            out.write(line + "\n")
+    return job
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -717,11 +759,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--recover", type=Path, metavar="OUT.mcap", help="copy the intact part into a new, indexed file")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("export", help="one key of a recording as a TUM trajectory, CSV or JSON lines")
+    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", required=True, help="a recorded key, absolute or relative to the recording's ar/<rig>/")
+    p.add_argument("--key", required=True, help="a recorded key, or a key expression (pose/cam0/**) for one file "
+                   "per matching key; absolute or relative to the recording's ar/<rig>/")
     p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
-    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output)")
+    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
+                   "a key expression, the folder of the files, each named after its key (default: .)")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.set_defaults(func=cmd_export)
