@@ -1,6 +1,6 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
-``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``.
+``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -11,8 +11,9 @@ Both processes fix glibc's malloc thresholds first (see ``tests.bench.memory``).
 Then the codec's steps warm and cold in one process (``codec``), poses through a router
 against peer to peer (``routing``), the scene renderers, the recorder and replay, the
 viewer, marker tracking (the live pipeline against the same work in one process), the
-pipeline with client apps subscribed against none (``apps``) and the marker estimators'
-accuracy against ground truth (each module's docstring says what it measures).
+pipeline with client apps subscribed against none (``apps``), the marker estimators'
+accuracy against ground truth and blob detection per frame (``blobs``) (each module's docstring
+says what it measures).
 Progress goes to stderr.
 """
 
@@ -30,6 +31,7 @@ from services.bus.pubsub import Role
 from services.runtime.memory import tune_malloc
 from tests.accuracy.report import report_lines
 from tests.bench.apps import bench_apps
+from tests.bench.blobs import bench_blobs
 from tests.bench.codec import bench_codec
 from tests.bench.figures import alternating, comparison_lines, machine_line, variant_line
 from tests.bench.link import Sink
@@ -98,7 +100,7 @@ def transport_bench() -> list[dict[str, Any]]:
 BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "transport": transport_bench, "codec": bench_codec, "routing": bench_routing, "scenes": bench_scenes,
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
-    "accuracy": report_lines,
+    "accuracy": report_lines, "blobs": bench_blobs,
 }
 
 

@@ -1,0 +1,257 @@
+"""Bright blobs in infrared images (retro-reflective spheres, LEDs), and the result every blob detector returns.
+
+Pixels are those of the input image: x right, y down, the centre of the top-left pixel at (0, 0).
+
+``detect_ir_blobs`` thresholds the image and finds its 8-connected components by border
+following (``cv2.findContours``, external borders only, so a component's holes count as
+inside it). Per component, in a small window around it:
+
+* centroid: intensity-weighted, ``sum(w * p) / sum(w)`` with ``w = max(I - background, 0)``
+  over the component grown by one pixel (the anti-aliased rim just below the threshold
+  belongs to the blob; pixels above the threshold of another component do not);
+* area: its pixels; radius: ``sqrt(area / pi)``;
+* perimeter and circularity: of the border polygon through the outer pixels' centres,
+  ``4 pi area_polygon / perimeter**2`` as ``cv2.SimpleBlobDetector`` measures it;
+* roundness: ``sqrt(l_min / l_max)`` of the weighted second moments' eigenvalues, 1 for a disc;
+  solidity: polygon area over its convex hull's area;
+* flags (``BlobFlag``): a blob that is not round (roundness below ``min_roundness``) or not
+  convex (solidity below ``min_solidity``) is MERGED when its weight, summed across its major
+  axis in 1 px slices, has a waist (a slice lighter than the heaviest slice on each side by
+  ``waist_depth`` of it: two blobs run together), else OCCLUDED (partly hidden or cut).
+  CLIPPED: it touches the image border, so part of it may be outside;
+* quality: roundness times solidity, in (0, 1].
+
+Flagged blobs are reported, not dropped: a consumer that wants clean centroids keeps
+``blobs.clean()``. Filters drop components outside ``[min_area, max_area]`` pixels, outside
+``[min_radius, max_radius]`` px or below ``min_circularity`` (noise, streaks).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import cv2
+import numpy as np
+
+__all__ = ["BlobFlag", "Blobs", "IrBlobParams", "ShapeParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
+
+WINDOW_PAD = 2
+"""Pixels around a component's bounding box in the window its centroid and shape are measured in."""
+BACKGROUND_STRIDE = 8
+"""The estimated background is the median of every ``BACKGROUND_STRIDE``-th pixel along both axes."""
+_GROW = np.ones((3, 3), np.uint8)
+
+
+class BlobFlag(enum.IntFlag):
+    """Why a blob's centroid may not be the centre of one round spot (bits of ``Blobs.flags``)."""
+
+    MERGED = 1
+    """Two or more blobs run together: the centroid lies between them."""
+    OCCLUDED = 2
+    """Not round and no waist: partly hidden or cut, the centroid is off the spot's centre."""
+    CLIPPED = 4
+    """Touches the image border: part of the blob may lie outside the image."""
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """Blobs found in one image, row ``i`` of every array describing blob ``i``.
+
+    ``centroids``: (N, 2) float64 px (x right, y down); ``area``: (N,) float64 px^2;
+    ``radius``: (N,) float64 px; ``perimeter``: (N,) float64 px; ``circularity``: (N,) float64
+    in [0, 1], ``4 pi area / perimeter**2`` (NaN where the method does not measure it);
+    ``quality``: (N,) float64 in [0, 1], higher is better (each method says how it is made);
+    ``flags``: (N,) uint8, bits of ``BlobFlag``.
+    """
+
+    centroids: np.ndarray
+    area: np.ndarray
+    radius: np.ndarray
+    perimeter: np.ndarray
+    circularity: np.ndarray
+    quality: np.ndarray
+    flags: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.centroids)
+        if np.shape(self.centroids) != (n, 2):
+            raise ValueError(f"centroids must be (N, 2), not {np.shape(self.centroids)}")
+        for field in fields(self)[1:]:
+            if np.shape(getattr(self, field.name)) != (n,):
+                raise ValueError(f"{field.name} must be ({n},) like the centroids, "
+                                 f"not {np.shape(getattr(self, field.name))}")
+
+    def __len__(self) -> int:
+        return len(self.centroids)
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[tuple[float, ...]]) -> Blobs:
+        """Blobs from ``(x, y, area, radius, perimeter, circularity, quality, flags)`` rows."""
+        table = np.array(rows, np.float64).reshape(-1, 8)
+        return cls(table[:, :2].copy(), table[:, 2].copy(), table[:, 3].copy(), table[:, 4].copy(),
+                   table[:, 5].copy(), table[:, 6].copy(), table[:, 7].astype(np.uint8))
+
+    def select(self, keep: np.ndarray) -> Blobs:
+        """The blobs ``keep`` picks: an (N,) bool mask or an index array."""
+        return Blobs(**{field.name: getattr(self, field.name)[keep] for field in fields(self)})
+
+    def flagged(self, flag: BlobFlag) -> np.ndarray:
+        """(N,) bool: the blobs with ``flag`` set."""
+        return (self.flags & int(flag)) != 0
+
+    def clean(self) -> Blobs:
+        """The blobs with no flag set."""
+        return self.select(self.flags == 0)
+
+
+@dataclass(frozen=True)
+class ShapeParams:
+    """Filters and flags every method that measures its blobs' pixels shares: components of
+    ``min_area`` to ``max_area`` px^2 with at least ``min_circularity`` are kept; a blob with a
+    roundness below ``min_roundness`` is flagged, MERGED when it has a waist of ``waist_depth``."""
+
+    min_area: float = 3.0
+    max_area: float = 10000.0
+    min_circularity: float = 0.3
+    min_roundness: float = 0.8
+    waist_depth: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_settings(self, ("min_area", "max_area"), ("min_circularity", "min_roundness", "waist_depth"))
+        if self.min_area > self.max_area:
+            raise ValueError(f"area range [{self.min_area}, {self.max_area}] is empty")
+
+
+@dataclass(frozen=True)
+class IrBlobParams(ShapeParams):
+    """Settings of ``detect_ir_blobs`` (see the module docstring), beside ``ShapeParams``'s.
+
+    ``threshold``: grey level a blob's pixels exceed; ``background``: grey level subtracted
+    from the weights (None: estimated per image, the median of a pixel grid);
+    ``min_radius``/``max_radius``: px; ``min_solidity``: below it a blob is flagged.
+    """
+
+    threshold: float = 60.0
+    background: float | None = None
+    min_radius: float = 0.0
+    max_radius: float = math.inf
+    min_solidity: float = 0.85
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_settings(self, ("threshold", "min_radius", "max_radius"), ("min_solidity",))
+        if self.background is not None and not self.background >= 0.0:
+            raise ValueError(f"background must be a grey level >= 0 or None, not {self.background!r}")
+        if self.min_radius > self.max_radius:
+            raise ValueError(f"radius range [{self.min_radius}, {self.max_radius}] is empty")
+
+
+def check_settings(settings: object, non_negative: Sequence[str], fractions: Sequence[str]) -> None:
+    """ValueError naming the first attribute of ``settings`` among ``non_negative`` that is not a number
+    >= 0, or among ``fractions`` that is not within [0, 1]."""
+    for name in non_negative:
+        if not getattr(settings, name) >= 0.0:
+            raise ValueError(f"{name} must be a number >= 0, not {getattr(settings, name)!r}")
+    for name in fractions:
+        if not 0.0 <= getattr(settings, name) <= 1.0:
+            raise ValueError(f"{name} must be within [0, 1], not {getattr(settings, name)!r}")
+
+
+def check_mono(image: np.ndarray) -> np.ndarray:
+    """``image`` as an (H, W) uint8 or uint16 array; ValueError naming what it got otherwise."""
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"IR blob detection needs a mono8 or mono16 (H, W) image, not {image.dtype} {image.shape}")
+    return image
+
+
+def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Blobs:
+    """Bright blobs of ``image`` ((H, W) uint8 or uint16 grey levels), in the order found."""
+    image = check_mono(image)
+    params = params or IrBlobParams()
+    height, width = image.shape
+    binary = cv2.compare(image, params.threshold, cv2.CMP_GT)  # type: ignore[call-overload]
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    background = (float(np.median(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]))
+                  if params.background is None else params.background)
+    rows = []
+    for contour in contours:
+        x, y, w, h = cv2.boundingRect(contour)
+        if w * h < params.min_area:
+            continue
+        x0, y0 = max(x - WINDOW_PAD, 0), max(y - WINDOW_PAD, 0)
+        x1, y1 = min(x + w + WINDOW_PAD, width), min(y + h + WINDOW_PAD, height)
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.drawContours(mask, [contour], 0, 255, cv2.FILLED, offset=(-x0, -y0))
+        area = float(cv2.countNonZero(mask))
+        radius = math.sqrt(area / math.pi)
+        if not (params.min_area <= area <= params.max_area and params.min_radius <= radius <= params.max_radius):
+            continue
+        perimeter = cv2.arcLength(contour, True)
+        polygon_area = cv2.contourArea(contour)
+        circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
+        if circularity < params.min_circularity:
+            continue
+        rim = cv2.subtract(cv2.dilate(mask, _GROW), cv2.subtract(binary[y0:y1, x0:x1], mask))
+        weights = np.zeros(mask.shape, np.float32)
+        cv2.subtract(image[y0:y1, x0:x1], background, dst=weights, mask=rim,  # type: ignore[call-overload]
+                     dtype=cv2.CV_32F)
+        np.maximum(weights, 0.0, out=weights)
+        moments = cv2.moments(weights)
+        if moments["m00"] <= 0.0:
+            continue
+        centroid, axis, roundness = moment_shape(moments)
+        hull_area = cv2.contourArea(cv2.convexHull(contour))
+        solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
+        flags = shape_flags(weights, centroid, axis, roundness < params.min_roundness
+                            or solidity < params.min_solidity, params.waist_depth)
+        if x == 0 or y == 0 or x + w == width or y + h == height:
+            flags |= BlobFlag.CLIPPED
+        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity,
+                     roundness * solidity, int(flags)))
+    return Blobs.from_rows(rows)
+
+
+def moment_shape(moments: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float], float]:
+    """From ``cv2.moments`` of a weight window: the centroid ``(x, y)`` px in the window, the major
+    axis ``(cos, sin)`` (a unit vector) and the roundness ``sqrt(l_min / l_max)`` of the covariance."""
+    m00 = moments["m00"]
+    a, b, c = moments["mu20"] / m00, moments["mu11"] / m00, moments["mu02"] / m00
+    half_gap = math.hypot((a - c) / 2.0, b)
+    l_max, l_min = (a + c) / 2.0 + half_gap, max((a + c) / 2.0 - half_gap, 0.0)
+    angle = 0.5 * math.atan2(2.0 * b, a - c)
+    roundness = math.sqrt(l_min / l_max) if l_max > 0 else 1.0
+    return (moments["m10"] / m00, moments["m01"] / m00), (math.cos(angle), math.sin(angle)), roundness
+
+
+def shape_flags(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], irregular: bool,
+                waist_depth: float) -> BlobFlag:
+    """MERGED, OCCLUDED or no flag for one blob (see the module docstring).
+
+    ``weights``: (h, w) float window, 0 outside the blob; ``centroid``: ``(x, y)`` px in the window;
+    ``axis``: unit major axis ``(cos, sin)``; ``irregular``: the blob failed the roundness or solidity test.
+    """
+    if not irregular:
+        return BlobFlag(0)
+    return BlobFlag.MERGED if has_waist(weights, centroid, axis, waist_depth) else BlobFlag.OCCLUDED
+
+
+def has_waist(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], depth: float) -> bool:
+    """Whether the weight summed across ``axis`` in 1 px slices (each pixel shared linearly between
+    the two nearest slices) dips, somewhere inside, below ``1 - depth`` of the heaviest slice on each side."""
+    ys, xs = np.nonzero(weights)
+    along = (xs - centroid[0]) * axis[0] + (ys - centroid[1]) * axis[1]
+    along -= along.min()
+    index = along.astype(np.intp)
+    share = along - index
+    values = weights[ys, xs]
+    size = int(index.max()) + 2
+    profile = (np.bincount(index, values * (1.0 - share), size) + np.bincount(index + 1, values * share, size))
+    if size < 3:
+        return False
+    left = np.maximum.accumulate(profile)[:-2]
+    right = np.maximum.accumulate(profile[::-1])[::-1][2:]
+    return bool(np.any(profile[1:-1] < (1.0 - depth) * np.minimum(left, right)))
