@@ -27,6 +27,7 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.geometry.camera import CameraModel
     from services.launcher.flags import Flag
     from services.recorder.export import Export
     from services.runtime.node import Node
@@ -581,6 +582,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from services.calibration.camera_info import write_camera_info
     from services.calibration.intrinsics import Charuco, Chessboard, Pattern, calibrate_images
 
+    if args.wand is not None:
+        return cmd_calibrate_wand(args)
+    missing = [flag for flag, value in (("DIR_OR_GLOB", args.images), ("--pattern", args.pattern),
+                                        ("--size", args.size), ("--square", args.square)) if value is None]
+    if missing:
+        raise ValueError(f"calibrate needs {', '.join(missing)} (intrinsics from photos), or --wand (extrinsics)")
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
         raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
@@ -601,6 +608,74 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
     print(f"wrote {args.out}")
     return 0
+
+
+def cmd_calibrate_wand(args: argparse.Namespace) -> int:
+    """Extrinsics of a recording's cameras from a wand waved before them, written as a rig file."""
+    from dataclasses import replace
+
+    import cv2
+    import numpy as np
+
+    from services.calibration.rig import Rig, write_rig
+    from services.calibration.wand import Wand, calibrate_wand
+    from services.convert import camera_model
+    from services.detection.blobs import detect_ir_blobs
+    from services.recorder.camera_frames import camera_frames
+
+    if args.wand_length is None or args.wand_middle is None:
+        raise ValueError("--wand needs --wand-length (between the end spheres) and --wand-middle (the middle "
+                         "sphere's distance from an end), metres")
+    wand = Wand(np.array([0.0, args.wand_middle, args.wand_length]))
+
+    def blobs(image: np.ndarray) -> np.ndarray:
+        mono = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        return detect_ir_blobs(mono).clean().centroids
+
+    recorded = camera_frames(args.wand, blobs)
+    if len(recorded.cameras) < 2:
+        raise ValueError(f"{args.wand}: wand calibration needs images of 2 or more cameras, found "
+                         f"{recorded.cameras or 'none'}")
+    given = _intrinsics(args.intrinsics or [])
+    cameras = []
+    for name in [c.name for c in given if c.name in recorded.cameras] or recorded.cameras:
+        known = [c for c in given if c.name == name]
+        if known:
+            cameras.append(known[0])
+        elif name in recorded.infos:
+            cameras.append(camera_model(recorded.infos[name], name))
+        else:
+            raise ValueError(f"no intrinsics for camera {name!r}: the recording has no camera_info for it and "
+                             "--intrinsics does not name it")
+    names = [c.name for c in cameras]
+    frames = [[frame.get(name, np.zeros((0, 2))) for name in names] for frame in recorded.frames.values()]
+    result = calibrate_wand(cameras, frames, wand)
+    print(result.report(names))
+    rig = Rig(args.out.stem, tuple(replace(c, T_rig_camera=T) for c, T in zip(cameras, result.T_rig_camera,
+                                                                              strict=True)))
+    try:
+        write_rig(args.out, rig)
+    except OSError as exc:
+        raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _intrinsics(files: list[Path]) -> list[CameraModel]:
+    """Cameras of rig files and camera_info files, in the order given."""
+    import yaml
+
+    from services.calibration.camera_info import read_camera_info
+    from services.calibration.rig import read_rig
+
+    cameras: list[CameraModel] = []
+    for path in files:
+        try:
+            is_rig = isinstance(document := yaml.safe_load(path.read_text()), dict) and "cameras" in document
+        except (OSError, yaml.YAMLError):
+            is_rig = False  # read_camera_info names the problem
+        cameras += read_rig(path).cameras if is_rig else [read_camera_info(path)]
+    return cameras
 
 
 def cmd_markers_print(args: argparse.Namespace) -> int:
@@ -795,17 +870,26 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("calibrate", help="camera intrinsics from photos of a chessboard or ChArUco board, "
-                                         "written as ROS camera_info YAML (exit 2 if the photos cannot constrain them)")
-    p.add_argument("images", metavar="DIR_OR_GLOB", help="a folder of images, or a quoted glob like 'data/left*.jpg'")
+                                         "written as ROS camera_info YAML (exit 2 if the photos cannot constrain "
+                                         "them); with --wand, a rig's extrinsics from a recorded wand, as a rig file")
+    p.add_argument("images", nargs="?", metavar="DIR_OR_GLOB",
+                   help="a folder of images, or a quoted glob like 'data/left*.jpg'")
     p.add_argument("--glob", default="*", metavar="PATTERN", help="in a folder, the files matching PATTERN (default *)")
-    p.add_argument("--pattern", required=True, choices=("chessboard", "charuco"))
-    p.add_argument("--size", required=True, metavar="COLSxROWS",
+    p.add_argument("--pattern", choices=("chessboard", "charuco"))
+    p.add_argument("--size", metavar="COLSxROWS",
                    help="inner corners of a chessboard (e.g. 9x6), squares of a ChArUco board (e.g. 5x7)")
-    p.add_argument("--square", required=True, type=float, metavar="M", help="side of a square, metres")
+    p.add_argument("--square", type=float, metavar="M", help="side of a square, metres")
     p.add_argument("--marker", type=float, metavar="M", help="ChArUco: side of a marker, metres")
     p.add_argument("--dictionary", metavar="NAME", help="ChArUco: its markers' dictionary, e.g. DICT_6X6_250")
     p.add_argument("--camera", default="cam0", metavar="NAME", help="camera name written to the file (default cam0)")
-    p.add_argument("--out", required=True, type=Path, metavar="CAMERA.yaml")
+    p.add_argument("-o", "--out", required=True, type=Path, metavar="CAMERA.yaml|RIG.yaml")
+    p.add_argument("--wand", type=Path, metavar="RECORDING.mcap",
+                   help="extrinsics from the IR images of a recording of a 3-sphere wand waved through the volume")
+    p.add_argument("--wand-length", type=float, metavar="M", help="--wand: distance between its end spheres, metres")
+    p.add_argument("--wand-middle", type=float, metavar="M",
+                   help="--wand: distance of its middle sphere from one end, metres")
+    p.add_argument("--intrinsics", nargs="+", type=Path, metavar="FILE",
+                   help="--wand: rig or camera_info files of the cameras (default: the recording's camera_info)")
     p.set_defaults(func=cmd_calibrate)
 
     markers = sub.add_parser("markers", help="marker utilities: `artrack markers print` draws printable sheets")

@@ -1,6 +1,6 @@
-"""Blob centres of the ``ir_rig`` scene's calibration wand: exact projections of the true sphere centres
-(through each camera's distortion) plus Gaussian noise, in random order; spheres hidden by the scene's
-occlusions or outside the image leave no blob."""
+"""The ``ir_rig`` scene's calibration wand for tests: its blob centres (exact projections of the true sphere
+centres through each camera's distortion plus Gaussian noise, in random order; spheres hidden by the scene's
+occlusions or outside the image leave no blob), and the error of estimated extrinsics against the scene's."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 from services.capture.scenes import make_scene
 from services.capture.scenes.ir_rig import WAND_BODY, IrRigScene
 from services.geometry.camera import project_points
+from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert, transform_points
 
 
@@ -33,3 +34,13 @@ def wand_blobs(scene: IrRigScene, indices: range, sigma_px: float, seed: int = 0
             row.append(rng.permutation(pixels[keep] + rng.normal(0.0, sigma_px, (len(keep), 2))))
         frames.append(row)
     return frames
+
+
+def extrinsic_errors(scene: IrRigScene, T_rig_camera: list[np.ndarray] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C,) position errors, mm, and (C,) rotation errors, degrees, of estimated ``T_rig_camera`` (C, 4, 4), in the
+    scene's camera order and the first camera's frame, against the scene's cameras expressed in that frame."""
+    T_first_rig = invert(scene.cameras[0].T_rig_camera)
+    truth = [T_first_rig @ camera.T_rig_camera for camera in scene.cameras]
+    pairs = list(zip(truth, T_rig_camera, strict=True))
+    return (np.array([1000.0 * np.linalg.norm(t[:3, 3] - e[:3, 3]) for t, e in pairs]),
+            np.degrees([rotation_angle(t[:3, :3], e[:3, :3]) for t, e in pairs]))

@@ -127,6 +127,22 @@ class WandCalibration:
     rejected: int = 0
     observations: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
+    def report(self, names: Sequence[str]) -> str:
+        """Lines for a person: each camera's pose in the rig frame, then the fit's figures."""
+        lines = []
+        for name, T, seen in zip(names, self.T_rig_camera, self.observations, strict=True):
+            angle = np.degrees(np.linalg.norm(rotvec_from_matrix(T[:3, :3])))
+            x, y, z = T[:3, 3]
+            lines.append(f"{name}: position ({x:+.4f}, {y:+.4f}, {z:+.4f}) m, rotated {angle:.3f} deg, "
+                         f"wand seen in {seen} frames")
+        reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(self.skipped.items())) or "none"
+        lines += [f"wand length error {self.length_error_mean_mm:+.3f} mm mean, {self.length_error_std_mm:.3f} mm std "
+                  f"(ends triangulated freely)",
+                  f"reprojection RMS {self.rms_px:.3f} px",
+                  f"frames used {self.frames_used}, skipped {self.frames_skipped} (outliers {self.rejected}); "
+                  f"camera images refused: {reasons}"]
+        return "\n".join(lines)
+
 
 def calibrate_wand(cameras: Sequence[CameraModel], blobs: Sequence[Sequence[np.ndarray]], wand: Wand,
                    collinear_px: float = 2.0, outlier_px: float = 3.0, robust_px: float = 1.0) -> WandCalibration:

@@ -11,22 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.calibration.wand import Wand, WandCalibration, calibrate_wand
-from services.geometry.rotation import rotation_angle
-from services.geometry.se3 import invert
-from tests.wand_blobs import wand_blobs, wand_scene
+from services.calibration.wand import Wand, calibrate_wand
+from tests.wand_blobs import extrinsic_errors, wand_blobs, wand_scene
 
 SIGMA_PX = 0.1
 FRAMES = range(0, 1500, 5)
-
-
-def errors(scene, result: WandCalibration) -> tuple[np.ndarray, np.ndarray]:
-    """(C,) position errors, mm, and (C,) rotation errors, degrees, of the cameras in the first camera's frame."""
-    T_first_rig = invert(scene.cameras[0].T_rig_camera)
-    truth = [T_first_rig @ camera.T_rig_camera for camera in scene.cameras]
-    position = np.array([np.linalg.norm(t[:3, 3] - e[:3, 3]) for t, e in zip(truth, result.T_rig_camera, strict=True)])
-    rotation = np.array([rotation_angle(t[:3, :3], e[:3, :3]) for t, e in zip(truth, result.T_rig_camera, strict=True)])
-    return 1000.0 * position, np.degrees(rotation)
 
 
 @pytest.mark.parametrize("count", [2, 3])
@@ -34,7 +23,7 @@ def test_extrinsics_within_a_millimetre_and_a_twentieth_of_a_degree(count):
     scene = wand_scene(count)
     wand = Wand(np.array(scene.options.wand_spheres))
     result = calibrate_wand(scene.cameras, wand_blobs(scene, FRAMES, SIGMA_PX), wand)
-    position_mm, rotation_deg = errors(scene, result)
+    position_mm, rotation_deg = extrinsic_errors(scene, result.T_rig_camera)
     print(f"wand {count} cameras: position error max {position_mm.max():.3f} mm, rotation error max "
           f"{rotation_deg.max():.4f} deg, length error {result.length_error_mean_mm:+.3f} "
           f"+- {result.length_error_std_mm:.3f} mm, reprojection RMS {result.rms_px:.3f} px, "
@@ -57,6 +46,6 @@ def test_false_wands_are_rejected_by_the_adjustment():
         blobs[f][1] = np.array([[100.0, 100.0], [130.0 + f / 10, 118.0], [200.0, 160.0 + f / 10]])
         blobs[f][1][1] = blobs[f][1][0] + 0.3 * (blobs[f][1][2] - blobs[f][1][0])
     result = calibrate_wand(scene.cameras, blobs, wand)
-    position_mm, rotation_deg = errors(scene, result)
+    position_mm, rotation_deg = extrinsic_errors(scene, result.T_rig_camera)
     assert result.rejected == len(fakes)
     assert position_mm.max() < 1.0 and rotation_deg.max() < 0.05
