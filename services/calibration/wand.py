@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import sparse
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from services.calibration.camera_info import CalibrationError
 from services.geometry.absolute_orientation import three_point_transform
@@ -150,9 +150,9 @@ def calibrate_wand(cameras: Sequence[CameraModel], blobs: Sequence[Sequence[np.n
 
     ``blobs[f][c]``: (N, 2) blob centres, observed pixels of camera ``c`` in frame ``f``. A camera's
     frame is used when ``identify_wand`` accepts its blobs (``collinear_px``); a frame when two or
-    more cameras saw the wand. The adjustment uses a Cauchy loss of scale ``robust_px`` and runs
-    again without the frames left with a residual over ``outlier_px`` in any camera (a false wand
-    in one camera leaves the frame's wand pulled off in the others too). CalibrationError
+    more cameras saw the wand. A first adjustment with a Cauchy loss of scale ``robust_px`` finds the
+    frames left with a residual over ``outlier_px`` in any camera (a false wand in one camera pulls
+    the frame's wand off in the others too); the final one, without them, is plain least squares. CalibrationError
     when a camera cannot be placed (too few frames shared with the others) or too few frames are usable.
     """
     count = len(cameras)
@@ -168,13 +168,12 @@ def calibrate_wand(cameras: Sequence[CameraModel], blobs: Sequence[Sequence[np.n
                                f"need at least {MIN_SHARED_FRAMES}")
     observed, seen = observed[used], seen[used]
     T_camera_rig = _initial_poses(cameras, observed, seen, wand)
-    T_camera_rig, ends, directions, residuals = _adjust(cameras, observed, seen, wand, T_camera_rig, robust_px)
+    T_camera_rig, _, _, residuals = _adjust(cameras, observed, seen, wand, T_camera_rig, "cauchy", robust_px, 30)
     worst = np.zeros(seen.shape)
     worst[seen] = np.abs(residuals).max(axis=(1, 2))
     outliers = worst.max(axis=1) > outlier_px
-    if outliers.any():
-        observed, seen, used = observed[~outliers], seen[~outliers], used[~outliers]
-        T_camera_rig, ends, directions, residuals = _adjust(cameras, observed, seen, wand, T_camera_rig, robust_px)
+    observed, seen, used = observed[~outliers], seen[~outliers], used[~outliers]
+    T_camera_rig, ends, directions, residuals = _adjust(cameras, observed, seen, wand, T_camera_rig, "linear", 1.0, 100)
     points = ends[:, None, :] + wand.spheres[None, :, None] * directions[:, None, :]
     lengths = _free_lengths(cameras, observed, seen, T_camera_rig)
     errors_mm = (lengths - wand.length) * 1000.0
@@ -269,61 +268,106 @@ def _initial_poses(cameras: Sequence[CameraModel], observed: np.ndarray, seen: n
     return np.array([T_camera_rig[c] for c in range(count)])
 
 
-def _adjust(cameras: Sequence[CameraModel], observed: np.ndarray, seen: np.ndarray, wand: Wand,
-            T_camera_rig: np.ndarray, robust_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Bundle adjustment of cameras 1.. (camera 0 is the rig frame) and one rigid wand per frame.
+class WandAdjustment:
+    """The bundle-adjustment problem of ``calibrate_wand``: cameras 1.. (camera 0 is the rig frame) and
+    one rigid wand per frame, against the observed pixels, with an analytic sparse Jacobian.
 
-    A frame's wand is its first end ``e`` (3,) and a unit direction ``d`` kept as two steps in the
-    plane normal to its start; sphere k is at ``e + spheres[k] d``. Returns ``(T_camera_rig (C, 4, 4),
-    ends (F, 3), directions (F, 3), residuals (M, 3, 2) projected - observed px of the M seen
-    (frame, camera) pairs in row-major order)``.
+    Parameters ``x``: per camera 1.., its ``T_camera_rig`` as a rotation vector and a translation (6);
+    then per frame the wand's first end ``e`` (3,) and two steps ``(a, b)`` of its direction in the
+    plane normal to its start ``d0``: ``d = normalise(d0 + a u + b v)``; sphere k is at
+    ``e + spheres[k] d``. Residuals: projected - observed px of the seen (frame, camera) pairs in
+    row-major order, (M, 3, 2) flattened.
     """
-    count, frames = len(cameras), len(observed)
-    start = _triangulate_frames(cameras, observed, seen, {c: T_camera_rig[c] for c in range(count)})
-    direction0 = start[:, 2] - start[:, 0]
-    direction0 /= np.linalg.norm(direction0, axis=1, keepdims=True)
-    middle = start.mean(axis=1)
-    end0 = middle - wand.spheres.mean() * direction0
-    helper = np.where(np.abs(direction0[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = np.cross(direction0, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(direction0, u)
-    pairs = np.argwhere(seen)
-    camera_params = 6 * (count - 1)
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        poses = x[:camera_params].reshape(-1, 6)
-        wands = x[camera_params:].reshape(frames, 5)
-        d = direction0 + wands[:, 3:4] * u + wands[:, 4:5] * v
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return poses, wands[:, :3], d
+    def __init__(self, cameras: Sequence[CameraModel], observed: np.ndarray, seen: np.ndarray, wand: Wand,
+                 T_camera_rig: np.ndarray):
+        self.cameras, self.observed, self.spheres = cameras, observed, wand.spheres
+        self.count, self.frames = len(cameras), len(observed)
+        start = _triangulate_frames(cameras, observed, seen, {c: T_camera_rig[c] for c in range(self.count)})
+        direction0 = start[:, 2] - start[:, 0]
+        self.direction0 = direction0 / np.linalg.norm(direction0, axis=1, keepdims=True)
+        helper = np.where(np.abs(self.direction0[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        u = np.cross(self.direction0, helper)
+        self.u = u / np.linalg.norm(u, axis=1, keepdims=True)
+        self.v = np.cross(self.direction0, self.u)
+        self.pairs = np.argwhere(seen)
+        self.camera_params = 6 * (self.count - 1)
+        ends = start.mean(axis=1) - wand.spheres.mean() * self.direction0
+        self.x0 = np.concatenate([np.concatenate([np.concatenate([rotvec_from_matrix(T[:3, :3]), T[:3, 3]])
+                                                  for T in T_camera_rig[1:]]),
+                                  np.hstack([ends, np.zeros((self.frames, 2))]).ravel()])
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        poses, ends, d = unpack(x)
-        points = ends[:, None, :] + wand.spheres[None, :, None] * d[:, None, :]
-        out = np.empty((len(pairs), 3, 2))
-        for c in range(count):
-            rows = pairs[:, 1] == c
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(poses (C-1, 6), ends (F, 3), directions (F, 3) unit, unnormalised directions (F, 3))``."""
+        poses = x[:self.camera_params].reshape(-1, 6)
+        wands = x[self.camera_params:].reshape(self.frames, 5)
+        n = self.direction0 + wands[:, 3:4] * self.u + wands[:, 4:5] * self.v
+        return poses, wands[:, :3], n / np.linalg.norm(n, axis=1, keepdims=True), n
+
+    def poses(self, x: np.ndarray) -> np.ndarray:
+        """(C, 4, 4) ``T_camera_rig``."""
+        return np.array([np.eye(4)] + [make_transform(matrix_from_rotvec(p[:3]), p[3:]) for p in self.unpack(x)[0]])
+
+    def _project(self, x: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, sparse.csr_matrix | None]:
+        poses, ends, d, n = self.unpack(x)
+        points = ends[:, None, :] + self.spheres[None, :, None] * d[:, None, :]
+        out = np.empty((len(self.pairs), 3, 2))
+        rows_list, cols_list, values_list = [], [], []
+        if with_jacobian:
+            # d d / d(a, b) = (I - d d^T) / |n| [u v], per frame (F, 3, 2)
+            normal = (np.eye(3)[None] - d[:, :, None] * d[:, None, :]) / np.linalg.norm(n, axis=1)[:, None, None]
+            d_direction = normal @ np.stack([self.u, self.v], axis=2)
+        for c, camera in enumerate(self.cameras):
+            index = np.flatnonzero(self.pairs[:, 1] == c)
+            frames = self.pairs[index, 0]
             rvec, tvec = (np.zeros(3), np.zeros(3)) if c == 0 else (poses[c - 1, :3], poses[c - 1, 3:])
-            projected, _ = cv2.projectPoints(points[pairs[rows, 0]].reshape(-1, 3), rvec, tvec,
-                                             cameras[c].K, cameras[c].dist)
-            out[rows] = projected.reshape(-1, 3, 2) - observed[pairs[rows, 0], c]
-        return out.ravel()
+            projected, jacobian = cv2.projectPoints(points[frames].reshape(-1, 3), rvec, tvec, camera.K, camera.dist)
+            out[index] = projected.reshape(-1, 3, 2) - self.observed[frames, c]
+            if not with_jacobian:
+                continue
+            jacobian = jacobian.reshape(len(index), 3, 2, -1)
+            d_point = jacobian[..., 3:6] @ matrix_from_rotvec(rvec)  # (m, 3, 2, 3), pixels per world metre
+            d_ab = d_point @ (self.spheres[None, :, None, None] * d_direction[frames][:, None])  # (m, 3, 2, 2)
+            block = np.concatenate([d_point, d_ab], axis=3).reshape(len(index), 6, 5)
+            wand_cols = self.camera_params + 5 * frames[:, None, None] + np.arange(5)[None, None, :]
+            obs_rows = 6 * index[:, None, None] + np.arange(6)[None, :, None]
+            rows_list.append(np.broadcast_to(obs_rows, block.shape).ravel())
+            cols_list.append(np.broadcast_to(wand_cols, block.shape).ravel())
+            values_list.append(block.ravel())
+            if c > 0:
+                block = jacobian[..., :6].reshape(len(index), 6, 6)
+                rows_list.append(np.broadcast_to(obs_rows, block.shape).ravel())
+                cols_list.append(np.broadcast_to(6 * (c - 1) + np.arange(6)[None, None, :], block.shape).ravel())
+                values_list.append(block.ravel())
+        if not with_jacobian:
+            return out.ravel(), None
+        shape = (6 * len(self.pairs), len(self.x0))
+        return out.ravel(), sparse.csr_matrix((np.concatenate(values_list), (np.concatenate(rows_list),
+                                                                             np.concatenate(cols_list))), shape=shape)
 
-    sparsity = lil_matrix((6 * len(pairs), camera_params + 5 * frames), dtype=np.int8)
-    for i, (f, c) in enumerate(pairs):
-        rows = slice(6 * i, 6 * i + 6)
-        sparsity[rows, camera_params + 5 * f:camera_params + 5 * f + 5] = 1
-        if c > 0:
-            sparsity[rows, 6 * (c - 1):6 * c] = 1
-    x0 = np.concatenate([np.concatenate([np.concatenate([rotvec_from_matrix(T[:3, :3]), T[:3, 3]])
-                                         for T in T_camera_rig[1:]]),
-                         np.hstack([end0, np.zeros((frames, 2))]).ravel()])
-    solution = least_squares(residuals, x0, jac_sparsity=sparsity, loss="cauchy", f_scale=robust_px,
-                             x_scale="jac", method="trf", xtol=1e-12, ftol=1e-12, max_nfev=200)
-    poses, ends, d = unpack(solution.x)
-    adjusted = np.array([np.eye(4)] + [make_transform(matrix_from_rotvec(p[:3]), p[3:]) for p in poses])
-    return adjusted, ends, d, residuals(solution.x).reshape(-1, 3, 2)
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(6M,) projected - observed px."""
+        return self._project(x, False)[0]
+
+    def jacobian(self, x: np.ndarray) -> sparse.csr_matrix:
+        """(6M, len(x)) sparse derivatives of ``residuals`` with respect to ``x``."""
+        jacobian = self._project(x, True)[1]
+        assert jacobian is not None
+        return jacobian
+
+
+def _adjust(cameras: Sequence[CameraModel], observed: np.ndarray, seen: np.ndarray, wand: Wand,
+            T_camera_rig: np.ndarray, loss: str, robust_px: float,
+            iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``WandAdjustment`` solved with ``loss`` (a least_squares loss of scale ``robust_px``) in at most
+    ``iterations`` steps; returns
+    ``(T_camera_rig (C, 4, 4), ends (F, 3), directions (F, 3), residuals (M, 3, 2) px)``."""
+    problem = WandAdjustment(cameras, observed, seen, wand, T_camera_rig)
+    solution = least_squares(problem.residuals, problem.x0, jac=problem.jacobian, loss=loss, f_scale=robust_px,
+                             x_scale="jac", method="trf", xtol=1e-10, ftol=1e-10, max_nfev=iterations,
+                             tr_options={"atol": 1e-12, "btol": 1e-12})
+    _, ends, d, _ = problem.unpack(solution.x)
+    return problem.poses(solution.x), ends, d, problem.residuals(solution.x).reshape(-1, 3, 2)
 
 
 def _free_lengths(cameras: Sequence[CameraModel], observed: np.ndarray, seen: np.ndarray,

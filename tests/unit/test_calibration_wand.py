@@ -3,9 +3,19 @@ counted, the floor frame follows three points."""
 
 import numpy as np
 import pytest
+from scipy.optimize import approx_fprime
 
 from services.calibration.camera_info import CalibrationError
-from services.calibration.wand import SKIP_REASONS, Wand, calibrate_wand, floor_frame, identify_wand, reframe
+from services.calibration.wand import (
+    SKIP_REASONS,
+    Wand,
+    WandAdjustment,
+    calibrate_wand,
+    floor_frame,
+    identify_wand,
+    reframe,
+)
+from services.geometry.camera import undistort_pixels
 from services.geometry.rotation import matrix_from_rotvec
 from tests.wand_blobs import wand_blobs, wand_scene
 
@@ -67,6 +77,28 @@ def test_frames_with_a_ghost_or_a_missing_blob_are_skipped_and_counted():
     assert result.skipped["blob_count"] == clean.skipped.get("blob_count", 0) + 12
     assert not set(result.frames) & (set(ghosts) | set(missing))
     assert list(result.observations) == [clean.frames_used - 12] * 2
+
+
+def test_adjustment_jacobian_matches_finite_differences():
+    scene = wand_scene(3, occlusion_rate=0.0)
+    blobs = wand_blobs(scene, range(0, 60, 5), sigma_px=0.5)
+    observed = np.full((len(blobs), 3, 3, 2), np.nan)
+    for f, frame in enumerate(blobs):
+        for c, (camera, pixels) in enumerate(zip(scene.cameras, frame, strict=True)):
+            order, _ = identify_wand(undistort_pixels(pixels, camera.K, camera.dist), WAND)
+            if order is not None:
+                observed[f, c] = pixels[order]
+    seen = ~np.isnan(observed[..., 0, 0])
+    keep = seen.sum(axis=1) >= 2
+    T_camera_rig = np.array([np.linalg.inv(np.linalg.inv(scene.cameras[0].T_rig_camera) @ c.T_rig_camera)
+                             for c in scene.cameras])
+    problem = WandAdjustment(scene.cameras, observed[keep], seen[keep], WAND, T_camera_rig)
+    x = problem.x0 + np.random.default_rng(2).normal(0.0, 0.01, len(problem.x0))
+    analytic = problem.jacobian(x).toarray()
+    numeric = approx_fprime(x, problem.residuals, 1e-7)
+    assert analytic.shape == numeric.shape == (len(problem.residuals(x)), len(x))
+    assert np.abs(analytic - numeric).max() < 1e-3 * np.abs(numeric).max()
+    assert np.array_equal(analytic != 0, numeric != 0)
 
 
 def test_too_few_wand_frames_is_one_clear_error():
