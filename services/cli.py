@@ -27,6 +27,8 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from services.geometry.camera import CameraModel
     from services.launcher.flags import Flag
     from services.recorder.export import Export
@@ -614,25 +616,18 @@ def cmd_calibrate_wand(args: argparse.Namespace) -> int:
     """Extrinsics of a recording's cameras from a wand waved before them, written as a rig file."""
     from dataclasses import replace
 
-    import cv2
     import numpy as np
 
     from services.calibration.rig import Rig, write_rig
-    from services.calibration.wand import Wand, calibrate_wand
+    from services.calibration.wand import Wand, calibrate_wand, reframe
     from services.convert import camera_model
-    from services.detection.blobs import detect_ir_blobs
     from services.recorder.camera_frames import camera_frames
 
     if args.wand_length is None or args.wand_middle is None:
         raise ValueError("--wand needs --wand-length (between the end spheres) and --wand-middle (the middle "
                          "sphere's distance from an end), metres")
     wand = Wand(np.array([0.0, args.wand_middle, args.wand_length]))
-
-    def blobs(image: np.ndarray) -> np.ndarray:
-        mono = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        return detect_ir_blobs(mono).clean().centroids
-
-    recorded = camera_frames(args.wand, blobs)
+    recorded = camera_frames(args.wand, _ir_blobs)
     if len(recorded.cameras) < 2:
         raise ValueError(f"{args.wand}: wand calibration needs images of 2 or more cameras, found "
                          f"{recorded.cameras or 'none'}")
@@ -651,14 +646,54 @@ def cmd_calibrate_wand(args: argparse.Namespace) -> int:
     frames = [[frame.get(name, np.zeros((0, 2))) for name in names] for frame in recorded.frames.values()]
     result = calibrate_wand(cameras, frames, wand)
     print(result.report(names))
-    rig = Rig(args.out.stem, tuple(replace(c, T_rig_camera=T) for c, T in zip(cameras, result.T_rig_camera,
-                                                                              strict=True)))
+    placed = [replace(c, T_rig_camera=T) for c, T in zip(cameras, result.T_rig_camera, strict=True)]
+    if args.floor is not None:
+        T_rig_floor = _floor_frame(args.floor, placed)
+        placed = [replace(c, T_rig_camera=T) for c, T in zip(cameras, reframe(result.T_rig_camera, T_rig_floor),
+                                                              strict=True)]
+    rig = Rig(args.out.stem, tuple(placed))
     try:
         write_rig(args.out, rig)
     except OSError as exc:
         raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
     print(f"wrote {args.out}")
     return 0
+
+
+def _ir_blobs(image: np.ndarray) -> np.ndarray:
+    """(N, 2) centroids, px, of the clean blobs the IR detector finds in a mono (or BGR) image."""
+    import cv2
+
+    from services.detection.blobs import detect_ir_blobs
+
+    mono = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    return detect_ir_blobs(mono).clean().centroids
+
+
+def _floor_frame(path: Path, cameras: list[CameraModel]) -> np.ndarray:
+    """(4, 4) ``T_rig_floor`` of the L-frame recorded in ``path``: its spheres triangulated with the
+    calibrated ``cameras`` in every frame that shows exactly three, ordered, then the median."""
+    import numpy as np
+
+    from services.calibration.camera_info import CalibrationError
+    from services.calibration.wand import floor_frame, order_lframe
+    from services.estimation.correspondence import triangulate_blobs
+    from services.recorder.camera_frames import camera_frames
+
+    recorded = camera_frames(path, _ir_blobs)
+    found = []
+    for frame in recorded.frames.values():
+        points = triangulate_blobs(cameras, [frame.get(c.name, np.zeros((0, 2))) for c in cameras])
+        if len(points) == 3:
+            with contextlib.suppress(CalibrationError):
+                found.append(order_lframe(np.array([p.point for p in points])))
+    if not found:
+        raise ValueError(f"{path}: no frame shows the L-frame's three spheres (a right angle, unequal arms) "
+                         "to two or more cameras")
+    corner, on_x, on_y = np.median(found, axis=0)
+    print(f"floor frame from {len(found)} of {len(recorded.frames)} frames of {path}: corner "
+          f"({corner[0]:+.4f}, {corner[1]:+.4f}, {corner[2]:+.4f}) m in the first camera's frame")
+    return floor_frame(corner, on_x, on_y)
 
 
 def _intrinsics(files: list[Path]) -> list[CameraModel]:
@@ -890,6 +925,9 @@ def parser() -> argparse.ArgumentParser:
                    help="--wand: distance of its middle sphere from one end, metres")
     p.add_argument("--intrinsics", nargs="+", type=Path, metavar="FILE",
                    help="--wand: rig or camera_info files of the cameras (default: the recording's camera_info)")
+    p.add_argument("--floor", type=Path, metavar="LFRAME.mcap",
+                   help="--wand: set the rig frame on an L-frame lying on the floor, recorded by the same cameras "
+                        "(origin at its corner, x along its long arm, z up)")
     p.set_defaults(func=cmd_calibrate)
 
     markers = sub.add_parser("markers", help="marker utilities: `artrack markers print` draws printable sheets")

@@ -10,7 +10,7 @@ positions in which the wand is rigid (one end, a direction, the known spacings),
 loss on the pixel residuals. Intrinsics are known and held fixed.
 
 Rig frame = the first camera's frame, unless ``floor_frame`` then ``reframe`` move it to a frame
-set by three points (an L-frame or three spheres lying on the floor).
+set by three points (an L-frame, ordered by ``order_lframe``, or three spheres lying on the floor).
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import invert, make_transform
 from services.geometry.triangulation import projection_matrix, triangulate_dlt
 
-__all__ = ["Wand", "WandCalibration", "identify_wand", "calibrate_wand", "floor_frame", "reframe", "SKIP_REASONS"]
+__all__ = ["Wand", "WandCalibration", "WandAdjustment", "identify_wand", "calibrate_wand", "floor_frame",
+           "order_lframe", "reframe", "SKIP_REASONS"]
 
 SKIP_REASONS = ("blob_count", "not_collinear", "too_short", "ambiguous_ends")
 """Why a camera's blobs of one frame were not taken as the wand."""
@@ -393,6 +394,29 @@ def floor_frame(origin: np.ndarray, on_x: np.ndarray, in_plane: np.ndarray) -> n
         return three_point_transform(in_floor, points)
     except ValueError as exc:
         raise CalibrationError("floor frame: the three points lie on one line") from exc
+
+
+def order_lframe(points: np.ndarray, right_angle_tolerance_deg: float = 10.0) -> np.ndarray:
+    """(3, 3) the spheres of an L-frame (rows, any order, m) as corner, long arm's end, short arm's end.
+
+    The corner is the sphere whose angle is nearest 90 deg; CalibrationError when that angle is off
+    by more than ``right_angle_tolerance_deg`` or the arms differ by less than a tenth of the longer.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(3, 3)
+
+    def angle(k: int) -> float:
+        a, b = points[(k + 1) % 3] - points[k], points[(k + 2) % 3] - points[k]
+        return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+    corner = min(range(3), key=lambda k: abs(angle(k) - 90.0))
+    if abs(angle(corner) - 90.0) > right_angle_tolerance_deg:
+        raise CalibrationError(f"L-frame: no right angle among its spheres (nearest {angle(corner):.1f} deg)")
+    ends = [points[(corner + 1) % 3], points[(corner + 2) % 3]]
+    arms = [float(np.linalg.norm(e - points[corner])) for e in ends]
+    if abs(arms[0] - arms[1]) < 0.1 * max(arms):
+        raise CalibrationError(f"L-frame: its arms ({arms[0]:.3f} and {arms[1]:.3f} m) are too alike to tell x from y")
+    long, short = (0, 1) if arms[0] > arms[1] else (1, 0)
+    return np.array([points[corner], ends[long], ends[short]])
 
 
 def reframe(T_rig_camera: np.ndarray, T_rig_new: np.ndarray) -> np.ndarray:

@@ -16,7 +16,9 @@ from protocol.sensors import Image
 from services.calibration.camera_info import camera_document
 from services.calibration.rig import read_rig
 from services.capture.scenes import make_scene
+from services.capture.scenes.ir_rig import LFRAME_BODY
 from services.convert import camera_info
+from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.recorder.writing import RecordingWriter
 from tests.wand_blobs import extrinsic_errors
@@ -31,9 +33,9 @@ def artrack(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=300)
 
 
-def record(path: Path, camera_count: int, frames: range = FRAMES, with_info: bool = True):
-    """Write the wand scene's images (and camera_info) to ``path``; return the scene."""
-    scene = make_scene("ir_rig", motion="wand", camera_count=camera_count, noise_std=1.0)
+def record(path: Path, camera_count: int, frames: range = FRAMES, with_info: bool = True, motion: str = "wand"):
+    """Write the ``motion`` scene's images (and camera_info) to ``path``; return the scene."""
+    scene = make_scene("ir_rig", motion=motion, camera_count=camera_count, noise_std=1.0)
     writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "lab"})
     for seq, index in enumerate(frames):
         frame = scene.render(index)
@@ -63,6 +65,22 @@ def test_wand_recording_gives_the_rig_extrinsics(tmp_path):
     assert position_mm.max() < 1.0 and rotation_deg.max() < 0.05
     for camera in scene.cameras:
         assert np.array_equal(rig.camera(camera.name).K, camera.K)
+
+
+def test_floor_frame_from_a_recorded_lframe(tmp_path):
+    recording, floor, out = tmp_path / "wand.mcap", tmp_path / "lframe.mcap", tmp_path / "rig.yaml"
+    record(recording, 3)
+    scene = record(floor, 3, frames=range(10), motion="lframe")
+    done = artrack("calibrate", "--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15",
+                   "--floor", str(floor), "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "floor frame from 10 of 10 frames" in done.stdout
+    rig = read_rig(out)
+    T_floor_world = invert(scene.body_poses(0)[LFRAME_BODY])
+    for camera in scene.cameras:
+        truth, estimate = T_floor_world @ camera.T_rig_camera, rig.camera(camera.name).T_rig_camera
+        assert np.linalg.norm(truth[:3, 3] - estimate[:3, 3]) < 2e-3
+        assert np.degrees(rotation_angle(truth[:3, :3], estimate[:3, :3])) < 0.1
 
 
 def test_intrinsics_from_files_and_their_order(tmp_path):
@@ -95,6 +113,8 @@ def test_bad_wand_input_is_one_clear_line(tmp_path):
         (["--wand", str(tmp_path / "none.mcap"), "--wand-length", "0.5", "--wand-middle", "0.15", "-o", out],
          "none.mcap"),
         (["-o", out], "calibrate needs DIR_OR_GLOB, --pattern, --size, --square"),
+        (["--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15", "--floor", str(recording),
+          "--intrinsics", str(tmp_path / "none.yaml"), "-o", out], "none.yaml"),
     ]
     for args, message in cases:
         done = artrack("calibrate", *args)

@@ -13,6 +13,7 @@ from services.calibration.wand import (
     calibrate_wand,
     floor_frame,
     identify_wand,
+    order_lframe,
     reframe,
 )
 from services.geometry.camera import undistort_pixels
@@ -123,3 +124,13 @@ def test_floor_frame_from_three_points():
     assert np.allclose(moved[1], np.eye(4)) and np.allclose(moved[0], np.linalg.inv(T_rig_floor))
     with pytest.raises(CalibrationError, match="one line"):
         floor_frame(points[0], points[1], 2 * points[1] - points[0])
+
+
+def test_lframe_spheres_are_ordered_corner_long_arm_short_arm():
+    lframe = np.array([[1.0, 2.0, 3.0], [1.5, 2.0, 3.0], [1.0, 2.0, 3.35]])
+    for permutation in ([0, 1, 2], [2, 0, 1], [1, 2, 0], [2, 1, 0]):
+        assert np.array_equal(order_lframe(lframe[permutation]), lframe)
+    with pytest.raises(CalibrationError, match="no right angle"):
+        order_lframe(np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.2, 0.35, 0.0]]))
+    with pytest.raises(CalibrationError, match="too alike"):
+        order_lframe(np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.48, 0.0]]))

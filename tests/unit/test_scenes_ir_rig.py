@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, SPHERE_PEAK, WAND_BODY
+from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, LFRAME, LFRAME_BODY, SPHERE_PEAK, WAND_BODY
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 
@@ -150,6 +150,19 @@ def test_wand_motion_waves_one_collinear_wand_through_the_volume():
     assert np.ptp(middles[:, 0]) > 1.2 and np.ptp(middles[:, 1]) > 0.8 and np.ptp(middles[:, 2]) > 1.2
     assert np.abs(directions).max(axis=0).min() > 0.9
     assert make_scene("ir_rig").bodies.keys() == {"wand", "tool", "head"}
+
+
+def test_lframe_motion_lies_still_on_the_floor_in_view():
+    scene = make_scene("ir_rig", motion="lframe", camera_count=3)
+    assert list(scene.bodies) == [LFRAME_BODY]
+    T = scene.body_poses(0)[LFRAME_BODY]
+    assert np.array_equal(T, scene.body_poses(500)[LFRAME_BODY])
+    assert np.allclose(T[:3, 2], [0.0, -1.0, 0.0])
+    spheres = transform_points(T, LFRAME)
+    assert np.ptp(spheres[:, 1]) < 1e-12
+    for camera in scene.cameras:
+        pixels = project_points(transform_points(invert(camera.T_rig_camera), spheres), camera.K, camera.dist)
+        assert np.all((pixels > 10) & (pixels < (camera.width - 10, camera.height - 10)))
 
 
 @pytest.mark.parametrize(("options", "message"), [

@@ -19,7 +19,11 @@ camera: ``("world", "body/<name>", T_world_body)`` for every body.
 ``motion=wand`` replaces the bodies by one calibration wand (body ``WAND_BODY``): spheres on
 its x axis at ``wand_spheres`` metres from its first end (the origin), waved through the
 volume in front of the bar (1.5 to 3.3 m deep, about the width the cameras see) with its direction
-sweeping every way, as when calibrating a rig's extrinsics.
+sweeping every way, as when calibrating a rig's extrinsics. ``motion=lframe`` shows one still
+L-frame (body ``LFRAME_BODY``, spheres ``LFRAME``: the corner, the long arm's end on its x axis,
+the short arm's end on its y axis; its z axis up) lying on a floor ``FLOOR_BELOW_M`` below the
+bar, ``LFRAME_DEPTH_M`` ahead and turned ``LFRAME_YAW_DEG`` about the vertical: it sets a rig's
+floor frame.
 """
 
 from __future__ import annotations
@@ -48,7 +52,10 @@ least 50 mm apart and no two pairwise distances are within 4 mm; no triangle of 
 body matches one of another body to within 5 mm (side by side)."""
 
 WAND_BODY = "calibration_wand"
-MOTIONS = ("bodies", "wand")
+LFRAME_BODY = "ground_frame"
+LFRAME = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.35, 0.0]])
+FLOOR_BELOW_M, LFRAME_DEPTH_M, LFRAME_YAW_DEG = 0.7, 2.3, 20.0
+MOTIONS = ("bodies", "wand", "lframe")
 WAND_DEPTH_M, WAND_SPREAD_M = 2.4, (1.0, 0.65, 0.9)
 
 HFOV_DEG = 56.0
@@ -63,8 +70,9 @@ class IrRigOptions(SceneOptions):
     """``camera_count`` cameras ``baseline`` metres apart, toed in to cross at ``convergence`` metres;
     ``distortion``: small plumb_bob distortion (else none); ``body_count`` bodies (the first of
     ``LAYOUTS``); ``sphere_radius``: metres; ``occlusion_rate``: fraction of half-second windows
-    with one sphere hidden from one camera; ``motion``: ``bodies`` (the layouts moving about) or
-    ``wand`` (one calibration wand waved through the volume, ``body_count`` unused);
+    with one sphere hidden from one camera; ``motion``: ``bodies`` (the layouts moving about),
+    ``wand`` (one calibration wand waved through the volume) or ``lframe`` (one L-frame lying still
+    on the floor), ``body_count`` unused but for ``bodies``;
     ``wand_spheres``: the wand's sphere positions along it, metres from its first end (2 or 3,
     increasing, the first 0)."""
 
@@ -120,6 +128,9 @@ class IrRigScene(SyntheticScene):
         if o.motion == "wand":
             self.bodies = {WAND_BODY: np.array([[x, 0.0, 0.0] for x in o.wand_spheres])}
             self.paths = {WAND_BODY: wand_path(rng, o.wand_spheres[-1])}
+        elif o.motion == "lframe":
+            self.bodies = {LFRAME_BODY: LFRAME}
+            self.paths = {LFRAME_BODY: lframe_path()}
         else:
             self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
             self.paths = self.body_paths(rng)
@@ -183,6 +194,16 @@ class IrRigScene(SyntheticScene):
                 draw_sphere(image, self.rays[camera.name], centre, self.sphere_radius, pixel, camera.K[0, 0])
             images[camera.name] = image
         return images, {camera.name: list(truth) for camera in self.cameras}
+
+
+def lframe_path() -> RigidPath:
+    """The L-frame lying still on the floor: body x and y in the floor, body z up (world -y)."""
+    yaw = np.radians(LFRAME_YAW_DEG)
+    R_world_body = matrix_from_rotvec(np.array([0.0, -yaw, 0.0])) @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0],
+                                                                               [0.0, 1.0, 0.0]])
+    still = np.zeros((1, 3))
+    return RigidPath(SinePath(np.array([0.0, FLOOR_BELOW_M, LFRAME_DEPTH_M]), still, still, still),
+                     SinePath(np.zeros(3), still, still, still), R_world_body)
 
 
 def wand_path(rng: np.random.Generator, length: float) -> RigidPath:
