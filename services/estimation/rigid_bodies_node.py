@@ -29,9 +29,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from protocol.keys import KeyName
 from protocol.message import Header
@@ -42,13 +43,15 @@ from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
 from services.convert import camera_model, transform_from_matrix
 from services.estimation.bodies_file import check_bodies, load_bodies
-from services.estimation.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.marker_tracking import TargetTracks
 from services.estimation.rigid_bodies import Matching, MatchOptions, match_bodies
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import TriangulatedPoint
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+
+if TYPE_CHECKING:
+    from services.estimation.correspondence import CorrespondenceOptions
 
 WORLD = "world"
 FIRST_INFO_WAIT_S = 0.5
@@ -61,8 +64,8 @@ class Params(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), min_length=2,
-                                         description="the rig's cameras, whose blobs are joined")
+    cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), description="the rig's cameras, whose blobs "
+                                                                               "are joined")
     rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the cameras' "
                                                        "CameraInfo with their T_rig_camera")
     bodies: Path | None = Field(default=None, description="bodies YAML; default: the ir_rig scene's bodies")
@@ -75,7 +78,16 @@ class Params(BaseModel):
     gate_rms: float = Field(default=0.002, gt=0, description="largest residual RMS of a body's fit, m")
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
 
+    @field_validator("cameras")
+    @classmethod
+    def _a_rig(cls, cameras: tuple[str, ...]) -> tuple[str, ...]:
+        if len(cameras) < 2 or len(set(cameras)) != len(cameras):
+            raise ValueError(f"triangulating needs two or more distinct cameras, got {', '.join(cameras) or 'none'}")
+        return cameras
+
     def correspondence(self) -> CorrespondenceOptions:
+        from services.estimation.correspondence import CorrespondenceOptions
+
         return CorrespondenceOptions(epipolar_gate_px=self.epipolar_gate_px,
                                      reprojection_gate_px=self.reprojection_gate_px, sigma_px=self.sigma_px,
                                      min_views=self.min_views)
@@ -195,6 +207,8 @@ class PosePublishers:
 
 
 def run(node: Node, params: Params) -> None:
+    from services.estimation.correspondence import triangulate_blobs  # scipy.optimize: only where it runs
+
     try:
         rig, bodies = load(params)
     except ValueError as exc:
