@@ -3,14 +3,15 @@
 import json
 
 from tests.integration.support import START_S
+from tests.viewer_contents import RrdContents
 
 FRAMES = 40
 
 
 def test_stereo_run_records_body_poses_that_score_within_half_a_millimetre(procs, tmp_path):
-    out = tmp_path / "stereo.mcap"
+    out, view = tmp_path / "stereo.mcap", tmp_path / "stereo.rrd"
     job = procs.artrack("run", "stereo", "--source", "synthetic:ir_rig", "--frames", str(FRAMES), "--record", str(out),
-                        name="job")
+                        "--rerun", str(view), name="job")
     assert job.wait(4 * START_S) == 0, job.describe()
     scored = {}
     for body in ("tool", "wand"):
@@ -26,6 +27,10 @@ def test_stereo_run_records_body_poses_that_score_within_half_a_millimetre(procs
     seqs = [json.loads(line)["header"]["seq"] for line in points.stdout.splitlines()]
     # one Points3D per joined instant (a loaded machine may drop frames at the blobs nodes: latest wins)
     assert len(seqs) >= 0.8 * FRAMES and seqs == sorted(set(seqs)), points.describe()
+    viewed = RrdContents(view)
+    assert {"world/cam1/image/clean_blobs", "world/points/labelled", "world/pose/body/tool"} <= viewed.entities
+    assert viewed.rows("world/cam1/image", "Pinhole:image_from_camera") and viewed.rows("world/cam1",
+                                                                                          "Transform3D:translation")
 
 
 def test_a_missing_rig_file_is_refused_before_anything_starts(procs, tmp_path):
