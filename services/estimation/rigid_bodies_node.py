@@ -66,8 +66,8 @@ class Params(BaseModel):
 
     cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), description="the rig's cameras, whose blobs "
                                                                                "are joined")
-    rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the cameras' "
-                                                       "CameraInfo with their T_rig_camera")
+    rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the "
+                                                            "cameras' CameraInfo with their T_rig_camera")
     bodies: Path | None = Field(default=None, description="bodies YAML; default: the ir_rig scene's bodies")
     flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
     epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
@@ -163,16 +163,21 @@ def child_frame_covariance(covariance: np.ndarray, T_world_body: np.ndarray) -> 
     return A @ np.asarray(covariance, np.float64) @ A.T
 
 
+def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float64 points (world) and (N, 3, 3) float64 covariances (m^2) of ``found``."""
+    return (np.array([p.point for p in found], np.float64).reshape(-1, 3),
+            np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3))
+
+
 def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching) -> Points3D:
     """The set's points with the body each was matched to."""
     body = np.full(len(found), -1, np.int32)
     for match in matching.bodies.values():
         body[match.indices[match.indices >= 0]] = names.index(match.name)
-    return Points3D(header=header, bodies=tuple(names),
-                    points=np.array([p.point for p in found], np.float64).reshape(-1, 3),
+    points, covariances = point_arrays(found)
+    return Points3D(header=header, bodies=tuple(names), points=points,
                     residual_px=np.array([p.rms_px for p in found], np.float32),
-                    views=np.array([p.views for p in found], np.uint8),
-                    covariances=np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3), body=body)
+                    views=np.array([p.views for p in found], np.uint8), covariances=covariances, body=body)
 
 
 def body_poses(header: Header, matching: Matching) -> list[Pose]:
@@ -235,8 +240,7 @@ def run(node: Node, params: Params) -> None:
             continue
         found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
                                   correspondence)
-        points = np.array([p.point for p in found], np.float64).reshape(-1, 3)
-        covariances = np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3)
+        points, covariances = point_arrays(found)
         matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
         poses.put(header, body_poses(header, matching))
         points_out.put(points_message(header, found, names, matching))

@@ -20,7 +20,15 @@ from services.detection.blobs_node import UnusableFrame, as_message, detector
 from services.estimation.bodies_file import check_bodies, save_bodies
 from services.estimation.correspondence import triangulate_blobs
 from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import Params, body_poses, child_frame_covariance, load, pixels
+from services.estimation.rigid_bodies_node import (
+    Params,
+    body_poses,
+    child_frame_covariance,
+    load,
+    pixels,
+    point_arrays,
+    points_message,
+)
 from services.launcher.tracker import Tracker
 
 
@@ -141,8 +149,9 @@ def test_blobs_through_the_wire_give_body_poses_within_half_a_millimetre():
         header = Header(stamp_ns=index, frame_id="world", seq=index)
         sent = [decode(encode(as_message(header, "ir", find(images[c.name])))) for c in scene.cameras]
         points = triangulate_blobs(scene.cameras, [pixels(b, flagged=False) for b in sent])
-        matching = match_bodies(LAYOUTS, np.array([p.point for p in points]),
-                                np.array([p.covariance for p in points]))
+        matching = match_bodies(LAYOUTS, *point_arrays(points))
+        labelled = points_message(header, points, list(LAYOUTS), matching)
+        assert np.count_nonzero(labelled.body >= 0) == sum(m.spheres_used for m in matching.bodies.values())
         truth = scene.body_poses(index)
         for pose in body_poses(header, matching):
             name = pose.child_frame_id.removeprefix("body/")
