@@ -27,6 +27,10 @@ def test_stereo_run_records_body_poses_that_score_within_half_a_millimetre(procs
     seqs = [json.loads(line)["header"]["seq"] for line in points.stdout.splitlines()]
     # one Points3D per joined instant (a loaded machine may drop frames at the blobs nodes: latest wins)
     assert len(seqs) >= 0.8 * FRAMES and seqs == sorted(set(seqs)), points.describe()
+    stats = procs.run("export", str(out), "--key", "node/bodies/stats", "--format", "jsonl")
+    (joined,) = json.loads(stats.stdout.splitlines()[-1])["synced"]
+    assert joined["by"] == "seq" and [i["name"] for i in joined["inputs"]] == ["cam0", "cam1"], joined
+    assert 0 < joined["sets"] <= len(seqs) and all(i["joined"] <= i["received"] for i in joined["inputs"]), joined
     viewed = RrdContents(view)
     assert {"world/cam1/image/clean_blobs", "world/points/labelled", "world/pose/body/tool"} <= viewed.entities
     assert viewed.rows("world/cam1/image", "Pinhole:image_from_camera") and viewed.rows("world/cam1",
