@@ -324,3 +324,20 @@ def to_json(message: Message, max_array_elements: int | None = None) -> dict[str
     context = {"max_array_elements": max_array_elements} if max_array_elements is not None else None
     return {"schema": message.SCHEMA, "version": message.VERSION,
             **message.model_dump(mode="json", context=context)}
+
+
+ARRIVAL_FIELDS = ("key", "received_ns")
+"""What a sample record says of the sample itself: the key it arrived on (or was recorded on) and when."""
+
+
+def sample_record(key: str, received_ns: int, message: Message,
+                  max_array_elements: int | None = None) -> dict[str, Any]:
+    """One line of ``artrack echo`` and of a JSON-lines export: ``key`` (the key the sample arrived on),
+    ``received_ns``, then ``to_json(message)``. A message field named like one of those two (an
+    ``ErrorReport``'s ``key``: the key its problem concerns) keeps its value under ``message_<name>``,
+    so the arrival key is never replaced by the message's own."""
+    fields = to_json(message, max_array_elements)
+    record: dict[str, Any] = {"key": key, "received_ns": received_ns}
+    for name, value in fields.items():
+        record[f"message_{name}" if name in ARRIVAL_FIELDS else name] = value
+    return record

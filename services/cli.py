@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -27,6 +27,8 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.launcher.flags import Flag
+    from services.recorder.export import Export
     from services.runtime.node import Node
 
 log = logging.getLogger("artrack")
@@ -202,6 +204,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+RUN_EXITS = ("exit codes: 0 done (or a live source stopped), 1 a node failed while running, 2 a bad option or "
+             "a node that could not start, 3 the source is a damaged recording (played up to the damage), "
+             "130 interrupted before a finite source ended (docs/configuration.md)")
+
 SOURCE_SKIP = {"scene", "wait_for_subscriber"}
 """Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
 
@@ -213,7 +219,7 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     from services.launcher.tracker import Tracker
 
     chosen = Tracker.load(tracker)
-    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
     source = flags_for(kind("capture").params, SOURCE_SKIP)
     add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
                                    "rig)"), source)
@@ -263,7 +269,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = read_pipeline(Path(args.tracker))
-        return run_job(_bus(run_args, **spec.bus), spec, _display(run_args))
+        return run_job(_bus(run_args, **spec.bus), spec, args.tracker, _display(run_args))
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
@@ -284,10 +290,11 @@ def cmd_run(args: argparse.Namespace) -> int:
                 raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
             scene[name] = value
         try:
-            kind("capture").validate({**given, "scene": scene})
+            captured = kind("capture").validate({**given, "scene": scene})
         except ValidationError as exc:
             raise ValueError(explain(exc, source_flags, "source")) from exc
         source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
+        options = _with_known_settings(options, own_flags, captured)
     spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
@@ -299,7 +306,22 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus = _bus(run_args, **spec.bus)
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
-    return run_job(bus, spec, _display(run_args))
+    return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
+
+
+def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
+    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
+    tracker's flags not given; each value taken said in one line."""
+    from services.capture.sources import known_settings
+
+    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
+    taken = dict(options)
+    for flag in flags:
+        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
+            value, uri = known[flag.field]
+            taken[flag.key] = value
+            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, value, uri, flag.option)
+    return taken
 
 
 def _command_line(argv: list[str], without: str) -> str:
@@ -330,7 +352,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_node(args: argparse.Namespace) -> int:
     from services.launcher.kinds import kind
-    from services.runtime.node import run_node
 
     node_kind = kind(args.kind)
     try:
@@ -340,7 +361,17 @@ def cmd_node(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return run_node(args.name, args.kind, _bus(args, daemon=True), lambda node: node_kind.run(node, params))
+    return _node_exit(args.name, args.kind, _bus(args, daemon=True), lambda node: node_kind.run(node, params))
+
+
+def _node_exit(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object]) -> int:
+    """``run_node``'s exit code, or the one ``body`` returned (a replay's 3 for a damaged file) when it is 0."""
+    from services.runtime.node import run_node
+
+    returned: list[object] = []
+    failed = run_node(name, kind, bus, lambda node: returned.append(body(node)))
+    code = returned[0] if returned else 0
+    return failed or (code if isinstance(code, int) else 0)
 
 
 def cmd_kinds(args: argparse.Namespace) -> int:
@@ -372,11 +403,9 @@ def cmd_schemas(args: argparse.Namespace) -> int:
 
 
 def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[[Node], object]) -> int:
-    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name)."""
-    from services.runtime.node import run_node
-
+    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name); see ``_node_exit``."""
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return run_node(args.name, kind, _bus(args), body)
+    return _node_exit(args.name, kind, _bus(args), body)
 
 
 def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional: dict[str, str], description: str,
@@ -424,9 +453,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     params = _from_flags(args, "replay", Params, {"path": "IN.mcap"}, REPLAY_HELP, node="replay")
     Scan(params.path)  # a missing or non-MCAP file fails here, before joining the bus
     Selection(_bus(args).keys, params.keys)  # and so does a bad key expression
-    codes: list[int] = []
-    failed = _run_as_node(args, "replay", lambda node: codes.append(run(node, params)))
-    return failed or (codes[0] if codes else 0)
+    return _run_as_node(args, "replay", lambda node: run(node, params))
 
 
 def cmd_control(args: argparse.Namespace) -> int:
@@ -458,21 +485,45 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from services.recorder.export import Export
+    from services.recorder.export import export_path, is_expression, matching_keys
     from services.recorder.reading import EXIT_DAMAGED
 
-    job = Export(args.file, args.key, args.format, child=args.child, full=args.full)
-    lines = job.lines()
-    first = next(lines, None)  # a wrong key or format fails here, before the output is created
-    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
-        for line in itertools.chain([] if first is None else [first], lines):
-            out.write(line + "\n")
-    log.info("exported %d rows of %s%s", job.rows, args.key,
-             f" ({job.skipped} undecodable messages skipped)" if job.skipped else "")
+    if not is_expression(args.key):
+        job = _export_key(args, args.key, args.output)
+        log.info("exported %d rows of %s%s", job.rows, args.key, _skipped(job.skipped))
+    else:
+        keys, prefix = matching_keys(args.file, args.key)
+        folder = args.output or Path(".")
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"-o {folder}: a key expression writes one file per key: give a folder")
+        for key in keys:
+            target = export_path(folder, key, prefix, args.format)
+            job = _export_key(args, key, target)
+            log.info("wrote %s: %d rows of %s%s", target, job.rows, key, _skipped(job.skipped))
+        log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
     if job.damage is not None:
         log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
         return EXIT_DAMAGED
     return 0
+
+
+def _skipped(count: int) -> str:
+    return f" ({count} undecodable messages skipped)" if count else ""
+
+
+def _export_key(args: argparse.Namespace, key: str, output: Path | None) -> Export:
+    """Export one recorded ``key`` of ``args.file`` into ``output`` (its folders made; None: standard output)."""
+    from services.recorder.export import Export
+
+    job = Export(args.file, key, args.format, child=args.child, full=args.full)
+    lines = job.lines()
+    first = next(lines, None)  # a wrong key or format fails here, before the output is created
+    if output is not None:
+        output.parent.mkdir(parents=True, exist_ok=True)
+    with open(output, "w", newline="") if output else contextlib.nullcontext(sys.stdout) as out:
+        for line in itertools.chain([] if first is None else [first], lines):
+            out.write(line + "\n")
+    return job
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -622,8 +673,8 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("status", help="every supervised node's state, restarts and rates, client apps and "
                                       "their subscriptions; --check: exit 0 only when all nodes run")
     p.add_argument("--json", action="store_true", help="one JSON object instead of tables")
-    p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` answered and every node "
-                   "it supervises is running (a health check)")
+    p.add_argument("--check", action="store_true", help="exit 1 unless an `artrack up` or `artrack run` answered "
+                   "and every node it supervises is running (a health check)")
     p.add_argument("--here", action="store_true", help="only the `artrack up` processes of this host")
     p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers")
     _bus_options(p)
@@ -708,11 +759,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--recover", type=Path, metavar="OUT.mcap", help="copy the intact part into a new, indexed file")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("export", help="one key of a recording as a TUM trajectory, CSV or JSON lines")
+    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", required=True, help="a recorded key, absolute or relative to the recording's ar/<rig>/")
+    p.add_argument("--key", required=True, help="a recorded key, or a key expression (pose/cam0/**) for one file "
+                   "per matching key; absolute or relative to the recording's ar/<rig>/")
     p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
-    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output)")
+    p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
+                   "a key expression, the folder of the files, each named after its key (default: .)")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.set_defaults(func=cmd_export)

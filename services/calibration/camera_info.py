@@ -17,6 +17,7 @@ cameras of a multi-camera rig.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,30 @@ def camera_from_document(document: dict, path: Path | str, default_name: str) ->
         width=document["image_width"], height=document["image_height"], K=K,
         dist=np.pad(dist, (0, 5 - len(dist))), T_rig_camera=np.eye(4) if T is None else T,
     )
+
+
+def fit_to_image(camera: CameraModel, width: int, height: int, where: str) -> tuple[CameraModel, str | None]:
+    """``camera`` for frames of ``width`` x ``height`` pixels, and a one-line note when it was changed.
+
+    The same size: ``camera`` itself, no note. The same aspect ratio (width * calibrated height ==
+    height * calibrated width): the intrinsics scaled to the frames, what resizing the image does to
+    them (pixel centres at integer coordinates: ``cx' = (cx + 0.5) * s - 0.5``, ``fx' = fx * s``,
+    likewise y), distortion unchanged (it acts on normalised coordinates). Another aspect ratio:
+    CalibrationError naming ``where`` (the file, or the key it came on) and both sizes.
+    """
+    if (camera.width, camera.height) == (width, height):
+        return camera, None
+    sizes = f"calibrated for {camera.width}x{camera.height}, the frames are {width}x{height}"
+    if width * camera.height != height * camera.width:
+        raise CalibrationError(f"{where}: {sizes} (another aspect ratio): use a calibration made at "
+                               f"{width}x{height}")
+    sx, sy = width / camera.width, height / camera.height
+    K = camera.K.copy()
+    K[0, 0], K[1, 1] = camera.K[0, 0] * sx, camera.K[1, 1] * sy
+    K[0, 2], K[1, 2] = (camera.K[0, 2] + 0.5) * sx - 0.5, (camera.K[1, 2] + 0.5) * sy - 0.5
+    K[0, 1] = camera.K[0, 1] * sx
+    note = f"{where}: {sizes}: intrinsics scaled by {sx:g} (fx, fy, cx, cy; distortion unchanged)"
+    return replace(camera, width=width, height=height, K=K), note
 
 
 def write_camera_info(path: Path, camera: CameraModel) -> None:

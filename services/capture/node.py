@@ -26,6 +26,7 @@ answered on a queryable at the same key for whoever joins later.
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -40,7 +41,7 @@ from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import RIG_FRAME, StaticTransforms
 from services.bus.pubsub import Role
-from services.calibration.camera_info import read_camera_info
+from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
 from services.capture.scenes import scene_options
 from services.capture.sources import (
     FrameFault,
@@ -50,11 +51,11 @@ from services.capture.sources import (
     camera_names,
     check_source,
     check_uri,
+    frame_sizes,
     open_source,
     rig_camera_names,
 )
 from services.convert import camera_info, frame_transforms, rig_static_transforms
-from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import REPORT_EVERY_S, Node, NodeError
 
@@ -137,9 +138,25 @@ class Rig:
                  for name, model in source.calibration.items()}
         if params.calib and len(params.calib) != len(self.names):
             raise SourceError(f"{len(params.calib)} calibration files given for {len(self.names)} cameras")
+        self.origins = {name: source.uri for source, rename in zip(self.sources, self.renames, strict=True)
+                        for name in rename.values()}
         for name, path in zip(self.names, params.calib, strict=False):
             known[name] = read_camera_info(path)
+            self.origins[name] = str(path)
         self.calibration = known
+        self._fitted: set[str] = set()
+
+    def fit(self, name: str, image: np.ndarray, log: logging.Logger) -> None:
+        """Hold camera ``name``'s calibration against the size of its first frame (``image``, (H, W[, C])):
+        scaled to it once, said in one warning, when only the size differs; CalibrationError naming the
+        file and both sizes when the aspect ratio does too."""
+        if name in self._fitted or name not in self.calibration:
+            return
+        self._fitted.add(name)
+        self.calibration[name], note = fit_to_image(self.calibration[name], image.shape[1], image.shape[0],
+                                                    self.origins[name])
+        if note is not None:
+            log.warning("%s", note)
 
     def _split(self, names: list[str]) -> list[list[str]]:
         out, at = [], 0
@@ -173,8 +190,8 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     live = node.configurable(params)
     images = {name: node.publisher(keys.image(name), Image, Role.FRAME) for name in rig.names}
     infos = {name: node.publisher(keys.camera_info(name), CameraInfo) for name in rig.calibration}
-    for name, model in rig.calibration.items():
-        node.answer(keys.calibration(name), functools.partial(_calibration, name, model))
+    for name in rig.calibration:
+        node.answer(keys.calibration(name), functools.partial(_calibration, name, rig))
     truths = {name: node.publisher(keys.truth(name), GroundTruth)
               for source, rename in zip(rig.sources, rig.renames, strict=True)
               if source.uri.startswith("synthetic:") for name in rename.values()}
@@ -199,6 +216,12 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
                 continue
             late.count(clock.wait_for(node, instant[0].time_s, untimed=not _live(rig)), live.value.fps)
             started = time.perf_counter()
+            try:
+                for frame, rename in zip(instant, rig.renames, strict=True):
+                    for own_name, image in frame.images.items():
+                        rig.fit(rename[own_name], image, node.log)
+            except CalibrationError as exc:
+                raise NodeError(str(exc)) from exc
             header_stamp = _stamp(params, instant[0])
             for frame, rename in zip(instant, rig.renames, strict=True):
                 _publish_frame(frame, rename, header_stamp, seq, images, infos, truths, rig)
@@ -217,9 +240,9 @@ def _publish_static_transforms(node: Node, rig: Rig) -> None:
     node.publisher(key, StaticTransforms).put(message)
 
 
-def _calibration(camera: str, model: CameraModel) -> CameraInfo:
-    """The calibration queryable's answer: the camera's CameraInfo, stamped now."""
-    return camera_info(Header(stamp_ns=time.time_ns(), frame_id=camera), model)
+def _calibration(camera: str, rig: Rig) -> CameraInfo:
+    """The calibration queryable's answer: the camera's CameraInfo (as fitted to its frames), stamped now."""
+    return camera_info(Header(stamp_ns=time.time_ns(), frame_id=camera), rig.calibration[camera])
 
 
 def _live(rig: Rig) -> bool:
@@ -227,8 +250,8 @@ def _live(rig: Rig) -> bool:
 
 
 def _stamp(params: Params, frame: SourceFrame) -> int:
-    if params.stamps == "source" and frame.time_s is not None:
-        return round(frame.time_s * 1e9)
+    if params.stamps == "source" and frame.time_ns is not None:
+        return frame.time_ns
     return time.time_ns()
 
 
@@ -333,13 +356,18 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 
 def _check(params: Params) -> None:
+    """The sources can be opened, the calibration files read, and each file fits its camera's frames
+    where their size is known before capturing (scenes, image folders, video files)."""
     try:
         for uri in params.source:
             check_source(uri)
+        sizes = frame_sizes(params.source, params.scene) if params.calib else []
     except SourceError as exc:
         raise ValueError(str(exc)) from exc
-    for path in params.calib:
-        read_camera_info(path)
+    for path, size in zip(params.calib, sizes, strict=False):
+        camera = read_camera_info(path)
+        if size is not None:
+            fit_to_image(camera, *size, str(path))
 
 
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",

@@ -20,7 +20,9 @@ import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -41,15 +43,21 @@ class SourceError(RuntimeError):
 class SourceFrame:
     """One instant of a source: ``images`` and ``truth`` by camera name.
 
-    ``time_s``: the source's own time of the frame in seconds (epoch seconds for TUM lists,
-    seconds from the start for videos, KITTI times and scenes), None when it has none.
+    ``time_ns``: the source's own time of the frame, int nanoseconds (epoch time for TUM lists
+    and TUM file names, time from the start for videos, KITTI times and scenes), None when it
+    has none. Times written as decimal seconds in a folder are taken exactly (``seconds_to_ns``).
     Images are (H, W) or (H, W, 3|4) uint8/uint16 as OpenCV reads them.
     """
 
     index: int
-    time_s: float | None
+    time_ns: int | None
     images: dict[str, np.ndarray]
     truth: dict[str, Truth] = field(default_factory=dict)
+
+    @property
+    def time_s(self) -> float | None:
+        """``time_ns`` in seconds (for pacing; stamps use ``time_ns``)."""
+        return None if self.time_ns is None else self.time_ns / 1_000_000_000  # int / int: correctly rounded
 
 
 @dataclass(frozen=True)
@@ -100,33 +108,63 @@ class ImageFolderSource(Source):
             raise SourceError(f"{uri}: no image files in {folder} ({', '.join(sorted(IMAGE_SUFFIXES))})")
 
     def frames(self) -> Iterator[SourceFrame | FrameFault]:
-        for index, (path, time_s) in enumerate(self.entries):
+        for index, (path, time_ns) in enumerate(self.entries):
             image = _read_image(path)
             if image is None:
                 yield FrameFault(index, f"cannot read {path}")
                 continue
-            yield SourceFrame(index, time_s, {self.camera_names[0]: image})
+            yield SourceFrame(index, time_ns, {self.camera_names[0]: image})
+
+    def first_image_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the first image that reads, None when none does."""
+        for path, _ in self.entries:
+            image = _read_image(path)
+            if image is not None:
+                return image.shape[1], image.shape[0]
+        return None
 
 
-def _folder_entries(folder: Path) -> list[tuple[Path, float | None]]:
-    """``(file, time_s)`` per image: from rgb.txt (TUM), times.txt (KITTI), numeric names, or none."""
+def seconds_to_ns(text: str) -> int:
+    """Decimal seconds as written (``1341847980.722988``, ``1.036e-01``) -> int nanoseconds, exactly:
+    decimal arithmetic, no float on the way, rounded half to even below the nanosecond.
+    ValueError for text that is not a finite decimal number."""
+    try:
+        seconds = Decimal(text.strip())
+    except InvalidOperation:
+        raise ValueError(f"{text!r} is not a time in seconds") from None
+    if not seconds.is_finite():
+        raise ValueError(f"{text!r} is not a time in seconds")
+    return int((seconds * 1_000_000_000).to_integral_value(rounding=ROUND_HALF_EVEN))
+
+
+def _folder_entries(folder: Path) -> list[tuple[Path, int | None]]:
+    """``(file, time_ns)`` per image: from rgb.txt (TUM), times.txt (KITTI), numeric names, or none.
+    Raises SourceError naming the list and the line when a time there is not a number."""
     listing = folder / "rgb.txt"
     if listing.is_file():
-        entries: list[tuple[Path, float | None]] = []
-        for line in listing.read_text().splitlines():
+        entries: list[tuple[Path, int | None]] = []
+        for number, line in enumerate(listing.read_text().splitlines(), 1):
             parts = line.split()
             if len(parts) >= 2 and not line.lstrip().startswith("#"):
-                entries.append((folder / parts[1], float(parts[0])))
+                entries.append((folder / parts[1], _listed_time(parts[0], listing, number)))
         return entries
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     for times in (folder / "times.txt", folder.parent / "times.txt"):
         if times.is_file():
-            values = [float(v) for v in times.read_text().split()]
+            values = [_listed_time(v, times, n) for n, v in enumerate(times.read_text().split(), 1)]
             if len(values) == len(files):
                 return list(zip(files, values, strict=True))
     if files and all(re.fullmatch(r"\d+\.\d+", p.stem) for p in files):
-        return [(p, float(p.stem)) for p in sorted(files, key=lambda p: float(p.stem))]
+        stamped = sorted((seconds_to_ns(p.stem), p) for p in files)
+        return [(p, time_ns) for time_ns, p in stamped]
     return [(p, None) for p in files]
+
+
+def _listed_time(text: str, listing: Path, number: int) -> int:
+    try:
+        return seconds_to_ns(text)
+    except ValueError as exc:
+        raise SourceError(f"{listing}: entry {number}: {exc}") from None
 
 
 class VideoSource(Source):
@@ -156,8 +194,8 @@ class VideoSource(Source):
                 index += 1
                 continue
             faults = 0
-            time_s = None if self.live else self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1e3
-            yield SourceFrame(index, time_s, {self.camera_names[0]: image})
+            time_ns = None if self.live else round(self.capture.get(cv2.CAP_PROP_POS_MSEC) * 1e6)
+            yield SourceFrame(index, time_ns, {self.camera_names[0]: image})
             index += 1
 
     def close(self) -> None:
@@ -184,7 +222,7 @@ class SceneSource(Source):
         index = 0
         while self.count == 0 or index < self.count:
             frame = self.scene.render(index)
-            yield SourceFrame(index, frame.time_s, frame.images, frame.truth)
+            yield SourceFrame(index, round(frame.time_s * 1e9), frame.images, frame.truth)
             index += 1
 
 
@@ -220,6 +258,46 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
         except ValueError as exc:
             raise SourceError(f"{uri}: {exc}") from exc
     return rig_camera_names(own)
+
+
+def known_settings(uris: tuple[str, ...] | list[str], scene_options: dict) -> dict[str, tuple[Any, str]]:
+    """Node parameters the sources settle by what they show, by field: ``(value, the URI that says so)``
+    (``synthetic:markers``: its ``marker_length``). Devices, files and folders settle nothing."""
+    known: dict[str, tuple[Any, str]] = {}
+    for uri in uris:
+        scheme, rest = check_uri(uri)
+        if scheme == "synthetic":
+            try:
+                settings = make_scene(rest, **scene_options).known_settings()
+            except ValueError as exc:
+                raise SourceError(f"{uri}: {exc}") from exc
+            known.update({name: (value, uri) for name, value in settings.items()})
+    return known
+
+
+def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, int] | None]:
+    """``(width, height)`` of each camera's frames, in rig order, where known before capturing: a
+    scene's cameras, an image folder's first image, a video file's frames; None for devices (and
+    for what cannot be read). Raises SourceError for a URI that cannot name a source."""
+    sizes: list[tuple[int, int] | None] = []
+    for uri in uris:
+        scheme, rest = check_source(uri)
+        path = Path(rest).expanduser()
+        if scheme == "synthetic":
+            try:
+                sizes.extend((c.width, c.height) for c in make_scene(rest, **scene_options).cameras)
+            except ValueError as exc:
+                raise SourceError(f"{uri}: {exc}") from exc
+        elif scheme == "images":
+            sizes.append(ImageFolderSource(uri, path).first_image_size())
+        elif scheme == "video":
+            capture = cv2.VideoCapture(str(path))
+            width, height = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            capture.release()
+            sizes.append((width, height) if width > 0 and height > 0 else None)
+        else:
+            sizes.append(None)
+    return sizes
 
 
 def check_source(uri: str) -> tuple[str, str]:

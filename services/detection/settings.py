@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -22,9 +22,11 @@ class DetectorSettings(BaseModel):
 
     dictionary: str = Field(default=DEFAULT_DICTIONARY,
                             description="cv2.aruco predefined dictionary name, or the path of a dictionary YAML")
-    marker_length: float = Field(default=0.0, ge=0.0, allow_inf_nan=False,
-                                 description="side of a marker's black square, metres; 0 = unknown")
-    lengths: dict[int, float] = Field(default_factory=dict, description="side lengths of single ids, metres")
+    marker_length: float | None = Field(default=None, gt=0.0, allow_inf_nan=False,
+                                        description="side of a marker's black square, metres (> 0); default: "
+                                        "unknown (a synthetic scene's own, with artrack run)")
+    lengths: dict[int, Annotated[float, Field(gt=0.0, allow_inf_nan=False)]] = Field(
+        default_factory=dict, description="side lengths of single ids, metres (> 0)")
     refinement: Literal["lines", "none", "subpix", "contour", "apriltag"] = Field(
         default=DEFAULT_REFINEMENT, description="corner refinement: lines (subpix, then lines fitted to each side), "
         "or OpenCV's none, subpix, contour, apriltag")
@@ -43,6 +45,6 @@ class DetectorSettings(BaseModel):
         """The detector these settings describe. ``dictionary`` stands in for the default one when no
         dictionary was given; ``lengths`` are side lengths known elsewhere (a board), which ``lengths``
         given here override. Raises ValueError naming a bad dictionary, refinement or parameter."""
-        return MarkerDetector(self.dictionary_name(dictionary), marker_length=self.marker_length,
+        return MarkerDetector(self.dictionary_name(dictionary), marker_length=self.marker_length or 0.0,
                               lengths={**(lengths or {}), **self.lengths}, refinement=self.refinement,
                               parameters=self.parameters)

@@ -48,7 +48,7 @@ from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.calibration.camera_info import read_camera_info
+from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
 from services.convert import camera_model, transform_from_matrix
 from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
@@ -104,11 +104,23 @@ class _Calibration:
     ``FIRST_INFO_WAIT_S``.
     """
 
-    def __init__(self, infos: Inbox[CameraInfo], fixed: CameraModel | None):
+    def __init__(self, infos: Inbox[CameraInfo], fixed: CameraModel | None, where: str = ""):
         self._infos = infos
         self.model = fixed
         self._fixed = fixed is not None
+        self._where = where
+        self._fitted = False
         self._waited = False
+
+    def fit(self, width: int, height: int) -> str | None:
+        """Hold a fixed file's model against the first frame's size: scaled to it when only the size
+        differs (the note saying so is returned, once); CalibrationError naming the file and both sizes
+        when the aspect ratio does too. A CameraInfo from the bus is its capture node's to fit."""
+        if not self._fixed or self._fitted or self.model is None:
+            return None
+        self._fitted = True
+        self.model, note = fit_to_image(self.model, width, height, self._where)
+        return note
 
     def current(self) -> CameraModel | None:
         """The model for the frame at hand."""
@@ -191,7 +203,11 @@ class _Overlay:
 
 
 def _prepare(params: Params) -> tuple[MarkerMap | None, CameraModel | None, MarkerDetector | None]:
-    """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be had."""
+    """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be
+    had, or when detecting here with no side length at all (every marker would fail to give a pose)."""
+    if params.input == "images" and params.marker_length is None and not params.lengths and params.board is None:
+        raise ValueError("no marker side length, so no pose could be given: marker_length is needed (artrack run: "
+                         "--marker-length METRES, > 0), or lengths of single ids, or a board")
     board = load_marker_map(params.board) if params.board else None
     fixed = read_camera_info(params.calib) if params.calib else None
     detector = marker_detector(params, board) if params.input == "images" else None
@@ -221,7 +237,7 @@ def run(node: Node, params: Params) -> None:
     node.configurable(params, apply)
     keys = node.keys
     infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
-    calibration = _Calibration(infos, fixed)
+    calibration = _Calibration(infos, fixed, str(params.calib))
     poses = _Poses(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]
@@ -247,6 +263,12 @@ def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector],
     ``out`` once the frame's poses are out: the detections are a side output, and the poses
     should not wait for them."""
     for image in node.inputs(frames):
+        try:
+            note = calibration.fit(image.data.shape[1], image.data.shape[0])
+        except CalibrationError as exc:
+            raise NodeError(str(exc)) from exc
+        if note is not None:
+            node.log.warning("%s", note)
         camera = calibration.model  # known now: the first frame does not wait for a CameraInfo to detect
         lens = (camera.K, camera.dist) if camera is not None else (None, None)
         detections = as_message(image.header, dictionary, live["detector"].detect(image.data, *lens))

@@ -11,9 +11,7 @@ and the running pipeline stays as it was (``services.runtime.reconfig``).
 from __future__ import annotations
 
 import logging
-import os
 import re
-import socket
 import threading
 import time
 from pathlib import Path
@@ -21,9 +19,9 @@ from pathlib import Path
 import zenoh
 
 from protocol.codec import encode
-from protocol.message import Header
-from protocol.system import PipelineHealth, SupervisedNode
+from protocol.system import PipelineHealth
 from services.bus.session import BusConfig, BusError, open_session
+from services.launcher.health import pipeline_health
 from services.launcher.pipeline import PipelineError, PipelineSpec, params_model, processes, read_pipeline
 from services.launcher.reload import plan_reload, request_change
 from services.launcher.supervisor import Supervisor
@@ -55,12 +53,7 @@ class Daemon:
 
     def health(self) -> PipelineHealth:
         """Every supervised node's state now."""
-        nodes = tuple(SupervisedNode(name=h.name, kind=self.spec.nodes[h.name].kind, state=h.state, pid=h.pid,
-                                     uptime_s=h.uptime_s, restarts=h.restarts, exit_code=h.exit_code)
-                      for h in self.supervisor.health())
-        return PipelineHealth(header=Header(stamp_ns=time.time_ns()), pipeline=str(self.path),
-                              host=socket.gethostname(), pid=os.getpid(),
-                              uptime_s=time.monotonic() - self._started, nodes=nodes)
+        return pipeline_health(str(self.path), self.spec, self.supervisor.health(), time.monotonic() - self._started)
 
     def _on_health(self, query: zenoh.Query) -> None:
         query.reply(self.bus.keys.supervisor(self.name), encode(self.health()))

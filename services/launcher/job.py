@@ -10,28 +10,40 @@ subscriptions to reach the bus), the sources (the nodes that read nothing). When
 end, the job waits for the pipeline to go quiet (no node received anything for ``QUIET_S``),
 then stops every node, so the recorder closes its file with everything in it. A live source
 runs until SIGINT/SIGTERM.
+
+A node that exits before it is live ends the job at once, with the last line it wrote
+(``JobExit.CANNOT_START``); once up, a node that dies is restarted within the pipeline's
+restart budget, and one that spends it ends the job (``JobExit.NODE_FAILED``). While it
+runs, the job answers ``PipelineHealth`` as ``artrack up`` does, so ``artrack status``
+sees it.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 import time
 from dataclasses import dataclass, replace
+from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
+from protocol.codec import encode
 from services.bus.discovery import node_states
 from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
+from services.launcher.health import pipeline_health
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import NodeSpec, PipelineSpec, preflight, processes, resolved
 from services.launcher.progress import Display, JobWatch
-from services.launcher.supervisor import Supervisor
+from services.launcher.supervisor import ChildHealth, Supervisor
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
-from services.recorder.reading import NotMcap
+from services.recorder.reading import EXIT_DAMAGED, NotMcap
 from services.runtime.memory import settle_heap
 
 log = logging.getLogger(__name__)
@@ -83,6 +95,21 @@ class Recording:
         return "replay", {"path": str(self.path), "keys": keys, "restamp": True}
 
 
+class JobExit(IntEnum):
+    """How a job ends: its process's exit code (documented in docs/configuration.md, "Exit codes")."""
+
+    DONE = 0
+    """every source ended cleanly (or a source that runs until stopped was stopped)"""
+    NODE_FAILED = 1
+    """a node failed while running: its restart budget is spent, or a source crashed"""
+    CANNOT_START = 2
+    """a bad option, or a node or source that could not start"""
+    DAMAGED_SOURCE = EXIT_DAMAGED
+    """the source is a damaged recording: played up to the damage"""
+    INTERRUPTED = 130
+    """SIGINT or SIGTERM before a finite source ended"""
+
+
 class JobError(ValueError):
     """A job that cannot start as asked; the message says why."""
 
@@ -116,48 +143,127 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
     return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 
 
-def run_job(bus: BusConfig, spec: PipelineSpec, display: Display | None = None) -> int:
-    """Run the job to the end of its sources (or a signal); 0 when every source ended cleanly.
+def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Display | None = None) -> int:
+    """Run the job to the end of its sources (or a signal); the exit code is a ``JobExit``.
 
-    With ``display``, progress and a summary go where it says (``services.launcher.progress``)."""
+    ``title`` names the job in its ``PipelineHealth`` (``artrack status``). With ``display``, progress
+    and a summary go where it says (``services.launcher.progress``), once every node has come up."""
     sources = spec.sources()
     if not sources:
         raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
     preflight(spec, "job")
     downstream = [name for name in spec.nodes if name not in sources]
+    interrupted = JobExit.DONE if any(_endless(spec.nodes[name]) for name in sources) else JobExit.INTERRUPTED
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     session = open_session(bus)
-    watch = _watch(session, bus, spec, display)
-    supervisor = Supervisor(processes(spec, bus, downstream))
+    restarting = processes(spec, bus, downstream)
+    supervisor = Supervisor([replace(p, restart=False) for p in restarting], spec.supervisor)
+    source_supervisor = Supervisor([replace(p, restart=False) for p in processes(spec, bus, sources)],
+                                   spec.supervisor)
+    supervising = [supervisor]
+    health = _answer_health(session, bus, title, spec, supervising)
+    why: str | None = None  # said last, once every node has stopped
+    watch: JobWatch | None = None
     try:
         supervisor.start()
-        live = wait_for_nodes(session, bus.keys, set(downstream), START_LIMIT_S)
-        if live != set(downstream):
-            log.error("nodes %s did not come up within %.0f s", sorted(set(downstream) - live), START_LIMIT_S)
-            return 1
+        why = _come_up(session, bus, supervisor, set(downstream), stop)
+        if why is not None:
+            return JobExit.CANNOT_START
+        if stop.is_set():
+            return interrupted
+        for process in restarting:  # up: from now on a node that dies is restarted, within the budget
+            supervisor.update(process)
         time.sleep(SETTLE_S)
         settle_heap()  # this process may be a client too (the demo's): no full collection of its start-up mid-run
-        origin = [replace(p, restart=False) for p in processes(spec, bus, sources)]
-        source_supervisor = Supervisor(origin)
+        watch = _watch(session, bus, spec, display)
         source_supervisor.start()
+        supervising.append(source_supervisor)
         log.info("job on %s: %s", bus.keys.prefix, ", ".join(f"{n} ({spec.nodes[n].kind})" for n in spec.nodes))
         while not stop.is_set() and source_supervisor.step():
             supervisor.step()
+            if (why := _failed(supervisor)) is not None:
+                return JobExit.NODE_FAILED
             stop.wait(0.05)
-        codes = source_supervisor.exit_codes()
-        source_supervisor.stop()
-        if not stop.is_set():
+        if stop.is_set():
+            return interrupted
+        ended, why = _sources_ended(source_supervisor.health())
+        if ended == JobExit.DONE:
             _drain(session, bus, {n for n in downstream if spec.nodes[n].kind not in SINKS})
-        return 0 if stop.is_set() or all(codes.get(name) == 0 for name in sources) else 1
+        return ended
     finally:
+        source_supervisor.stop()
         if watch is not None:
             watch.gather()
         supervisor.stop()
+        health.undeclare()
         if watch is not None:
             watch.close()
         session.close()
+        if why is not None:
+            log.error("%s", why)
+
+
+def _endless(node: NodeSpec) -> bool:
+    """Whether a source node runs until it is stopped: it loops, or captures a camera or an unbounded scene."""
+    params = node.params
+    if params.get("loop"):
+        return True
+    uris = params.get("source") or ()
+    uris = [uris] if isinstance(uris, str) else uris
+    return node.kind == "capture" and not params.get("frames") and any(
+        uri.startswith(("camera:", "synthetic:")) for uri in uris)
+
+
+def _answer_health(session: zenoh.Session, bus: BusConfig, title: str, spec: PipelineSpec,
+                   supervising: list[Supervisor]) -> zenoh.Queryable:
+    """Answer ``PipelineHealth`` for the nodes of the started ``supervising``, as ``artrack up`` does."""
+    key = bus.keys.supervisor(f"run-{os.getpid()}")
+    started = time.monotonic()
+
+    def answer(query: zenoh.Query) -> None:
+        children = [child for each in list(supervising) for child in each.health()]
+        query.reply(key, encode(pipeline_health(title, spec, children, time.monotonic() - started)))
+
+    return session.declare_queryable(key, answer)
+
+
+def _come_up(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, names: set[str],
+             stop: threading.Event) -> str | None:
+    """Wait until every node of ``names`` is live (or ``stop``): None; else why one cannot start, in one line
+    (the first node that exited, with the last line it wrote)."""
+    deadline = time.monotonic() + START_LIMIT_S
+    while not stop.is_set():
+        supervisor.step()
+        ended = next((child for child in supervisor.health() if child.exit_code is not None), None)
+        if ended is not None:
+            return f"node {ended.name} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
+        live = wait_for_nodes(session, bus.keys, names, 0.0)
+        if live == names:
+            return None
+        if time.monotonic() > deadline:
+            return f"nodes {sorted(names - live)} did not come up within {START_LIMIT_S:.0f} s"
+    return None
+
+
+def _failed(supervisor: Supervisor) -> str | None:
+    """Why a node the supervisor gave up on failed (None while none has)."""
+    failed = next((child.name for child in supervisor.health() if child.state == "failed"), None)
+    return None if failed is None else f"node {failed} failed: {supervisor.failure(failed)}"
+
+
+def _sources_ended(children: list[ChildHealth]) -> tuple[JobExit, str | None]:
+    """The job's exit once its sources all ended, and why when not DONE (the sources that did not exit 0)."""
+    codes = {child.exit_code for child in children}
+    why = "; ".join(f"source {child.name} ended with code {child.exit_code}: {child.reason}"
+                    for child in children if child.exit_code != 0) or None
+    if codes == {0}:
+        return JobExit.DONE, None
+    if JobExit.CANNOT_START in codes:
+        return JobExit.CANNOT_START, why
+    damaged = codes <= {0, EXIT_DAMAGED}
+    return (JobExit.DAMAGED_SOURCE, why) if damaged else (JobExit.NODE_FAILED, why)
 
 
 def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None) -> JobWatch | None:

@@ -10,7 +10,7 @@ from typing import TextIO
 
 import zenoh
 
-from protocol.codec import DecodeError, to_json
+from protocol.codec import DecodeError, sample_record
 from protocol.keys import Keys
 from protocol.message import Message
 from protocol.system import NodeStats
@@ -46,7 +46,8 @@ def format_table(rows: list[tuple[str, ...]]) -> str:
 
 def echo(session: zenoh.Session, key: str, *, count: int = 0, timeout_s: float | None = None,
          max_array_elements: int | None = 16) -> Iterator[dict]:
-    """Decoded messages on ``key`` as JSON-ready dicts with ``key`` and ``received_ns``, in order.
+    """Decoded messages on ``key`` as JSON-ready dicts (``sample_record``: ``key`` is the key each one
+    arrived on, whatever its own fields say), in order.
 
     Undecodable payloads yield ``{"key", "error"}``. Stops after ``count`` messages (0 = no
     limit) or when nothing arrives for ``timeout_s``.
@@ -68,8 +69,7 @@ def echo(session: zenoh.Session, key: str, *, count: int = 0, timeout_s: float |
                 continue
             idle_since = time.monotonic()
             seen += 1
-            yield {"key": received.key, "received_ns": received.received_ns,
-                   **to_json(received.message, max_array_elements)}
+            yield sample_record(received.key, received.received_ns, received.message, max_array_elements)
     finally:
         inbox.close()
 

@@ -1,6 +1,6 @@
 """``artrack status``: the health of a rig in one look.
 
-It gathers, from one bus session: every ``artrack up`` process's ``PipelineHealth``
+It gathers, from one bus session: every ``artrack up`` or ``artrack run`` process's ``PipelineHealth``
 (supervised nodes: state, pid, uptime, restarts), every node's ``NodeStats`` (rates, drops,
 messages of synced inputs that joined no set, decode errors, processing p50/p99, latency
 p50/p99: an input's age when the node was done with it), and every client app's
@@ -9,7 +9,8 @@ publishes (its output streams in ``NodeStats.streams``) is flagged: the app wait
 something nobody sends.
 
 ``--check`` is the health-check contract (docker HEALTHCHECK, systemd): healthy, exit 0,
-only when at least one ``artrack up`` answered and every node it supervises is running.
+only when at least one ``artrack up`` or ``artrack run`` answered and every node it supervises is
+running.
 ``--here`` keeps only the ``artrack up`` processes of this host, so each container of a
 deployment checks its own nodes rather than the whole rig's.
 """
@@ -50,7 +51,7 @@ class Status:
     def problems(self) -> list[str]:
         """Why the rig is not healthy (empty when it is): see the module docstring."""
         if not self.pipelines:
-            return ["no `artrack up` answered on this rig"]
+            return ["no `artrack up` or `artrack run` answered on this rig"]
         return [f"node {n.name} is {n.state.replace('_', ' ')}" for health in self.pipelines.values()
                 for n in health.nodes if n.state != "running"]
 

@@ -8,13 +8,23 @@ than ``max_restarts`` restarts within ``window_s`` seconds is marked failed, log
 error and left down, while the others keep running. Stopping sends SIGTERM to every child, waits up to ``grace_s``, then
 SIGKILLs what is left and reaps everything. On Linux each child also asks the kernel for
 SIGTERM should the supervisor die without stopping it, so no child outlives it.
+
+Each child's stderr passes through the supervisor line by line (to its own stderr), and the
+last line a child wrote before it exited is kept as the reason it exited (``reason``, a log
+line reduced to its message; the signal, when one killed it): a job can say why a node
+ended in one line. Every child
+is started with ``ARTRACK_RESTART`` set to the number of times it was restarted before
+(``services.runtime.restarts``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -26,9 +36,13 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.runtime.restarts import RESTART_ENV
+
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+RELAY_JOIN_S = 2.0
+"""How long to wait, once a child exited, for the last of its stderr to come through."""
 
 State = Literal["running", "backing_off", "failed", "finished"]
 
@@ -82,7 +96,8 @@ class ProcessSpec:
 
 @dataclass(frozen=True)
 class ChildHealth:
-    """One child now: its state (see ``protocol.system.SupervisedNode``), pid, uptime, restarts, last exit code."""
+    """One child now: its state (see ``protocol.system.SupervisedNode``), pid, uptime, restarts, last exit code
+    and the last stderr line it wrote before that exit ('' while it never exited)."""
 
     name: str
     state: State
@@ -90,6 +105,7 @@ class ChildHealth:
     uptime_s: float
     restarts: int
     exit_code: int | None
+    reason: str = ""
 
 
 @dataclass
@@ -104,6 +120,10 @@ class _Child:
     finished: bool = False
     failed: bool = False
     exit_code: int | None = None
+    last_line: str = ""
+    reason: str = ""
+    causes: deque[str] = field(default_factory=deque)
+    relay: threading.Thread | None = None
 
     @property
     def state(self) -> State:
@@ -112,6 +132,45 @@ class _Child:
         if self.finished:
             return "finished"
         return "backing_off" if self.process is None else "running"
+
+
+_TEXT_LOG = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ [A-Z]+ (?:\[[^\]]*\] )?\S+: (?P<message>.*)")
+"""A text log line (``services.runtime.logs``): time, level, [node], logger, then the message."""
+
+
+def reason_of(line: str) -> str:
+    """What a log line says: its message (a JSON line's with its exception's last line); any other line as is."""
+    try:
+        entry = json.loads(line)
+    except ValueError:
+        text = _TEXT_LOG.fullmatch(line)
+        return text["message"] if text else line
+    if not isinstance(entry, dict) or "message" not in entry:
+        return line
+    exception = str(entry.get("exception") or "").strip().splitlines()
+    return f"{entry['message']}: {exception[-1]}" if exception else str(entry["message"])
+
+
+def _reason(code: int, last_line: str) -> str:
+    """Why a child exited with ``code``: the signal that killed it, else the last line it wrote."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return reason_of(last_line) if last_line else f"exit code {code}, nothing on stderr"
+
+
+def _relay(child: _Child, pipe) -> None:
+    """Copy the child's stderr to ours line by line, keeping its last non-blank line."""
+    with pipe:
+        for raw in pipe:
+            line = raw.decode(errors="replace")
+            with contextlib.suppress(OSError, ValueError):  # our stderr gone: keep reading, so the child never blocks
+                sys.stderr.write(line)
+                sys.stderr.flush()
+            if line.strip():
+                child.last_line = line.strip()
 
 
 def _die_with_parent() -> None:
@@ -133,8 +192,16 @@ class Supervisor:
         now = time.monotonic()
         with self._lock:
             return [ChildHealth(name, c.state, c.process.pid if c.process else None,
-                                now - c.started if c.process else 0.0, c.restarts, c.exit_code)
+                                now - c.started if c.process else 0.0, c.restarts, c.exit_code, c.reason)
                     for name, c in self._children.items()]
+
+    def failure(self, name: str) -> str:
+        """Why the child ``name`` was marked failed, in one line: its exits within the budget and their cause."""
+        child = self._children[name]
+        causes = set(child.causes)
+        said = f"each time: {child.reason}" if len(causes) == 1 else f"the last time: {child.reason}"
+        return (f"it exited {len(child.causes)} times within {self.settings.window_s:.0f} s, more than its restart "
+                f"budget ({self.settings.max_restarts} restarts) allows; {said}")
 
     def exit_codes(self) -> dict[str, int | None]:
         """The code each child last exited with (None while it never has)."""
@@ -150,11 +217,15 @@ class Supervisor:
             self._spawn(child)
 
     def _spawn(self, child: _Child) -> None:
-        env = {**os.environ, **child.spec.env}
+        env = {**os.environ, **child.spec.env, RESTART_ENV: str(child.restarts)}
         child.process = subprocess.Popen(
-            child.spec.argv, env=env, stdin=subprocess.DEVNULL,
+            child.spec.argv, env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
             preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
         )
+        child.last_line = ""
+        child.relay = threading.Thread(target=_relay, args=(child, child.process.stderr),
+                                       name=f"stderr of {child.spec.name}", daemon=True)
+        child.relay.start()
         child.started = time.monotonic()
         child.restart_at = None
         log.info("started %s (pid %d)", child.spec.name, child.process.pid)
@@ -175,6 +246,13 @@ class Supervisor:
         ran = now - child.started
         child.process = None
         child.exit_code = code
+        if child.relay is not None:
+            child.relay.join(RELAY_JOIN_S)
+        child.reason = _reason(code, child.last_line)
+        while child.causes and len(child.causes) > self.settings.max_restarts:
+            child.causes.popleft()
+        if code != 0:
+            child.causes.append(child.reason)
         how = f"signal {-code}" if code < 0 else f"code {code}"
         if code == 0 or not child.spec.restart:
             child.finished = True
@@ -182,9 +260,8 @@ class Supervisor:
             return
         if not child.budget.allow(now):
             child.failed = True
-            log.error("%s exited with %s after %.1f s; FAILED: it would be restart %d within %.0f s "
-                      "(budget %d), left down", child.spec.name, how, ran, child.budget.max_restarts + 1,
-                      self.settings.window_s, self.settings.max_restarts,
+            log.error("%s exited with %s after %.1f s; FAILED, left down: %s", child.spec.name, how, ran,
+                      self.failure(child.spec.name),
                       extra={"child": child.spec.name, "exit_code": code, "restarts": child.restarts})
             return
         if ran >= self.settings.stable_s:
@@ -192,8 +269,8 @@ class Supervisor:
         delay = min(self.settings.backoff_s * 2**child.failures, self.settings.max_backoff_s)
         child.failures += 1
         child.restart_at = now + delay
-        log.warning("%s exited with %s after %.1f s; restarting in %.1f s (restart %d)",
-                    child.spec.name, how, ran, delay, child.restarts + 1,
+        log.warning("%s exited with %s after %.1f s (%s); restarting in %.1f s (restart %d)",
+                    child.spec.name, how, ran, child.reason, delay, child.restarts + 1,
                     extra={"child": child.spec.name, "exit_code": code, "restarts": child.restarts})
 
     def run(self, stop: threading.Event, poll_s: float = 0.05) -> None:
@@ -220,6 +297,8 @@ class Supervisor:
                 process.wait()
         with self._lock:
             for child in self._children.values():
+                if child.relay is not None:
+                    child.relay.join(RELAY_JOIN_S)
                 child.process = None
                 child.restart_at = None
                 child.finished = True

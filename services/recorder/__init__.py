@@ -41,6 +41,9 @@ Recording format (MCAP 1.x, chunked, zstd by default)
   size split closes a part once its size on disk plus the payloads not yet compressed reaches
   the limit; a duration split starts a new part with the first message whose log time is the
   duration or more after the part's first. A recording never overwrites ``OUT`` or its parts.
+* A recorder restarted by its supervisor after it was killed goes on in ``OUT.part2.mcap``,
+  ``OUT.part3.mcap``, ... (split as above when asked), each naming ``OUT`` under
+  ``continues`` in its ``artrack.recording`` record; the killed part is left as it was.
 
 Exit codes of ``artrack replay``, ``info`` and ``export``: 0 done, 1 unexpected failure, 2 bad
 arguments or unusable file (not MCAP, no such key) or bus error, 3 the file is damaged

@@ -9,11 +9,16 @@
 * ``csv``: a header row, then one row per message: ``received_ns`` (the log time), then the
   message's fields flattened (``header.stamp_ns``, ``transform.translation.0``, ...). The
   columns are every field any message had, in first-seen order (the file is read twice).
-* ``jsonl``: one JSON object per message, as ``artrack echo`` prints them: ``key``,
-  ``received_ns``, ``schema``, ``version`` and the fields.
+* ``jsonl``: one JSON object per message, as ``artrack echo`` prints them: ``key`` (the key it
+  was recorded on), ``received_ns``, ``schema``, ``version`` and the fields (a field named
+  ``key`` as ``message_key``: ``protocol.codec.sample_record``).
 
 In CSV and JSON lines, arrays of more than 16 elements are summarised as dtype and shape
 unless ``full``. Messages that do not decode are skipped and counted.
+
+A key expression (``*``, ``**``, ``$*``: ``ar/rig0/pose/cam0/**``) exports every recorded key
+it matches (Zenoh's matching, ``matching_keys``), each into its own file named after the key
+(``export_path``).
 """
 
 from __future__ import annotations
@@ -25,17 +30,22 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from protocol.codec import DecodeError, decode, to_json
+import zenoh
+
+from protocol.codec import DecodeError, decode, sample_record, to_json
+from protocol.keys import check_expression
 from protocol.message import Message
 from protocol.poses import GroundTruth, Pose, TrackingState
 from protocol.spatial import Transform
+from services.recorder.info import summarise
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA
 
 FORMATS = ("tum", "csv", "jsonl")
 SUMMARISE_OVER = 16
-ESTIMATED = frozenset({TrackingState.TRACKING, TrackingState.PREDICTED})
-"""Pose states whose transform is an estimate."""
+ESTIMATED = frozenset({TrackingState.TRACKING})
+"""Pose states a trajectory is made of: a fresh estimate from the frame's own measurements (a
+``predicted`` pose is carried over, no measurement of its own, and would weigh twice in ATE/RPE)."""
 
 
 class ExportError(ValueError):
@@ -46,6 +56,35 @@ def tum_line(stamp_ns: int, transform: Transform) -> str:
     """``stamp tx ty tz qx qy qz qw`` with the stamp in seconds, exact to the nanosecond."""
     return " ".join([f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}",
                      *map(repr, transform.translation), *map(repr, transform.rotation)])
+
+
+def is_expression(key: str) -> bool:
+    """True when ``key`` has wildcards (``*``, ``**``, ``$*``), so it may match several keys."""
+    return "*" in key
+
+
+def matching_keys(path: Path | str, expression: str) -> tuple[list[str], str]:
+    """``(keys, prefix)``: the recorded keys ``expression`` matches, sorted, and the recording's
+    ``namespace/rig`` (empty when it does not say). The expression is absolute or relative to that
+    prefix. Raises ValueError for an expression that is not valid, ExportError when nothing matches
+    (naming the keys there are)."""
+    check_expression(expression)
+    info = summarise(path)
+    recording = info.metadata.get(RECORDING_METADATA, {})
+    prefix = f"{recording['namespace']}/{recording['rig']}" if "namespace" in recording and "rig" in recording else ""
+    wanted = [zenoh.KeyExpr(expression)] + ([zenoh.KeyExpr(f"{prefix}/{expression}")] if prefix else [])
+    recorded = sorted({channel.key for channel in info.channels})
+    keys = [key for key in recorded if any(w.intersects(zenoh.KeyExpr(key)) for w in wanted)]
+    if not keys:
+        raise ExportError(f"no key matches {expression!r} in {path} (keys: {', '.join(recorded) or 'none'})")
+    return keys, prefix
+
+
+def export_path(folder: Path, key: str, prefix: str, fmt: str) -> Path:
+    """Where the export of ``key`` goes: ``folder/<key relative to prefix>.<fmt>``, the key's segments
+    as folders (``pose/cam0/marker/3.tum``): every key its own file, named after it."""
+    *parents, last = (key.removeprefix(f"{prefix}/") if prefix else key).split("/")
+    return folder.joinpath(*parents, f"{last}.{fmt}")
 
 
 def flatten(value: Any, prefix: str = "") -> dict[str, Any]:
@@ -88,7 +127,7 @@ class Export:
         elif self.format == "jsonl":
             for topic, log_time, message in self._messages():
                 self.rows += 1
-                yield json.dumps({"key": topic, "received_ns": log_time, **to_json(message, self.max_elements)})
+                yield json.dumps(sample_record(topic, log_time, message, self.max_elements))
         else:
             yield from self._csv()
 
@@ -118,9 +157,9 @@ class Export:
     def transforms(self) -> Iterator[tuple[int, Transform]]:
         """``(header.stamp_ns, transform)`` of every estimated pose on the key, as ``tum`` writes them.
 
-        ``Pose`` messages that carry no estimate (states other than tracking and predicted: lost,
-        initialising, no calibration) are left out: their transform is a placeholder, no place
-        on a trajectory. Raises ``ExportError`` as ``lines()``.
+        ``Pose`` messages in a state other than ``tracking`` are left out: lost, initialising and
+        no calibration carry a placeholder transform, predicted one carried over from an earlier
+        frame; neither is a measurement of this frame. Raises ``ExportError`` as ``lines()``.
         """
         for _, _, message in self._messages():
             if isinstance(message, Pose):

@@ -3,7 +3,9 @@
 Built from one front-to-back pass (``reading.Scan``), so it works on truncated and damaged
 files too and then describes their intact part; it also says whether the file has its
 summary (the index seeking readers use) and what the recorder wrote about itself
-(``artrack.recording`` / ``artrack.recorder`` metadata, see the package docstring).
+(``artrack.recording`` / ``artrack.recorder`` metadata, see the package docstring), and which
+other files on disk belong to the same recording (split parts, continuations of a restarted
+recorder: ``writing.recording_parts``).
 Rates are per channel: (messages - 1) / (last - first log time).
 """
 
@@ -15,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from services.recorder.reading import Damage, Scan, indexed
-from services.recorder.writing import RECORDER_METADATA, RECORDING_METADATA
+from services.recorder.writing import RECORDER_METADATA, RECORDING_METADATA, recording_parts
 
 MIB = 1 << 20
 
@@ -49,6 +51,8 @@ class RecordingInfo:
     damage: Damage | None
     channels: list[ChannelInfo] = field(default_factory=list)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    parts: list[str] = field(default_factory=list)
+    """Every file of the recording on disk, this one first, when it has split parts or continuations."""
 
     @property
     def messages(self) -> int:
@@ -93,8 +97,10 @@ def summarise(path: Path | str) -> RecordingInfo:
         info.payload_bytes += len(recorded.message.data)
         info.first_ns = min(info.first_ns, recorded.message.log_time)
         info.last_ns = max(info.last_ns, recorded.message.log_time)
+    parts = [str(p) for p in recording_parts(Path(path))]
     return RecordingInfo(str(path), scan.size, indexed(scan.path), scan.header.library if scan.header else "",
-                         scan.damage, sorted(channels.values(), key=lambda c: (c.key, c.schema)), scan.metadata)
+                         scan.damage, sorted(channels.values(), key=lambda c: (c.key, c.schema)), scan.metadata,
+                         parts if parts != [str(path)] else [])
 
 
 def format_info(info: RecordingInfo) -> str:
@@ -108,11 +114,14 @@ def format_info(info: RecordingInfo) -> str:
     recording = info.metadata.get(RECORDING_METADATA)
     if recording:
         where, keys, part = (recording.get(name, "?") for name in ("namespace", "keys", "part"))
-        lines.append(f"recording  {where}/{recording.get('rig', '?')}, keys {keys}, part {part}")
+        continues = f", continues {recording['continues']}" if "continues" in recording else ""
+        lines.append(f"recording  {where}/{recording.get('rig', '?')}, keys {keys}, part {part}{continues}")
         recorder = info.metadata.get(RECORDER_METADATA)
         counts = ", ".join(f"{name} {recorder.get(name, '?')}" for name in ("received", "dropped", "unrecognised")) \
             if recorder else "not finished (no artrack.recorder record)"
         lines.append(f"recorder   {counts}")
+    if info.parts:
+        lines.append(f"parts      {', '.join(Path(p).name for p in info.parts)} (the figures here are of this file)")
     rate = f", {(info.messages - 1) / info.duration_s:.1f} msg/s" if info.duration_s > 0 else ""
     lines.append(f"messages   {info.messages} in {info.duration_s:.3f} s{rate}, "
                  f"{info.payload_bytes / MIB:.2f} MiB of payload")

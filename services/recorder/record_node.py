@@ -11,6 +11,12 @@ reported on the node's errors key at most once a second per key, and the count i
 into the file. Payloads that are not known artrack messages are recorded raw, counted as
 decode errors and reported the same way.
 
+A recorder that finds its file already begun refuses to start (a one-line error, exit 2), unless
+the supervisor restarted it (``services.runtime.restarts``): then its predecessor was killed,
+the file it left is kept as it is (readable up to its last flush), and the recording goes on in
+the next continuation, ``OUT.part2.mcap``, ``OUT.part3.mcap``, ... (``writing.restart_target``),
+whose ``artrack.recording`` metadata names ``OUT`` under ``continues``.
+
 On SIGINT/SIGTERM the subscribers are undeclared, whatever Zenoh still had in flight is
 delivered, the queue is drained and the file finished (summary and index): nothing that
 arrived is lost.
@@ -31,9 +37,18 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from protocol.keys import Keys
 from services.bus.stats import StreamCounter
 from services.recorder.byte_queue import ByteQueue
-from services.recorder.writing import Identity, RecordingWriter, Split, check_target, identify, message_class
+from services.recorder.writing import (
+    Identity,
+    RecordingWriter,
+    Split,
+    check_target,
+    identify,
+    message_class,
+    restart_target,
+)
 from services.runtime.kind import NodeKind
-from services.runtime.node import POLL_S, Node
+from services.runtime.node import POLL_S, Node, NodeError
+from services.runtime.restarts import restart_count
 
 MB = 1 << 20
 START = "{start}"
@@ -128,8 +143,7 @@ def subscriptions(keys: Keys, expressions: tuple[str, ...]) -> list[str]:
 
 def run(node: Node, params: Params) -> None:
     keys = subscriptions(node.keys, params.keys)
-    out = params.target(datetime.now(UTC))
-    check_target(out)
+    named = params.target(datetime.now(UTC))
     queue: ByteQueue[Arrival] = ByteQueue(int(params.queue_mb * MB))
     taps: list[Tap] = []
 
@@ -138,9 +152,21 @@ def run(node: Node, params: Params) -> None:
         return {"received": str(sum(s.messages for s in totals)), "dropped": str(sum(s.dropped for s in totals)),
                 "unrecognised": str(sum(s.decode_errors for s in totals))}
 
-    writer = RecordingWriter(out, split=params.split(), compression=params.compression, notes=notes,
-                             metadata={"namespace": node.keys.namespace, "rig": node.keys.rig,
-                                       "keys": json.dumps(keys)})
+    out = named
+    try:
+        if restart_count():
+            out = restart_target(named)
+        check_target(out)
+        metadata = {"namespace": node.keys.namespace, "rig": node.keys.rig, "keys": json.dumps(keys),
+                    **({"continues": named.name} if out != named else {})}
+        writer = RecordingWriter(out, split=params.split(), compression=params.compression, notes=notes,
+                                 metadata=metadata)
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    except OSError as exc:
+        raise NodeError(f"cannot record to {out}: {exc.strerror or exc}") from exc
+    if out != named:
+        node.log.warning("restarted: %s was begun by the recorder before this one; going on in %s", named, out)
     try:
         try:
             taps += [Tap(node, key, queue) for key in keys]

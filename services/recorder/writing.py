@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import glob
 import json
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -68,15 +69,54 @@ def part_path(out: Path, index: int) -> Path:
     return out.with_name(f"{out.stem}_{index:03d}{out.suffix}")
 
 
+def continuation_path(out: Path, number: int) -> Path:
+    """``OUT.partN.mcap``: where a restarted recorder of ``OUT.mcap`` goes on (``number`` 2, 3, ...)."""
+    return out.with_name(f"{out.stem}.part{number}{out.suffix}")
+
+
+def _split_parts(out: Path) -> list[Path]:
+    """The split parts of ``out`` on disk (``OUT_000.mcap``, ...), in order."""
+    found = out.parent.glob(f"{glob.escape(out.stem)}_[0-9][0-9][0-9]*{glob.escape(out.suffix)}")
+    return sorted((p for p in found if p.stem[len(out.stem) + 1:].isdigit()),
+                  key=lambda p: int(p.stem[len(out.stem) + 1:]))
+
+
+def _begun(out: Path) -> list[Path]:
+    """``out`` and its split parts, those on disk."""
+    return [p for p in (out, *_split_parts(out)) if p.exists()]
+
+
+def continuations(out: Path) -> list[tuple[int, list[Path]]]:
+    """``(N, files)`` of every continuation of ``out`` on disk (``OUT.partN.mcap`` or its split parts), by N."""
+    pattern = re.compile(rf"{re.escape(out.stem)}\.part([0-9]+)(?:_[0-9]{{3,}})?{re.escape(out.suffix)}")
+    numbers = {int(m.group(1)) for p in out.parent.glob(f"{glob.escape(out.stem)}.part*{glob.escape(out.suffix)}")
+               if (m := pattern.fullmatch(p.name)) and m.group(1) != "1" and not m.group(1).startswith("0")}
+    return [(n, _begun(continuation_path(out, n))) for n in sorted(numbers)]
+
+
+def recording_parts(out: Path) -> list[Path]:
+    """Every file of the recording ``out`` on disk: ``out`` (or its split parts), then its continuations."""
+    return [*_begun(out), *(p for _, files in continuations(out) for p in files)]
+
+
 def check_target(out: Path) -> None:
-    """Refuse (ValueError) an output whose folder is missing, or that would overwrite a recording:
-    ``out`` itself or any part of it."""
+    """Refuse (ValueError) an output whose folder is missing, or that would overwrite or join a recording:
+    ``out`` itself, any split part or continuation of it."""
     if not out.parent.is_dir():
         raise ValueError(f"cannot record to {out}: folder {out.parent} does not exist")
-    taken = [p for p in (out, *out.parent.glob(f"{glob.escape(out.stem)}_[0-9][0-9][0-9]*{glob.escape(out.suffix)}"))
-             if p.exists()]
+    taken = recording_parts(out)
     if taken:
         raise ValueError(f"{taken[0]} exists: choose another name or remove it (recordings are never overwritten)")
+
+
+def restart_target(out: Path) -> Path:
+    """Where a restarted recorder of ``out`` writes: ``out`` if nothing of it was begun, else the next
+    continuation (``OUT.part2.mcap``, then ``OUT.part3.mcap``, ...). ValueError for a missing folder."""
+    if not recording_parts(out):
+        check_target(out)
+        return out
+    begun = continuations(out)
+    return continuation_path(out, begun[-1][0] + 1 if begun else 2)
 
 
 def channel_encoding(cls: type[Message] | None) -> tuple[str, dict[str, str]]:
@@ -93,7 +133,7 @@ class _Part:
 
     def __init__(self, path: Path, compression: CompressionType, metadata: dict[str, str]):
         self.path = path
-        self._file: BinaryIO = open(path, "wb")  # noqa: SIM115  (closed in finish)
+        self._file: BinaryIO = open(path, "xb")  # noqa: SIM115  (closed in finish; never overwrites)
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=compression)
         self._writer.start(library=LIBRARY)
         self._writer.add_metadata(RECORDING_METADATA, metadata)

@@ -7,7 +7,7 @@ from protocol import CameraInfo, GroundTruth, Image
 from services.bus.pubsub import Inbox, Role
 from services.calibration.camera_info import write_camera_info
 from services.geometry.camera import CameraModel
-from tests.integration.support import START_S, collect, start_node
+from tests.integration.support import START_S, collect, start_node, wait_live
 
 
 def test_image_folder_with_calibration_flows_in_order(bus, procs, session, tmp_path):
@@ -72,3 +72,64 @@ def test_a_looped_folder_starts_over_and_keeps_counting(bus, procs, session, tmp
         assert [int(m.data[0, 0]) for m in got] == [40, 80, 120, 40, 80, 120, 40]
     finally:
         images.close()
+
+
+def _folder_and_calibration(tmp_path, frame_size: tuple[int, int], calibrated: tuple[int, int]):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), np.full((frame_size[1], frame_size[0]), 40 * i, np.uint8))
+    width, height = calibrated
+    K = np.array([[0.8 * width, 0, width / 2 - 0.5], [0, 0.8 * width, height / 2 - 0.5], [0, 0, 1]])
+    calib = tmp_path / "hd.yaml"
+    write_camera_info(calib, CameraModel("cam0", width, height, K, np.array([0.1, -0.2, 0, 0, 0.05]), np.eye(4)))
+    return folder, calib, K
+
+
+def test_a_calibration_of_another_aspect_ratio_stops_the_capture_naming_both_sizes(procs, tmp_path):
+    folder, calib, _ = _folder_and_calibration(tmp_path, (64, 48), (128, 72))
+    cam = start_node(procs, "capture", "cam", source=f"images:{folder}", calib=[str(calib)], fps=50)
+    assert cam.wait(START_S) == 2, cam.describe()
+    errors = [line for line in cam.stderr.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and f"{calib}: calibrated for 128x72, the frames are 64x48" in errors[0], cam.stderr
+
+
+def test_a_calibration_of_the_same_aspect_ratio_is_scaled_to_the_frames_with_one_warning(bus, procs, session,
+                                                                                           tmp_path):
+    folder, calib, K = _folder_and_calibration(tmp_path, (64, 36), (128, 72))
+    infos = Inbox(session, bus.keys.camera_info("cam0"), CameraInfo, Role.RESULT)
+    images = Inbox(session, bus.keys.image("cam0"), Image, Role.RESULT)  # what the capture waits for
+    try:
+        cam = start_node(procs, "capture", "cam", source=f"images:{folder}", calib=[str(calib)], fps=50,
+                         wait_for_subscriber=True)
+        got = collect(infos, 3)
+        assert cam.wait(START_S) == 0, cam.describe()
+        scaled = np.array([[0.5 * K[0, 0], 0, (K[0, 2] + 0.5) / 2 - 0.5], [0, 0.5 * K[1, 1], (K[1, 2] + 0.5) / 2 - 0.5],
+                           [0, 0, 1]])
+        for info in got:
+            assert (info.width, info.height) == (64, 36)
+            np.testing.assert_allclose(np.array(info.k).reshape(3, 3), scaled, rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(info.d, [0.1, -0.2, 0, 0, 0.05])
+        warnings = [line for line in cam.stderr.splitlines() if "intrinsics scaled by 0.5" in line]
+        assert len(warnings) == 1 and "calibrated for 128x72, the frames are 64x36" in warnings[0], cam.stderr
+    finally:
+        infos.close()
+        images.close()
+
+
+def test_run_refuses_a_calibration_of_another_aspect_ratio_before_starting(procs, tmp_path):
+    folder, calib, _ = _folder_and_calibration(tmp_path, (64, 48), (128, 72))
+    job = procs.run("run", "echo", "--source", f"images:{folder}", "--calib", str(calib))
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"nodes.capture: {calib}: calibrated for 128x72, the frames are 64x48" in lines[0]
+
+
+def test_a_marker_node_refuses_a_calibration_file_of_another_aspect_ratio(bus, procs, session, tmp_path):
+    folder, calib, _ = _folder_and_calibration(tmp_path, (64, 48), (128, 72))
+    marker = start_node(procs, "marker_pose", "marker", calib=str(calib), marker_length=0.05)
+    wait_live(session, bus.keys, {"marker"}, [marker])
+    start_node(procs, "capture", "cam", source=f"images:{folder}", fps=20, loop=True)
+    assert marker.wait(START_S) == 2, marker.describe()
+    errors = [line for line in marker.stderr.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and f"{calib}: calibrated for 128x72, the frames are 64x48" in errors[0], marker.stderr

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from protocol.message import Header
 from services.cli import parser
 
 from .support import START_S, json_lines, live_names, start_node, states, wait_live, wait_until
@@ -82,6 +83,25 @@ def test_echo_prints_count_json_lines_with_schema_fields(bus, procs, session):
     for line in lines:
         assert (line["schema"], line["width"], line["height"]) == ("artrack.CameraInfo", 64, 64)
         assert len(line["k"]) == 9 and line["k"][8] == 1.0
+
+
+def test_echo_shows_the_key_an_error_report_arrived_on_and_keeps_its_own(bus, procs, session):
+    from protocol.system import ErrorReport
+    from services.bus.pubsub import Publisher, Role
+
+    echo = procs.artrack("echo", bus.keys.every_node("errors"), "--count", "1", "--timeout", str(START_S))
+    arrival = bus.keys.errors("marker")
+    report = ErrorReport(header=Header(stamp_ns=5), node="marker", kind="no_calibration", detail="no CameraInfo",
+                         key=bus.keys.camera_info("cam0"))
+    publisher = Publisher(session, arrival, ErrorReport, Role.RESULT)
+    wait_until(lambda: publisher.matched() or echo.poll() is not None, START_S, "echo subscribed")
+    wait_until(lambda: publisher.put(report) or echo.poll() is not None, START_S, "echo printed a line",
+               interval_s=0.2)
+    assert echo.wait(START_S) == 0, echo.describe()
+    [line] = json_lines(echo.stdout)
+    assert line["key"] == arrival and line["message_key"] == bus.keys.camera_info("cam0")
+    assert (line["schema"], line["node"], line["kind"], line["detail"]) == (
+        "artrack.ErrorReport", "marker", "no_calibration", "no CameraInfo")
 
 
 def test_echo_refuses_a_bad_key_expression_in_one_line(procs):

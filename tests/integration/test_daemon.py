@@ -107,7 +107,7 @@ camera = "cam0"
 
 def test_no_pipeline_fails_the_check(bus, procs):
     check = _status(procs, "--check")
-    assert check.poll() == 1 and "unhealthy: no `artrack up` answered" in check.stdout
+    assert check.poll() == 1 and "unhealthy: no `artrack up` or `artrack run` answered" in check.stdout
 
 
 def _marker_pipeline(bus, fps: float, scene_width: int = 320) -> str:

@@ -82,6 +82,31 @@ def test_export_refuses_what_does_not_fit_before_writing_anything(recording, tmp
     assert not_mcap.returncode == 2 and "cannot read" in not_mcap.stderr
 
 
+def test_export_of_a_key_expression_writes_one_file_per_matching_key(tmp_path):
+    path = tmp_path / "markers.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "lab"})
+    wanted = {"pose/cam0/marker/3": poses(5), "pose/cam0/marker/4": poses(3)}
+    for key, sent in [*wanted.items(), ("pose/cam1/marker/3", poses(2))]:
+        for i, pose in enumerate(sent):
+            writer.write(f"{PREFIX}/{key}", encode(pose), 1_000 + i)
+    writer.close()
+    out = tmp_path / "out"
+    done = artrack("export", str(path), "--key", f"{PREFIX}/pose/cam0/**", "--format", "tum", "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    written = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert written == ["pose/cam0/marker/3.tum", "pose/cam0/marker/4.tum"]
+    for key, sent in wanted.items():
+        table = np.loadtxt(out / f"{key}.tum", ndmin=2)
+        np.testing.assert_array_equal(table[:, 1:4], [p.transform.translation for p in sent])
+        assert f"wrote {out / key}.tum: {len(sent)} rows of {PREFIX}/{key}" in done.stderr
+    relative = artrack("export", str(path), "--key", "pose/*/marker/3", "--format", "jsonl", "-o", str(out))
+    assert relative.returncode == 0, relative.stderr
+    assert {p.name for p in out.rglob("*.jsonl")} == {"3.jsonl"} and (out / "pose/cam1/marker/3.jsonl").is_file()
+    none = artrack("export", str(path), "--key", "pose/cam9/**", "--format", "tum", "-o", str(out))
+    assert none.returncode == 2 and "no key matches 'pose/cam9/**'" in none.stderr
+    assert none.stderr.count("\n") == 1, none.stderr
+
+
 def test_export_jsonl_and_csv_carry_every_message(recording):
     lines = artrack("export", str(recording), "--key", "pose/wand", "--format", "jsonl")
     assert lines.returncode == 0, lines.stderr

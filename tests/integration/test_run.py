@@ -1,5 +1,9 @@
 """``artrack run``: a whole job in processes, recorded, ending with its finite source."""
 
+import tomllib
+
+import cv2
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
@@ -80,3 +84,32 @@ def test_run_refuses_what_its_nodes_could_not_start_with_before_starting_any(pro
     assert job.poll() == 2, job.describe()
     lines = [line for line in job.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and expected.format(existing=existing) in lines[0], job.stderr
+
+
+@pytest.mark.parametrize("length", ["0", "-0.05"])
+def test_run_refuses_a_marker_length_that_is_not_positive_naming_the_flag(procs, length):
+    job = procs.run("run", "marker", "--source", "synthetic:markers", "--frames", "5", "--marker-length", length)
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--marker-length: Input should be greater than 0" in lines[0], job.stderr
+
+
+def test_run_without_marker_length_takes_the_markers_scenes_own_and_says_so(procs, tmp_path):
+    saved = tmp_path / "job.toml"
+    job = procs.run("run", "marker", "--source", "synthetic:markers", "--scene-option", "marker_length=0.07",
+                    "--frames", "5", "--save-pipeline", str(saved))
+    assert job.poll() == 0, job.describe()
+    assert "using --marker-length 0.07, as synthetic:markers renders it" in job.stderr
+    assert tomllib.loads(saved.read_text())["nodes"]["marker-cam0"]["marker_length"] == 0.07
+    given = procs.run("run", "marker", "--source", "synthetic:markers", "--marker-length", "0.05", "--frames", "5",
+                      "--save-pipeline", str(saved))
+    assert given.poll() == 0 and "using --marker-length" not in given.stderr, given.describe()
+    assert tomllib.loads(saved.read_text())["nodes"]["marker-cam0"]["marker_length"] == 0.05
+
+
+def test_run_without_marker_length_on_other_sources_is_refused_before_starting(procs, tmp_path):
+    cv2.imwrite(str(tmp_path / "0.png"), np.zeros((48, 64), np.uint8))
+    job = procs.run("run", "marker", "--source", f"images:{tmp_path}")
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "nodes.marker-cam0: no marker side length" in lines[0] and "--marker-length" in lines[0]

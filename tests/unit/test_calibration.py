@@ -4,6 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
+from services.calibration.camera_info import CalibrationError as CalibrationFileError
+from services.calibration.camera_info import fit_to_image
 from services.calibration.intrinsics import (
     MIN_TILT_SPREAD_DEG,
     CalibrationError,
@@ -15,7 +17,7 @@ from services.calibration.intrinsics import (
     find_views,
     tilt_spread_deg,
 )
-from services.geometry.camera import project_points
+from services.geometry.camera import CameraModel, project_points
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import transform_points
 
@@ -223,3 +225,28 @@ def test_bad_targets_are_refused():
         Charuco(5, 7, 0.04, 0.05, "DICT_6X6_250")
     with pytest.raises(ValueError, match="unknown marker dictionary"):
         Charuco(5, 7, 0.04, 0.02, "DICT_9X9_1")
+
+
+def test_fit_to_image_scales_intrinsics_as_resizing_moves_pixels():
+    K = np.array([[900.0, 0.0, 641.3], [0.0, 905.0, 357.9], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.21, 0.05, 0.001, -0.002, 0.01])
+    hd = CameraModel("cam0", 1280, 720, K, dist, np.eye(4))
+    same, nothing = fit_to_image(hd, 1280, 720, "hd.yaml")
+    assert same is hd and nothing is None
+    small, note = fit_to_image(hd, 640, 360, "hd.yaml")
+    assert note == "hd.yaml: calibrated for 1280x720, the frames are 640x360: intrinsics scaled by 0.5 (fx, fy, cx, " \
+                   "cy; distortion unchanged)"
+    assert (small.width, small.height) == (640, 360) and np.array_equal(small.dist, dist)
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(2, 5, 50)])
+    at_hd, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)
+    at_small, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), small.K, small.dist)
+    # cv2.resize by 1/2 maps pixel u to (u + 0.5) / 2 - 0.5 (pixel centres at integer coordinates)
+    np.testing.assert_allclose(at_small.reshape(-1, 2), (at_hd.reshape(-1, 2) + 0.5) / 2 - 0.5, atol=1e-9)
+
+
+def test_fit_to_image_refuses_another_aspect_ratio_naming_both_sizes_and_the_file():
+    hd = CameraModel("cam0", 1280, 720, np.array([[900.0, 0, 640], [0, 900, 360], [0, 0, 1]]), np.zeros(5), np.eye(4))
+    with pytest.raises(CalibrationFileError, match=r"^hd.yaml: calibrated for 1280x720, the frames are 640x480 "
+                                               r"\(another aspect ratio\)"):
+        fit_to_image(hd, 640, 480, "hd.yaml")

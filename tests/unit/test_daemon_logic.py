@@ -160,7 +160,7 @@ def test_a_health_check_here_ignores_other_hosts_pipelines():
     assert status.problems() == ["node box-b-cam is failed"]
     assert status.on_host("box-a").problems() == []
     assert status.on_host("box-b").problems() == ["node box-b-cam is failed"]
-    assert status.on_host("box-c").problems() == ["no `artrack up` answered on this rig"]
+    assert status.on_host("box-c").problems() == ["no `artrack up` or `artrack run` answered on this rig"]
 
 
 class _RefusingSession:

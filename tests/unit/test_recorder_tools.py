@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from protocol import Header, Image, Pose, encode, to_json
+from protocol.codec import sample_record
 from protocol.poses import TrackingState
 from protocol.spatial import Transform
+from protocol.system import ErrorReport
 from services.recorder.export import Export, ExportError, flatten, tum_line
 from services.recorder.info import format_info, summarise
 from services.recorder.writing import RecordingWriter
@@ -67,6 +69,18 @@ def test_tum_export_leaves_out_poses_without_an_estimate(tmp_path):
         tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 1, 3)]
 
 
+@pytest.mark.parametrize("state", [s for s in TrackingState if s != TrackingState.TRACKING])
+def test_tum_export_writes_tracking_poses_only(tmp_path, state):
+    path = tmp_path / "states.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "r"})
+    for i in range(3):
+        writer.write("ar/r/pose/m", encode(pose(i).model_copy(update={"state": state}) if i == 1 else pose(i)),
+                     (i + 1) * MS)
+    writer.close()
+    assert list(Export(path, "pose/m", "tum").lines()) == [
+        tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 2)]
+
+
 def test_tum_export_of_poses_with_and_without_a_child_filter(recording):
     every = Export(recording, "pose/m", "tum")
     assert list(every.lines()) == [tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in range(10)]
@@ -83,6 +97,21 @@ def test_jsonl_lines_look_like_echo_output(recording):
     assert full[1]["data"] == [[2] * 5] * 4 and full[1]["received_ns"] > full[0]["received_ns"]
     assert {k: v for k, v in full[1].items() if k not in ("key", "received_ns")} == to_json(
         Image(header=Header(stamp_ns=2), encoding="mono8", data=np.full((4, 5), 2, np.uint8)))
+
+
+def test_jsonl_keeps_the_recorded_key_and_an_error_reports_own_key(tmp_path):
+    path = tmp_path / "errors.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "r"})
+    report = ErrorReport(header=Header(stamp_ns=3), node="marker", kind="no_calibration", detail="none",
+                         key="ar/r/cam0/camera_info")
+    writer.write("ar/r/node/marker/errors", encode(report), 7)
+    writer.close()
+    [line] = [json.loads(line) for line in Export(path, "node/marker/errors", "jsonl").lines()]
+    assert (line["key"], line["message_key"], line["received_ns"]) == ("ar/r/node/marker/errors",
+                                                                       "ar/r/cam0/camera_info", 7)
+    assert sample_record("k", 7, report) == {"key": "k", "received_ns": 7, "schema": "artrack.ErrorReport",
+                                             "version": 1, "message_key": "ar/r/cam0/camera_info",
+                                             **{k: v for k, v in to_json(report).items() if k != "key"}}
 
 
 def test_csv_columns_are_the_union_of_every_message_fields(recording):

@@ -113,3 +113,11 @@ def test_other_dictionary_ids_and_length_render_detectably():
         frame = scene.render(index)
         _, ids, _ = detector(scene).detectMarkers(frame.images["cam0"])
         assert set(np.ravel(ids).tolist()) == set(visible(frame)) and len(visible(frame)) > 0
+
+
+def test_the_markers_scene_settles_the_marker_length_its_trackers_take():
+    from services.capture.sources import known_settings
+
+    assert known_settings(("synthetic:markers",), {"marker_length": 0.1}) == {
+        "marker_length": (0.1, "synthetic:markers")}
+    assert known_settings(("synthetic:pattern", "camera:0"), {}) == {}

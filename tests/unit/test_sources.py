@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.calibration.camera_info import CalibrationError, read_camera_info, write_camera_info
-from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source
+from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source, seconds_to_ns
 from services.geometry.camera import CameraModel
 
 
@@ -38,6 +38,36 @@ def test_tum_names_and_rgb_list_give_times(tmp_path):
     assert [f.time_s for f in frames_of(f"images:{tmp_path}")] == [1341847980.25, 1341847981.5]
     (tmp_path / "rgb.txt").write_text("# timestamp filename\n1341847981.5 1341847981.5.png\n")
     assert [f.time_s for f in frames_of(f"images:{tmp_path}")] == [1341847981.5]
+
+
+def test_tum_names_and_rgb_list_give_exact_nanoseconds(tmp_path):
+    cv2.imwrite(str(tmp_path / "1341847980.722988.png"), gradient(0))
+    cv2.imwrite(str(tmp_path / "1341847980.790991.png"), gradient(1))
+    assert [f.time_ns for f in frames_of(f"images:{tmp_path}")] == [1341847980722988000, 1341847980790991000]
+    (tmp_path / "rgb.txt").write_text("# timestamp filename\n1341847980.790991 1341847980.790991.png\n")
+    assert [f.time_ns for f in frames_of(f"images:{tmp_path}")] == [1341847980790991000]
+
+
+def test_kitti_times_in_scientific_notation_give_exact_nanoseconds(tmp_path):
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"{i:06d}.png"), gradient(i))
+    (tmp_path / "times.txt").write_text("1.036150e-01\n4.662529e+03\n")
+    assert [f.time_ns for f in frames_of(f"images:{tmp_path}")] == [103615000, 4662529000000]
+
+
+@pytest.mark.parametrize("text", ["1341847980.722988", "0.000000001", "1.036150e-01", "4662.5290005", "7",
+                                  "1305031102.175304", "0.0000000005", "0.0000000015"])
+def test_seconds_to_ns_agrees_with_exact_fractions(text):
+    from fractions import Fraction
+
+    assert seconds_to_ns(text) == round(Fraction(text) * 1_000_000_000)  # round(): half to even, as seconds_to_ns
+
+
+def test_a_time_list_entry_that_is_not_a_number_is_refused_naming_the_list(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), gradient(0))
+    (tmp_path / "rgb.txt").write_text("# timestamp filename\nnoon a.png\n")
+    with pytest.raises(SourceError, match=r"rgb.txt: entry 2: 'noon' is not a time in seconds"):
+        open_source(f"images:{tmp_path}")
 
 
 def test_kitti_times_in_parent_folder(tmp_path):

@@ -49,6 +49,8 @@ class Scene(Protocol):
 
     def render(self, index: int) -> SceneFrame: ...
 
+    def known_settings(self) -> dict[str, Any]: ...
+
 
 @dataclass(frozen=True)
 class SceneOptions:
@@ -150,6 +152,11 @@ class SyntheticScene(ABC):
         if not isinstance(options, self.Options):
             raise ValueError(f"scene {self.name!r} takes {self.Options.__name__}, not {type(options).__name__}")
         self.options = options
+
+    def known_settings(self) -> dict[str, Any]:
+        """Node parameters the scene settles by what it renders (a markers scene: ``marker_length``),
+        by field name; a tracker's nodes take them unless told otherwise. None by default."""
+        return {}
 
     def time_s(self, index: int) -> float:
         """Time of frame ``index`` in seconds."""

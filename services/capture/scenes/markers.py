@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -66,6 +67,10 @@ class MarkersScene(SyntheticScene):
     name = "markers"
     Options = MarkersOptions
     options: MarkersOptions
+
+    def known_settings(self) -> dict[str, Any]:
+        """The side of the markers it draws, metres (every marker has the same)."""
+        return {"marker_length": self.marker_length}
 
     def __init__(self, options: MarkersOptions | None = None):
         super().__init__(options)
