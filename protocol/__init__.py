@@ -9,6 +9,7 @@ from protocol.detections import BlobDetections, Keypoints, MarkerDetections
 from protocol.keys import Keys
 from protocol.maps import PointCloud
 from protocol.message import Header, Message, message_type, message_types
+from protocol.mocap import Blobs, Points3D
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
 from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
@@ -30,10 +31,10 @@ from protocol.system import (
 )
 
 __all__ = [
-    "BlobDetections", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError", "ErrorReport",
-    "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections", "Message",
-    "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Pose", "PoseQuality", "RIG_FRAME", "RegionOfInterest",
-    "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody", "StaticTransforms", "StreamStats",
-    "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats", "TrackingState", "Transform", "decode",
-    "encode", "message_type", "message_types", "peek", "to_json",
+    "BlobDetections", "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
+    "ErrorReport", "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections",
+    "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
+    "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",
+    "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",
+    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "peek", "to_json"
 ]

@@ -12,6 +12,7 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
     ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
     ar/rig0/map                       PointCloud       SLAM / triangulated points
+    ar/rig0/points                    Points3D         a rig's triangulated sphere centres, with their bodies
     ar/rig0/tf_static/<node>          StaticTransforms the rig's static transforms one node holds (cameras'
                                       T_rig_camera), published once and answered on a queryable
     ar/rig0/node/<name>               (liveliness)     present while the node runs
@@ -160,6 +161,10 @@ class Keys:
 
     def map(self) -> str:
         return f"{self.prefix}/map"
+
+    def points(self) -> str:
+        """The 3D points a rigid-body tracker triangulates at each instant."""
+        return f"{self.prefix}/points"
 
     def static_transforms(self, node: str) -> str:
         """The static transforms ``node`` publishes (once) and answers (queryable) for late joiners."""

@@ -35,10 +35,13 @@ class PoseQuality(Struct):
 
     ``reprojection_rms_px``: RMS of the measurement residuals in pixels; ``inliers``: the
     number of points (corners, spheres, features) that support the pose; ``ambiguous``:
-    another pose explains the measurements almost as well (planar-target flip).
+    another pose explains the measurements almost as well (planar-target flip);
+    ``residual_rms_m``: RMS distance (m) between measured 3D points and the fitted target's
+    (a rigid body's spheres), None when the pose does not come from 3D points.
     """
 
     reprojection_rms_px: float | None = Field(default=None, ge=0)
+    residual_rms_m: float | None = Field(default=None, ge=0)
     inliers: int = Field(default=0, ge=0)
     ambiguous: bool = False
 
@@ -54,7 +57,8 @@ class Pose(Message):
     """
 
     SCHEMA = "artrack.Pose"
-    VERSION = 1
+    VERSION = 2
+    READS_OLDER = (1,)
 
     child_frame_id: str
     transform: Transform = Transform()
@@ -83,7 +87,8 @@ class RigidBodies(Message):
     """Every configured rigid body of a rig at one instant; ``header.frame_id`` is the world frame."""
 
     SCHEMA = "artrack.RigidBodies"
-    VERSION = 1
+    VERSION = 2
+    READS_OLDER = (1,)
 
     bodies: tuple[RigidBody, ...] = ()
 

@@ -9,6 +9,10 @@ A tracker is a TOML file ``trackers/NAME.toml`` in any package the launcher sear
     kind = "marker_pose"
     camera = "{camera}"         # string values may hold {camera} too
 
+    [nodes.bodies]              # one node for the whole rig
+    kind = "rigid_bodies"
+    cameras = "{cameras}"       # a value "{cameras}" is the list of the source's cameras
+
 A template lists the nodes downstream of the source; the source node (capture or replay)
 and the recorder and viewer are added by the job. Its flags are generated from the
 parameter models of its node kinds (``services.launcher.flags``): every field but those the
@@ -30,6 +34,7 @@ from services.launcher.kinds import catalogue, kind
 from services.launcher.pipeline import NodeSpec, PipelineError
 
 CAMERA = "{camera}"
+CAMERAS = "{cameras}"
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,8 @@ class Tracker:
         """``(kind, Params, fields bound by the template)`` of each distinct node kind, in template order."""
         seen: dict[str, tuple[str, type[BaseModel], set[str]]] = {}
         for table in self.nodes.values():
-            bound = {key for key, value in table.items() if isinstance(value, str) and CAMERA in value}
+            bound = {key for key, value in table.items() if isinstance(value, str) and (CAMERA in value
+                                                                                    or value == CAMERAS)}
             name = table["kind"]
             model = kind(name).params
             if name in seen:
@@ -95,8 +101,9 @@ class Tracker:
         nodes: dict[str, NodeSpec] = {}
         for name, table in self.nodes.items():
             for camera in cameras if CAMERA in name else [None]:
-                values = {k: v.replace(CAMERA, camera) if camera and isinstance(v, str) else v
-                          for k, v in table.items()}
+                values: dict[str, Any] = {k: list(cameras) if v == CAMERAS else
+                                          v.replace(CAMERA, camera) if camera and isinstance(v, str) else v
+                                          for k, v in table.items()}
                 node_kind = kind(values["kind"])
                 fields = node_kind.params.model_fields
                 for key, value in options.items():

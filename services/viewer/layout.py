@@ -14,12 +14,15 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
     world/<cam>/image/markers             LineStrips2D: marker outlines (corners closed), ids as labels
     world/<cam>/image/blobs               Points2D: blob centres, radius = the blob's radius (px)
     world/<cam>/image/keypoints           Points2D: feature positions
+    world/<cam>/image/{clean,flagged}_blobs  Points2D: a Blobs message's blobs without / with flags
     world/<cam>/overlay/image             Image: the marker node's AR overlay of <cam> (frame id <cam>/overlay)
     <F>/pose/<child>                      Transform3D T_F_child + TransformAxes3D (Pose, RigidBodies)
     <F>/truth/<child>                     the same for GroundTruth, beside the estimate
     <F>/trajectory/pose/<child>           LineStrips3D: the child's last positions in F
     <F>/trajectory/truth/<child>          the same for ground truth
     <F>/points                            Points3D of a PointCloud expressed in F
+    <F>/points/{labelled,unlabelled}      Points3D of a Points3D message: matched to a body (its name
+                                          as label) or not, in two colours
     stats/rate_hz/<node>/<in|out>/<key>   Scalars: each stream's message rate
     stats/processing_ms/<node>/<p50|p99>  Scalars: processing time percentiles
     stats/dropped/<node>                  Scalars: frames dropped (latest-wins) so far
@@ -61,6 +64,10 @@ PROCESSING_MS = "processing_ms"
 LATENCY_MS = "latency_ms"
 DROPPED = "dropped"
 DECODE_ERRORS = "decode_errors"
+CLEAN_BLOBS = "clean_blobs"
+FLAGGED_BLOBS = "flagged_blobs"
+LABELLED = "labelled"
+UNLABELLED = "unlabelled"
 
 
 def _escaped(name: str) -> str:

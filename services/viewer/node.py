@@ -69,7 +69,7 @@ def subscriptions(keys: Keys) -> list[tuple[str, Role]]:
     return [
         *((keys.every_camera(stream), role) for stream, role in CAMERA_STREAMS.items()),
         (keys.poses(), Role.RESULT), (keys.bodies(), Role.RESULT), (keys.map(), Role.RESULT),
-        (keys.every_node("stats"), Role.STATUS), (keys.every_node("errors"), Role.STATUS),
+        (keys.points(), Role.RESULT), (keys.every_node("stats"), Role.STATUS), (keys.every_node("errors"), Role.STATUS),
     ]
 
 
@@ -90,7 +90,7 @@ def run(node: Node, params: Params) -> None:
 
 
 def _inputs(params: Params) -> tuple[str, ...]:
-    return (*(f"*/{stream}" for stream in CAMERA_STREAMS), "pose/**", "bodies", "map", "node/*/stats",
+    return (*(f"*/{stream}" for stream in CAMERA_STREAMS), "pose/**", "bodies", "map", "points", "node/*/stats",
             "node/*/errors")
 
 

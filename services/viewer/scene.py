@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from protocol.detections import BlobDetections, Keypoints, MarkerDetections
 from protocol.maps import PointCloud
 from protocol.message import Message
+from protocol.mocap import Blobs, Points3D
 from protocol.poses import GroundTruth, Pose, RigidBodies, TrackingState
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import Transform
@@ -43,6 +44,10 @@ STYLES = {
     "markers": rr.LineStrips2D.from_fields(colors=0x00DC5AFF),
     "blobs": rr.Points2D.from_fields(colors=0xFF3C3CA0),
     "keypoints": rr.Points2D.from_fields(colors=0xFFC800FF, radii=rr.Radius.ui_points(2.0)),
+    layout.CLEAN_BLOBS: rr.Points2D.from_fields(colors=0x00C8FFC0),
+    layout.FLAGGED_BLOBS: rr.Points2D.from_fields(colors=0xFF3CC8C0),
+    layout.LABELLED: rr.Points3D.from_fields(colors=0x00C8FFFF, radii=rr.Radius.ui_points(4.0)),
+    layout.UNLABELLED: rr.Points3D.from_fields(colors=0xFF3CC8FF, radii=rr.Radius.ui_points(4.0)),
     layout.ESTIMATE: rr.LineStrips3D.from_fields(colors=0xFF8C00FF),
     layout.TRUTH: rr.LineStrips3D.from_fields(colors=0x3CC83CFF),
 }
@@ -101,6 +106,7 @@ class Scene:
             Image: self._image, CameraInfo: self._camera_info, MarkerDetections: self._markers,
             BlobDetections: self._blobs, Keypoints: self._keypoints, Pose: self._pose, RigidBodies: self._bodies,
             GroundTruth: self._truth, PointCloud: self._cloud, NodeStats: self._stats, ErrorReport: self._error,
+            Blobs: self._mocap_blobs, Points3D: self._points,
         }
 
     def setup(self) -> list[Row]:
@@ -151,6 +157,24 @@ class Scene:
     def _blobs(self, blobs: BlobDetections) -> list[Row]:
         points = rr.Points2D(blobs.centers, radii=blobs.radii)
         return self._styled_row(layout.detections(self._camera(blobs), "blobs"), "blobs", points)
+
+    def _mocap_blobs(self, blobs: Blobs) -> list[Row]:
+        """Blobs without flags and flagged blobs (merged, occluded, clipped) in two colours."""
+        camera = self._camera(blobs)
+        flagged = blobs.flags != 0
+        return [row for kind, rows in ((layout.CLEAN_BLOBS, ~flagged), (layout.FLAGGED_BLOBS, flagged))
+                for row in self._styled_row(layout.detections(camera, kind), kind,
+                                            rr.Points2D(blobs.centroids[rows], radii=blobs.radii[rows]))]
+
+    def _points(self, points: Points3D) -> list[Row]:
+        """Triangulated points, those matched to a body (labelled with its name) apart from the others."""
+        base = layout.points(layout.frame(points.header.frame_id))
+        labelled = points.body >= 0
+        names = [points.bodies[i] for i in points.body[labelled]]
+        return [*self._styled_row(f"{base}/{layout.LABELLED}", layout.LABELLED,
+                                  rr.Points3D(points.points[labelled], labels=names)),
+                *self._styled_row(f"{base}/{layout.UNLABELLED}", layout.UNLABELLED,
+                                  rr.Points3D(points.points[~labelled]))]
 
     def _keypoints(self, keypoints: Keypoints) -> list[Row]:
         points = rr.Points2D(keypoints.points)

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from protocol import (
     BlobDetections,
+    Blobs,
     CameraInfo,
     ClientState,
     ConfigAnswer,
@@ -28,6 +29,7 @@ from protocol import (
     NodeStats,
     PipelineHealth,
     PointCloud,
+    Points3D,
     Pose,
     PoseQuality,
     RegionOfInterest,
@@ -84,7 +86,7 @@ def quaternions(draw: st.DrawFn) -> tuple[float, float, float, float]:
 
 transforms = st.builds(Transform, translation=st.tuples(finite, finite, finite), rotation=quaternions())
 qualities = st.builds(PoseQuality, reprojection_rms_px=st.none() | non_negative, inliers=big_counts,
-                      ambiguous=st.booleans())
+                      ambiguous=st.booleans(), residual_rms_m=st.none() | non_negative)
 states = st.sampled_from(TrackingState)
 
 IMAGE_LAYOUT = {"mono8": ("uint8", 1), "mono16": ("uint16", 1), "bgr8": ("uint8", 3), "bgra8": ("uint8", 4)}
@@ -154,6 +156,24 @@ def point_clouds(draw: st.DrawFn) -> PointCloud:
                       ids=draw(arrays("int64", (n,))), colors=draw(arrays("uint8", (colored, 3))))
 
 
+@st.composite
+def mocap_blobs(draw: st.DrawFn) -> Blobs:
+    n = draw(rows)
+    return Blobs(header=draw(headers), method=draw(st.sampled_from(["ir", "log", "colour"])),
+                 centroids=draw(arrays("float64", (n, 2))), areas=draw(arrays("float32", (n,))),
+                 radii=draw(arrays("float32", (n,))), quality=draw(arrays("float32", (n,))),
+                 flags=draw(arrays("uint8", (n,))))
+
+
+@st.composite
+def points_3d(draw: st.DrawFn) -> Points3D:
+    n, names = draw(rows), draw(_tuples_of(texts))
+    body = draw(st.lists(st.integers(-1, len(names) - 1), min_size=n, max_size=n))
+    return Points3D(header=draw(headers), bodies=names, points=draw(arrays("float64", (n, 3))),
+                    residual_px=draw(arrays("float32", (n,))), views=draw(arrays("uint8", (n,))),
+                    covariances=draw(arrays("float64", (n, 3, 3))), body=np.array(body, np.int32))
+
+
 def _tuples_of(strategy: st.SearchStrategy) -> st.SearchStrategy[tuple]:
     return st.lists(strategy, max_size=3).map(tuple)
 
@@ -174,6 +194,8 @@ MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.BlobDetections": blob_detections(),
     "artrack.Keypoints": keypoints(),
     "artrack.PointCloud": point_clouds(),
+    "artrack.Blobs": mocap_blobs(),
+    "artrack.Points3D": points_3d(),
     "artrack.Pose": st.builds(Pose, header=headers, child_frame_id=texts, transform=transforms, state=states,
                               quality=qualities, covariance=st.none() | st.tuples(*[finite] * 36)),
     "artrack.RigidBodies": st.builds(RigidBodies, header=headers, bodies=_tuples_of(

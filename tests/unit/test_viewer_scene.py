@@ -11,6 +11,7 @@ import rerun as rr
 
 from protocol import (
     BlobDetections,
+    Blobs,
     CameraInfo,
     ErrorReport,
     FrameTransform,
@@ -21,6 +22,7 @@ from protocol import (
     MarkerDetections,
     NodeStats,
     PointCloud,
+    Points3D,
     Pose,
     RigidBodies,
     RigidBody,
@@ -233,3 +235,19 @@ def test_options_and_sinks_refuse_what_cannot_work(tmp_path):
         open_recording("test", out=tmp_path / "missing" / "view.rrd")
     with pytest.raises(SinkError, match="nothing to write to"):
         open_recording("test")
+
+
+def test_mocap_blobs_and_points_are_drawn_apart_by_flag_and_by_body(view):
+    blobs = Blobs(header=header(0), centroids=np.array([[5.0, 6.0], [7.0, 8.0]]), areas=np.ones(2, np.float32),
+                  radii=np.array([2, 3], np.float32), quality=np.ones(2, np.float32),
+                  flags=np.array([0, 1], np.uint8))
+    points = Points3D(header=header(0, "world"), bodies=("wand",), points=np.array([[1.0, 2, 3], [4, 5, 6]]),
+                      residual_px=np.zeros(2, np.float32), views=np.full(2, 2, np.uint8),
+                      covariances=np.zeros((2, 3, 3)), body=np.array([-1, 0], np.int32))
+    contents = view([blobs, points])
+    assert contents.rows("world/cam0/image/clean_blobs", "Points2D:positions")[0].values.to_pylist() == [[5, 6]]
+    assert contents.rows("world/cam0/image/flagged_blobs", "Points2D:positions")[0].values.to_pylist() == [[7, 8]]
+    labelled = contents.rows("world/points/labelled", "Points3D:positions")[0].values.to_pylist()
+    assert labelled == [[4, 5, 6]]
+    assert contents.rows("world/points/labelled", "Points3D:labels")[0].values.to_pylist() == ["wand"]
+    assert contents.rows("world/points/unlabelled", "Points3D:positions")[0].values.to_pylist() == [[1, 2, 3]]

@@ -29,6 +29,7 @@ floor frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -120,7 +121,6 @@ class IrRigScene(SyntheticScene):
         o = self.options
         self.sphere_radius = o.sphere_radius
         self.cameras = self.make_cameras()
-        self.rays = {c.name: pixel_rays(c.K, c.dist, c.width, c.height) for c in self.cameras}
         self.T_camera_world = {c.name: invert(c.T_rig_camera) for c in self.cameras}
         rng = scene_rng(o.seed, PATH_PURPOSE)
         self.bodies: dict[str, np.ndarray]
@@ -145,6 +145,11 @@ class IrRigScene(SyntheticScene):
                             matrix_from_rotvec(rng.normal(0.0, 1.0, 3)))
             for k, (name, x) in enumerate(zip(self.bodies, spread, strict=True))
         }
+
+    @cached_property
+    def rays(self) -> dict[str, np.ndarray]:
+        """Camera name -> (H, W, 3) undistorted pixel rays, made at the first frame drawn (not to name cameras)."""
+        return {c.name: pixel_rays(c.K, c.dist, c.width, c.height) for c in self.cameras}
 
     def make_cameras(self) -> tuple[CameraModel, ...]:
         """The bar's cameras: toed-in poses, slightly different intrinsics, small distortion."""

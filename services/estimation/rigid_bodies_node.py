@@ -1,0 +1,259 @@
+"""Rigid bodies node: the blobs of every camera of a calibrated rig -> 3D points -> ``T_world_body`` poses.
+
+Inputs: ``<camera>/blobs`` of each of ``cameras`` (``protocol.mocap.Blobs``, one blobs node per
+camera), joined by ``header.seq``: only the blobs of one instant are ever triangulated together;
+a camera's blobs that find no partners are counted as unjoined in the node's statistics
+(``NodeStats.synced``), never used. The rig (world = the rig frame) is the ``rig_file``
+(``services.calibration.rig``), else each camera's newest ``<camera>/camera_info``, whose
+``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so).
+The bodies are the ``bodies`` file (``services.estimation.bodies_file``), else the ``ir_rig``
+scene's own (``services.capture.scenes.ir_rig.LAYOUTS``); what ``check_bodies`` finds doubtful
+about them is logged at start, one line each.
+
+Per joined set (``services.estimation.correspondence``, ``services.estimation.rigid_bodies``):
+the blobs without flags (``flagged`` uses the flagged ones too) are put in correspondence and
+triangulated, the bodies matched among the points and each fitted. Outputs, with the header of
+the set's frames and ``frame_id`` ``world``:
+
+* ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none);
+* ``pose/body/<name>``: ``Pose`` ``T_world_body`` (child ``body/<name>``) per body found, state
+  ``tracking``, with the spheres used (``quality.inliers``), the fit's residual RMS
+  (``quality.residual_rms_m``) and its 6x6 covariance (``Pose``'s convention: perturbation
+  (tx, ty, tz, rx, ry, rz) in the body frame); a body found in the previous set and not in this
+  one gets one ``lost`` pose (identity transform).
+
+Until every camera has a calibration, sets are counted as skipped (``no_calibration``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from protocol.keys import KeyName
+from protocol.message import Header
+from protocol.mocap import Blobs, Points3D
+from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.sensors import CameraInfo
+from services.bus.pubsub import Inbox, Publisher, Role
+from services.calibration.rig import Rig, read_rig
+from services.convert import camera_model, transform_from_matrix
+from services.estimation.bodies_file import check_bodies, load_bodies
+from services.estimation.marker_tracking import TargetTracks
+from services.estimation.rigid_bodies import Matching, MatchOptions, match_bodies
+from services.geometry.camera import CameraModel
+from services.geometry.triangulation import TriangulatedPoint
+from services.runtime.kind import NodeKind
+from services.runtime.node import Node, NodeError
+
+if TYPE_CHECKING:
+    from services.estimation.correspondence import CorrespondenceOptions
+
+WORLD = "world"
+FIRST_INFO_WAIT_S = 0.5
+"""The longest the first set waits for the cameras' first CameraInfo."""
+INFO_DEPTH = 100
+
+
+class Params(BaseModel):
+    """The rig's cameras, its calibration and bodies, and the gates of correspondence and matching."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), description="the rig's cameras, whose blobs "
+                                                                               "are joined")
+    rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the "
+                                                            "cameras' CameraInfo with their T_rig_camera")
+    bodies: Path | None = Field(default=None, description="bodies YAML; default: the ir_rig scene's bodies")
+    flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
+    epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
+    reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view, px")
+    sigma_px: float = Field(default=0.1, gt=0, description="centroid noise assumed by the covariances, px")
+    min_views: int = Field(default=2, ge=2, description="fewest cameras that must see a point")
+    distance_tolerance: float = Field(default=0.003, gt=0, description="sphere distance tolerance of matching, m")
+    gate_rms: float = Field(default=0.002, gt=0, description="largest residual RMS of a body's fit, m")
+    sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
+
+    @field_validator("cameras")
+    @classmethod
+    def _a_rig(cls, cameras: tuple[str, ...]) -> tuple[str, ...]:
+        if len(cameras) < 2 or len(set(cameras)) != len(cameras):
+            raise ValueError(f"triangulating needs two or more distinct cameras, got {', '.join(cameras) or 'none'}")
+        return cameras
+
+    def correspondence(self) -> CorrespondenceOptions:
+        from services.estimation.correspondence import CorrespondenceOptions
+
+        return CorrespondenceOptions(epipolar_gate_px=self.epipolar_gate_px,
+                                     reprojection_gate_px=self.reprojection_gate_px, sigma_px=self.sigma_px,
+                                     min_views=self.min_views)
+
+    def matching(self) -> MatchOptions:
+        return MatchOptions(distance_tolerance=self.distance_tolerance, gate_rms=self.gate_rms)
+
+
+def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
+    """The rig file's cameras (None without a file) and the bodies; ValueError (one line) when unusable."""
+    rig = None
+    if params.rig_file is not None:
+        rig = read_rig(params.rig_file)
+        missing = [name for name in params.cameras if name not in rig.names]
+        if missing:
+            raise ValueError(f"{params.rig_file}: no camera {', '.join(missing)} in the rig (it has "
+                             f"{', '.join(rig.names)})")
+    if params.bodies is not None:
+        bodies = load_bodies(params.bodies)
+    else:
+        from services.capture.scenes.ir_rig import LAYOUTS
+
+        bodies = dict(LAYOUTS)
+    return rig, bodies
+
+
+class Calibration:
+    """Each camera's model: the rig file's, or the newest CameraInfo of each camera."""
+
+    def __init__(self, cameras: tuple[str, ...], rig: Rig | None, infos: Mapping[str, Inbox[CameraInfo]]):
+        self.cameras = cameras
+        self.infos = infos
+        self.models: dict[str, CameraModel] = {} if rig is None else {name: rig.camera(name) for name in cameras}
+        self.waited = False
+
+    def current(self) -> list[CameraModel] | None:
+        """The cameras in ``cameras`` order, None while one has no calibration yet."""
+        self.refresh()
+        if len(self.models) < len(self.cameras) and not self.waited:
+            self.waited = True
+            for name in self.cameras:
+                if name not in self.models and (received := self.infos[name].recv(FIRST_INFO_WAIT_S)) is not None:
+                    self.models[name] = camera_model(received.message, name)
+        if len(self.models) < len(self.cameras):
+            return None
+        return [self.models[name] for name in self.cameras]
+
+    def missing(self) -> list[str]:
+        return [name for name in self.cameras if name not in self.models]
+
+    def refresh(self) -> None:
+        """Take in the newest CameraInfo of each camera that arrived (none with a rig file)."""
+        for name, inbox in self.infos.items():
+            newest = None
+            while (received := inbox.take()) is not None:
+                newest = received.message
+            if newest is not None:
+                self.models[name] = camera_model(newest, name)
+
+
+def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
+    """(N, 2) float64 centroids of the blobs to triangulate: the unflagged ones, or all with ``flagged``."""
+    return blobs.centroids if flagged else blobs.centroids[blobs.flags == 0]
+
+
+def child_frame_covariance(covariance: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
+    """A ``RigidFit`` covariance ((6, 6), world-frame ``(dtheta, dt)``) as ``Pose.covariance`` wants it:
+    (6, 6) over ``(tx, ty, tz, rx, ry, rz)`` in the body frame (``T_true = T_est exp(xi)``)."""
+    R_t = np.asarray(T_world_body, np.float64)[:3, :3].T
+    A = np.zeros((6, 6))
+    A[:3, 3:] = R_t
+    A[3:, :3] = R_t
+    return A @ np.asarray(covariance, np.float64) @ A.T
+
+
+def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float64 points (world) and (N, 3, 3) float64 covariances (m^2) of ``found``."""
+    return (np.array([p.point for p in found], np.float64).reshape(-1, 3),
+            np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3))
+
+
+def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching) -> Points3D:
+    """The set's points with the body each was matched to."""
+    body = np.full(len(found), -1, np.int32)
+    for match in matching.bodies.values():
+        body[match.indices[match.indices >= 0]] = names.index(match.name)
+    points, covariances = point_arrays(found)
+    return Points3D(header=header, bodies=tuple(names), points=points,
+                    residual_px=np.array([p.rms_px for p in found], np.float32),
+                    views=np.array([p.views for p in found], np.uint8), covariances=covariances, body=body)
+
+
+def body_poses(header: Header, matching: Matching) -> list[Pose]:
+    """One ``tracking`` pose per body found."""
+    poses = []
+    for name, match in matching.bodies.items():
+        fit = match.fit
+        covariance = None if fit.covariance is None else child_frame_covariance(fit.covariance, fit.T_world_body)
+        poses.append(Pose(header=header, child_frame_id=f"body/{name}",
+                          transform=transform_from_matrix(fit.T_world_body),
+                          quality=PoseQuality(inliers=match.spheres_used, residual_rms_m=fit.residual_rms),
+                          covariance=None if covariance is None else tuple(float(v) for v in covariance.ravel())))
+    return poses
+
+
+class PosePublishers:
+    """One publisher per body, made when the body is first found; one ``lost`` pose when it goes."""
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.publishers: dict[str, Publisher[Pose]] = {}
+        self.tracks = TargetTracks()
+
+    def put(self, header: Header, tracking: list[Pose]) -> None:
+        lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
+                for child in self.tracks.update(pose.child_frame_id for pose in tracking)]
+        for pose in tracking + lost:
+            child = pose.child_frame_id
+            if child not in self.publishers:
+                self.publishers[child] = self.node.publisher(self.node.keys.pose(child), Pose, Role.RESULT)
+            self.publishers[child].put(pose)
+
+
+def run(node: Node, params: Params) -> None:
+    from services.estimation.correspondence import triangulate_blobs  # scipy.optimize: only where it runs
+
+    try:
+        rig, bodies = load(params)
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    for warning in check_bodies(bodies, params.matching()):
+        node.log.warning("bodies: %s", warning)
+    keys = node.keys
+    infos = {} if rig is not None else {
+        name: node.inbox(keys.camera_info(name), CameraInfo, Role.RESULT, depth=INFO_DEPTH) for name in params.cameras}
+    calibration = Calibration(params.cameras, rig, infos)
+    sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.RESULT, by="seq",
+                       depth=params.sync_depth)
+    points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
+    poses = PosePublishers(node)
+    names = list(bodies)
+    correspondence, matching_options = params.correspondence(), params.matching()
+    for joined in sets:
+        first = joined[params.cameras[0]]
+        header = first.header.model_copy(update={"frame_id": WORLD})
+        cameras = calibration.current()
+        if cameras is None:
+            node.report("no_calibration", f"no CameraInfo for {', '.join(calibration.missing())} and no rig file: "
+                        "nothing triangulated", keys.camera_info(calibration.missing()[0]))
+            continue
+        found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
+                                  correspondence)
+        points, covariances = point_arrays(found)
+        matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
+        poses.put(header, body_poses(header, matching))
+        points_out.put(points_message(header, found, names, matching))
+
+
+def _inputs(params: Params) -> tuple[str, ...]:
+    infos = () if params.rig_file is not None else tuple(f"{name}/camera_info" for name in params.cameras)
+    return (*(f"{name}/blobs" for name in params.cameras), *infos)
+
+
+def _check(params: Params) -> None:
+    load(params)
+
+
+KIND = NodeKind(name="rigid_bodies", summary="rigid bodies' 6-DoF poses from the blobs of a calibrated rig's cameras",
+                params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check)
