@@ -27,6 +27,7 @@ from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
 from services.runtime.memory import tune_malloc
 
 if TYPE_CHECKING:
+    from services.calibration.intrinsics import Pattern
     from services.runtime.node import Node
 
 log = logging.getLogger("artrack")
@@ -524,23 +525,36 @@ def _image_files(where: str, pattern: str) -> list[Path]:
     return files
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    import cv2
-
-    from services.calibration.camera_info import write_camera_info
-    from services.calibration.intrinsics import Charuco, Chessboard, Pattern, calibrate_images
+def _calibration_pattern(args: argparse.Namespace) -> Pattern:
+    """The target ``artrack calibrate``'s --pattern, --size, --square, --marker and --dictionary describe."""
+    from services.calibration.intrinsics import Charuco, Chessboard
 
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
         raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
-    pattern: Pattern
     if args.pattern == "chessboard":
-        pattern = Chessboard(int(columns), int(rows), args.square)
-    elif args.marker is None or args.dictionary is None:
+        return Chessboard(int(columns), int(rows), args.square)
+    if args.marker is None or args.dictionary is None:
         raise ValueError("--pattern charuco needs --marker and --dictionary")
-    else:
-        pattern = Charuco(int(columns), int(rows), args.square, args.marker, args.dictionary)
-    files = _image_files(args.images, args.glob)
+    return Charuco(int(columns), int(rows), args.square, args.marker, args.dictionary)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import cv2
+
+    from services.calibration.camera_info import write_camera_info
+    from services.calibration.intrinsics import calibrate_images
+
+    if args.stereo:
+        return _calibrate_stereo(args)
+    if len(args.images) != 1:
+        raise ValueError(f"one camera takes one DIR_OR_GLOB, got {len(args.images)}; "
+                         "for a stereo pair add --stereo (LEFT RIGHT)")
+    for option in ("names", "rig_frame", "refine_intrinsics"):
+        if getattr(args, option) not in (None, False):
+            raise ValueError(f"--{option.replace('_', '-')} is for --stereo")
+    pattern = _calibration_pattern(args)
+    files = _image_files(args.images[0], args.glob)
     images = ((path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in files)
     result = calibrate_images(images, pattern, args.camera)
     print(result.report())
@@ -549,6 +563,36 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
     print(f"wrote {args.out}")
+    return 0
+
+
+def _calibrate_stereo(args: argparse.Namespace) -> int:
+    import cv2
+
+    from services.calibration.rig import write_rig
+    from services.calibration.stereo import calibrate_stereo
+
+    if len(args.images) != 2:
+        raise ValueError(f"--stereo needs the images of two cameras (LEFT RIGHT), got {len(args.images)}")
+    names = tuple(name.strip() for name in (args.names or "cam0,cam1").split(","))
+    if len(names) != 2 or not all(names):
+        raise ValueError(f"--names {args.names!r}: give two camera names, e.g. left,right")
+    pattern = _calibration_pattern(args)
+    first, second = (_image_files(where, args.glob) for where in args.images)
+    if len(first) != len(second):
+        raise ValueError(f"{len(first)} images of {names[0]} ({args.images[0]}) but {len(second)} of {names[1]} "
+                         f"({args.images[1]}): images are paired in name order, one per camera and pair")
+    if args.rig_frame not in (None, *names):
+        raise ValueError(f"--rig-frame {args.rig_frame!r} is none of the cameras ({', '.join(names)})")
+    result = calibrate_stereo([(path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in first],
+                              [(path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in second],
+                              pattern, (names[0], names[1]), refine_intrinsics=args.refine_intrinsics)
+    print(result.report())
+    try:
+        write_rig(args.out, result.rig(args.out.stem, args.rig_frame))
+    except OSError as exc:
+        raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
+    print(f"wrote {args.out} (rig frame: {args.rig_frame or names[0]})")
     return 0
 
 
@@ -742,8 +786,11 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("calibrate", help="camera intrinsics from photos of a chessboard or ChArUco board, "
-                                         "written as ROS camera_info YAML (exit 2 if the photos cannot constrain them)")
-    p.add_argument("images", metavar="DIR_OR_GLOB", help="a folder of images, or a quoted glob like 'data/left*.jpg'")
+                                         "written as ROS camera_info YAML (exit 2 if the photos cannot constrain "
+                                         "them); "
+                                         "with --stereo, two cameras and their relative pose, as a rig file")
+    p.add_argument("images", nargs="+", metavar="DIR_OR_GLOB", help="a folder of images, or a quoted glob like "
+                   "'data/left*.jpg'; with --stereo, one per camera (LEFT RIGHT), paired in name order")
     p.add_argument("--glob", default="*", metavar="PATTERN", help="in a folder, the files matching PATTERN (default *)")
     p.add_argument("--pattern", required=True, choices=("chessboard", "charuco"))
     p.add_argument("--size", required=True, metavar="COLSxROWS",
@@ -752,7 +799,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--marker", type=float, metavar="M", help="ChArUco: side of a marker, metres")
     p.add_argument("--dictionary", metavar="NAME", help="ChArUco: its markers' dictionary, e.g. DICT_6X6_250")
     p.add_argument("--camera", default="cam0", metavar="NAME", help="camera name written to the file (default cam0)")
-    p.add_argument("--out", required=True, type=Path, metavar="CAMERA.yaml")
+    p.add_argument("--out", required=True, type=Path, metavar="CAMERA.yaml|RIG.yaml")
+    p.add_argument("--stereo", action="store_true", help="calibrate a stereo pair from image pairs: each camera's "
+                   "intrinsics, then the pose between them (cv2.stereoCalibrate); --out is a rig file")
+    p.add_argument("--names", metavar="A,B", help="--stereo: the two cameras' names (default cam0,cam1)")
+    p.add_argument("--rig-frame", metavar="NAME", help="--stereo: the camera whose frame is the rig frame "
+                   "(default the first)")
+    p.add_argument("--refine-intrinsics", action="store_true", help="--stereo: let the stereo fit refine both "
+                   "cameras' intrinsics (default: fixed at each camera's own calibration)")
     p.set_defaults(func=cmd_calibrate)
 
     markers = sub.add_parser("markers", help="marker utilities: `artrack markers print` draws printable sheets")
