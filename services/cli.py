@@ -579,6 +579,9 @@ def _calibrate_stereo(args: argparse.Namespace) -> int:
         raise ValueError(f"--names {args.names!r}: give two camera names, e.g. left,right")
     pattern = _calibration_pattern(args)
     first, second = (_image_files(where, args.glob) for where in args.images)
+    both = sorted(set(first) & set(second))
+    if both:
+        raise ValueError(f"{both[0]} is an image of both cameras: give each camera its own images")
     if len(first) != len(second):
         raise ValueError(f"{len(first)} images of {names[0]} ({args.images[0]}) but {len(second)} of {names[1]} "
                          f"({args.images[1]}): images are paired in name order, one per camera and pair")

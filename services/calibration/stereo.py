@@ -30,6 +30,7 @@ import numpy as np
 
 from services.calibration.intrinsics import Calibration, CalibrationError, Pattern, View, calibrate, find_views
 from services.calibration.rig import Rig
+from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform
 
@@ -86,13 +87,12 @@ class StereoCalibration:
         first, second = self.first.camera, self.second.camera
         frame = frame or first.name
         if frame == first.name:
-            T_rig_first = np.eye(4)
+            T_rig_first, T_rig_second = np.eye(4), invert(self.T_second_first)
         elif frame == second.name:
-            T_rig_first = self.T_second_first
+            T_rig_first, T_rig_second = self.T_second_first, np.eye(4)
         else:
             raise CalibrationError(f"rig frame {frame!r} is none of the cameras ({first.name}, {second.name})")
-        return Rig(name, (replace(first, T_rig_camera=T_rig_first),
-                          replace(second, T_rig_camera=T_rig_first @ invert(self.T_second_first))))
+        return Rig(name, (replace(first, T_rig_camera=T_rig_first), replace(second, T_rig_camera=T_rig_second)))
 
     def row_errors_px(self, pairs: Sequence[Pair] | None = None) -> np.ndarray | None:
         """(N,) row differences (px) of the matched points of ``pairs`` (default: those calibrated on)
@@ -152,6 +152,43 @@ def match_pair(name: str, first: View, second: View) -> Pair | None:
                 View(second.name, second.image_points[j], second.board_points[j]))
 
 
+def find_pairs(first_images: Sequence[Image], second_images: Sequence[Image], pattern: Pattern
+               ) -> tuple[list[Pair], list[tuple[str, str]]]:
+    """The pairs of images taken together (``first_images[i]`` with ``second_images[i]``) where both views show
+    ``pattern``, and ``(pair name, reason)`` of the others; for checking a calibration on pairs it did not use."""
+    found: tuple[dict[str, View], dict[str, View]] = ({}, {})
+    reasons: tuple[dict[str, str], dict[str, str]] = ({}, {})
+    for images, views, why in zip((first_images, second_images), found, reasons, strict=True):
+        for name, grey in images:
+            points = None if grey is None else pattern.find(grey)
+            if points is None:
+                why[name] = "cannot be read as an image" if grey is None else f"{pattern.describe()} not found"
+            else:
+                views[name] = View(name, *points)
+    names = [(name1, name2) for (name1, _), (name2, _) in zip(first_images, second_images, strict=True)]
+    return _pair_views(names, (found[0], reasons[0]), (found[1], reasons[1]))
+
+
+def _pair_views(names: Sequence[tuple[str, str]], *cameras: tuple[dict[str, View], dict[str, str]]
+                ) -> tuple[list[Pair], list[tuple[str, str]]]:
+    """Pairs of the image ``names`` whose views both cameras' ``(views by image name, skip reasons)`` hold."""
+    (found1, why1), (found2, why2) = cameras
+    pairs, rejected = [], []
+    for name1, name2 in names:
+        pair_name = f"{name1} + {name2}"
+        view1, view2 = found1.get(name1), found2.get(name2)
+        if view1 is None or view2 is None:
+            missing, reasons = (name1, why1) if view1 is None else (name2, why2)
+            rejected.append((pair_name, f"{missing}: {reasons.get(missing, 'not used')}"))
+            continue
+        pair = match_pair(pair_name, view1, view2)
+        if pair is None:
+            rejected.append((pair_name, f"the two views share fewer than {MIN_COMMON_POINTS} board points"))
+            continue
+        pairs.append(pair)
+    return pairs, rejected
+
+
 def _intrinsics(images: Sequence[Image], pattern: Pattern, name: str) -> Calibration:
     try:
         views, skipped, size = find_views(images, pattern)
@@ -175,41 +212,49 @@ def calibrate_stereo(first_images: Sequence[Image], second_images: Sequence[Imag
     if names[0] == names[1]:
         raise CalibrationError(f"the two cameras need distinct names, got {names[0]!r} twice")
     first, second = _intrinsics(first_images, pattern, names[0]), _intrinsics(second_images, pattern, names[1])
-    found = [{view.name: view for view in calibration.views} for calibration in (first, second)]
-    why = [dict(calibration.skipped) for calibration in (first, second)]
-    pairs, rejected = [], []
-    for (name1, _), (name2, _) in zip(first_images, second_images, strict=True):
-        pair_name = f"{name1} + {name2}"
-        view1, view2 = found[0].get(name1), found[1].get(name2)
-        if view1 is None or view2 is None:
-            missing, reasons = (name1, why[0]) if view1 is None else (name2, why[1])
-            rejected.append((pair_name, f"{missing}: {reasons.get(missing, 'not used')}"))
-            continue
-        pair = match_pair(pair_name, view1, view2)
-        if pair is None:
-            rejected.append((pair_name, f"the two views share fewer than {MIN_COMMON_POINTS} board points"))
-            continue
-        pairs.append(pair)
+    names_in_order = [(name1, name2) for (name1, _), (name2, _) in zip(first_images, second_images, strict=True)]
+    pairs, rejected = _pair_views(names_in_order, *(({view.name: view for view in c.views}, dict(c.skipped))
+                                                    for c in (first, second)))
     if len(pairs) < MIN_PAIRS:
         raise CalibrationError(f"only {len(pairs)} pair(s) show the {pattern.describe()} to both cameras; "
                                f"at least {MIN_PAIRS} are needed (10 or more, at varied tilts, are advised)")
+    fit = fit_stereo(pairs, first.camera, second.camera, refine_intrinsics)
+    if refine_intrinsics:
+        first, second = replace(first, camera=fit.first), replace(second, camera=fit.second)
+    return StereoCalibration(first=first, second=second, T_second_first=fit.T_second_first, rms_px=fit.rms_px,
+                             pairs=tuple(pairs), pair_rms_px=fit.pair_rms_px, rejected=tuple(rejected),
+                             refined=refine_intrinsics)
+
+
+@dataclass(frozen=True)
+class StereoFit:
+    """``cv2.stereoCalibrateExtended``'s answer: the cameras (refined or as given), ``T_second_first`` (4, 4),
+    the RMS over both views of every pair and (P, 2) per pair and camera."""
+
+    first: CameraModel
+    second: CameraModel
+    T_second_first: np.ndarray
+    rms_px: float
+    pair_rms_px: np.ndarray
+
+
+def fit_stereo(pairs: Sequence[Pair], first: CameraModel, second: CameraModel,
+               refine_intrinsics: bool = False) -> StereoFit:
+    """The pose of camera ``second`` relative to ``first`` from ``pairs``, their intrinsics fixed or refined."""
     flags = cv2.CALIB_USE_INTRINSIC_GUESS if refine_intrinsics else cv2.CALIB_FIX_INTRINSIC
-    cam1, cam2 = first.camera, second.camera
     try:
         rms, K1, d1, K2, d2, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
             [p.first.board_points for p in pairs], [p.first.image_points for p in pairs],
-            [p.second.image_points for p in pairs], cam1.K.copy(), cam1.dist.copy(), cam2.K.copy(),
-            cam2.dist.copy(), (cam1.width, cam1.height), None, None,
+            [p.second.image_points for p in pairs], first.K.copy(), first.dist.copy(), second.K.copy(),
+            second.dist.copy(), (first.width, first.height), None, None,
             flags=flags, criteria=CRITERIA)  # type: ignore[call-overload]  # R and T are outputs: None is accepted
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV could not calibrate the pair of cameras: {exc.err}") from exc
     if not np.all(np.isfinite(T)):
         raise CalibrationError("the stereo calibration did not converge")
-    if refine_intrinsics:
-        first = replace(first, camera=replace(cam1, K=K1, dist=np.asarray(d1, dtype=np.float64).ravel()[:5]))
-        second = replace(second, camera=replace(cam2, K=K2, dist=np.asarray(d2, dtype=np.float64).ravel()[:5]))
     R = np.asarray(R, dtype=np.float64)
     R = R if R.shape == (3, 3) else matrix_from_rotvec(R.ravel())
-    return StereoCalibration(first=first, second=second, T_second_first=make_transform(R, T), rms_px=float(rms),
-                             pairs=tuple(pairs), pair_rms_px=np.asarray(per_view, dtype=np.float64).reshape(-1, 2),
-                             rejected=tuple(rejected), refined=refine_intrinsics)
+    return StereoFit(first=replace(first, K=K1, dist=np.asarray(d1, dtype=np.float64).ravel()[:5]),
+                     second=replace(second, K=K2, dist=np.asarray(d2, dtype=np.float64).ravel()[:5]),
+                     T_second_first=make_transform(R, T), rms_px=float(rms),
+                     pair_rms_px=np.asarray(per_view, dtype=np.float64).reshape(-1, 2))
