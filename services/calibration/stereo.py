@@ -17,7 +17,8 @@ but leaves nothing to check it against; from three on, a pair that disagrees sho
 
 Rectification check: ``cv2.stereoRectify`` turns both cameras so that epipolar lines become
 image rows; a corner and its match must then lie on the same row. ``row_errors_px`` gives
-their row differences, the epipolar error, for any pairs (those calibrated on or held out).
+their row differences, the epipolar error, for the pairs calibrated on or for others
+(``find_pairs`` finds them in held-out images).
 """
 
 from __future__ import annotations
@@ -124,7 +125,8 @@ class StereoCalibration:
             ("views", str(len(first.views)), str(len(second.views))),
             ("rms px", f"{first.rms_px:.3f}", f"{second.rms_px:.3f}"),
             ("pairs used", f"{len(self.pairs)} of {len(self.pairs) + len(self.rejected)}", ""),
-            ("stereo rms px", f"{self.rms_px:.3f}", "intrinsics refined" if self.refined else "intrinsics fixed"),
+            ("stereo rms px", f"{self.rms_px:.3f}",
+             "intrinsics refined (one-sigma below: each camera's own fit)" if self.refined else "intrinsics fixed"),
             ("baseline m", f"{self.baseline_m:.4f}",
              f"{second.camera.name} at ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) in {first.camera.name}"),
             ("rotation deg", f"{self.rotation_deg:.3f}", ""),
