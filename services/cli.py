@@ -29,6 +29,7 @@ from services.runtime.memory import tune_malloc
 if TYPE_CHECKING:
     import numpy as np
 
+    from services.calibration.intrinsics import Pattern
     from services.geometry.camera import CameraModel
     from services.launcher.flags import Flag
     from services.recorder.export import Export
@@ -578,29 +579,44 @@ def _image_files(where: str, pattern: str) -> list[Path]:
     return files
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    import cv2
+def _calibration_pattern(args: argparse.Namespace) -> Pattern:
+    """The target ``artrack calibrate``'s --pattern, --size, --square, --marker and --dictionary describe."""
+    from services.calibration.intrinsics import Charuco, Chessboard
 
-    from services.calibration.camera_info import write_camera_info
-    from services.calibration.intrinsics import Charuco, Chessboard, Pattern, calibrate_images
-
-    if args.wand is not None:
-        return cmd_calibrate_wand(args)
-    missing = [flag for flag, value in (("DIR_OR_GLOB", args.images), ("--pattern", args.pattern),
-                                        ("--size", args.size), ("--square", args.square)) if value is None]
+    missing = [flag for flag, value in (("--pattern", args.pattern), ("--size", args.size),
+                                        ("--square", args.square)) if value is None]
     if missing:
         raise ValueError(f"calibrate needs {', '.join(missing)} (intrinsics from photos), or --wand (extrinsics)")
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
         raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
-    pattern: Pattern
     if args.pattern == "chessboard":
-        pattern = Chessboard(int(columns), int(rows), args.square)
-    elif args.marker is None or args.dictionary is None:
+        return Chessboard(int(columns), int(rows), args.square)
+    if args.marker is None or args.dictionary is None:
         raise ValueError("--pattern charuco needs --marker and --dictionary")
-    else:
-        pattern = Charuco(int(columns), int(rows), args.square, args.marker, args.dictionary)
-    files = _image_files(args.images, args.glob)
+    return Charuco(int(columns), int(rows), args.square, args.marker, args.dictionary)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import cv2
+
+    from services.calibration.camera_info import write_camera_info
+    from services.calibration.intrinsics import calibrate_images
+
+    if args.wand is not None:
+        return cmd_calibrate_wand(args)
+    if not args.images:
+        raise ValueError("calibrate needs DIR_OR_GLOB (photos of a board), or --wand RECORDING.mcap (extrinsics)")
+    if args.stereo:
+        return _calibrate_stereo(args)
+    if len(args.images) != 1:
+        raise ValueError(f"one camera takes one DIR_OR_GLOB, got {len(args.images)}; "
+                         "for a stereo pair add --stereo (LEFT RIGHT)")
+    for option in ("names", "rig_frame", "refine_intrinsics"):
+        if getattr(args, option) not in (None, False):
+            raise ValueError(f"--{option.replace('_', '-')} is for --stereo")
+    pattern = _calibration_pattern(args)
+    files = _image_files(args.images[0], args.glob)
     images = ((path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in files)
     result = calibrate_images(images, pattern, args.camera)
     print(result.report())
@@ -711,6 +727,39 @@ def _intrinsics(files: list[Path]) -> list[CameraModel]:
             is_rig = False  # read_camera_info names the problem
         cameras += read_rig(path).cameras if is_rig else [read_camera_info(path)]
     return cameras
+
+
+def _calibrate_stereo(args: argparse.Namespace) -> int:
+    import cv2
+
+    from services.calibration.rig import write_rig
+    from services.calibration.stereo import calibrate_stereo
+
+    if len(args.images) != 2:
+        raise ValueError(f"--stereo needs the images of two cameras (LEFT RIGHT), got {len(args.images)}")
+    names = tuple(name.strip() for name in (args.names or "cam0,cam1").split(","))
+    if len(names) != 2 or not all(names):
+        raise ValueError(f"--names {args.names!r}: give two camera names, e.g. left,right")
+    pattern = _calibration_pattern(args)
+    first, second = (_image_files(where, args.glob) for where in args.images)
+    both = sorted(set(first) & set(second))
+    if both:
+        raise ValueError(f"{both[0]} is an image of both cameras: give each camera its own images")
+    if len(first) != len(second):
+        raise ValueError(f"{len(first)} images of {names[0]} ({args.images[0]}) but {len(second)} of {names[1]} "
+                         f"({args.images[1]}): images are paired in name order, one per camera and pair")
+    if args.rig_frame not in (None, *names):
+        raise ValueError(f"--rig-frame {args.rig_frame!r} is none of the cameras ({', '.join(names)})")
+    result = calibrate_stereo([(path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in first],
+                              [(path.name, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for path in second],
+                              pattern, (names[0], names[1]), refine_intrinsics=args.refine_intrinsics)
+    print(result.report())
+    try:
+        write_rig(args.out, result.rig(args.out.stem, args.rig_frame))
+    except OSError as exc:
+        raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
+    print(f"wrote {args.out} (rig frame: {args.rig_frame or names[0]})")
+    return 0
 
 
 def cmd_markers_print(args: argparse.Namespace) -> int:
@@ -906,9 +955,10 @@ def parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("calibrate", help="camera intrinsics from photos of a chessboard or ChArUco board, "
                                          "written as ROS camera_info YAML (exit 2 if the photos cannot constrain "
-                                         "them); with --wand, a rig's extrinsics from a recorded wand, as a rig file")
-    p.add_argument("images", nargs="?", metavar="DIR_OR_GLOB",
-                   help="a folder of images, or a quoted glob like 'data/left*.jpg'")
+                                         "them); with --stereo, two cameras and their relative pose, as a rig file; "
+                                         "with --wand, a rig's extrinsics from a recorded wand, as a rig file")
+    p.add_argument("images", nargs="*", metavar="DIR_OR_GLOB", help="a folder of images, or a quoted glob like "
+                   "'data/left*.jpg'; with --stereo, one per camera (LEFT RIGHT), paired in name order")
     p.add_argument("--glob", default="*", metavar="PATTERN", help="in a folder, the files matching PATTERN (default *)")
     p.add_argument("--pattern", choices=("chessboard", "charuco"))
     p.add_argument("--size", metavar="COLSxROWS",
@@ -928,6 +978,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--floor", type=Path, metavar="LFRAME.mcap",
                    help="--wand: set the rig frame on an L-frame lying on the floor, recorded by the same cameras "
                         "(origin at its corner, x along its long arm, z up)")
+    p.add_argument("--stereo", action="store_true", help="calibrate a stereo pair from image pairs: each camera's "
+                   "intrinsics, then the pose between them (cv2.stereoCalibrate); --out is a rig file")
+    p.add_argument("--names", metavar="A,B", help="--stereo: the two cameras' names (default cam0,cam1)")
+    p.add_argument("--rig-frame", metavar="NAME", help="--stereo: the camera whose frame is the rig frame "
+                   "(default the first)")
+    p.add_argument("--refine-intrinsics", action="store_true", help="--stereo: let the stereo fit refine both "
+                   "cameras' intrinsics (default: fixed at each camera's own calibration)")
     p.set_defaults(func=cmd_calibrate)
 
     markers = sub.add_parser("markers", help="marker utilities: `artrack markers print` draws printable sheets")

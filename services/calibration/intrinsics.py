@@ -152,18 +152,24 @@ class Calibration:
         lines = [f"{view.name}: rms {rms:.3f} px ({len(view.image_points)} points)"
                  for view, rms in zip(self.views, self.view_rms_px, strict=True)]
         lines += [f"{name}: skipped, {reason}" for name, reason in self.skipped]
-        K, dist = self.camera.K, self.camera.dist
-        sx, sy, scx, scy = self.std_px
         points = sum(len(view.image_points) for view in self.views)
         lines += [
             f"{len(self.views)} views, {points} points: rms {self.rms_px:.3f} px; "
             f"board tilt spread {self.tilt_spread_deg:.1f} deg",
+            *self.model_lines(),
+        ]
+        return "\n".join(lines)
+
+    def model_lines(self) -> list[str]:
+        """Image size, K with the one-sigma of fx, fy, cx, cy, and the distortion, as lines of text."""
+        K, dist = self.camera.K, self.camera.dist
+        sx, sy, scx, scy = self.std_px
+        return [
             f"image {self.camera.width}x{self.camera.height}",
             f"K = [[{K[0, 0]:.3f}, 0, {K[0, 2]:.3f}], [0, {K[1, 1]:.3f}, {K[1, 2]:.3f}], [0, 0, 1]]",
             f"one-sigma: fx {sx:.2f}, fy {sy:.2f}, cx {scx:.2f}, cy {scy:.2f} px",
             "distortion (k1, k2, p1, p2, k3) = [" + ", ".join(f"{v:.6f}" for v in dist) + "]",
         ]
-        return "\n".join(lines)
 
 
 def find_views(images: Iterable[tuple[str, np.ndarray | None]], pattern: Pattern

@@ -20,24 +20,11 @@ from services.calibration.intrinsics import (
 from services.geometry.camera import CameraModel, project_points
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import transform_points
+from tests.chessboard_images import TEXELS, board_centre, chessboard_texture, render_board
 
 SIZE = (640, 480)
 K_TRUE = np.array([[620.0, 0.0, 331.0], [0.0, 612.0, 236.0], [0.0, 0.0, 1.0]])
-TEXELS = 40
-"""Texture texels per board square."""
 CHESSBOARD = Chessboard(9, 6, 0.025)
-
-
-def chessboard_texture(board: Chessboard) -> tuple[np.ndarray, np.ndarray]:
-    """The board image (one white square of margin) and the (3, 3) map from board metres to its texels."""
-    squares_x, squares_y = board.columns + 1, board.rows + 1
-    image = np.full(((squares_y + 2) * TEXELS, (squares_x + 2) * TEXELS), 255, np.uint8)
-    for row in range(squares_y):
-        for column in range(squares_x):
-            if (row + column) % 2 == 0:
-                image[(row + 1) * TEXELS:(row + 2) * TEXELS, (column + 1) * TEXELS:(column + 2) * TEXELS] = 0
-    scale, offset = TEXELS / board.square_m, 2 * TEXELS - 0.5  # board origin: the first inner corner
-    return image, np.array([[scale, 0.0, offset], [0.0, scale, offset], [0.0, 0.0, 1.0]])
 
 
 def charuco_texture(board: Charuco) -> tuple[np.ndarray, np.ndarray]:
@@ -51,22 +38,10 @@ def charuco_texture(board: Charuco) -> tuple[np.ndarray, np.ndarray]:
     return image, np.array([[scale, 0.0, margin - 0.5], [0.0, scale, margin - 0.5], [0.0, 0.0, 1.0]])
 
 
-def board_centre(board) -> np.ndarray:
-    if isinstance(board, Chessboard):
-        return np.array([(board.columns - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
-    return np.array([board.columns / 2, board.rows / 2, 0.0]) * board.square_m
-
-
 def render(texture: np.ndarray, texel_from_board: np.ndarray, R: np.ndarray, t: np.ndarray,
            distortion_map: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> np.ndarray:
     """The board seen by a camera K_TRUE with ``T_camera_board = [R | t]``, grey background, mild noise."""
-    pixel_from_board = K_TRUE @ np.column_stack([R[:, 0], R[:, 1], t])
-    image = cv2.warpPerspective(texture, pixel_from_board @ np.linalg.inv(texel_from_board), SIZE,
-                                flags=cv2.INTER_AREA, borderValue=128)
-    if distortion_map is not None:
-        image = cv2.remap(image, *distortion_map, cv2.INTER_LINEAR, borderValue=128)
-    noise = np.random.default_rng(seed).normal(0.0, 2.0, image.shape)
-    return np.clip(image + noise, 0, 255).astype(np.uint8)
+    return render_board(texture, texel_from_board, K_TRUE, R, t, SIZE, distortion_map, seed)
 
 
 def distortion_map(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
