@@ -5,11 +5,11 @@ Importing it registers every message type with the codec.
 """
 
 from protocol.codec import DecodeError, Peeked, decode, encode, peek, to_json
-from protocol.detections import BlobDetections, Keypoints, MarkerDetections
+from protocol.detections import Blobs, Keypoints, MarkerDetections
 from protocol.keys import Keys
 from protocol.maps import PointCloud
 from protocol.message import Header, Message, message_type, message_types
-from protocol.mocap import Blobs, Points3D
+from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
 from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
@@ -31,7 +31,7 @@ from protocol.system import (
 )
 
 __all__ = [
-    "BlobDetections", "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
+    "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
     "ErrorReport", "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections",
     "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
     "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",

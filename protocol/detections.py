@@ -7,7 +7,7 @@ with nothing found still gets a message with zero rows, so consumers know it was
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import model_validator
@@ -46,23 +46,35 @@ class MarkerDetections(Message):
         return self
 
 
-class BlobDetections(Message):
-    """Bright or dark blobs (IR sphere reflections) found in one image.
+BlobMethod = Literal["ir", "log", "colour"]
 
-    ``centers``: (N, 2) float32 px; ``radii``: (N,) float32 px; ``intensity``: (N,) float32,
-    the blob's mean grey level.
+BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED = 1, 2, 4
+"""Bits of ``Blobs.flags``: two blobs run together; partly hidden or cut; touches the image border."""
+
+
+class Blobs(Message):
+    """Blobs found in one camera image; ``header`` is the image's (``frame_id`` the camera).
+
+    ``method``: the detector (``ir`` threshold and weighted centroid, ``log`` scale space,
+    ``colour`` hue). ``centroids``: (N, 2) float64 px (x right, y down, centre of the top-left
+    pixel at (0, 0)); ``areas``: (N,) float32 px^2; ``radii``: (N,) float32 px; ``quality``:
+    (N,) float32 in [0, 1], higher is better; ``flags``: (N,) uint8, bits ``BLOB_MERGED``,
+    ``BLOB_OCCLUDED``, ``BLOB_CLIPPED`` (0: one round, whole spot).
     """
 
-    SCHEMA = "artrack.BlobDetections"
+    SCHEMA = "artrack.Blobs"
     VERSION = 1
 
-    centers: Annotated[np.ndarray, array_field("float32", (None, 2))]
+    method: BlobMethod = "ir"
+    centroids: Annotated[np.ndarray, array_field("float64", (None, 2))]
+    areas: Annotated[np.ndarray, array_field("float32", (None,))]
     radii: Annotated[np.ndarray, array_field("float32", (None,))]
-    intensity: Annotated[np.ndarray, array_field("float32", (None,))]
+    quality: Annotated[np.ndarray, array_field("float32", (None,))]
+    flags: Annotated[np.ndarray, array_field("uint8", (None,))]
 
     @model_validator(mode="after")
-    def _aligned(self) -> BlobDetections:
-        _same_rows(self, "centers", "radii", "intensity")
+    def _aligned(self) -> Blobs:
+        _same_rows(self, "centroids", "areas", "radii", "quality", "flags")
         return self
 
 

@@ -1,14 +1,14 @@
-"""Optical motion capture: blobs of one camera's frame, and the 3D points a rig triangulates from them.
+"""Optical motion capture: the 3D points a rig triangulates from its cameras' ``protocol.detections.Blobs``.
 
 Rows are aligned on the first axis, as in ``protocol.detections``: row ``i`` of every array
-describes blob (or point) ``i``; a frame with nothing found still gets a message with zero rows.
+describes point ``i``; an instant with nothing found still gets a message with zero rows.
 The bodies' poses travel as ``protocol.poses.Pose`` (``T_world_body``, frame ``world``, child
 ``body/<name>``), one key per body.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 from pydantic import model_validator
@@ -16,37 +16,6 @@ from pydantic import model_validator
 from protocol.arrays import array_field
 from protocol.detections import _same_rows
 from protocol.message import Message
-
-BlobMethod = Literal["ir", "log", "colour"]
-
-BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED = 1, 2, 4
-"""Bits of ``Blobs.flags``: two blobs run together; partly hidden or cut; touches the image border."""
-
-
-class Blobs(Message):
-    """Blobs found in one camera image; ``header`` is the image's (``frame_id`` the camera).
-
-    ``method``: the detector (``ir`` threshold and weighted centroid, ``log`` scale space,
-    ``colour`` hue). ``centroids``: (N, 2) float64 px (x right, y down, centre of the top-left
-    pixel at (0, 0)); ``areas``: (N,) float32 px^2; ``radii``: (N,) float32 px; ``quality``:
-    (N,) float32 in [0, 1], higher is better; ``flags``: (N,) uint8, bits ``BLOB_MERGED``,
-    ``BLOB_OCCLUDED``, ``BLOB_CLIPPED`` (0: one round, whole spot).
-    """
-
-    SCHEMA = "artrack.Blobs"
-    VERSION = 1
-
-    method: BlobMethod = "ir"
-    centroids: Annotated[np.ndarray, array_field("float64", (None, 2))]
-    areas: Annotated[np.ndarray, array_field("float32", (None,))]
-    radii: Annotated[np.ndarray, array_field("float32", (None,))]
-    quality: Annotated[np.ndarray, array_field("float32", (None,))]
-    flags: Annotated[np.ndarray, array_field("uint8", (None,))]
-
-    @model_validator(mode="after")
-    def _aligned(self) -> Blobs:
-        _same_rows(self, "centroids", "areas", "radii", "quality", "flags")
-        return self
 
 
 class Points3D(Message):

@@ -1,6 +1,6 @@
 """Blobs node: the bright spots (IR spheres, LEDs) or coloured markers of one camera's frames.
 
-Each frame on ``<camera>/image`` yields one ``protocol.mocap.Blobs`` on ``<camera>/blobs`` with
+Each frame on ``<camera>/image`` yields one ``protocol.detections.Blobs`` on ``<camera>/blobs`` with
 the frame's header unchanged, zero rows when nothing was found. ``method`` picks the detector:
 
 * ``ir`` (default, ``services.detection.blobs``): threshold, connected components, weighted
@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from protocol.detections import BlobMethod, Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.mocap import BlobMethod, Blobs
 from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.detection.blobs import Blobs as FoundBlobs

@@ -1,6 +1,6 @@
 """Rigid bodies node: the blobs of every camera of a calibrated rig -> 3D points -> ``T_world_body`` poses.
 
-Inputs: ``<camera>/blobs`` of each of ``cameras`` (``protocol.mocap.Blobs``, one blobs node per
+Inputs: ``<camera>/blobs`` of each of ``cameras`` (``protocol.detections.Blobs``, one blobs node per
 camera), joined by ``header.seq``: only the blobs of one instant are ever triangulated together;
 a camera's blobs that find no partners are counted as unjoined in the node's statistics
 (``NodeStats.synced``), never used. The rig (world = the rig frame) is the ``rig_file``
@@ -34,9 +34,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from protocol.detections import Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.mocap import Blobs, Points3D
+from protocol.mocap import Points3D
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import CameraInfo
 from services.bus.pubsub import Inbox, Publisher, Role

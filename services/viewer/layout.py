@@ -12,9 +12,9 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
     world/<cam>                           Transform3D T_world_cam (CameraInfo.T_rig_camera; rig = world)
     world/<cam>/image                     Pinhole (K, resolution, RDF; no distortion) + Image or EncodedImage
     world/<cam>/image/markers             LineStrips2D: marker outlines (corners closed), ids as labels
-    world/<cam>/image/blobs               Points2D: blob centres, radius = the blob's radius (px)
+    world/<cam>/image/{clean,flagged}_blobs  Points2D: a Blobs message's blobs without / with flags,
+                                          radius = the blob's radius (px)
     world/<cam>/image/keypoints           Points2D: feature positions
-    world/<cam>/image/{clean,flagged}_blobs  Points2D: a Blobs message's blobs without / with flags
     world/<cam>/overlay/image             Image: the marker node's AR overlay of <cam> (frame id <cam>/overlay)
     <F>/pose/<child>                      Transform3D T_F_child + TransformAxes3D (Pose, RigidBodies)
     <F>/truth/<child>                     the same for GroundTruth, beside the estimate
@@ -92,7 +92,8 @@ def image(camera: str) -> str:
 
 
 def detections(camera: str, kind: str) -> str:
-    """An overlay in the camera's image: ``kind`` is ``markers``, ``blobs`` or ``keypoints``."""
+    """An overlay in the camera's image: ``kind`` is ``markers``, ``keypoints``, ``CLEAN_BLOBS`` or
+    ``FLAGGED_BLOBS``."""
     return f"{image(camera)}/{kind}"
 
 

@@ -28,10 +28,10 @@ import numpy as np
 import rerun as rr
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from protocol.detections import BlobDetections, Keypoints, MarkerDetections
+from protocol.detections import Blobs, Keypoints, MarkerDetections
 from protocol.maps import PointCloud
 from protocol.message import Message
-from protocol.mocap import Blobs, Points3D
+from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, RigidBodies, TrackingState
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import Transform
@@ -42,7 +42,6 @@ from services.viewer.images import RateGate, image_archetype
 DRAWN_STATES = frozenset({TrackingState.TRACKING, TrackingState.PREDICTED})
 STYLES = {
     "markers": rr.LineStrips2D.from_fields(colors=0x00DC5AFF),
-    "blobs": rr.Points2D.from_fields(colors=0xFF3C3CA0),
     "keypoints": rr.Points2D.from_fields(colors=0xFFC800FF, radii=rr.Radius.ui_points(2.0)),
     layout.CLEAN_BLOBS: rr.Points2D.from_fields(colors=0x00C8FFC0),
     layout.FLAGGED_BLOBS: rr.Points2D.from_fields(colors=0xFF3CC8C0),
@@ -104,9 +103,9 @@ class Scene:
         self._known_truth: dict[str, set[tuple[str, str]]] = {}
         self._draw: dict[type[Message], Callable[[Any], list[Row]]] = {
             Image: self._image, CameraInfo: self._camera_info, MarkerDetections: self._markers,
-            BlobDetections: self._blobs, Keypoints: self._keypoints, Pose: self._pose, RigidBodies: self._bodies,
+            Blobs: self._blobs, Keypoints: self._keypoints, Pose: self._pose, RigidBodies: self._bodies,
             GroundTruth: self._truth, PointCloud: self._cloud, NodeStats: self._stats, ErrorReport: self._error,
-            Blobs: self._mocap_blobs, Points3D: self._points,
+            Points3D: self._points,
         }
 
     def setup(self) -> list[Row]:
@@ -154,11 +153,7 @@ class Scene:
         strips = rr.LineStrips2D(outlines, labels=[str(i) for i in markers.ids])
         return self._styled_row(layout.detections(self._camera(markers), "markers"), "markers", strips)
 
-    def _blobs(self, blobs: BlobDetections) -> list[Row]:
-        points = rr.Points2D(blobs.centers, radii=blobs.radii)
-        return self._styled_row(layout.detections(self._camera(blobs), "blobs"), "blobs", points)
-
-    def _mocap_blobs(self, blobs: Blobs) -> list[Row]:
+    def _blobs(self, blobs: Blobs) -> list[Row]:
         """Blobs without flags and flagged blobs (merged, occluded, clipped) in two colours."""
         camera = self._camera(blobs)
         flagged = blobs.flags != 0

@@ -13,7 +13,6 @@ import numpy as np
 from hypothesis import strategies as st
 
 from protocol import (
-    BlobDetections,
     Blobs,
     CameraInfo,
     ClientState,
@@ -132,13 +131,6 @@ def marker_detections(draw: st.DrawFn) -> MarkerDetections:
 
 
 @st.composite
-def blob_detections(draw: st.DrawFn) -> BlobDetections:
-    n = draw(rows)
-    return BlobDetections(header=draw(headers), centers=draw(arrays("float32", (n, 2))),
-                          radii=draw(arrays("float32", (n,))), intensity=draw(arrays("float32", (n,))))
-
-
-@st.composite
 def keypoints(draw: st.DrawFn) -> Keypoints:
     n, width = draw(rows), draw(st.sampled_from([0, 1, 32, 128]))
     descriptor_dtype = draw(st.sampled_from(["uint8", "float32"]))
@@ -157,7 +149,7 @@ def point_clouds(draw: st.DrawFn) -> PointCloud:
 
 
 @st.composite
-def mocap_blobs(draw: st.DrawFn) -> Blobs:
+def blobs(draw: st.DrawFn) -> Blobs:
     n = draw(rows)
     return Blobs(header=draw(headers), method=draw(st.sampled_from(["ir", "log", "colour"])),
                  centroids=draw(arrays("float64", (n, 2))), areas=draw(arrays("float32", (n,))),
@@ -191,10 +183,9 @@ MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.Image": images(),
     "artrack.CameraInfo": camera_infos(),
     "artrack.MarkerDetections": marker_detections(),
-    "artrack.BlobDetections": blob_detections(),
     "artrack.Keypoints": keypoints(),
     "artrack.PointCloud": point_clouds(),
-    "artrack.Blobs": mocap_blobs(),
+    "artrack.Blobs": blobs(),
     "artrack.Points3D": points_3d(),
     "artrack.Pose": st.builds(Pose, header=headers, child_frame_id=texts, transform=transforms, state=states,
                               quality=qualities, covariance=st.none() | st.tuples(*[finite] * 36)),

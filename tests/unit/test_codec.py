@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import MESSAGES
 
-from protocol import BlobDetections, DecodeError, ErrorReport, Header, Image, Message, Pose, decode, encode
+from protocol import Blobs, DecodeError, ErrorReport, Header, Image, Message, Pose, decode, encode
 from protocol.codec import ALIGN, MAGIC, is_frame
 from protocol.message import message_types
 from protocol.schemas import json_schema, write_schemas
@@ -96,11 +96,11 @@ def test_frame_arrays_are_aligned_read_only_views(schema: str, data: st.DataObje
 def test_array_nan_and_infinity_travel_bit_for_bit():
     odd = np.array([np.nan, -np.inf, np.inf, -0.0], dtype=np.float32)
     odd.view(np.uint32)[0] = 0x7FC0BEEF  # a NaN with a payload
-    message = BlobDetections(header=Header(stamp_ns=1), centers=np.zeros((4, 2), np.float32), radii=odd,
-                             intensity=odd[::-1])
+    message = Blobs(header=Header(stamp_ns=1), centroids=np.zeros((4, 2)), areas=odd[::-1], radii=odd,
+                    quality=np.zeros(4, np.float32), flags=np.zeros(4, np.uint8))
     decoded = decode(encode(message))
     assert decoded.radii.tobytes() == odd.tobytes()
-    assert decoded.intensity.tobytes() == odd[::-1].tobytes()
+    assert decoded.areas.tobytes() == odd[::-1].tobytes()
 
 
 def test_arrays_decoded_from_a_bytearray_are_read_only():
@@ -406,7 +406,8 @@ def test_an_older_version_a_class_still_reads_decodes_and_others_are_refused():
 
 
 def test_encode_names_an_array_dtype_that_may_not_travel():
-    unchecked = BlobDetections.model_construct(header=Header(stamp_ns=1), centers=np.zeros((1, 2), np.float16),
-                                               radii=np.zeros(1, np.float32), intensity=np.zeros(1, np.float32))
+    unchecked = Blobs.model_construct(header=Header(stamp_ns=1), centroids=np.zeros((1, 2), np.float16),
+                                      areas=np.zeros(1, np.float32), radii=np.zeros(1, np.float32),
+                                      quality=np.zeros(1, np.float32), flags=np.zeros(1, np.uint8))
     with pytest.raises(TypeError, match="dtype float16 may not travel"):
         encode(unchecked)

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from strategies import quaternions
 
 from protocol import (
-    BlobDetections,
+    Blobs,
     CameraInfo,
     Header,
     Image,
@@ -234,9 +234,14 @@ def markers(n_ids: int = 2, n_corners: int = 2, n_quality: int = 2, n_sides: int
                             corners=f32(n_corners, 4, 2), quality=f32(n_quality), side_m=f32(n_sides))
 
 
+def blobs(n_centroids: int, n_others: int) -> Blobs:
+    return Blobs(header=HEADER, centroids=np.zeros((n_centroids, 2)), areas=f32(n_others), radii=f32(n_others),
+                 quality=f32(n_others), flags=np.zeros(n_others, np.uint8))
+
+
 def test_detections_with_zero_rows_are_valid():
     assert len(markers(0, 0, 0, 0).ids) == 0
-    assert len(BlobDetections(header=HEADER, centers=f32(0, 2), radii=f32(0), intensity=f32(0)).radii) == 0
+    assert len(blobs(0, 0).radii) == 0
 
 
 @pytest.mark.parametrize("counts", [(3, 2, 2, 2), (2, 3, 2, 2), (2, 2, 1, 2), (2, 2, 2, 0)])
@@ -258,9 +263,9 @@ def test_marker_corners_refuse_a_wrong_shape():
                          quality=f32(2), side_m=f32(2))
 
 
-def test_blob_detections_refuse_mismatched_rows():
+def test_blobs_refuse_mismatched_rows():
     with pytest.raises(ValidationError, match="same number of rows"):
-        BlobDetections(header=HEADER, centers=f32(3, 2), radii=f32(3), intensity=f32(2))
+        blobs(3, 2)
 
 
 @pytest.mark.parametrize("descriptors", [np.zeros((2, 32), np.uint8), f32(2, 128), f32(2, 0)])

@@ -8,7 +8,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from protocol import Header, Pose, decode, encode
-from protocol.mocap import BLOB_CLIPPED, BLOB_MERGED, BLOB_OCCLUDED, Blobs, Points3D
+from protocol.detections import BLOB_CLIPPED, BLOB_MERGED, BLOB_OCCLUDED, Blobs
+from protocol.mocap import Points3D
 from protocol.poses import PoseQuality
 from services.calibration.rig import Rig, write_rig
 from services.capture.scenes import make_scene

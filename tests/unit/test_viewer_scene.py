@@ -10,7 +10,6 @@ import pytest
 import rerun as rr
 
 from protocol import (
-    BlobDetections,
     Blobs,
     CameraInfo,
     ErrorReport,
@@ -134,8 +133,8 @@ def test_calibration_places_the_camera_and_is_logged_only_when_it_changes(view):
 
 
 def test_detections_are_overlays_in_the_camera_image(view):
-    blobs = BlobDetections(header=header(0), centers=np.array([[5, 6], [7, 8]], np.float32),
-                           radii=np.array([2, 3], np.float32), intensity=np.ones(2, np.float32))
+    blobs = Blobs(header=header(0), centroids=np.array([[5.0, 6.0], [7.0, 8.0]]), areas=np.ones(2, np.float32),
+                  radii=np.array([2, 3], np.float32), quality=np.ones(2, np.float32), flags=np.zeros(2, np.uint8))
     features = Keypoints(header=header(0), points=np.array([[1, 2]], np.float32), sizes=np.ones(1, np.float32),
                          angles=np.zeros(1, np.float32), responses=np.ones(1, np.float32),
                          descriptors=np.zeros((1, 32), np.uint8))
@@ -148,8 +147,10 @@ def test_detections_are_overlays_in_the_camera_image(view):
     assert cleared.values.to_pylist() == []  # a frame with no markers clears the overlay
     (style,) = contents.rows("world/cam0/image/markers", "LineStrips2D:colors")
     assert style.times == {}  # colours are logged once, static
-    assert contents.rows("world/cam0/image/blobs", "Points2D:positions")[0].values.to_pylist() == [[5, 6], [7, 8]]
-    assert contents.rows("world/cam0/image/blobs", "Points2D:radii")[0].values.to_pylist() == [2, 3]
+    clean = "world/cam0/image/clean_blobs"
+    assert contents.rows(clean, "Points2D:positions")[0].values.to_pylist() == [[5, 6], [7, 8]]
+    assert contents.rows(clean, "Points2D:radii")[0].values.to_pylist() == [2, 3]
+    assert contents.rows("world/cam0/image/flagged_blobs", "Points2D:positions")[0].values.to_pylist() == []
     assert contents.rows("world/cam0/image/keypoints", "Points2D:positions")[0].values.to_pylist() == [[1, 2]]
 
 
@@ -237,7 +238,7 @@ def test_options_and_sinks_refuse_what_cannot_work(tmp_path):
         open_recording("test")
 
 
-def test_mocap_blobs_and_points_are_drawn_apart_by_flag_and_by_body(view):
+def test_blobs_and_points_are_drawn_apart_by_flag_and_by_body(view):
     blobs = Blobs(header=header(0), centroids=np.array([[5.0, 6.0], [7.0, 8.0]]), areas=np.ones(2, np.float32),
                   radii=np.array([2, 3], np.float32), quality=np.ones(2, np.float32),
                   flags=np.array([0, 1], np.uint8))
