@@ -583,10 +583,6 @@ def _calibration_pattern(args: argparse.Namespace) -> Pattern:
     """The target ``artrack calibrate``'s --pattern, --size, --square, --marker and --dictionary describe."""
     from services.calibration.intrinsics import Charuco, Chessboard
 
-    missing = [flag for flag, value in (("--pattern", args.pattern), ("--size", args.size),
-                                        ("--square", args.square)) if value is None]
-    if missing:
-        raise ValueError(f"calibrate needs {', '.join(missing)} (intrinsics from photos), or --wand (extrinsics)")
     columns, _, rows = args.size.lower().partition("x")
     if not (columns.isdigit() and rows.isdigit()):
         raise ValueError(f"--size {args.size!r}: give COLSxROWS, e.g. 9x6")
@@ -605,8 +601,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     if args.wand is not None:
         return cmd_calibrate_wand(args)
-    if not args.images:
-        raise ValueError("calibrate needs DIR_OR_GLOB (photos of a board), or --wand RECORDING.mcap (extrinsics)")
+    missing = [flag for flag, value in (("DIR_OR_GLOB", args.images or None), ("--pattern", args.pattern),
+                                        ("--size", args.size), ("--square", args.square)) if value is None]
+    if missing:
+        raise ValueError(f"calibrate needs {', '.join(missing)} (intrinsics from photos), or --wand (extrinsics)")
     if args.stereo:
         return _calibrate_stereo(args)
     if len(args.images) != 1:
