@@ -16,10 +16,11 @@ stereo rig, a frame with its detections) iterates joined sets instead::
         match(pair["left"], pair["right"])
 
 While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
-list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``
-(and once more as it closes, its final counts), answers the same on the ``keys.state(name)``
-queryable, and reports inputs it had to skip (``report``) on ``keys.errors(name)``. A body
-that calls ``configurable`` also answers live parameter changes on ``keys.config(name)``
+list`` shows; a name another live process holds on the rig is refused with ``NameTaken``),
+publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)`` (and once more as it
+closes, its final counts), answers the same on the ``keys.state(name)`` queryable, and reports
+inputs it had to skip (``report``) on ``keys.errors(name)``. A body that calls
+``configurable`` also answers live parameter changes on ``keys.config(name)``
 (``services.runtime.reconfig``). ``run_node`` adds SIGINT/SIGTERM handling: the loop ends
 within a poll period (0.1 s) and everything is undeclared and closed.
 """
@@ -40,8 +41,10 @@ import zenoh
 from pydantic import BaseModel
 
 from protocol.codec import DecodeError, decode, encode
+from protocol.keys import Keys
 from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats, SyncInputStats, SyncStats
+from services.bus.discovery import every_answer, token_held
 from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.bus.session import BusConfig, BusError, open_session
 from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
@@ -56,6 +59,14 @@ T = TypeVar("T")
 POLL_S = 0.1
 LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
+LINKS_S = 2.0
+"""How long a new node waits for its session's first link before asking whether its name is taken."""
+LOOK_S = 0.6
+"""How long a new node keeps asking whether its name's token is held before taking it as free."""
+STALE_S = 1.0
+"""How long a token must stay held to count as a live holder of the name (see ``_refuse_taken_name``)."""
+NAME_QUERY_S = 0.5
+POLL_NAME_S = 0.05
 DEFAULT_SYNC_DEPTH = 8
 
 
@@ -64,6 +75,40 @@ class NodeError(RuntimeError):
 
     ``run_node`` logs it as one line, without a traceback, and exits with code 2.
     """
+
+
+class NameTaken(NodeError):
+    """Another live process already holds the node's name on its rig."""
+
+
+def _refuse_taken_name(session: zenoh.Session, keys: Keys, name: str) -> None:
+    """NameTaken, saying who holds it, when another process holds the liveliness token of node ``name``.
+
+    A session that has just opened hears of the tokens on the bus only as its links come up,
+    so the question is asked again for ``LOOK_S`` once it has a link (a session without one
+    hears of none). A process that died leaves the bus with its session, its token with it;
+    one killed hard leaves as soon as its router sees the connection drop, which takes a
+    moment: a token must still be held ``STALE_S`` after it was first seen to refuse the name,
+    so a node restarted after a crash is not refused by its own former process.
+    """
+    links_by = time.monotonic() + LINKS_S
+    while not (session.info.routers_zid() or session.info.peers_zid()) and time.monotonic() < links_by:
+        time.sleep(POLL_NAME_S)
+    key = keys.node(name)
+    look_by = time.monotonic() + LOOK_S
+    while not token_held(session, key, NAME_QUERY_S):
+        if time.monotonic() >= look_by:
+            return
+        time.sleep(POLL_NAME_S)
+    stale_by = time.monotonic() + STALE_S
+    while time.monotonic() < stale_by:
+        time.sleep(POLL_NAME_S)
+        if not token_held(session, key, NAME_QUERY_S):
+            return
+    holders = [stats for _, stats in every_answer(session, keys.state(name), NodeStats, NAME_QUERY_S)]
+    who = "; ".join(f"pid {s.pid} on {s.host}, kind {s.kind}, up {s.uptime_s:.0f} s" for s in holders)
+    raise NameTaken(f"node {name} is already running on {keys.prefix} ({who or 'its state did not answer'}): "
+                    f"not starting a second one (stop it, or give this one another name or rig)")
 
 
 class Node:
@@ -93,6 +138,7 @@ class Node:
         self._stats_period_s = stats_period_s
         self.session = open_session(bus)
         try:
+            _refuse_taken_name(self.session, self.keys, name)
             self._token = self.session.liveliness().declare_token(self.keys.node(name))
             self._stats_pub = Publisher(self.session, self.keys.stats(name), NodeStats, Role.STATUS)
             self._errors_pub = Publisher(self.session, self.keys.errors(name), ErrorReport, Role.STATUS)
@@ -385,7 +431,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
     log = logging.getLogger(f"artrack.{kind}")
     try:
         node = Node(name, kind, bus)
-    except BusError as exc:
+    except (BusError, NameTaken) as exc:
         log.error("%s", exc)
         return 2
     with node:
