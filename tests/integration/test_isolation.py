@@ -84,6 +84,17 @@ def test_a_second_node_under_a_live_name_is_refused_naming_the_holder(bus, procs
     assert first.poll() is None and states(session, bus.keys)["relay"].pid == first.pid
 
 
+def test_a_second_job_of_the_same_tracker_on_one_rig_is_refused_naming_the_holder(bus, procs):
+    marker = ("run", "marker", "--source", "synthetic:markers", "--loop", "--marker-length", "0.05")
+    first = procs.artrack(*marker, name="first")
+    wait_until(lambda: "job on" in first.stderr or first.poll() is not None, START_S, "the first job to start")
+    assert first.poll() is None, first.describe()
+    second = procs.run(*marker, timeout=60)
+    assert second.poll() == 2, second.describe()
+    assert f"node marker-cam0 is already running on ar/{bus.rig}" in second.stderr, second.stderr
+    assert first.poll() is None, first.describe()
+
+
 def test_a_node_restarted_at_once_after_kill_9_is_not_refused_by_its_former_token(bus, procs, session):
     first = start_node(procs, "echo", "relay", **ECHO)
     wait_live(session, bus.keys, {"relay"}, [first])
@@ -95,17 +106,37 @@ def test_a_node_restarted_at_once_after_kill_9_is_not_refused_by_its_former_toke
     assert again.poll() is None and not _refusals(again.stderr), again.describe()
 
 
+def _answer_as(session, keys, name: str, pid: int, uptime_s: float):
+    """A state queryable answering for node ``name`` as a process ``pid`` up for ``uptime_s`` elsewhere."""
+
+    def answer(query) -> None:
+        stats = NodeStats(header=Header(stamp_ns=time.time_ns()), node=name, kind="echo", host="elsewhere",
+                          pid=pid, uptime_s=uptime_s)
+        query.reply(keys.state(name), encode(stats))
+
+    return session.declare_queryable(keys.state(name), answer)
+
+
+def test_a_node_that_missed_an_elder_of_its_name_stops_itself_with_one_line(bus, procs, session):
+    # An elder whose token this node does not see (as when both start at once on a loaded machine)
+    # but which answers on the node's state key, as every node does.
+    elder = _answer_as(session, bus.keys, "relay", 4242, 3600.0)
+    try:
+        node = start_node(procs, "echo", "relay", **ECHO)
+        assert node.wait(START_S) == 2, node.describe()
+        refusals = _refusals(node.stderr)
+        assert len(refusals) == 1 and "(pid 4242 on elsewhere, kind echo" in refusals[0], node.stderr
+        assert "stopping this later one" in refusals[0]
+    finally:
+        elder.undeclare()
+
+
 def test_list_shows_every_process_of_a_name_and_nodes_that_hold_only_a_token(bus, procs, session):
     keys = bus.keys
     relay = start_node(procs, "echo", "relay", **ECHO)
     wait_live(session, keys, {"relay"}, [relay])
 
-    def impostor(query) -> None:  # a second process answering for the same name, as on an older version
-        stats = NodeStats(header=Header(stamp_ns=time.time_ns()), node="relay", kind="echo", host="elsewhere",
-                          pid=4242, uptime_s=1.0)
-        query.reply(keys.state("relay"), encode(stats))
-
-    twin = session.declare_queryable(keys.state("relay"), impostor)
+    twin = _answer_as(session, keys, "relay", 4242, 0.0)  # a second, younger process under the same name
     ghost = session.liveliness().declare_token(keys.node("ghost"))
     try:
         wait_live(session, keys, {"relay", "ghost"})
