@@ -13,8 +13,8 @@ The demo runs on a rig of its own, ``demo-<pid>`` (``artrack demo`` gives that d
 ``--rig`` flag or ``ARTRACK_RIG``, and ``--namespace`` / ``ARTRACK_NAMESPACE``, choose another),
 and the recording is replayed onto it whatever rig it was made on: another pipeline on the
 default rig can neither feed the demo's marker node nor be counted by its client. A failed
-demo exits 1 with one line saying why; one cut short by SIGINT/SIGTERM prints the table of
-what it did and exits 130.
+demo says why in one line and exits 1 (or the job's code, e.g. 2 when a node could not
+start); one cut short by SIGINT/SIGTERM prints the table of what it did and exits 130.
 """
 
 from __future__ import annotations
@@ -122,9 +122,9 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
              out: TextIO = sys.stdout) -> int:
     """Run the demo on ``bus``'s namespace and rig (the recording is replayed there, whatever rig it was
     made on); 0 when the job ended cleanly, wrote its files, and at least ``TRACKED_AT_LEAST`` of the
-    ground-truth marker views got a pose (markers cut by the image border may go undetected), 1 otherwise
-    (one line says why), 130 (``JobExit.INTERRUPTED``) when SIGINT/SIGTERM cut it short (the table
-    shows what was done)."""
+    ground-truth marker views got a pose (markers cut by the image border may go undetected); else, with
+    one line saying why, the job's own ``JobExit`` when it did not end cleanly (130 when SIGINT/SIGTERM
+    cut it short: the table shows what was done) and 1 when it did but the run falls short."""
     source = Recording.open(f"{RECORDING_SCHEME}{recording}").moved_to(bus)
     images = next(c for c in summarise(recording).channels if c.key.endswith("/image"))
     camera, frames = images.key.rsplit("/", 2)[-2], images.messages
@@ -153,7 +153,7 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     failure = _failure(card, record, rerun, code)
     if failure:
         log.error("demo failed: %s", failure)
-        return 1
+        return code or 1
     return 0
 
 
