@@ -13,7 +13,7 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -72,19 +72,21 @@ def _security(args: argparse.Namespace) -> dict[str, object]:
     return {field: value for field, value in given.items() if value is not None}
 
 
-def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> BusConfig:
-    """Bus settings: environment, then ``base`` (a pipeline's ``[bus]``), then command-line options.
+def _bus(args: argparse.Namespace, *, daemon: bool = False, defaults: Mapping[str, object] | None = None,
+         source: str | None = None) -> BusConfig:
+    """Bus settings, each field from: its command-line option, else its environment variable, else
+    ``defaults`` (the ``[bus]`` of pipeline file ``source``), else the field's default.
 
-    A ``daemon`` (a node, ``up``) waits for its router unless ``ARTRACK_RETRY=0``."""
-    if daemon and not os.environ.get("ARTRACK_RETRY"):
-        base = {"retry": True, **base}
+    When the environment overrides a value of file ``source``, one line says so. A ``daemon``
+    (a node, ``up``) waits for its router unless ``ARTRACK_RETRY=0``."""
+    defaults = {**({"retry": True} if daemon else {}), **(defaults or {})}
     given = {"connect": tuple(args.connect or ()), "listen": tuple(args.listen or ()), "mode": args.mode,
              "zenoh_config": args.zenoh_config, "namespace": args.namespace, "rig": args.rig,
              "security": _security(args) or None}
-    # Only options actually given may override ``base``: an unset option must not erase a pipeline value.
-    overrides = {**base, **{k: v for k, v in given.items() if v is not None and v != ()}}
+    # Only options actually given override what is below them: an unset option must not erase a value.
+    overrides = {k: v for k, v in given.items() if v is not None and v != ()}
     try:
-        return BusConfig.from_env(**overrides)
+        bus = BusConfig.from_env(defaults=defaults, **overrides)
     except ValidationError as exc:
         variables = {field: name for name, field in BusConfig.ENVIRONMENT.variables().items()}
         problems = []
@@ -97,6 +99,13 @@ def _bus(args: argparse.Namespace, *, daemon: bool = False, **base: object) -> B
             where = f"{field} (env {variables[field]})" if field in variables else field
             problems.append(f"{where}: {message} (given {problem['input']!r})")
         raise ValueError("bus settings: " + "; ".join(problems)) from exc
+    beaten = bus.overridden(defaults, **overrides) if source is not None else {}
+    if beaten:
+        said = ", ".join(f"{field} by {variable}" + ("" if field.startswith("security") else f"={os.environ[variable]}")
+                         for variable, field in beaten.items())
+        log.warning("%s: the environment overrides [bus] %s (a flag beats the environment, which beats the file)",
+                    source, said)
+    return bus
 
 
 def cmd_up(args: argparse.Namespace) -> int:
@@ -105,7 +114,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     spec = read_pipeline(args.pipeline)
     preflight(spec, str(args.pipeline))
-    daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, **spec.bus))
+    daemon = Daemon(args.pipeline, spec, _bus(args, daemon=True, defaults=spec.bus, source=str(args.pipeline)))
     stop, hup = threading.Event(), threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -172,14 +181,14 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from services.bus.discovery import live_nodes, node_states
+    from services.bus.discovery import live_nodes, node_reports
     from services.launcher.observe import format_nodes
 
     bus = _bus(args)
     session = open_session(bus)
     try:
         nodes = live_nodes(session, bus.keys, args.timeout)
-        states = node_states(session, bus.keys, args.timeout) if nodes else {}
+        states = node_reports(session, bus.keys, args.timeout) if nodes else []
     finally:
         session.close()
     if not nodes:
@@ -273,7 +282,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = read_pipeline(Path(args.tracker))
-        return run_job(_bus(run_args, **spec.bus), spec, args.tracker, _display(run_args))
+        return run_job(_bus(run_args, defaults=spec.bus, source=args.tracker), spec, args.tracker, _display(run_args))
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
@@ -307,7 +316,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"wrote {run_args.save_pipeline}: {len(spec.nodes)} nodes ({', '.join(spec.nodes)}); "
               f"run it with `artrack up {run_args.save_pipeline}`")
         return 0
-    bus = _bus(run_args, **spec.bus)
+    bus = _bus(run_args, defaults=spec.bus)
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
     return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
@@ -351,7 +360,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from services.launcher.demo import run_demo
 
     chosen = {name: value for name, value in (("recording", args.recording), ("runs", args.runs)) if value}
-    return run_demo(_bus(args), **chosen)
+    return run_demo(_bus(args, defaults={"rig": f"demo-{os.getpid()}"}), **chosen)
 
 
 def cmd_node(args: argparse.Namespace) -> int:
@@ -879,7 +888,8 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("trackers", help="the trackers found: pipeline templates `artrack run` fills")
     p.set_defaults(func=cmd_trackers)
 
-    p = sub.add_parser("demo", help="the bundled marker session tracked live and scored against ground truth")
+    p = sub.add_parser("demo", help="the bundled marker session tracked live and scored against ground truth, on "
+                                    "a rig of its own (demo-PID unless --rig or ARTRACK_RIG); exit 130 if interrupted")
     p.add_argument("--recording", type=Path, metavar="IN.mcap", help="the recording to play (default: "
                    "recordings/markers.mcap)")
     p.add_argument("--runs", type=Path, metavar="DIR", help="where the run folder goes (default: runs/)")

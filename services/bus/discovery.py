@@ -42,12 +42,18 @@ def live_nodes(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tup
         return sorted(found)
 
 
-def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
-            payload: bytes | None = None) -> dict[str, M]:
-    """Key -> message of every reply of type ``cls`` to a query on ``selector`` (carrying ``payload``
-    when given); other replies are skipped."""
-    found: dict[str, M] = {}
-    for reply in session.get(selector, timeout=timeout_s, payload=payload):
+def token_held(session: zenoh.Session, key: str, timeout_s: float) -> bool:
+    """Whether some session holds a liveliness token at ``key`` now (one query, answered within ``timeout_s``)."""
+    return any(reply.ok is not None for reply in session.liveliness().get(key, timeout=timeout_s))
+
+
+def every_answer(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
+                 payload: bytes | None = None) -> list[tuple[str, M]]:
+    """``(key, message)`` of every reply of type ``cls`` to a query on ``selector`` (carrying ``payload``
+    when given), one per replier even when several answer on the same key; other replies are skipped."""
+    found: list[tuple[str, M]] = []
+    for reply in session.get(selector, timeout=timeout_s, payload=payload,
+                             consolidation=zenoh.ConsolidationMode.NONE):
         if reply.ok is None:
             continue
         try:
@@ -55,8 +61,15 @@ def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: floa
         except DecodeError:
             continue
         if isinstance(message, cls):
-            found[str(reply.ok.key_expr)] = message
+            found.append((str(reply.ok.key_expr), message))
     return found
+
+
+def answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
+            payload: bytes | None = None) -> dict[str, M]:
+    """Key -> message of the replies of type ``cls`` to a query on ``selector`` (carrying ``payload``
+    when given): one per key; other replies are skipped."""
+    return dict(every_answer(session, selector, cls, timeout_s, payload))
 
 
 def first_answers(session: zenoh.Session, selector: str, cls: type[M], timeout_s: float,
@@ -78,6 +91,13 @@ def node_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tu
     """The NodeStats every reachable node answers on its state queryable, by ``(rig, name)``."""
     return {keys.split_node(key): stats for key, stats in answers(session, keys.all_states(), NodeStats,
                                                                   timeout_s).items()}
+
+
+def node_reports(session: zenoh.Session, keys: Keys, timeout_s: float) -> list[tuple[tuple[str, str], NodeStats]]:
+    """``((rig, name), NodeStats)`` of every node process that answers on its state queryable: two
+    processes running under one name on one rig give two entries."""
+    return [(keys.split_node(key), stats) for key, stats in every_answer(session, keys.all_states(), NodeStats,
+                                                                         timeout_s)]
 
 
 def client_states(session: zenoh.Session, keys: Keys, timeout_s: float) -> dict[tuple[str, str], ClientState]:

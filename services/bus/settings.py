@@ -10,6 +10,9 @@ Three ways to say it, in order of precedence:
    ``tcp/127.0.0.1:7447``.
 
 ``namespace`` and ``rig`` (``ARTRACK_NAMESPACE``, ``ARTRACK_RIG``) say whose keys to use.
+Each field is taken from, in order: the value given in code (a command-line flag), the
+environment variable, the ``defaults`` a program brings (a pipeline file's ``[bus]``), the
+field's default (``from_env``; ``overridden`` names the variables that beat a default).
 ``security`` (``ARTRACK_TLS_ROOT_CA``, ``ARTRACK_TLS_CERT``, ``ARTRACK_TLS_KEY``,
 ``ARTRACK_TLS_MUTUAL``, ``ARTRACK_USER``, ``ARTRACK_PASSWORD`` or ``ARTRACK_PASSWORD_FILE``) adds
 TLS and credentials to the endpoints' config (see ``services.bus.security``).
@@ -32,7 +35,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_core import InitErrorDetails
+from pydantic_core import InitErrorDetails, to_jsonable_python
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from zenoh import Session
 
@@ -61,6 +64,15 @@ def _nest(values: dict[str, Any], field: str, value: object) -> None:
     for parent in parents:
         values = values.setdefault(parent, {})
     values[last] = value
+
+
+def _dotted(values: Mapping[str, Any], field: str) -> object:
+    """``values[a][b]`` for a dotted ``field`` ``a.b``; None when absent."""
+    for part in field.split("."):
+        if not isinstance(values, Mapping) or part not in values:
+            return None
+        values = values[part]
+    return values
 
 
 Listed = Annotated[tuple[str, ...] | None, NoDecode]
@@ -189,23 +201,44 @@ class BusSettings(BaseModel):
         return str(self.zenoh_config) if self.zenoh_config else ", ".join(self.endpoints)
 
     @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: object) -> Self:
-        """Settings from the environment variables that are set (``ENVIRONMENT``), then ``overrides``
-        (None or () = unset).
+    def from_env(cls, environ: Mapping[str, str] | None = None, *, defaults: Mapping[str, object] | None = None,
+                 **overrides: object) -> Self:
+        """Settings from ``defaults`` (a pipeline file's ``[bus]``), then the environment variables that are
+        set (``ENVIRONMENT``, default: the process's environment), then ``overrides`` (None or () = unset).
 
-        A dict override of a nested model (``security={"root_ca": ...}``) updates what the
-        environment said field by field; a model instance replaces it whole.
+        A dict value of a nested model (``security={"root_ca": ...}``) updates what the layer
+        below said field by field; a model instance replaces it whole.
         """
-        values = cls.ENVIRONMENT.values(environ)
-        for field, value in overrides.items():
-            if value is None or value == ():
-                continue
-            if isinstance(value, Mapping) and isinstance(values.get(field), dict):
-                value = {**values[field], **value}
-            values[field] = value
+        values: dict[str, Any] = {}
+        for layer in (defaults or {}, cls.ENVIRONMENT.values(environ), overrides):
+            for field, value in layer.items():
+                if value is None or value == ():
+                    continue
+                if isinstance(value, Mapping) and isinstance(values.get(field), Mapping):
+                    value = {**values[field], **value}
+                values[field] = value
         if isinstance(values.get("security"), Mapping):  # validated on its own: its errors hide the password
             values["security"] = Security.model_validate(values["security"])
         return cls.model_validate(values)
+
+    def overridden(self, defaults: Mapping[str, object], environ: Mapping[str, str] | None = None,
+                   **overrides: object) -> dict[str, str]:
+        """``{variable: field}`` of the environment variables that gave these settings (made by ``from_env``
+        with the same arguments) a value other than the one ``defaults`` set (fields ``overrides`` does
+        not set itself)."""
+        environment = self.ENVIRONMENT.values(environ)
+        mine = self.model_dump(mode="json")
+        found = {}
+        for variable, field in self.ENVIRONMENT.variables().items():
+            head, _, rest = field.partition(".")
+            own = overrides.get(head)
+            if own is not None and own != () and (not rest or not isinstance(own, Mapping) or rest in own):
+                continue
+            wanted = _dotted(defaults, field)
+            if _dotted(environment, field) is not None and wanted is not None and \
+                    to_jsonable_python(wanted) != _dotted(mine, field):
+                found[variable] = field
+        return found
 
     def to_env(self) -> dict[str, str]:
         """The variables that make ``from_env`` rebuild these settings in a child process."""

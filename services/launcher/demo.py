@@ -8,10 +8,18 @@ This process is the subscribing client: it joins every pose to the ground truth 
 sequence number), prints a line a second while the run goes on, and a table at the end:
 frames, markers tracked, rotation and translation errors, latency from the frame's stamp to
 the pose's arrival here (two process hops: replay -> marker node -> client), and the files.
+
+The demo runs on a rig of its own, ``demo-<pid>`` (``artrack demo`` gives that default; a
+``--rig`` flag or ``ARTRACK_RIG``, and ``--namespace`` / ``ARTRACK_NAMESPACE``, choose another),
+and the recording is replayed onto it whatever rig it was made on: another pipeline on the
+default rig can neither feed the demo's marker node nor be counted by its client. A failed
+demo says why in one line and exits 1 (or the job's code, e.g. 2 when a node could not
+start); one cut short by SIGINT/SIGTERM prints the table of what it did and exits 130.
 """
 
 from __future__ import annotations
 
+import logging
 import sys
 import threading
 from collections import defaultdict
@@ -27,9 +35,11 @@ from services.bus.pubsub import Inbox, Role
 from services.bus.session import BusConfig, open_session
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import pose_error
-from services.launcher.job import RECORDING_SCHEME, Recording, build_job, run_job
+from services.launcher.job import RECORDING_SCHEME, JobExit, Recording, build_job, run_job
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
+
+log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_RECORDING = ROOT / "recordings" / "markers.mcap"
@@ -110,11 +120,14 @@ def _collect(session, bus: BusConfig, card: Scorecard, stop: threading.Event, ou
 
 def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = DEFAULT_RUNS,
              out: TextIO = sys.stdout) -> int:
-    """Run the demo; 0 when the job ended cleanly, wrote its files, and at least ``TRACKED_AT_LEAST`` of
-    the ground-truth marker views got a pose (markers cut by the image border may go undetected)."""
-    source = Recording.open(f"{RECORDING_SCHEME}{recording}")
-    bus = source.on_bus(bus)
-    frames = next(c.messages for c in summarise(recording).channels if c.key.endswith("/image"))
+    """Run the demo on ``bus``'s namespace and rig (the recording is replayed there, whatever rig it was
+    made on); 0 when the job ended cleanly, wrote its files, and at least ``TRACKED_AT_LEAST`` of the
+    ground-truth marker views got a pose (markers cut by the image border may go undetected); else, with
+    one line saying why, the job's own ``JobExit`` when it did not end cleanly (130 when SIGINT/SIGTERM
+    cut it short: the table shows what was done) and 1 when it did but the run falls short."""
+    source = Recording.open(f"{RECORDING_SCHEME}{recording}").moved_to(bus)
+    images = next(c for c in summarise(recording).channels if c.key.endswith("/image"))
+    camera, frames = images.key.rsplit("/", 2)[-2], images.messages
     session = open_session(bus)
     run_dir = runs / f"demo-{datetime.now():%Y%m%d-%H%M%S}"
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -132,21 +145,45 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
         stop.set()
         collector.join()
         session.close()
-    return _summary(out, frames, card, record, rerun, code)
+    played = sum(1 for seen, _ in card.truth if seen == camera)
+    _summary(out, f"{played} of {frames}", card, record, rerun)
+    if code == JobExit.INTERRUPTED:
+        log.warning("demo interrupted after %d of %d frames; the figures above are of those", played, frames)
+        return JobExit.INTERRUPTED
+    failure = _failure(card, record, rerun, code)
+    if failure:
+        log.error("demo failed: %s", failure)
+        return code or 1
+    return 0
+
+
+def _failure(card: Scorecard, record: Path, rerun: Path, code: int) -> str:
+    """Why the demo did not succeed; empty when it did."""
+    total, tracked = card.views()
+    missing = [str(path) for path in (record, rerun) if not path.is_file()]
+    if code != 0:
+        return f"the job ended with code {code} (its nodes' log lines above say why)"
+    if total == 0:
+        return "no ground truth reached this client"
+    if tracked < TRACKED_AT_LEAST * total:
+        return f"{tracked} of {total} marker views tracked, below {TRACKED_AT_LEAST:.0%}"
+    if missing:
+        return f"not written: {', '.join(missing)}"
+    return ""
 
 
 def _median(values: np.ndarray) -> float:
     return float(np.median(values)) if len(values) else float("nan")
 
 
-def _summary(out: TextIO, frames: int, card: Scorecard, record: Path, rerun: Path, code: int) -> int:
+def _summary(out: TextIO, replayed: str, card: Scorecard, record: Path, rerun: Path) -> None:
     rotation, translation_mm, translation_pct = card.errors()
     total, tracked = card.views()
     p50, p99 = np.percentile(card.latencies_ms, [50, 99]) if card.latencies_ms else (float("nan"),) * 2
     p90 = float(np.percentile(rotation, 90)) if len(rotation) else float("nan")
     outcomes = ", ".join(f"{count} {state}" for state, count in card.states.items())
     rows = [
-        ("frames", f"{frames} replayed, {len(card.truth)} with ground truth, {len(card.poses)} with poses"),
+        ("frames", f"{replayed} replayed, {len(card.truth)} with ground truth, {len(card.poses)} with poses"),
         ("markers tracked", f"{tracked} of {total} marker views (poses: {outcomes})"),
         ("rotation error", f"median {_median(rotation):.3f} deg, p90 {p90:.3f} deg"),
         ("translation error", f"median {_median(translation_mm):.2f} mm, {_median(translation_pct):.3f} % of range"),
@@ -155,5 +192,3 @@ def _summary(out: TextIO, frames: int, card: Scorecard, record: Path, rerun: Pat
         ("rerun", f"{rerun} (open it with `rerun {rerun}`)"),
     ]
     print("\n".join(f"{name:>18}: {value}" for name, value in rows), file=out, flush=True)
-    complete = total > 0 and tracked >= TRACKED_AT_LEAST * total
-    return 0 if code == 0 and complete and record.is_file() and rerun.is_file() else 1

@@ -59,12 +59,14 @@ REPLAYED_STREAMS = ("image", "camera_info", "truth")
 
 @dataclass(frozen=True)
 class Recording:
-    """A recorded session as a job's source: its cameras and the rig it was recorded on."""
+    """A recorded session as a job's source: its cameras and the rig it is replayed on (the one it was
+    recorded on, unless ``moved_to`` another, where its keys are retargeted)."""
 
     path: Path
     cameras: tuple[str, ...]
     namespace: str
     rig: str
+    retarget: bool = False
 
     @classmethod
     def open(cls, uri: str) -> Recording:
@@ -87,12 +89,17 @@ class Recording:
         return cls(path, cameras, where["namespace"], where["rig"])
 
     def on_bus(self, bus: BusConfig) -> BusConfig:
-        """``bus`` moved to the recording's namespace and rig, where its keys are replayed."""
+        """``bus`` moved to the namespace and rig the recording's keys are replayed on."""
         return bus.model_copy(update={"namespace": self.namespace, "rig": self.rig})
+
+    def moved_to(self, bus: BusConfig) -> Recording:
+        """This recording replayed on ``bus``'s namespace and rig instead of its own."""
+        return replace(self, namespace=bus.namespace, rig=bus.rig, retarget=True)
 
     def node(self) -> tuple[str, dict[str, Any]]:
         keys = [f"{camera}/{stream}" for camera in self.cameras for stream in REPLAYED_STREAMS]
-        return "replay", {"path": str(self.path), "keys": keys, "restamp": True}
+        return "replay", {"path": str(self.path), "keys": keys, "restamp": True,
+                          **({"retarget": True} if self.retarget else {})}
 
 
 class JobExit(IntEnum):

@@ -22,19 +22,21 @@ def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def format_nodes(nodes: list[tuple[str, str]], states: dict[tuple[str, str], NodeStats]) -> str:
-    """A table of nodes with their health figures (UNJOINED: messages of synced inputs that joined no set)."""
+def format_nodes(nodes: list[tuple[str, str]], states: list[tuple[tuple[str, str], NodeStats]]) -> str:
+    """A table of the nodes holding a token, one row per process answering for each (two processes
+    under one name give two rows; a node that did not answer its state query has one row of ``-``),
+    with their health figures (UNJOINED: messages of synced inputs that joined no set)."""
     header = ("RIG", "NODE", "KIND", "PID", "UP(s)", "IN", "OUT", "DROPPED", "UNJOINED", "DECODE_ERR", "P50(ms)",
               "P99(ms)", "LAT50(ms)", "LAT99(ms)")
     rows: list[tuple[str, ...]] = [header]
-    for rig, name in nodes:
-        s = states.get((rig, name))
-        if s is None:
+    for rig, name in sorted(set(nodes) | {node for node, _ in states}):
+        answered = sorted((s for node, s in states if node == (rig, name)), key=lambda s: (s.host, s.pid))
+        if not answered:
             rows.append((rig, name, "?", *("-",) * (len(header) - 3)))
-            continue
-        rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
-                     str(s.dropped), str(s.unjoined), str(s.decode_errors), _ms(s.processing_ms_p50),
-                     _ms(s.processing_ms_p99), _ms(s.latency_ms_p50), _ms(s.latency_ms_p99)))
+        for s in answered:
+            rows.append((rig, name, s.kind, str(s.pid), f"{s.uptime_s:.0f}", str(s.received), str(s.published),
+                         str(s.dropped), str(s.unjoined), str(s.decode_errors), _ms(s.processing_ms_p50),
+                         _ms(s.processing_ms_p99), _ms(s.latency_ms_p50), _ms(s.latency_ms_p99)))
     return format_table(rows)
 
 

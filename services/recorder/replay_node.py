@@ -9,7 +9,9 @@ channel gets the QoS of its role, inferred from its schema: ``artrack.Image`` ->
 Selection: the channels whose key is included in one of ``keys`` (relative to the rig prefix
 unless they start with the namespace); by default every channel except node health
 (``<namespace>/*/node/**``: stats and error reports of the recorded nodes), which would
-impersonate nodes that are not running. ``start_s``/``end_s`` cut a window, in seconds from
+impersonate nodes that are not running. With ``retarget`` the keys of the rig the recording
+was made on go out under the node's own namespace and rig (selection applies to the keys as
+they go out), so a recording can drive a pipeline on any rig. ``start_s``/``end_s`` cut a window, in seconds from
 the recording's first message. Before the first message the node waits up to ``wait_s`` for
 a subscriber to match the selection, then ``SETTLE_S``, so the first messages are not
 published before anyone can receive them.
@@ -29,13 +31,14 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 import zenoh
-from mcap.records import Channel
+from mcap.records import Channel, Message, Metadata
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode
@@ -46,8 +49,9 @@ from protocol.system import ErrorReport, NodeStats, ReplayCommand, ReplayControl
 from services.bus.pubsub import RawPublisher, Role
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
 from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded, Scan
+from services.recorder.writing import RECORDING_METADATA
 from services.runtime.kind import NodeKind
-from services.runtime.node import Node
+from services.runtime.node import Node, NodeError
 
 SETTLE_S = 0.2
 _ROLES = {Image.SCHEMA: Role.FRAME, NodeStats.SCHEMA: Role.STATUS, ErrorReport.SCHEMA: Role.STATUS}
@@ -69,6 +73,8 @@ class Params(BaseModel):
     wait_s: float = Field(default=2.0, ge=0, description="wait up to S for a subscriber before the first message")
     restamp: bool = Field(default=False, description="give messages the time they are replayed as their stamp "
                                                      "(re-encodes them), to measure latency on a replay")
+    retarget: bool = Field(default=False, description="publish the keys of the rig the recording was made on "
+                                                       "under this node's namespace and rig instead")
 
     @model_validator(mode="after")
     def _window(self) -> Params:
@@ -85,10 +91,40 @@ def role_of(channel_schema: str | None) -> Role:
     return _ROLES.get(channel_schema, Role.RESULT) if channel_schema else Role.RESULT
 
 
-class Selection:
-    """Which channels to replay, and the key expressions a subscriber must match to be waited for."""
+def recorded_prefix(path: Path) -> str:
+    """``<namespace>/<rig>`` the recording at ``path`` was made on, from its ``artrack.recording`` metadata
+    (written before its first message); ValueError naming the file when it has none."""
+    for record in Scan(path).records():
+        where = record.metadata if isinstance(record, Metadata) and record.name == RECORDING_METADATA else {}
+        if "namespace" in where and "rig" in where:
+            return f"{where['namespace']}/{where['rig']}"
+        if isinstance(record, Message):
+            break
+    raise ValueError(f"{path}: no {RECORDING_METADATA} metadata naming its namespace and rig, so it cannot be "
+                     f"replayed on another rig (retarget)")
 
-    def __init__(self, keys: Keys, expressions: tuple[str, ...]):
+
+class Retarget:
+    """Recorded keys moved from the recording's ``<namespace>/<rig>/`` to ``keys``' prefix; others kept."""
+
+    def __init__(self, recorded: str, keys: Keys):
+        self._from = recorded + "/"
+        self._to = keys.prefix + "/"
+
+    def __call__(self, topic: str) -> str:
+        return self._to + topic.removeprefix(self._from) if topic.startswith(self._from) else topic
+
+
+def _as_recorded(topic: str) -> str:
+    return topic
+
+
+class Selection:
+    """Which channels to replay (by the key they go out on), and the key expressions a subscriber must
+    match to be waited for."""
+
+    def __init__(self, keys: Keys, expressions: tuple[str, ...], topic: Callable[[str], str] = _as_recorded):
+        self._topic = topic
         self.include = [zenoh.KeyExpr(keys.resolve(e)) for e in expressions]
         self.exclude = [] if expressions else [zenoh.KeyExpr(keys.all_node_keys())]
         self.probes = self.include or [zenoh.KeyExpr(keys.whole_namespace())]
@@ -97,7 +133,7 @@ class Selection:
     def __call__(self, channel: Channel) -> bool:
         chosen = self._decided.get(channel.id)
         if chosen is None:
-            key = zenoh.KeyExpr(channel.topic)
+            key = zenoh.KeyExpr(self._topic(channel.topic))
             chosen = self._decided[channel.id] = (
                 (not self.include or any(e.includes(key) for e in self.include))
                 and not any(e.includes(key) for e in self.exclude))
@@ -129,8 +165,9 @@ class _Restamper:
 class _Outputs:
     """One raw publisher per recorded channel, declared at its first message."""
 
-    def __init__(self, node: Node, restamp: bool = False):
+    def __init__(self, node: Node, restamp: bool = False, topic: Callable[[str], str] = _as_recorded):
         self._node = node
+        self._topic = topic
         self._publishers: dict[int, RawPublisher] = {}
         self._restamp = _Restamper() if restamp else None
         self.published = 0
@@ -145,7 +182,8 @@ class _Outputs:
         else:
             media = MEDIA_FRAME if recorded.channel.message_encoding == MEDIA_FRAME else MEDIA_JSON
             encoding = zenoh.Encoding(media).with_schema(schema)
-        self._publishers[recorded.channel.id] = self._node.raw_publisher(recorded.channel.topic, role_of(schema),
+        self._publishers[recorded.channel.id] = self._node.raw_publisher(self._topic(recorded.channel.topic),
+                                                                         role_of(schema),
                                                                          encoding)
 
     def publish(self, recorded: Recorded) -> None:
@@ -169,9 +207,13 @@ class Replayed:
 
 def replay(node: Node, params: Params) -> Replayed:
     """Play ``params.path`` onto the bus until it ends (or forever with ``loop``) or the node stops."""
-    selection = Selection(node.keys, params.keys)
+    try:
+        topic = Retarget(recorded_prefix(params.path), node.keys) if params.retarget else _as_recorded
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    selection = Selection(node.keys, params.keys, topic)
     pacer = Pacer(params.rate, paused=params.paused, running=lambda: node.running)
-    outputs = _Outputs(node, params.restamp)
+    outputs = _Outputs(node, params.restamp, topic)
     done = Replayed()
 
     def on_query(query: zenoh.Query) -> None:
@@ -292,6 +334,8 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 def _check(params: Params) -> None:
     Scan(params.path)
+    if params.retarget:
+        recorded_prefix(params.path)
 
 
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",

@@ -16,10 +16,11 @@ stereo rig, a frame with its detections) iterates joined sets instead::
         match(pair["left"], pair["right"])
 
 While it runs, the node holds a liveliness token at ``keys.node(name)`` (what ``artrack
-list`` shows), publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)``
-(and once more as it closes, its final counts), answers the same on the ``keys.state(name)``
-queryable, and reports inputs it had to skip (``report``) on ``keys.errors(name)``. A body
-that calls ``configurable`` also answers live parameter changes on ``keys.config(name)``
+list`` shows; a name another live process holds on the rig is refused with ``NameTaken``),
+publishes ``NodeStats`` every ``stats_period_s`` on ``keys.stats(name)`` (and once more as it
+closes, its final counts), answers the same on the ``keys.state(name)`` queryable, and reports
+inputs it had to skip (``report``) on ``keys.errors(name)``. A body that calls
+``configurable`` also answers live parameter changes on ``keys.config(name)``
 (``services.runtime.reconfig``). ``run_node`` adds SIGINT/SIGTERM handling: the loop ends
 within a poll period (0.1 s) and everything is undeclared and closed.
 """
@@ -40,8 +41,10 @@ import zenoh
 from pydantic import BaseModel
 
 from protocol.codec import DecodeError, decode, encode
+from protocol.keys import Keys
 from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats, SyncInputStats, SyncStats
+from services.bus.discovery import every_answer, token_held
 from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.bus.session import BusConfig, BusError, open_session
 from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
@@ -56,6 +59,16 @@ T = TypeVar("T")
 POLL_S = 0.1
 LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
+LINKS_S = 2.0
+"""How long a new node waits for its session's first link before asking whether its name is taken."""
+LOOK_S = 0.8
+"""How long a new node keeps asking whether its name's token is held before taking it as free."""
+STALE_S = 1.0
+"""How long a token must stay held to count as a live holder of the name (see ``_refuse_taken_name``)."""
+GONE_S = 0.5
+"""How long a token seen before must go unseen to count as gone."""
+NAME_QUERY_S = 0.5
+POLL_NAME_S = 0.05
 DEFAULT_SYNC_DEPTH = 8
 
 
@@ -64,6 +77,50 @@ class NodeError(RuntimeError):
 
     ``run_node`` logs it as one line, without a traceback, and exits with code 2.
     """
+
+
+class NameTaken(NodeError):
+    """Another live process already holds the node's name on its rig."""
+
+
+def _refuse_taken_name(session: zenoh.Session, keys: Keys, name: str) -> None:
+    """NameTaken, saying who holds it, when another process holds the liveliness token of node ``name``.
+
+    The question is asked again and again: a session that has just opened hears of the tokens
+    on the bus only as its links come up, and an answer may come back empty now and then though
+    the token is there, so one "held" counts, and only a token unseen for ``GONE_S`` has gone.
+    A process that died leaves the bus with its session, its token with it; one killed hard
+    leaves as soon as its router sees the connection drop, which takes a moment: a token must
+    still be seen ``STALE_S`` after it was first seen to refuse the name, so a node restarted
+    after a crash is not refused by its own former process. Two nodes that miss each other
+    here (a loaded machine, both starting at once) meet later: see ``Node._yield_to_an_elder``.
+    """
+    links_by = time.monotonic() + LINKS_S
+    while not (session.info.routers_zid() or session.info.peers_zid()) and time.monotonic() < links_by:
+        time.sleep(POLL_NAME_S)
+    key = keys.node(name)
+    look_by = time.monotonic() + LOOK_S
+    while not token_held(session, key, NAME_QUERY_S):
+        if time.monotonic() >= look_by:
+            return
+        time.sleep(POLL_NAME_S)
+    first_seen = last_seen = time.monotonic()
+    while last_seen - first_seen < STALE_S:
+        time.sleep(POLL_NAME_S)
+        now = time.monotonic()
+        if token_held(session, key, NAME_QUERY_S):
+            last_seen = now
+        elif now - last_seen >= GONE_S:
+            return
+    raise NameTaken(_taken_message(name, keys, [stats for _, stats in every_answer(
+        session, keys.state(name), NodeStats, NAME_QUERY_S)]))
+
+
+def _taken_message(name: str, keys: Keys, holders: list[NodeStats], doing: str = "not starting a second one") -> str:
+    """One line: node ``name`` is already held on the rig, by ``holders`` (as their state says), so ``doing``."""
+    who = "; ".join(f"pid {s.pid} on {s.host}, kind {s.kind}, up {s.uptime_s:.0f} s" for s in holders)
+    return (f"node {name} is already running on {keys.prefix} ({who or 'its state did not answer'}): "
+            f"{doing} (stop it, or give this one another name or rig)")
 
 
 class Node:
@@ -91,8 +148,11 @@ class Node:
         self._errors: dict[tuple[str, str], int] = {}
         self._last_report: dict[tuple[str, str], float] = {}
         self._stats_period_s = stats_period_s
+        self.taken: str | None = None
+        """Why the node stopped itself: another process holds its name (see ``_yield_to_an_elder``)."""
         self.session = open_session(bus)
         try:
+            _refuse_taken_name(self.session, self.keys, name)
             self._token = self.session.liveliness().declare_token(self.keys.node(name))
             self._stats_pub = Publisher(self.session, self.keys.stats(name), NodeStats, Role.STATUS)
             self._errors_pub = Publisher(self.session, self.keys.errors(name), ErrorReport, Role.STATUS)
@@ -313,6 +373,27 @@ class Node:
     def _stats_loop(self) -> None:
         while not self._stop.wait(self._stats_period_s):
             self._publish_stats()
+            self._yield_to_an_elder()
+
+    def _yield_to_an_elder(self) -> None:
+        """Stop with ``taken`` set when another process answers for this node's name on the rig and
+        started first (ties: the lower host, pid).
+
+        The check before the token is declared can miss a holder whose token has not reached this
+        session yet (a loaded machine, two nodes starting at once); both answer on the state key,
+        so the younger of two sees the elder here within a stats period and leaves."""
+        mine = (time.time_ns() - int((time.monotonic() - self._started) * 1e9), socket.gethostname(), os.getpid())
+        try:
+            others = [stats for _, stats in every_answer(self.session, self.keys.state(self.name), NodeStats,
+                                                         NAME_QUERY_S)]
+        except zenoh.ZError:  # the session is closing under us
+            return
+        for other in others:
+            theirs = (other.header.stamp_ns - int(other.uptime_s * 1e9), other.host, other.pid)
+            if theirs[1:] != mine[1:] and theirs < mine:
+                self.taken = _taken_message(self.name, self.keys, [other], "stopping this later one")
+                self.stop()
+                return
 
     def _publish_stats(self) -> None:
         try:
@@ -385,7 +466,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
     log = logging.getLogger(f"artrack.{kind}")
     try:
         node = Node(name, kind, bus)
-    except BusError as exc:
+    except (BusError, NameTaken) as exc:
         log.error("%s", exc)
         return 2
     with node:
@@ -403,5 +484,8 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
             return 1
         if node.running:
             node.linger()
+    if node.taken is not None:
+        log.error("%s", node.taken)
+        return 2
     log.info("node %s stopped", name)
     return 0

@@ -115,7 +115,7 @@ def test_demo_tracks_the_bundled_markers_and_scores_them(bus, procs, tmp_path):
     demo = procs.run("demo", "--runs", str(tmp_path), "--connect", bus.endpoint, timeout=120)
     assert demo.poll() == 0, demo.describe()
     summary = dict(re.findall(r"^\s*([a-z /0-9]+):\s+(.*)$", demo.stdout, re.MULTILINE))
-    assert summary["frames"].startswith("150 replayed, 150 with ground truth, 150 with poses"), demo.stdout
+    assert summary["frames"].startswith("150 of 150 replayed, 150 with ground truth, 150 with poses"), demo.stdout
     tracked, total = map(int, re.match(r"(\d+) of (\d+) marker views", summary["markers tracked"]).groups())
     assert total > 600 and tracked >= 0.99 * total, summary["markers tracked"]
     rotation = float(re.match(r"median ([0-9.]+) deg", summary["rotation error"]).group(1))
