@@ -33,11 +33,10 @@ from typing import Any
 import zenoh
 
 from protocol.codec import encode
-from services.bus.discovery import node_states
+from services.bus.discovery import node_reports, node_states
 from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
 from services.launcher.health import pipeline_health
-from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import NodeSpec, PipelineSpec, preflight, processes, resolved
 from services.launcher.progress import Display, JobWatch
 from services.launcher.supervisor import ChildHealth, Supervisor
@@ -176,13 +175,15 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
     try:
         supervisor.start()
         why = _come_up(session, bus, supervisor, set(downstream), stop)
+        if why is None:
+            time.sleep(SETTLE_S)  # a node may fail just after it went live (say, on opening its output)
+            why = _exited(supervisor)
         if why is not None:
             return JobExit.CANNOT_START
         if stop.is_set():
             return interrupted
         for process in restarting:  # up: from now on a node that dies is restarted, within the budget
             supervisor.update(process)
-        time.sleep(SETTLE_S)
         settle_heap()  # this process may be a client too (the demo's): no full collection of its start-up mid-run
         watch = _watch(session, bus, spec, display)
         source_supervisor.start()
@@ -242,16 +243,30 @@ def _come_up(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, nam
     (the first node that exited, with the last line it wrote)."""
     deadline = time.monotonic() + START_LIMIT_S
     while not stop.is_set():
-        supervisor.step()
-        ended = next((child for child in supervisor.health() if child.exit_code is not None), None)
-        if ended is not None:
-            return f"node {ended.name} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
-        live = wait_for_nodes(session, bus.keys, names, 0.0)
+        if (why := _exited(supervisor)) is not None:
+            return why
+        live = _ours_live(session, bus, supervisor, names)
         if live == names:
             return None
         if time.monotonic() > deadline:
             return f"nodes {sorted(names - live)} did not come up within {START_LIMIT_S:.0f} s"
     return None
+
+
+def _exited(supervisor: Supervisor) -> str | None:
+    """Why the first of the supervisor's nodes that exited could not start, in one line (None while none has)."""
+    supervisor.step()
+    ended = next((child for child in supervisor.health() if child.exit_code is not None), None)
+    return None if ended is None else \
+        f"node {ended.name} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
+
+
+def _ours_live(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, names: set[str]) -> set[str]:
+    """The nodes of ``names`` that answer on this rig from the very processes ``supervisor`` started: a node
+    of the same name that another pipeline runs here is not this job's node coming up."""
+    pids = {child.name: child.pid for child in supervisor.health()}
+    return {name for (rig, name), stats in node_reports(session, bus.keys, 0.3)
+            if rig == bus.rig and name in names and stats.pid == pids.get(name)}
 
 
 def _failed(supervisor: Supervisor) -> str | None:
