@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from services.calibration.yaml_file import read_yaml
 from services.geometry.camera import CameraModel
 
 
@@ -49,12 +50,7 @@ def _matrix(document: dict, field: str, rows: int, cols: int | None, path: Path 
 
 def read_camera_info(path: Path) -> CameraModel:
     """Read a ROS camera_info YAML file (plumb_bob distortion) into a CameraModel."""
-    try:
-        document = yaml.safe_load(Path(path).read_text())
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from exc
+    document = read_yaml(path, CalibrationError)
     if not isinstance(document, dict):
         raise CalibrationError(f"{path}: not a camera_info mapping")
     return camera_from_document(document, path, Path(path).stem)

@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from services.calibration.camera_info import CalibrationError, camera_document, camera_from_document
+from services.calibration.yaml_file import read_yaml
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import check_transform
 
@@ -56,12 +57,7 @@ class Rig:
 def read_rig(path: Path) -> Rig:
     """The rig of a rig YAML file; CalibrationError (one line naming the file) for a file that
     cannot be read, fewer than two cameras, a camera without ``T_rig_camera``, or a non-rigid one."""
-    try:
-        document = yaml.safe_load(Path(path).read_text())
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from exc
+    document = read_yaml(path, CalibrationError)
     if not isinstance(document, dict) or not isinstance(document.get("cameras"), list):
         raise CalibrationError(f"{path}: a rig file is a mapping with a 'cameras' list")
     entries = document["cameras"]

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from services.calibration.yaml_file import read_yaml
 from services.estimation.rigid_bodies import DEFAULT_OPTIONS, MatchOptions, body_candidates, pairwise_distances
 
 __all__ = [
@@ -52,13 +53,7 @@ class BodiesFileError(ValueError):
 
 def load_bodies(path: str | Path, min_separation: float = MIN_SEPARATION) -> dict[str, np.ndarray]:
     """Name -> (N, 3) float64 sphere centres (body frame, m) from the YAML file ``path``, in file order."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as error:
-        raise BodiesFileError(f"{path}: cannot read the file: {error.strerror or error}") from error
-    except yaml.YAMLError as error:
-        raise BodiesFileError(f"{path}: not valid YAML: {' '.join(str(error).split())}") from error
-    return parse_bodies(data, str(path), min_separation)
+    return parse_bodies(read_yaml(path, BodiesFileError), str(path), min_separation)
 
 
 def parse_bodies(data: object, source: str = "bodies", min_separation: float = MIN_SEPARATION) -> dict[str, np.ndarray]:

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
+from services.calibration.yaml_file import read_yaml
 from services.geometry.rotation import matrix_from_quaternion
 from services.geometry.se3 import make_transform, transform_points
 
@@ -105,13 +105,7 @@ def grid_map(name: str, columns: int, rows: int, length: float, separation: floa
 
 def load_marker_map(path: str | Path) -> MarkerMap:
     """The map described by the YAML file ``path``; MarkerMapError names the file, field and reason."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as error:
-        raise MarkerMapError(f"{path}: cannot read the file: {error.strerror or error}") from error
-    except yaml.YAMLError as error:
-        raise MarkerMapError(f"{path}: not valid YAML: {error}") from error
-    return parse_marker_map(data, str(path))
+    return parse_marker_map(read_yaml(path, MarkerMapError), str(path))
 
 
 def parse_marker_map(data: object, source: str = "marker map") -> MarkerMap:
