@@ -1,8 +1,8 @@
 """The house plan's import rules, read from every module's imports (docs/architecture.md).
 
 A room is a top-level package under ``protocol`` or ``services`` (``services.bus``,
-``services.geometry``, ...); ``services/convert.py`` and ``services/cli.py`` are rooms of
-their own. Imports inside a function count like any other: a rule holds for the whole module.
+``services.geometry``, ``services.cli``, ...); ``services/convert.py`` is a room of its own.
+Imports inside a function count like any other: a rule holds for the whole module.
 """
 
 from __future__ import annotations

@@ -1,0 +1,165 @@
+"""``artrack run``: a source through a tracker, or a pipeline file, run as one job."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel, ValidationError
+
+from services.cli.bus_options import add_bus_options, bus_config
+
+if TYPE_CHECKING:
+    from services.launcher.flags import Flag
+
+log = logging.getLogger("artrack")
+
+
+RUN_EXITS = ("exit codes: 0 done (or a live source stopped), 1 a node failed while running, 2 a bad option or "
+             "a node that could not start, 3 the source is a damaged recording (played up to the damage), "
+             "130 interrupted before a finite source ended (docs/configuration.md)")
+
+SOURCE_SKIP = {"scene", "wait_for_subscriber"}
+"""Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
+
+
+def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
+    """The parser of ``artrack run TRACKER``: source flags, the tracker's generated flags, job and bus options."""
+    from services.launcher.flags import add_flags, flags_for
+    from services.launcher.kinds import kind
+    from services.launcher.tracker import Tracker
+
+    chosen = Tracker.load(tracker)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
+    source = flags_for(kind("capture").params, SOURCE_SKIP)
+    add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
+                                   "rig)"), source)
+    p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option, "
+                   "converted by its type (a list as JSON: ids=[1,2])")
+    own = chosen.flags({flag.field: flag for flag in source})
+    if own:
+        add_flags(p.add_argument_group(f"{tracker} tracker (node kinds: "
+                                       f"{', '.join(k for k, _, _ in chosen.models())})"), own)
+    job = p.add_argument_group("job")
+    job.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
+    job.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
+    job.add_argument("--save-pipeline", type=Path, metavar="FILE.toml", help="write the job as a pipeline file "
+                     "(`artrack up FILE.toml` runs it as a daemon) and exit without running it")
+    _display_options(job)
+    add_bus_options(p)
+    return p, source, own
+
+
+def _display_options(group: argparse._ArgumentGroup) -> None:
+    group.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
+                       help="a progress line redrawn on standard error (auto: when it is a terminal)")
+    group.add_argument("--quiet", action="store_true", help="no progress and no summary at the end")
+
+
+def _display(args: argparse.Namespace):
+    from services.launcher.progress import Display
+
+    return Display.choose(args.progress, args.quiet)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from services.launcher.flags import explain, given_values
+    from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job, run_job
+    from services.launcher.kinds import catalogue, kind
+    from services.launcher.pipeline import NodeSpec, read_pipeline, save_pipeline
+    from services.launcher.tracker import Tracker
+
+    asked = args.tracker in ("-h", "--help") or (args.tracker is None and {"-h", "--help"} & set(args.rest))
+    if args.tracker is None or asked:
+        trackers = catalogue().trackers
+        print("usage: artrack run TRACKER --source URI [options]   (artrack run TRACKER --help: its options)\n"
+              "       artrack run PIPELINE.toml                     (a pipeline file run as one job)\ntrackers:")
+        for name in sorted(trackers):
+            print(f"  {name:<10} {Tracker.load(name).summary}")
+        return 0 if asked else 2
+    if args.tracker.endswith(".toml"):
+        run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
+        spec = read_pipeline(Path(args.tracker))
+        bus = bus_config(run_args, defaults=spec.bus, source=args.tracker)
+        return run_job(bus, spec, args.tracker, _display(run_args))
+    p, source_flags, own_flags = _run_parser(args.tracker)
+    run_args = p.parse_args(args.rest, namespace=args)
+    given = given_values(run_args, source_flags)
+    options = given_values(run_args, own_flags)
+    sources = given.get("source", [])
+    if not sources:
+        p.error("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
+    if any(uri.startswith(RECORDING_SCHEME) for uri in sources):
+        if len(sources) > 1 or len(given) > 1 or run_args.scene_option:
+            raise JobError("a recording is the whole rig: give one --source recording:PATH and no other source "
+                           "option")
+        source: NodeSpec | Recording = Recording.open(sources[0])
+    else:
+        scene = {}
+        for option in run_args.scene_option or ():
+            name, sep, value = option.partition("=")
+            if not sep or not name:
+                raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
+            scene[name] = value
+        try:
+            captured = kind("capture").validate({**given, "scene": scene})
+        except ValidationError as exc:
+            raise ValueError(explain(exc, source_flags, "source")) from exc
+        source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
+        options = _with_known_settings(options, own_flags, captured)
+    spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
+    if run_args.save_pipeline is not None:
+        made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
+        save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "
+                      f"{shlex.quote(str(run_args.save_pipeline))}")
+        print(f"wrote {run_args.save_pipeline}: {len(spec.nodes)} nodes ({', '.join(spec.nodes)}); "
+              f"run it with `artrack up {run_args.save_pipeline}`")
+        return 0
+    bus = bus_config(run_args, defaults=spec.bus)
+    if isinstance(source, Recording):
+        bus = source.on_bus(bus)
+    return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
+
+
+def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
+    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
+    tracker's flags not given; each value taken said in one line."""
+    from services.capture.sources import known_settings
+
+    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
+    taken = dict(options)
+    for flag in flags:
+        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
+            value, uri = known[flag.field]
+            taken[flag.key] = value
+            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, value, uri, flag.option)
+    return taken
+
+
+def _command_line(argv: list[str], without: str) -> str:
+    """``artrack ARGV...`` as a shell would take it, less the option ``without`` and its value."""
+    kept, skip = [], False
+    for arg in argv:
+        if skip or arg == without or arg.startswith(without + "="):
+            skip = arg == without and not skip
+            continue
+        kept.append(arg)
+    return " ".join(shlex.quote(arg) for arg in ["artrack", *kept])
+
+
+def _pipeline_job_parser(path: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"artrack run {path}", description="a pipeline file run as one job: its "
+                                "sources start last, and the job ends when they do")
+    _display_options(p.add_argument_group("job"))
+    add_bus_options(p)
+    return p
+
+
+def add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", add_help=False, help="one job: a source through a tracker (`artrack trackers` lists "
+                       "them; `artrack run TRACKER --help` its options), optionally recorded")
+    p.add_argument("tracker", nargs="?", metavar="TRACKER")
+    p.set_defaults(func=cmd_run)
