@@ -378,7 +378,8 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
 
 def check_source(uri: str) -> tuple[str, str]:
     """``(scheme, rest)`` of ``uri`` once what can be told without opening it is right: the URI's
-    form, a video file that exists, an image folder that exists (SourceError otherwise)."""
+    form, a video file that exists, an image folder that exists, camera folders that pair up
+    (SourceError otherwise)."""
     try:
         scheme, rest = check_uri(uri)
     except ValueError as exc:
@@ -390,6 +391,8 @@ def check_source(uri: str) -> tuple[str, str]:
         raise SourceError(f"{uri}: no such file")
     if scheme == "images" and not path.is_dir():
         raise SourceError(f"{uri}: no such folder")
+    if scheme == "images" and camera_folders(path):
+        CameraFoldersSource(uri, camera_folders(path))  # folders that do not pair up are refused here
     return scheme, rest
 
 

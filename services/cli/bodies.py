@@ -71,7 +71,8 @@ def cmd_bodies_define(args: argparse.Namespace) -> int:
         raise ValueError(f"{where}: {len(points)} unlabelled point(s), a body needs at least 3")
     spheres, _ = body_frame(points)
     parse_bodies({"bodies": [{"name": args.name, "spheres": spheres.tolist()}]}, where)
-    doubts = [w for w in check_bodies({**bodies, args.name: spheres}) if repr(args.name) in w]
+    doubts = sorted((w for w in check_bodies({**bodies, args.name: spheres}) if repr(args.name) in w),
+                    key=lambda w: not w.startswith(f"body {args.name!r}"))  # the new body's own first
     if doubts:
         raise ValueError(f"{where}: refused: {doubts[0]}")
     save_bodies(args.bodies, {**bodies, args.name: spheres})
