@@ -132,3 +132,12 @@ def test_cameras_are_in_natural_order(tmp_path):
         write_images(tmp_path / name, ["0.5.png"])
     (tmp_path / "truth").mkdir()
     assert camera_names((f"images:{tmp_path}",), {}) == ["cam1", "cam2", "cam10"]
+
+
+def test_a_kitti_sequence_is_a_rig_timed_by_its_times_file(tmp_path):
+    write_images(tmp_path / "image_0", ["000000.png", "000001.png"])
+    write_images(tmp_path / "image_1", ["000000.png", "000001.png"])
+    (tmp_path / "times.txt").write_text("0.000000e+00\n1.036000e-01\n")
+    frames = frames_of(f"images:{tmp_path}")
+    assert [(f.time_ns, list(f.images)) for f in frames] == [(0, ["image_0", "image_1"]),
+                                                            (103_600_000, ["image_0", "image_1"])]
