@@ -5,7 +5,10 @@
 ``video:PATH``              any file OpenCV reads; frame times from the container
 ``images:DIR``              sorted image files; a TUM ``rgb.txt`` or KITTI ``times.txt`` in DIR
                             (or its parent, for KITTI) gives the frame times, and so do file
-                            names that are numbers (TUM's ``<timestamp>.png``)
+                            names that are numbers (TUM's ``<timestamp>.png``). A DIR with no
+                            images but sub-folders of them (``cam0/``, ``cam1/``, ...) is a rig:
+                            one camera per sub-folder, named after it, frames paired by time
+                            (or by file name when the folders have no times)
 ``synthetic:SCENE``         a rendered scene with exact ground truth (services.capture.scenes)
 ==========================  ==============================================================
 
@@ -122,6 +125,73 @@ class ImageFolderSource(Source):
             if image is not None:
                 return image.shape[1], image.shape[0]
         return None
+
+
+def camera_folders(folder: Path) -> list[Path]:
+    """The sub-folders of ``folder`` holding image files, in natural name order (cam2 before cam10),
+    when ``folder`` itself holds no image files nor a TUM ``rgb.txt``; empty otherwise."""
+    if not folder.is_dir() or (folder / "rgb.txt").is_file() or any(_is_image(p) for p in folder.iterdir()):
+        return []
+    subfolders = [p for p in folder.iterdir() if p.is_dir() and any(_is_image(f) for f in p.iterdir())]
+    return sorted(subfolders, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+
+
+def _is_image(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
+
+
+class CameraFoldersSource(Source):
+    """A rig in one folder: a sub-folder of images per camera (named after it), one frame per instant.
+
+    Frames are paired by their time when every folder has times (``_folder_entries``), else by file
+    name; SourceError (one line) when a folder has a frame the others lack, or when some folders have
+    times and others not. An instant's ``time_ns`` is its shared time (None when paired by name).
+    """
+
+    def __init__(self, uri: str, folders: list[Path]):
+        self.uri = uri
+        self.camera_names = tuple(folder.name for folder in folders)
+        entries = {folder.name: _folder_entries(folder) for folder in folders}
+        timed = {name: all(t is not None for _, t in rows) for name, rows in entries.items()}
+        if len(set(timed.values())) > 1:
+            with_times = ", ".join(name for name, has in timed.items() if has)
+            raise SourceError(f"{uri}: the camera folders do not pair up: {with_times} have frame times, "
+                              f"{', '.join(name for name, has in timed.items() if not has)} not")
+        by_time = all(timed.values())
+        keyed: dict[str, dict[int | str, Path]] = {}
+        for name, rows in entries.items():
+            keys: list[int | str] = [t if by_time and t is not None else path.stem for path, t in rows]
+            if len(set(keys)) != len(keys):
+                raise SourceError(f"{uri}: {name}/ has two frames with one {'time' if by_time else 'file name'}")
+            keyed[name] = dict(zip(keys, (path for path, _ in rows), strict=True))
+        first = self.camera_names[0]
+        for name in self.camera_names[1:]:
+            for a, b in ((first, name), (name, first)):
+                missing = [key for key in keyed[a] if key not in keyed[b]]
+                if missing:
+                    raise SourceError(f"{uri}: the camera folders do not pair up: {a}/{keyed[a][missing[0]].name} "
+                                      f"has no partner in {b}/ ({len(missing)} such frames; {len(keyed[a])} "
+                                      f"in {a}/, {len(keyed[b])} in {b}/)")
+        order = sorted(keyed[first]) if by_time else list(keyed[first])
+        self.instants = [(key if isinstance(key, int) else None, {name: keyed[name][key] for name in self.camera_names})
+                         for key in order]
+
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        for index, (time_ns, paths) in enumerate(self.instants):
+            images = {name: _read_image(path) for name, path in paths.items()}
+            unread = [str(path) for name, path in paths.items() if images[name] is None]
+            if unread:
+                yield FrameFault(index, f"cannot read {', '.join(unread)}")
+                continue
+            yield SourceFrame(index, time_ns, {name: image for name, image in images.items() if image is not None})
+
+    def first_image_sizes(self) -> list[tuple[int, int] | None]:
+        """``(width, height)`` of each camera's first image, None where it does not read."""
+        sizes: list[tuple[int, int] | None] = []
+        for name in self.camera_names:
+            image = _read_image(self.instants[0][1][name]) if self.instants else None
+            sizes.append(None if image is None else (image.shape[1], image.shape[0]))
+        return sizes
 
 
 def seconds_to_ns(text: str) -> int:
@@ -250,6 +320,10 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
     own: list[tuple[str, ...]] = []
     for uri in uris:
         scheme, rest = check_uri(uri)
+        folders = camera_folders(Path(rest).expanduser()) if scheme == "images" else []
+        if folders:
+            own.append(tuple(folder.name for folder in folders))
+            continue
         if scheme != "synthetic":
             own.append(("cam0",))
             continue
@@ -288,6 +362,8 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
                 sizes.extend((c.width, c.height) for c in make_scene(rest, **scene_options).cameras)
             except ValueError as exc:
                 raise SourceError(f"{uri}: {exc}") from exc
+        elif scheme == "images" and camera_folders(path):
+            sizes.extend(CameraFoldersSource(uri, camera_folders(path)).first_image_sizes())
         elif scheme == "images":
             sizes.append(ImageFolderSource(uri, path).first_image_size())
         elif scheme == "video":
@@ -302,7 +378,8 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
 
 def check_source(uri: str) -> tuple[str, str]:
     """``(scheme, rest)`` of ``uri`` once what can be told without opening it is right: the URI's
-    form, a video file that exists, an image folder that exists (SourceError otherwise)."""
+    form, a video file that exists, an image folder that exists, camera folders that pair up
+    (SourceError otherwise)."""
     try:
         scheme, rest = check_uri(uri)
     except ValueError as exc:
@@ -314,6 +391,8 @@ def check_source(uri: str) -> tuple[str, str]:
         raise SourceError(f"{uri}: no such file")
     if scheme == "images" and not path.is_dir():
         raise SourceError(f"{uri}: no such folder")
+    if scheme == "images" and camera_folders(path):
+        CameraFoldersSource(uri, camera_folders(path))  # folders that do not pair up are refused here
     return scheme, rest
 
 
@@ -324,6 +403,8 @@ def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None)
         return VideoSource(uri, int(rest), live=True)
     if scheme == "video":
         return VideoSource(uri, str(Path(rest).expanduser()), live=False)
+    if scheme == "images" and camera_folders(Path(rest).expanduser()):
+        return CameraFoldersSource(uri, camera_folders(Path(rest).expanduser()))
     if scheme == "images":
         return ImageFolderSource(uri, Path(rest).expanduser())
     return SceneSource(uri, rest, frames, scene_options or {})

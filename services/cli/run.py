@@ -65,6 +65,17 @@ def _display(args: argparse.Namespace):
     return Display.choose(args.progress, args.quiet)
 
 
+def scene_option_texts(given: list[str] | None) -> dict[str, str]:
+    """``--scene-option NAME=VALUE`` flags as ``{name: value text}``; ValueError for one without ``=``."""
+    scene = {}
+    for option in given or ():
+        name, sep, value = option.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
+        scene[name] = value
+    return scene
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.flags import explain, given_values
     from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job, run_job
@@ -98,12 +109,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                            "option")
         source: NodeSpec | Recording = Recording.open(sources[0])
     else:
-        scene = {}
-        for option in run_args.scene_option or ():
-            name, sep, value = option.partition("=")
-            if not sep or not name:
-                raise ValueError(f"--scene-option {option!r}: give NAME=VALUE")
-            scene[name] = value
+        scene = scene_option_texts(run_args.scene_option)
         try:
             captured = kind("capture").validate({**given, "scene": scene})
         except ValidationError as exc:

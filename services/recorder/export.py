@@ -125,13 +125,13 @@ class Export:
         if self.format == "tum":
             yield from self._tum()
         elif self.format == "jsonl":
-            for topic, log_time, message in self._messages():
+            for topic, log_time, message in self.messages():
                 self.rows += 1
                 yield json.dumps(sample_record(topic, log_time, message, self.max_elements))
         else:
             yield from self._csv()
 
-    def _messages(self) -> Iterator[tuple[str, int, Message]]:
+    def messages(self) -> Iterator[tuple[str, int, Message]]:
         """(key, log time, decoded message) of every message on the key, in file order."""
         scan = Scan(self.path)
         wanted, seen = {self.key}, set()
@@ -161,7 +161,7 @@ class Export:
         no calibration carry a placeholder transform, predicted one carried over from an earlier
         frame; neither is a measurement of this frame. Raises ``ExportError`` as ``lines()``.
         """
-        for _, _, message in self._messages():
+        for _, _, message in self.messages():
             if isinstance(message, Pose):
                 if self.child is not None and message.child_frame_id != self.child:
                     continue
@@ -186,7 +186,7 @@ class Export:
 
     def _csv(self) -> Iterator[str]:
         def rows() -> Iterator[dict[str, Any]]:
-            for _, log_time, message in self._messages():
+            for _, log_time, message in self.messages():
                 yield {"received_ns": log_time, **flatten(to_json(message, self.max_elements))}
 
         columns: dict[str, None] = {}
