@@ -138,6 +138,8 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
 
     def solve(clusters: list[list[tuple[int, int]]]) -> list[TriangulatedPoint]:
         """Each cluster's point over all its views (DLT, then Gauss-Newton), all at once."""
+        if not clusters:
+            return []
         pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
         seen = np.zeros((len(clusters), count), bool)
         for row, views in enumerate(clusters):
@@ -251,8 +253,15 @@ def unambiguous(matches: list[tuple[int, int]], cost: np.ndarray, unmatched: flo
         return float(sum(table[r, k] for r, k in found) + unmatched * (rows + columns - 2 * len(found)))
 
     best = total(matches, cost)
+    allowed = np.isfinite(cost) & (cost < unmatched)
+    alone = (allowed.sum(axis=1)[:, None] == 1) & (allowed.sum(axis=0)[None, :] == 1)
     kept = []
     for row, column in matches:
+        if alone[row, column]:
+            # Neither blob has another partner: without this match both stay unmatched, the rest unchanged.
+            if 2.0 * unmatched - cost[row, column] >= margin:
+                kept.append((row, column))
+            continue
         without = cost.copy()
         without[row, column] = np.inf
         if total(gated_assignment(without, unmatched), without) - best >= margin:

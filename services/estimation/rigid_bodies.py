@@ -139,28 +139,49 @@ def body_candidates(spheres: np.ndarray, points: np.ndarray, options: MatchOptio
     ``covariances``: (M, 3, 3) of the points (m^2) for the fits' covariances, or None; ``distances``:
     the points' (M, M) ``pairwise_distances`` when already known. At most ``options.max_candidates``.
     """
-    spheres = check_points(spheres, "spheres")
     points = check_points(points)
-    n = len(spheres)
-    if n < 3:
-        raise ValueError(f"a body needs at least 3 spheres, got {n}")
-    body_distances = pairwise_distances(spheres)
-    point_distances = pairwise_distances(points) if distances is None else distances
-    may_miss = 1 if options.allow_missing and n >= 4 else 0
-    assignments = _assignments(body_distances, point_distances, options.distance_tolerance, may_miss)
+    return _candidates([spheres], points, options, covariances,
+                       pairwise_distances(points) if distances is None else distances)[0]
+
+
+def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOptions, covariances: np.ndarray | None,
+                distances: np.ndarray) -> list[list[Candidate]]:
+    """``body_candidates`` of several bodies, their assignments' fits all in one batched SVD."""
+    bodies = [check_points(spheres, "spheres") for spheres in bodies]
+    for spheres in bodies:
+        if len(spheres) < 3:
+            raise ValueError(f"a body needs at least 3 spheres, got {len(spheres)}")
+    widest = max(len(spheres) for spheres in bodies)
+    found = [_assignments(pairwise_distances(spheres), distances, options.distance_tolerance,
+                          1 if options.allow_missing and len(spheres) >= 4 else 0) for spheres in bodies]
+    # Every assignment of every body, padded to the widest body (padding unseen).
+    owner = np.repeat(np.arange(len(bodies)), [len(a) for a in found])
+    assignments = np.full((len(owner), widest), -1, np.int64)
+    padded = np.zeros((len(bodies), widest, 3))
+    start = 0
+    for b, (spheres, chosen) in enumerate(zip(bodies, found, strict=True)):
+        assignments[start:start + len(chosen), :len(spheres)] = chosen
+        padded[b, :len(spheres)] = spheres
+        start += len(chosen)
     seen = assignments >= 0
-    kept = ~_collinear(spheres, seen)
-    assignments, seen = assignments[kept], seen[kept]
-    transforms, rms = least_squares_transforms(np.broadcast_to(spheres, (len(seen), n, 3)),
-                                               points[np.maximum(assignments, 0)], seen)
+    kept = ~_collinear(padded[owner], seen)
+    owner, assignments, seen = owner[kept], assignments[kept], seen[kept]
+    transforms, rms = least_squares_transforms(padded[owner], points[np.maximum(assignments, 0)], seen)
     good = np.flatnonzero(rms <= options.gate_rms)
-    order = sorted(good.tolist(), key=lambda k: (-int(seen[k].sum()), rms[k], _tree_order(assignments[k], len(points))))
-    return [Candidate(assignments[k], _fit(spheres, points, assignments[k], transforms[k], float(rms[k]), covariances))
-            for k in order[:options.max_candidates]]
+    out = []
+    for b, spheres in enumerate(bodies):
+        mine = good[owner[good] == b]
+        order = sorted(mine.tolist(), key=lambda k: (-int(seen[k].sum()), rms[k],
+                                                     _tree_order(assignments[k], len(points))))
+        out.append([Candidate(assignments[k, :len(spheres)].copy(),
+                              _fit(spheres, points, assignments[k, :len(spheres)], transforms[k], float(rms[k]),
+                                   covariances))
+                    for k in order[:options.max_candidates]])
+    return out
 
 
 def _collinear(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """(A,) bool: whether the spheres ``seen[a]`` ((A, N) bool) of (N, 3) ``spheres`` lie on one line
+    """(A,) bool: whether the spheres ``seen[a]`` ((A, N) bool) of (A, N, 3) ``spheres`` lie on one line
     (``fit_rigid`` refuses them: the rotation about that line is free)."""
     weight = seen[..., None].astype(np.float64)
     mean = (weight * spheres).sum(axis=1) / np.maximum(weight.sum(axis=1), 1.0)
@@ -185,7 +206,7 @@ def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolera
                  may_miss: int) -> np.ndarray:
     """(A, N) int64: every assignment of the N spheres to distinct points (-1: hidden, at most ``may_miss``)
     whose pairwise distances all agree with the body's within ``tolerance``, grown sphere by sphere for all
-    partial assignments at once.
+    branches at once; each branch carries, per sphere still to assign, the points it may still take.
 
     ``body_distances``: (N, N) m; ``point_distances``: (M, M) m.
     """
@@ -194,17 +215,16 @@ def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolera
     agree = np.abs(point_distances[None, None] - body_distances[:, :, None, None]) <= tolerance
     partial = np.zeros((1, 0), np.int64)
     missing = np.zeros(1, np.int64)
+    possible = np.ones((1, n, m), bool)
     for k in range(n):
-        allowed = np.ones((len(partial), m), bool)
-        for s in range(k):
-            rows = np.flatnonzero(partial[:, s] >= 0)
-            allowed[rows] &= agree[k, s, partial[rows, s]]
-            allowed[rows, partial[rows, s]] = False
-        rows, columns = np.nonzero(allowed)
+        rows, columns = np.nonzero(possible[:, k])
+        grown = possible[rows] & agree[:, k, columns].transpose(1, 0, 2)
+        grown[np.arange(len(rows)), :, columns] = False
         hide = np.flatnonzero(missing < may_miss)
         partial = np.vstack([np.hstack([partial[rows], columns[:, None]]),
                              np.hstack([partial[hide], np.full((len(hide), 1), -1, np.int64)])])
         missing = np.concatenate([missing[rows], missing[hide] + 1])
+        possible = np.concatenate([grown, possible[hide]])
     return partial
 
 
@@ -225,7 +245,7 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
                              f"{covariances.shape}")
     distances = pairwise_distances(points)
     names = list(bodies)
-    options_per_body = [body_candidates(bodies[name], points, options, None, distances) for name in names]
+    options_per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []
     choice = _best_choice(options_per_body, len(points))
     matched = {names[k]: BodyMatch(names[k], c.indices, _fit(check_points(bodies[names[k]], "spheres"), points,
                                                             c.indices, c.fit.T_world_body, c.fit.residual_rms,
