@@ -136,8 +136,8 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     stack, count = rig.stack, len(cameras)
     gate = options.reprojection_gate_px
 
-    def solve(clusters: list[list[tuple[int, int]]]) -> list[TriangulatedPoint]:
-        """Each cluster's point over all its views (DLT, then Gauss-Newton), all at once."""
+    def solve(clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
+        """Each cluster's point over all its views (DLT, unless ``start`` has it, then Gauss-Newton), all at once."""
         if not clusters:
             return []
         pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
@@ -145,7 +145,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         for row, views in enumerate(clusters):
             for c, i in views:
                 pixels[row, c], undistorted[row, c], seen[row, c] = blobs[c][i], ideal[c][i], True
-        found = triangulate_many(stack, pixels, seen, options.sigma_px, undistorted)
+        found = triangulate_many(stack, pixels, seen, options.sigma_px, undistorted, start)
         return [TriangulatedPoint(found.points[row], float(found.rms_px[row]), found.covariances[row],
                                   tuple(c for c, _ in views), tuple(i for _, i in views))
                 for row, views in enumerate(clusters)]
@@ -170,13 +170,15 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
 
     unmatched = 1.0 + (count - 2)
 
-    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> np.ndarray:
+    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
         """(len(free), len(single)) cost of pairing blob ``free[r]`` of camera c with ``single[k]``:
         epipolar distance over its gate, plus for each other camera the distance from the pair's
-        point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed."""
+        point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed.
+        Beside it, (len(free), len(single), 3) the pairs' DLT points (NaN where not made)."""
         cost = np.full((len(free), len(single)), np.inf)
+        points_dlt = np.full((len(free), len(single), 3), np.nan)
         if not free or not single:
-            return cost
+            return cost, points_dlt
         distance = np.full((len(free), len(single)), np.inf)
         single_cameras = np.array([a for a, _ in single])
         for a in np.unique(single_cameras):
@@ -185,7 +187,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                                                       ideal[a][[single[k][1] for k in columns]], ideal[c][free]).T
         rows, columns = np.nonzero(distance < options.epipolar_gate_px)
         if not len(rows):
-            return cost
+            return cost, points_dlt
         undistorted = np.zeros((len(rows), count, 2))
         seen = np.zeros((len(rows), count), bool)
         pair_cameras = single_cameras[columns]
@@ -194,7 +196,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         undistorted[:, c] = ideal[c][np.asarray(free)[rows]]
         seen[np.arange(len(rows)), pair_cameras] = True
         seen[:, c] = True
-        points = triangulate_dlt_many(stack.projections, undistorted, seen)
+        points = points_dlt[rows, columns] = triangulate_dlt_many(stack.projections, undistorted, seen)
         with np.errstate(invalid="ignore"):
             in_front = np.all((stack.depths(points) > 0.0) | ~seen, axis=1) & np.all(np.isfinite(points), axis=1)
         support = np.zeros(len(rows))
@@ -211,7 +213,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                 support += np.where(others, near, 0.0)
         cost[rows[in_front], columns[in_front]] = (distance[rows, columns] / options.epipolar_gate_px
                                                    + support)[in_front]
-        return cost
+        return cost, points_dlt
 
     clusters: list[list[tuple[int, int]]] = []
     solved: list[TriangulatedPoint] = []
@@ -228,12 +230,14 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             for (k, _), point in zip(grown, solve([clusters[k] for k, _ in grown]), strict=True):
                 solved[k] = point
         free = [i for i in range(len(blobs[c])) if i not in taken]
-        cost = pairing_costs(c, free, single)
+        cost, points_dlt = pairing_costs(c, free, single)
         used: set[int] = set()
         pairs = unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity)
         candidates = [[single[column], (c, free[row])] for row, column in pairs]
-        for (row, column), views, point in zip(pairs, candidates, solve(candidates), strict=True):
-            if point.rms_px <= gate and np.all(stack.depths(point.point)[0, [v for v, _ in views]] > 0.0):
+        made = solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
+        depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
+        for (row, column), views, point, depth in zip(pairs, candidates, made, depths, strict=True):
+            if point.rms_px <= gate and np.all(depth[[v for v, _ in views]] > 0.0):
                 clusters.append(views)
                 solved.append(point)
                 used.add(column)

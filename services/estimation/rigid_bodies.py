@@ -206,16 +206,21 @@ def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolera
                  may_miss: int) -> np.ndarray:
     """(A, N) int64: every assignment of the N spheres to distinct points (-1: hidden, at most ``may_miss``)
     whose pairwise distances all agree with the body's within ``tolerance``, grown sphere by sphere for all
-    branches at once; each branch carries, per sphere still to assign, the points it may still take.
+    branches at once; each branch carries, per sphere still to assign, the points it may still take (at
+    first those with enough partners at the body's distances).
 
     ``body_distances``: (N, N) m; ``point_distances``: (M, M) m.
     """
     n, m = len(body_distances), len(point_distances)
     # agree[k, s, p, q]: point q may be sphere k when point p is sphere s.
     agree = np.abs(point_distances[None, None] - body_distances[:, :, None, None]) <= tolerance
+    # Point q can be sphere k only if, for all the other spheres but the hidden ones, some point lies at the
+    # right distance from it: most points are ruled out for most spheres before the tree is grown.
+    partners = agree.any(axis=2)
+    partners[np.arange(n), np.arange(n)] = False
+    possible = (partners.sum(axis=1) >= n - 1 - may_miss)[None]
     partial = np.zeros((1, 0), np.int64)
     missing = np.zeros(1, np.int64)
-    possible = np.ones((1, n, m), bool)
     for k in range(n):
         rows, columns = np.nonzero(possible[:, k])
         grown = possible[rows] & agree[:, k, columns].transpose(1, 0, 2)

@@ -206,21 +206,23 @@ class Triangulation:
 
 
 def triangulate_many(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, sigma_px: float,
-                     ideal: np.ndarray | None = None) -> Triangulation:
+                     ideal: np.ndarray | None = None, start: np.ndarray | None = None) -> Triangulation:
     """``triangulate`` for N points at once, each from the cameras of ``stack`` it is seen in.
 
     ``pixels``: (N, C, 2) observed pixels (distorted; any value where unseen); ``seen``: (N, C)
-    bool, at least two per point; ``ideal``: the same pixels undistorted when already known.
+    bool, at least two per point; ``ideal``: the same pixels undistorted when already known;
+    ``start``: (N, 3) their DLT points (``triangulate_dlt_many``) when already known.
     """
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, len(stack), 2)
     seen = np.asarray(seen, dtype=bool).reshape(-1, len(stack))
     if len(pixels) == 0:
         return Triangulation(np.zeros((0, 3)), np.zeros((0, len(stack), 2)), np.zeros(0), np.zeros((0, 3, 3)))
-    if ideal is None:
-        ideal = np.zeros_like(pixels)
-        for c in range(len(stack)):
-            ideal[seen[:, c], c] = undistort_pixels(pixels[seen[:, c], c], stack.K[c], stack.dist[c])
-    start = triangulate_dlt_many(stack.projections, ideal, seen)
+    if start is None:
+        if ideal is None:
+            ideal = np.zeros_like(pixels)
+            for c in range(len(stack)):
+                ideal[seen[:, c], c] = undistort_pixels(pixels[seen[:, c], c], stack.K[c], stack.dist[c])
+        start = triangulate_dlt_many(stack.projections, ideal, seen)
     points, residuals, jacobians = refine_points(stack, pixels, seen, start)
     J = jacobians.reshape(len(points), -1, 3)
     information = J.transpose(0, 2, 1) @ J

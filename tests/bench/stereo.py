@@ -14,13 +14,14 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
 * ``pipeline``: ``tests.bench.stereo_source`` publishes pre-rendered frame pairs at ``rate``
   (Image + CameraInfo per camera, the capture node's way), a ``blobs`` node per camera and the
-  ``rigid_bodies`` node (each its own process) track, and this process follows the poses as a
-  client app (``services.client``). Per instant: latency = arrival of its last pose here - the
-  pair's stamp (three hops: source -> blobs -> rigid_bodies -> here); ``updates_per_s``: instants
-  whose poses arrived, per second of sending; ``dropped_pairs``: instants sent that never became a
-  joined set (the ``points`` messages counted here); the nodes' own drop counts and processing
-  times (``NodeStats``) beside. ``ratio``: pipeline latency p50 over the paced in-process total
-  p50. Target: ``rate`` >= 240 sustained, no pair dropped, p50 <= 3 ms, p99 <= 5 ms.
+  ``rigid_bodies`` node (given the scene's bodies in a bodies file) track, each node its own
+  process, and this process follows the poses as a client app (``services.client``). Per
+  instant: latency = arrival of its last pose here - the pair's stamp (three hops: source ->
+  blobs -> rigid_bodies -> here); ``updates_per_s``: instants whose poses arrived, per second of
+  sending; ``dropped_pairs``: instants sent that never became a joined set (the ``points``
+  messages counted here); the nodes' own drop counts and processing times (``NodeStats``)
+  beside. ``ratio_p50``: pipeline latency p50 over the paced in-process total p50. Target:
+  ``rate`` >= 240 sustained, no pair dropped, p50 <= 3 ms, p99 <= 5 ms.
 
 ``python -m tests.bench.stereo [RATE ...]`` prints the lines (about 30 s per rate, default 240 and 360).
 """
@@ -29,8 +30,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections import defaultdict
@@ -48,6 +51,7 @@ from services.capture.scenes import make_scene
 from services.client import PoseUpdate, connect
 from services.detection import blobs_node
 from services.estimation import rigid_bodies_node
+from services.estimation.bodies_file import save_bodies
 from services.estimation.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.rigid_bodies import Matching, match_bodies
 from services.geometry.absolute_orientation import fit_rigid
@@ -146,6 +150,8 @@ def pipeline(rate: float) -> dict[str, Any]:
     env = {**os.environ, **bus.to_env()}
     session = open_session(bus)
     names = [f"cam{i}" for i in range(2)]
+    bodies_file = Path(tempfile.mkdtemp(prefix="stereo_bench")) / "bodies.yaml"
+    save_bodies(bodies_file, make_scene("ir_rig", body_count=BODIES).bodies)
     points_seen: list[int] = []
     points_subscriber = session.declare_subscriber(bus.keys.points(), lambda sample: points_seen.append(1))
     probe = connect(connect=endpoint, namespace=bus.namespace, rig=bus.rig, app="stereo_probe")
@@ -154,7 +160,7 @@ def pipeline(rate: float) -> dict[str, Any]:
     processes: list[subprocess.Popen] = []
     try:
         nodes = {f"blobs-{name}": ("blobs", {"camera": name}) for name in names}
-        nodes["bodies"] = ("rigid_bodies", {"cameras": names})
+        nodes["bodies"] = ("rigid_bodies", {"cameras": names, "bodies": str(bodies_file)})
         processes += [subprocess.Popen(node_command(kind, name, params), cwd=ROOT, env=env)
                       for name, (kind, params) in nodes.items()]
         if wait_for_nodes(session, bus.keys, set(nodes), START_S) != set(nodes):
@@ -192,6 +198,7 @@ def pipeline(rate: float) -> dict[str, Any]:
         points_subscriber.undeclare()
         session.close()
         router.close()
+        shutil.rmtree(bodies_file.parent, ignore_errors=True)
 
 
 def bench_stereo(rates: tuple[float, ...] = RATES) -> list[dict[str, Any]]:
