@@ -20,8 +20,10 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   blobs -> rigid_bodies -> here); ``updates_per_s``: instants whose poses arrived, per second of
   sending; ``dropped_pairs``: instants sent that never became a joined set (the ``points``
   messages counted here); the nodes' own drop counts and processing times (``NodeStats``)
-  beside. ``ratio_p50``: pipeline latency p50 over the paced in-process total p50. Target:
-  ``rate`` >= 240 sustained, no pair dropped, p50 <= 3 ms, p99 <= 5 ms.
+  beside, and the CPU each used while the pairs flowed (``cores``, 1.0 = one busy core; the
+  source's own is left out, the bench process's holds the client and the router).
+  ``ratio_p50``: pipeline latency p50 over the paced in-process total p50. Target: ``rate``
+  >= 240 sustained, no pair dropped, p50 <= 3 ms, p99 <= 5 ms.
 
 ``python -m tests.bench.stereo [RATE ...]`` prints the lines (about 30 s per rate, default 240 and 360).
 """
@@ -59,7 +61,7 @@ from services.geometry.triangulation import triangulate_many
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import node_command
 from services.launcher.router import router_config
-from tests.bench.link import at_rate, free_port, stop_processes
+from tests.bench.link import at_rate, cpu_seconds, free_port, stop_processes
 
 ROOT = Path(__file__).resolve().parents[2]
 RATES = (240.0, 360.0)
@@ -168,12 +170,18 @@ def pipeline(rate: float) -> dict[str, Any]:
         source = subprocess.Popen([sys.executable, "-m", "tests.bench.stereo_source", str(rate), str(frames)],
                                   cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
         processes.append(source)
+        cpu_before = [cpu_seconds(p.pid) for p in processes[:len(nodes)]]
+        own_before = time.process_time()
         quiet_since, seen = time.monotonic(), 0
         while time.monotonic() - quiet_since < QUIET_S or source.poll() is None:
             time.sleep(0.1)
             if len(arrived) != seen:
                 quiet_since, seen = time.monotonic(), len(arrived)
         sent = json.loads(source.stdout.read() if source.stdout else "{}")
+        seconds = frames / sent.get("rate_hz", rate)
+        cores = {name: round((cpu_seconds(p.pid) - before) / seconds, 2)
+                 for name, p, before in zip(nodes, processes, cpu_before, strict=False)}
+        cores["client_and_router"] = round((time.process_time() - own_before) / seconds, 2)
         arrivals: dict[int, int] = {}
         stamps: dict[int, int] = {}
         for update in arrived:
@@ -191,7 +199,8 @@ def pipeline(rate: float) -> dict[str, Any]:
                 "dropped_pairs": frames - len(points_seen),
                 "node_dropped": {name: s.dropped if s else None for name, s in stats.items()},
                 "node_p50_ms": {name: s.processing_ms_p50 if s else None for name, s in stats.items()},
-                "node_p99_ms": {name: s.processing_ms_p99 if s else None for name, s in stats.items()}}
+                "node_p99_ms": {name: s.processing_ms_p99 if s else None for name, s in stats.items()},
+                "cores": cores}
     finally:
         probe.close()
         stop_processes(processes)
