@@ -9,7 +9,8 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   Points3D and Pose messages built and encoded). ``triangulation`` is the final points'
   batched DLT + Gauss-Newton + covariance redone alone, and ``correspondence`` what the rest of
   ``triangulate_blobs`` takes (its total minus that); ``fit`` is the chosen bodies' rigid fits
-  with covariance redone alone, ``matching`` the rest of ``match_bodies``. ``total``: blobs +
+  with covariance redone alone (one batched least squares, then each covariance, as
+  ``match_bodies`` does), ``matching`` the rest of ``match_bodies``. ``total``: blobs +
   triangulate_blobs + match_bodies + messages. p50 / p99 ms after ``WARMUP`` instants.
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
 * ``pipeline``: ``tests.bench.stereo_source`` publishes pre-rendered frame pairs at ``rate``
@@ -56,7 +57,7 @@ from services.estimation import rigid_bodies_node
 from services.estimation.bodies_file import save_bodies
 from services.estimation.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.rigid_bodies import Matching, match_bodies
-from services.geometry.absolute_orientation import fit_rigid
+from services.geometry.absolute_orientation import least_squares_transforms, pose_covariance
 from services.geometry.triangulation import triangulate_many
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import node_command
@@ -130,11 +131,22 @@ def _triangulation_alone(stack: Any, found: list, blobs: list, sigma_px: float) 
 
 
 def _fit_alone(bodies: dict[str, np.ndarray], points: np.ndarray, covariances: np.ndarray, matching: Matching) -> float:
-    """Seconds the chosen bodies' rigid fits with covariance take alone."""
+    """Seconds the chosen bodies' rigid fits take alone, done as ``match_bodies`` does them: one batched
+    least squares (``least_squares_transforms``), then each fit's covariance."""
+    chosen = list(matching.bodies.items())
+    if not chosen:
+        return 0.0
+    widest = max(len(bodies[name]) for name, _ in chosen)
+    spheres, world = np.zeros((len(chosen), widest, 3)), np.zeros((len(chosen), widest, 3))
+    used = np.zeros((len(chosen), widest), bool)
+    for row, (name, match) in enumerate(chosen):
+        count = len(bodies[name])
+        spheres[row, :count], used[row, :count] = bodies[name], match.indices >= 0
+        world[row, :count] = points[np.maximum(match.indices, 0)]
     started = time.perf_counter()
-    for name, match in matching.bodies.items():
-        seen = match.indices >= 0
-        fit_rigid(bodies[name][seen], points[match.indices[seen]], covariances[match.indices[seen]])
+    transforms, _ = least_squares_transforms(spheres, world, used)
+    for row, (_, match) in enumerate(chosen):
+        pose_covariance(transforms[row], spheres[row][used[row]], covariances[match.indices[match.indices >= 0]])
     return time.perf_counter() - started
 
 
