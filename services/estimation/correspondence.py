@@ -153,19 +153,24 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     def final(clusters: list[list[tuple[int, int]]], solved: list[TriangulatedPoint]) -> list[TriangulatedPoint]:
         """Each cluster's point, the worst view dropped while one breaks the gate and more than two
         remain; those whose RMS of what is left is above the gate are left out."""
-        pending = list(range(len(clusters)))
+        pending = [k for k in range(len(clusters)) if len(clusters[k]) > 2]
         while pending:
+            observed, seen = np.zeros((len(pending), count, 2)), np.zeros((len(pending), count), bool)
+            for row, k in enumerate(pending):
+                for c, i in clusters[k]:
+                    observed[row, c], seen[row, c] = blobs[c][i], True
+            with np.errstate(invalid="ignore"):
+                errors = np.where(seen, np.linalg.norm(stack.project(np.array([solved[k].point for k in pending]))
+                                                       - observed, axis=2), -np.inf)
+                broken = ~(np.max(errors, axis=1) <= gate)
             again = []
-            for k in pending:
-                if len(clusters[k]) > 2:
-                    errors = np.linalg.norm(stack.project(solved[k].point)[0, [c for c, _ in clusters[k]]]
-                                            - np.array([blobs[c][i] for c, i in clusters[k]]), axis=1)
-                    if not np.max(errors) <= gate:
-                        clusters[k] = [v for j, v in enumerate(clusters[k]) if j != int(np.argmax(errors))]
-                        again.append(k)
+            for row in np.flatnonzero(broken):
+                k, worst = pending[row], int(np.argmax(errors[row]))
+                clusters[k] = [v for v in clusters[k] if v[0] != worst]
+                again.append(k)
             for k, point in zip(again, solve([clusters[k] for k in again]), strict=True):
                 solved[k] = point
-            pending = again
+            pending = [k for k in again if len(clusters[k]) > 2]
         return [p for p in solved if p.rms_px <= gate]
 
     unmatched = 1.0 + (count - 2)

@@ -211,7 +211,7 @@ def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolera
 
     ``body_distances``: (N, N) m; ``point_distances``: (M, M) m.
     """
-    n, m = len(body_distances), len(point_distances)
+    n = len(body_distances)
     # agree[k, s, p, q]: point q may be sphere k when point p is sphere s.
     agree = np.abs(point_distances[None, None] - body_distances[:, :, None, None]) <= tolerance
     # Point q can be sphere k only if, for all the other spheres but the hidden ones, some point lies at the
