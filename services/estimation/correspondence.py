@@ -164,7 +164,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                                                        - observed, axis=2), -np.inf)
                 broken = ~(np.max(errors, axis=1) <= gate)
             again = []
-            for row in np.flatnonzero(broken):
+            for row in np.flatnonzero(broken).tolist():
                 k, worst = pending[row], int(np.argmax(errors[row]))
                 clusters[k] = [v for v in clusters[k] if v[0] != worst]
                 again.append(k)
