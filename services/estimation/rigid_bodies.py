@@ -220,8 +220,12 @@ def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolera
     partners[np.arange(n), np.arange(n)] = False
     possible = (partners.sum(axis=1) >= n - 1 - may_miss)[None]
     partial = np.zeros((1, 0), np.int64)
+    if np.count_nonzero(~possible[0].any(axis=1)) > may_miss:
+        return np.zeros((0, n), np.int64)
     missing = np.zeros(1, np.int64)
     for k in range(n):
+        if not len(partial):
+            return np.zeros((0, n), np.int64)
         rows, columns = np.nonzero(possible[:, k])
         grown = possible[rows] & agree[:, k, columns].transpose(1, 0, 2)
         grown[np.arange(len(rows)), :, columns] = False

@@ -24,6 +24,9 @@ __all__ = ["TriangulatedPoint", "Triangulation", "projection_matrix", "triangula
            "triangulate_midpoint", "camera_rays", "reproject", "refine_point", "refine_points", "triangulate",
            "triangulate_many"]
 
+STEP_TOLERANCE_M = 1e-10
+"""Gauss-Newton stops at a step shorter than this (m): the point is where it would stay."""
+
 
 @dataclass(frozen=True)
 class TriangulatedPoint:
@@ -151,8 +154,8 @@ def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, poin
     ``pixels``: (N, C, 2) observed pixels (any value where unseen); ``seen``: (N, C) bool;
     ``points``: (N, 3) starts, world frame (a non-finite start is left as it is). Returns
     ``(points (N, 3), residuals (N, C, 2) px, jacobians (N, C, 2, 3) px/m)``, residuals and
-    jacobians zero where unseen. Each point stops on its own (a step that does not lower its
-    error, or a step under 1e-10 m).
+    jacobians zero where unseen. Each point stops on its own: at a step that does not lower its
+    error, or at a step under ``STEP_TOLERANCE_M`` (not taken, which saves evaluating it).
     """
     pixels = np.asarray(pixels, dtype=np.float64)
     points = np.array(points, dtype=np.float64).reshape(-1, 3)
@@ -173,6 +176,11 @@ def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, poin
             J = jacobians[rows].reshape(len(rows), -1, 3)
             r = residuals[rows].reshape(len(rows), -1)
             step = -_solve(J.transpose(0, 2, 1) @ J, np.einsum("nki,nk->ni", J, r))
+            converged = np.linalg.norm(step, axis=1) < STEP_TOLERANCE_M
+            active[rows[converged]] = False
+            rows, step = rows[~converged], step[~converged]
+            if not len(rows):
+                break
             candidate = points[rows] + step
             new_residuals, new_jacobians = evaluate(rows, candidate)
             better = np.sum(new_residuals**2, axis=(1, 2)) <= np.sum(residuals[rows]**2, axis=(1, 2))
@@ -180,7 +188,6 @@ def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, poin
             points[accepted] = candidate[better]
             residuals[accepted], jacobians[accepted] = new_residuals[better], new_jacobians[better]
             active[rows[~better]] = False
-            active[accepted[np.linalg.norm(step[better], axis=1) < 1e-10]] = False
     return points, residuals, jacobians
 
 
