@@ -26,7 +26,7 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   ``ratio_p50``: pipeline latency p50 over the paced in-process total p50. Target: ``rate``
   >= 240 sustained, no pair dropped, p50 <= 3 ms, p99 <= 5 ms.
 
-``python -m tests.bench.stereo [RATE ...]`` prints the lines (about 30 s per rate, default 240 and 360).
+``python -m tests.bench.stereo [RATE ...]`` prints the lines (about 30 s per rate, default 120, 240 and 360).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ from services.launcher.router import router_config
 from tests.bench.link import at_rate, cpu_seconds, free_port, stop_processes
 
 ROOT = Path(__file__).resolve().parents[2]
-RATES = (240.0, 360.0)
+RATES = (120.0, 240.0, 360.0)
 SECONDS = 10.0
 INSTANTS = 480
 BODIES = 3
