@@ -37,17 +37,13 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from services.geometry.camera import CameraModel, undistort_pixels
+from services.geometry.camera_stack import CameraStack
 from services.geometry.epipolar import epipolar_distances, fundamental_matrix
 from services.geometry.se3 import invert
-from services.geometry.triangulation import (
-    TriangulatedPoint,
-    projection_matrix,
-    reproject,
-    triangulate,
-    triangulate_dlt,
-)
+from services.geometry.triangulation import TriangulatedPoint, triangulate_dlt_many, triangulate_many
 
-__all__ = ["CorrespondenceOptions", "gated_assignment", "unambiguous", "fundamental_matrices", "triangulate_blobs"]
+__all__ = ["CorrespondenceOptions", "RigGeometry", "gated_assignment", "unambiguous", "fundamental_matrices",
+           "rig_geometry", "triangulate_blobs"]
 
 
 @dataclass(frozen=True)
@@ -97,9 +93,30 @@ def fundamental_matrices(cameras: Sequence[CameraModel]) -> dict[tuple[int, int]
     return found
 
 
-def _in_front(camera: CameraModel, point: np.ndarray) -> bool:
-    T_camera_world = invert(camera.T_rig_camera)
-    return float(T_camera_world[2, :3] @ point + T_camera_world[2, 3]) > 0.0
+@dataclass(frozen=True)
+class RigGeometry:
+    """What correspondences need of a set of cameras, made once per calibration: the ``stack`` and
+    ``{(b, a): F_b_a}`` (``fundamental_matrices``)."""
+
+    stack: CameraStack
+    fundamental: dict[tuple[int, int], np.ndarray]
+
+
+_RECENT_RIGS: dict[bytes, RigGeometry] = {}
+RECENT_RIGS = 8
+"""Calibrations whose ``RigGeometry`` is kept (a node's cameras rarely change)."""
+
+
+def rig_geometry(cameras: Sequence[CameraModel]) -> RigGeometry:
+    """The ``RigGeometry`` of ``cameras``, made once for each calibration (keyed by its numbers)."""
+    key = b"".join(np.concatenate([np.ravel(c.K), np.ravel(c.dist), np.ravel(c.T_rig_camera)]).astype(np.float64)
+                   .tobytes() for c in cameras)
+    found = _RECENT_RIGS.get(key)
+    if found is None:
+        if len(_RECENT_RIGS) >= RECENT_RIGS:
+            del _RECENT_RIGS[next(iter(_RECENT_RIGS))]
+        found = _RECENT_RIGS[key] = RigGeometry(CameraStack.of(cameras), fundamental_matrices(cameras))
+    return found
 
 
 def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray],
@@ -115,81 +132,124 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                          f"and {len(blobs)} blob lists")
     blobs = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in blobs]
     ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
-    F = fundamental_matrices(cameras)
-    projections = np.array([projection_matrix(c.K, invert(c.T_rig_camera)) for c in cameras])
+    rig = rig_geometry(cameras)
+    stack, count = rig.stack, len(cameras)
     gate = options.reprojection_gate_px
 
-    def solve(views: list[tuple[int, int]]) -> TriangulatedPoint:
-        return triangulate([cameras[c] for c, _ in views], np.array([blobs[c][i] for c, i in views]),
-                           options.sigma_px, [c for c, _ in views], [i for _, i in views])
+    def solve(clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
+        """Each cluster's point over all its views (DLT, unless ``start`` has it, then Gauss-Newton), all at once."""
+        if not clusters:
+            return []
+        pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
+        seen = np.zeros((len(clusters), count), bool)
+        for row, views in enumerate(clusters):
+            for c, i in views:
+                pixels[row, c], undistorted[row, c], seen[row, c] = blobs[c][i], ideal[c][i], True
+        found = triangulate_many(stack, pixels, seen, options.sigma_px, undistorted, start)
+        return [TriangulatedPoint(found.points[row], float(found.rms_px[row]), found.covariances[row],
+                                  tuple(c for c, _ in views), tuple(i for _, i in views))
+                for row, views in enumerate(clusters)]
 
-    def final(views: list[tuple[int, int]]) -> TriangulatedPoint | None:
-        """The cluster's point over all its views, the worst view dropped while one breaks the
-        gate and more than two remain; None when the RMS of what is left is above the gate."""
-        point = solve(views)
-        while len(views) > 2:
-            errors = [float(np.linalg.norm(reproject(cameras[c], point.point)[0] - blobs[c][i])) for c, i in views]
-            if max(errors) <= gate:
-                break
-            views = [v for k, v in enumerate(views) if k != int(np.argmax(errors))]
-            point = solve(views)
-        return point if point.rms_px <= gate else None
+    def final(clusters: list[list[tuple[int, int]]], solved: list[TriangulatedPoint]) -> list[TriangulatedPoint]:
+        """Each cluster's point, the worst view dropped while one breaks the gate and more than two
+        remain; those whose RMS of what is left is above the gate are left out."""
+        pending = [k for k in range(len(clusters)) if len(clusters[k]) > 2]
+        while pending:
+            observed, seen = np.zeros((len(pending), count, 2)), np.zeros((len(pending), count), bool)
+            for row, k in enumerate(pending):
+                for c, i in clusters[k]:
+                    observed[row, c], seen[row, c] = blobs[c][i], True
+            with np.errstate(invalid="ignore"):
+                errors = np.where(seen, np.linalg.norm(stack.project(np.array([solved[k].point for k in pending]))
+                                                       - observed, axis=2), -np.inf)
+                broken = ~(np.max(errors, axis=1) <= gate)
+            again = []
+            for row in np.flatnonzero(broken).tolist():
+                k, worst = pending[row], int(np.argmax(errors[row]))
+                clusters[k] = [v for v in clusters[k] if v[0] != worst]
+                again.append(k)
+            for k, point in zip(again, solve([clusters[k] for k in again]), strict=True):
+                solved[k] = point
+            pending = [k for k in again if len(clusters[k]) > 2]
+        return [p for p in solved if p.rms_px <= gate]
 
-    unmatched = 1.0 + (len(cameras) - 2)
+    unmatched = 1.0 + (count - 2)
 
-    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> np.ndarray:
+    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
         """(len(free), len(single)) cost of pairing blob ``free[r]`` of camera c with ``single[k]``:
         epipolar distance over its gate, plus for each other camera the distance from the pair's
-        point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed."""
+        point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed.
+        Beside it, (len(free), len(single), 3) the pairs' DLT points (NaN where not made)."""
         cost = np.full((len(free), len(single)), np.inf)
-        if not free:
-            return cost
-        for column, (a, j) in enumerate(single):
-            distance = epipolar_distances(F[(c, a)], ideal[a][j:j + 1], ideal[c][free])[0]
-            for row in np.flatnonzero(distance < options.epipolar_gate_px):
-                try:
-                    point = triangulate_dlt(projections[[a, c]], np.array([ideal[a][j], ideal[c][free[row]]]))
-                except ValueError:
+        points_dlt = np.full((len(free), len(single), 3), np.nan)
+        if not free or not single:
+            return cost, points_dlt
+        distance = np.full((len(free), len(single)), np.inf)
+        single_cameras = np.array([a for a, _ in single])
+        for a in np.unique(single_cameras):
+            columns = np.flatnonzero(single_cameras == a)
+            distance[:, columns] = epipolar_distances(rig.fundamental[(c, int(a))],
+                                                      ideal[a][[single[k][1] for k in columns]], ideal[c][free]).T
+        rows, columns = np.nonzero(distance < options.epipolar_gate_px)
+        if not len(rows):
+            return cost, points_dlt
+        undistorted = np.zeros((len(rows), count, 2))
+        seen = np.zeros((len(rows), count), bool)
+        pair_cameras = single_cameras[columns]
+        undistorted[np.arange(len(rows)), pair_cameras] = [ideal[a][single[k][1]] for a, k in
+                                                           zip(pair_cameras, columns, strict=True)]
+        undistorted[:, c] = ideal[c][np.asarray(free)[rows]]
+        seen[np.arange(len(rows)), pair_cameras] = True
+        seen[:, c] = True
+        points = points_dlt[rows, columns] = triangulate_dlt_many(stack.projections, undistorted, seen)
+        with np.errstate(invalid="ignore"):
+            in_front = np.all((stack.depths(points) > 0.0) | ~seen, axis=1) & np.all(np.isfinite(points), axis=1)
+        support = np.zeros(len(rows))
+        if count > 2:
+            projected = stack.project(points)
+            for e in range(count):
+                others = ~seen[:, e]
+                if not np.any(others):
                     continue
-                if not (_in_front(cameras[a], point) and _in_front(cameras[c], point)):
-                    continue
-                support = sum(nearest(reproject(cameras[e], point)[0], blobs[e]) for e in range(len(cameras))
-                              if e not in (a, c))
-                cost[row, column] = distance[row] / options.epipolar_gate_px + support
-        return cost
-
-    def nearest(pixel: np.ndarray, observed: np.ndarray) -> float:
-        """Distance from ``pixel`` to the nearest of (M, 2) ``observed`` over the reprojection gate, at most 1."""
-        if len(observed) == 0 or not np.all(np.isfinite(pixel)):
-            return 1.0
-        return min(float(np.min(np.linalg.norm(observed - pixel, axis=1))) / gate, 1.0)
+                near = np.ones(len(rows))
+                if len(blobs[e]):
+                    gaps = np.linalg.norm(projected[:, e, None, :] - blobs[e][None], axis=2).min(axis=1) / gate
+                    near = np.where(np.isfinite(gaps), np.minimum(gaps, 1.0), 1.0)
+                support += np.where(others, near, 0.0)
+        cost[rows[in_front], columns[in_front]] = (distance[rows, columns] / options.epipolar_gate_px
+                                                   + support)[in_front]
+        return cost, points_dlt
 
     clusters: list[list[tuple[int, int]]] = []
-    points: list[np.ndarray] = []
+    solved: list[TriangulatedPoint] = []
     single: list[tuple[int, int]] = [(0, i) for i in range(len(blobs[0]))]
-    for c in range(1, len(cameras)):
+    for c in range(1, count):
         taken: set[int] = set()
         if clusters and len(blobs[c]):
-            projected = reproject(cameras[c], np.array(points))
+            projected = stack.project(np.array([p.point for p in solved]))[:, c]
             cost = np.linalg.norm(projected[:, None, :] - blobs[c][None, :, :], axis=2)
-            for k, i in gated_assignment(cost, gate):
+            grown = gated_assignment(cost, gate)
+            for k, i in grown:
                 clusters[k].append((c, i))
-                points[k] = solve(clusters[k]).point
                 taken.add(i)
+            for (k, _), point in zip(grown, solve([clusters[k] for k, _ in grown]), strict=True):
+                solved[k] = point
         free = [i for i in range(len(blobs[c])) if i not in taken]
-        cost = pairing_costs(c, free, single)
+        cost, points_dlt = pairing_costs(c, free, single)
         used: set[int] = set()
-        for row, column in unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity):
-            views = [single[column], (c, free[row])]
-            point = solve(views)
-            if point.rms_px <= gate and all(_in_front(cameras[v], point.point) for v, _ in views):
+        pairs = unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity)
+        candidates = [[single[column], (c, free[row])] for row, column in pairs]
+        made = solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
+        depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
+        for (row, column), views, point, depth in zip(pairs, candidates, made, depths, strict=True):
+            if point.rms_px <= gate and np.all(depth[[v for v, _ in views]] > 0.0):
                 clusters.append(views)
-                points.append(point.point)
+                solved.append(point)
                 used.add(column)
                 taken.add(free[row])
         single = [s for column, s in enumerate(single) if column not in used]
         single += [(c, i) for i in range(len(blobs[c])) if i not in taken]
-    return [p for p in map(final, clusters) if p is not None and p.views >= options.min_views]
+    return [p for p in final(clusters, solved) if p.views >= options.min_views]
 
 
 def unambiguous(matches: list[tuple[int, int]], cost: np.ndarray, unmatched: float,
@@ -202,8 +262,15 @@ def unambiguous(matches: list[tuple[int, int]], cost: np.ndarray, unmatched: flo
         return float(sum(table[r, k] for r, k in found) + unmatched * (rows + columns - 2 * len(found)))
 
     best = total(matches, cost)
+    allowed = np.isfinite(cost) & (cost < unmatched)
+    alone = (allowed.sum(axis=1)[:, None] == 1) & (allowed.sum(axis=0)[None, :] == 1)
     kept = []
     for row, column in matches:
+        if alone[row, column]:
+            # Neither blob has another partner: without this match both stay unmatched, the rest unchanged.
+            if 2.0 * unmatched - cost[row, column] >= margin:
+                kept.append((row, column))
+            continue
         without = cost.copy()
         without[row, column] = np.inf
         if total(gated_assignment(without, unmatched), without) - best >= margin:

@@ -7,9 +7,11 @@ bodies' spheres and stray markers. Matching runs in three steps:
 1. ``body_candidates``: for one body, every assignment of spheres to points whose pairwise
    distances all agree with the body's to within ``distance_tolerance`` (an interpretation tree:
    spheres taken in order, each new one tried only on points at the right distance from every
-   point already chosen). A body of four or more spheres may leave one sphere unassigned
+   point already chosen; every branch of one depth grown at once from a table of which point
+   pairs fit which sphere pairs). A body of four or more spheres may leave one sphere unassigned
    (hidden); a three-sphere body needs all three. Each assignment is verified by a rigid fit
-   (``fit_rigid``, least squares): its residual RMS must be within ``gate_rms``.
+   (least squares, all of a body's assignments in one ``least_squares_transforms``): its
+   residual RMS must be within ``gate_rms``. Covariances are computed for the chosen fits only.
 2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
    whole set at once: the most bodies, then the most spheres, then the least total squared
    residual (a branch and bound over the bodies), so a body listed first never takes a point
@@ -25,7 +27,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.geometry.absolute_orientation import RigidFit, fit_rigid
+from services.geometry.absolute_orientation import (
+    COLLINEAR_TOLERANCE,
+    RigidFit,
+    least_squares_transforms,
+    pose_covariance,
+)
 
 __all__ = [
     "DEFAULT_OPTIONS",
@@ -132,50 +139,102 @@ def body_candidates(spheres: np.ndarray, points: np.ndarray, options: MatchOptio
     ``covariances``: (M, 3, 3) of the points (m^2) for the fits' covariances, or None; ``distances``:
     the points' (M, M) ``pairwise_distances`` when already known. At most ``options.max_candidates``.
     """
-    spheres = check_points(spheres, "spheres")
     points = check_points(points)
-    n = len(spheres)
-    if n < 3:
-        raise ValueError(f"a body needs at least 3 spheres, got {n}")
-    body_distances = pairwise_distances(spheres)
-    point_distances = pairwise_distances(points) if distances is None else distances
-    may_miss = 1 if options.allow_missing and n >= 4 else 0
-    tolerance = options.distance_tolerance
-    assignments: list[list[int]] = []
+    return _candidates([spheres], points, options, covariances,
+                       pairwise_distances(points) if distances is None else distances)[0]
 
-    def extend(assigned: list[int], missing: int) -> None:
-        k = len(assigned)
-        if k == n:
-            assignments.append(list(assigned))
-            return
-        allowed = np.ones(len(points), bool)
-        for sphere, point in enumerate(assigned):
-            if point >= 0:
-                allowed &= np.abs(point_distances[point] - body_distances[k, sphere]) <= tolerance
-                allowed[point] = False
-        for candidate in np.flatnonzero(allowed).tolist():
-            assigned.append(candidate)
-            extend(assigned, missing)
-            assigned.pop()
-        if missing < may_miss:
-            assigned.append(-1)
-            extend(assigned, missing + 1)
-            assigned.pop()
 
-    extend([], 0)
-    candidates = []
-    for assignment in assignments:
-        indices = np.array(assignment, dtype=np.int64)
-        seen = indices >= 0
-        try:
-            fit = fit_rigid(spheres[seen], points[indices[seen]],
-                            None if covariances is None else covariances[indices[seen]])
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        if fit.residual_rms <= options.gate_rms:
-            candidates.append(Candidate(indices, fit))
-    candidates.sort(key=lambda c: (-c.fit.count, c.fit.residual_rms))
-    return candidates[:options.max_candidates]
+def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOptions, covariances: np.ndarray | None,
+                distances: np.ndarray) -> list[list[Candidate]]:
+    """``body_candidates`` of several bodies, their assignments' fits all in one batched SVD."""
+    bodies = [check_points(spheres, "spheres") for spheres in bodies]
+    for spheres in bodies:
+        if len(spheres) < 3:
+            raise ValueError(f"a body needs at least 3 spheres, got {len(spheres)}")
+    widest = max(len(spheres) for spheres in bodies)
+    found = [_assignments(pairwise_distances(spheres), distances, options.distance_tolerance,
+                          1 if options.allow_missing and len(spheres) >= 4 else 0) for spheres in bodies]
+    # Every assignment of every body, padded to the widest body (padding unseen).
+    owner = np.repeat(np.arange(len(bodies)), [len(a) for a in found])
+    assignments = np.full((len(owner), widest), -1, np.int64)
+    padded = np.zeros((len(bodies), widest, 3))
+    start = 0
+    for b, (spheres, chosen) in enumerate(zip(bodies, found, strict=True)):
+        assignments[start:start + len(chosen), :len(spheres)] = chosen
+        padded[b, :len(spheres)] = spheres
+        start += len(chosen)
+    seen = assignments >= 0
+    kept = ~_collinear(padded[owner], seen)
+    owner, assignments, seen = owner[kept], assignments[kept], seen[kept]
+    transforms, rms = least_squares_transforms(padded[owner], points[np.maximum(assignments, 0)], seen)
+    good = np.flatnonzero(rms <= options.gate_rms)
+    out = []
+    for b, spheres in enumerate(bodies):
+        mine = good[owner[good] == b]
+        order = sorted(mine.tolist(), key=lambda k: (-int(seen[k].sum()), rms[k],
+                                                     _tree_order(assignments[k], len(points))))
+        out.append([Candidate(assignments[k, :len(spheres)].copy(),
+                              _fit(spheres, points, assignments[k, :len(spheres)], transforms[k], float(rms[k]),
+                                   covariances))
+                    for k in order[:options.max_candidates]])
+    return out
+
+
+def _collinear(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(A,) bool: whether the spheres ``seen[a]`` ((A, N) bool) of (A, N, 3) ``spheres`` lie on one line
+    (``fit_rigid`` refuses them: the rotation about that line is free)."""
+    weight = seen[..., None].astype(np.float64)
+    mean = (weight * spheres).sum(axis=1) / np.maximum(weight.sum(axis=1), 1.0)
+    spread = np.linalg.svd(weight * (spheres - mean[:, None]), compute_uv=False)
+    return spread[:, 1] <= COLLINEAR_TOLERANCE * np.maximum(spread[:, 0], 1e-300)
+
+
+def _tree_order(indices: np.ndarray, point_count: int) -> tuple[int, ...]:
+    """Rank of an assignment in the interpretation tree: spheres in turn, points ascending, hidden last."""
+    return tuple(int(i) if i >= 0 else point_count for i in indices)
+
+
+def _fit(spheres: np.ndarray, points: np.ndarray, indices: np.ndarray, T: np.ndarray, rms: float,
+         covariances: np.ndarray | None) -> RigidFit:
+    """The ``RigidFit`` of an assignment already solved (``T``, ``rms``), with its covariance when ``covariances``."""
+    seen = indices >= 0
+    covariance = None if covariances is None else pose_covariance(T, spheres[seen], covariances[indices[seen]])
+    return RigidFit(T, rms, int(seen.sum()), covariance)
+
+
+def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolerance: float,
+                 may_miss: int) -> np.ndarray:
+    """(A, N) int64: every assignment of the N spheres to distinct points (-1: hidden, at most ``may_miss``)
+    whose pairwise distances all agree with the body's within ``tolerance``, grown sphere by sphere for all
+    branches at once; each branch carries, per sphere still to assign, the points it may still take (at
+    first those with enough partners at the body's distances).
+
+    ``body_distances``: (N, N) m; ``point_distances``: (M, M) m.
+    """
+    n = len(body_distances)
+    # agree[k, s, p, q]: point q may be sphere k when point p is sphere s.
+    agree = np.abs(point_distances[None, None] - body_distances[:, :, None, None]) <= tolerance
+    # Point q can be sphere k only if, for all the other spheres but the hidden ones, some point lies at the
+    # right distance from it: most points are ruled out for most spheres before the tree is grown.
+    partners = agree.any(axis=2)
+    partners[np.arange(n), np.arange(n)] = False
+    possible = (partners.sum(axis=1) >= n - 1 - may_miss)[None]
+    partial = np.zeros((1, 0), np.int64)
+    if np.count_nonzero(~possible[0].any(axis=1)) > may_miss:
+        return np.zeros((0, n), np.int64)
+    missing = np.zeros(1, np.int64)
+    for k in range(n):
+        if not len(partial):
+            return np.zeros((0, n), np.int64)
+        rows, columns = np.nonzero(possible[:, k])
+        grown = possible[rows] & agree[:, k, columns].transpose(1, 0, 2)
+        grown[np.arange(len(rows)), :, columns] = False
+        hide = np.flatnonzero(missing < may_miss)
+        partial = np.vstack([np.hstack([partial[rows], columns[:, None]]),
+                             np.hstack([partial[hide], np.full((len(hide), 1), -1, np.int64)])])
+        missing = np.concatenate([missing[rows], missing[hide] + 1])
+        possible = np.concatenate([grown, possible[hide]])
+    return partial
 
 
 def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
@@ -195,9 +254,12 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
                              f"{covariances.shape}")
     distances = pairwise_distances(points)
     names = list(bodies)
-    options_per_body = [body_candidates(bodies[name], points, options, covariances, distances) for name in names]
+    options_per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []
     choice = _best_choice(options_per_body, len(points))
-    matched = {names[k]: BodyMatch(names[k], c.indices, c.fit) for k, c in enumerate(choice) if c is not None}
+    matched = {names[k]: BodyMatch(names[k], c.indices, _fit(check_points(bodies[names[k]], "spheres"), points,
+                                                            c.indices, c.fit.T_world_body, c.fit.residual_rms,
+                                                            covariances))
+               for k, c in enumerate(choice) if c is not None}
     taken = np.zeros(len(points), bool)
     for match in matched.values():
         taken[match.indices[match.indices >= 0]] = True

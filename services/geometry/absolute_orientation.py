@@ -10,7 +10,7 @@ Given sphere centres ``points_body`` (N, 3) in a body frame and the same spheres
   translation takes the body centroid onto the world centroid.
 * ``umeyama_alignment`` / ``least_squares_transform``: the least-squares solution over all points
   (SVD of the cross-covariance, reflection removed; Umeyama 1991, Kabsch without scale). This is
-  the default of ``fit_rigid``.
+  the default of ``fit_rigid``; ``least_squares_transforms`` solves many matched sets at once.
 
 ``fit_rigid`` returns the pose with its residual and a 6x6 covariance propagated to first order
 from the (N, 3, 3) covariances of the world points (the body points are taken as exact).
@@ -31,6 +31,7 @@ __all__ = [
     "RigidFit",
     "fit_rigid",
     "least_squares_transform",
+    "least_squares_transforms",
     "pose_covariance",
     "pose_jacobians",
     "three_point_transform",
@@ -95,6 +96,35 @@ def least_squares_transform(points_body: np.ndarray, points_world: np.ndarray) -
     body, world = _matched(points_body, points_world, 3)
     R, t, _ = umeyama_alignment(body, world)
     return make_transform(R, t)
+
+
+def least_squares_transforms(points_body: np.ndarray, points_world: np.ndarray,
+                             used: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``least_squares_transform`` for P matched sets at once: ``(T_world_body (P, 4, 4), residual RMS (P,) m)``.
+
+    ``points_body``, ``points_world``: (P, N, 3) float64 (body and world frames); ``used``: (P, N) bool,
+    the pairs each set is made of (default all; at least 3 per set; the others may hold any finite value).
+    One batched SVD of the cross-covariances, the reflection removed as ``umeyama_alignment`` does.
+    """
+    body, world = np.asarray(points_body, dtype=np.float64), np.asarray(points_world, dtype=np.float64)
+    if body.ndim != 3 or body.shape != world.shape or body.shape[2] != 3:
+        raise ValueError(f"least_squares_transforms needs two (P, N, 3) arrays, got {body.shape} and {world.shape}")
+    weight = np.ones(body.shape[:2]) if used is None else np.asarray(used, dtype=np.float64)
+    count = weight.sum(axis=1)
+    if np.any(count < 3):
+        raise ValueError("least_squares_transforms needs at least 3 matched points per set")
+    mu_body = np.einsum("pn,pni->pi", weight, body) / count[:, None]
+    mu_world = np.einsum("pn,pni->pi", weight, world) / count[:, None]
+    centred_body, centred_world = body - mu_body[:, None], world - mu_world[:, None]
+    U, _, Vt = np.linalg.svd(np.einsum("pn,pni,pnj->pij", weight, centred_world, centred_body) / count[:, None, None])
+    S = np.ones((len(body), 3))
+    S[np.linalg.det(U) * np.linalg.det(Vt) < 0, 2] = -1.0
+    R = (U * S[:, None, :]) @ Vt
+    T = np.tile(np.eye(4), (len(body), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mu_world - np.einsum("pij,pj->pi", R, mu_body)
+    residual = world - (np.einsum("pij,pnj->pni", R, body) + T[:, None, :3, 3])
+    return T, np.sqrt(np.einsum("pn,pn->p", weight, np.sum(residual**2, axis=2)) / count)
 
 
 def _triad(points: np.ndarray, name: str) -> np.ndarray:

@@ -4,6 +4,8 @@ World = the frame the cameras' ``T_rig_camera`` poses are given in (a rig's fram
 over all views (on ideal pinhole pixels), the midpoint of two rays, and a Gauss-Newton
 refinement of the reprojection error through each camera's distortion, which also yields the
 point's covariance ``(J^T J)^-1 sigma_px^2`` (J: residuals, px, with respect to the point, m).
+The ``*_many`` forms do the same for N points at once, each seen by its own subset of the
+cameras of a ``CameraStack``: one batched SVD, and Gauss-Newton steps on all points together.
 """
 
 from __future__ import annotations
@@ -15,10 +17,15 @@ import cv2
 import numpy as np
 
 from services.geometry.camera import CameraModel, undistort_pixels
+from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 
-__all__ = ["TriangulatedPoint", "projection_matrix", "triangulate_dlt", "triangulate_midpoint", "camera_rays",
-           "reproject", "refine_point", "triangulate"]
+__all__ = ["TriangulatedPoint", "Triangulation", "projection_matrix", "triangulate_dlt", "triangulate_dlt_many",
+           "triangulate_midpoint", "camera_rays", "reproject", "refine_point", "refine_points", "triangulate",
+           "triangulate_many"]
+
+STEP_TOLERANCE_M = 1e-10
+"""Gauss-Newton stops at a step shorter than this (m): the point is where it would stay."""
 
 
 @dataclass(frozen=True)
@@ -59,13 +66,30 @@ def triangulate_dlt(projections: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     if len(projections) < 2 or len(projections) != len(pixels):
         raise ValueError(f"triangulate_dlt needs (V, 3, 4) projections and (V, 2) pixels with V >= 2, got "
                          f"{projections.shape} and {pixels.shape}")
-    rows = np.concatenate([pixels[:, :1] * projections[:, 2] - projections[:, 0],
-                           pixels[:, 1:] * projections[:, 2] - projections[:, 1]])
-    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
-    X = np.linalg.svd(rows)[2][-1]
-    if abs(X[3]) < 1e-12 * np.linalg.norm(X):
+    point = triangulate_dlt_many(projections, pixels[None], np.ones((1, len(pixels)), bool))[0]
+    if not np.all(np.isfinite(point)):
         raise ValueError("triangulate_dlt: the rays are parallel (point at infinity)")
-    return X[:3] / X[3]
+    return point
+
+
+def triangulate_dlt_many(projections: np.ndarray, pixels: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(N, 3) world points, each by ``triangulate_dlt`` over the views it is seen in; NaN for a point
+    at infinity (or seen fewer than twice).
+
+    ``projections``: (C, 3, 4) of C cameras; ``pixels``: (N, C, 2) ideal pinhole pixels (any value
+    where unseen); ``seen``: (N, C) bool. One batched SVD for all points.
+    """
+    pixels = np.asarray(pixels, dtype=np.float64)
+    rows = np.concatenate([pixels[..., :1] * projections[:, 2] - projections[:, 0],
+                           pixels[..., 1:] * projections[:, 2] - projections[:, 1]], axis=1)
+    norms = np.maximum(np.linalg.norm(rows, axis=2, keepdims=True), 1e-300)
+    rows = np.where(np.tile(seen, 2)[..., None], rows / norms, 0.0)
+    X = np.linalg.svd(rows)[2][:, -1]
+    at_infinity = (np.abs(X[:, 3]) < 1e-12 * np.linalg.norm(X, axis=1)) | (np.count_nonzero(seen, axis=1) < 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points = X[:, :3] / X[:, 3:]
+    points[at_infinity] = np.nan
+    return points
 
 
 def triangulate_midpoint(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -93,21 +117,6 @@ def camera_rays(camera: CameraModel, pixels: np.ndarray) -> tuple[np.ndarray, np
     return camera.T_rig_camera[:3, 3].copy(), directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
-def _view_jacobians(camera: CameraModel, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(pixels (N, 2), jacobians (N, 2, 3))``: observed-pixel projections of (N, 3) world points and
-    their derivatives with respect to the world point, through the camera's distortion.
-
-    cv2.projectPoints differentiates with respect to the translation; a world point moves the
-    camera-frame point by ``R_camera_world`` times its displacement, as the translation would.
-    """
-    T_camera_world = invert(camera.T_rig_camera)
-    rvec = cv2.Rodrigues(T_camera_world[:3, :3])[0]
-    pixels, jacobian = cv2.projectPoints(points_world.reshape(-1, 1, 3), rvec, T_camera_world[:3, 3],
-                                         camera.K, camera.dist)
-    d_translation = jacobian[:, 3:6].reshape(-1, 2, 3)
-    return pixels.reshape(-1, 2), d_translation @ T_camera_world[:3, :3]
-
-
 def reproject(camera: CameraModel, points_world: np.ndarray) -> np.ndarray:
     """(N, 2) observed pixels (through the distortion) of (N, 3) world points; (N,) depths <= 0 give NaN."""
     points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
@@ -115,7 +124,9 @@ def reproject(camera: CameraModel, points_world: np.ndarray) -> np.ndarray:
         return np.zeros((0, 2))
     T_camera_world = invert(camera.T_rig_camera)
     depth = points_world @ T_camera_world[2, :3] + T_camera_world[2, 3]
-    pixels = _view_jacobians(camera, points_world)[0]
+    rvec = cv2.Rodrigues(T_camera_world[:3, :3])[0]
+    pixels = cv2.projectPoints(points_world.reshape(-1, 1, 3), rvec, T_camera_world[:3, 3], camera.K,
+                               camera.dist)[0].reshape(-1, 2)
     pixels[depth <= 0] = np.nan
     return pixels
 
@@ -129,26 +140,106 @@ def refine_point(cameras: Sequence[CameraModel], pixels: np.ndarray, point: np.n
     jacobian (2V, 3) of the residuals with respect to the point, px/m)``. A step that does not
     lower the error ends the iterations.
     """
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    point = np.asarray(point, dtype=np.float64).reshape(3).copy()
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(1, -1, 2)
+    start = np.asarray(point, dtype=np.float64).reshape(1, 3)
+    refined, residuals, jacobians = refine_points(CameraStack.of(cameras), pixels, np.ones(pixels.shape[:2], bool),
+                                                  start, iterations)
+    return refined[0], residuals[0], jacobians[0].reshape(-1, 3)
 
-    def evaluate(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows = [_view_jacobians(camera, X) for camera in cameras]
-        residuals = pixels - np.array([r[0][0] for r in rows])
-        jacobian = -np.concatenate([r[1][0] for r in rows])
-        return residuals, jacobian
 
-    residuals, jacobian = evaluate(point)
-    for _ in range(iterations):
-        step = np.linalg.lstsq(jacobian, -residuals.ravel(), rcond=None)[0]
-        candidate = point + step
-        new_residuals, new_jacobian = evaluate(candidate)
-        if np.sum(new_residuals ** 2) > np.sum(residuals ** 2):
-            break
-        point, residuals, jacobian = candidate, new_residuals, new_jacobian
-        if np.linalg.norm(step) < 1e-10:
-            break
-    return point, residuals, jacobian
+def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, points: np.ndarray,
+                  iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``refine_point`` for N points at once, each over the cameras of ``stack`` it is seen in.
+
+    ``pixels``: (N, C, 2) observed pixels (any value where unseen); ``seen``: (N, C) bool;
+    ``points``: (N, 3) starts, world frame (a non-finite start is left as it is). Returns
+    ``(points (N, 3), residuals (N, C, 2) px, jacobians (N, C, 2, 3) px/m)``, residuals and
+    jacobians zero where unseen. Each point stops on its own: at a step that does not lower its
+    error, or at a step under ``STEP_TOLERANCE_M`` (not taken, which saves evaluating it).
+    """
+    pixels = np.asarray(pixels, dtype=np.float64)
+    points = np.array(points, dtype=np.float64).reshape(-1, 3)
+
+    def evaluate(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        projected, jacobian = stack.project_with_jacobians(X)
+        mask = seen[rows][..., None]
+        return (np.where(mask, pixels[rows] - projected, 0.0), np.where(mask[..., None], -jacobian, 0.0))
+
+    every = np.arange(len(points))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        residuals, jacobians = evaluate(every, points)
+        active = np.all(np.isfinite(points), axis=1)
+        for _ in range(iterations):
+            rows = np.flatnonzero(active)
+            if not len(rows):
+                break
+            J = jacobians[rows].reshape(len(rows), -1, 3)
+            r = residuals[rows].reshape(len(rows), -1)
+            step = -_solve(J.transpose(0, 2, 1) @ J, np.einsum("nki,nk->ni", J, r))
+            converged = np.linalg.norm(step, axis=1) < STEP_TOLERANCE_M
+            active[rows[converged]] = False
+            rows, step = rows[~converged], step[~converged]
+            if not len(rows):
+                break
+            candidate = points[rows] + step
+            new_residuals, new_jacobians = evaluate(rows, candidate)
+            better = np.sum(new_residuals**2, axis=(1, 2)) <= np.sum(residuals[rows]**2, axis=(1, 2))
+            accepted = rows[better]
+            points[accepted] = candidate[better]
+            residuals[accepted], jacobians[accepted] = new_residuals[better], new_jacobians[better]
+            active[rows[~better]] = False
+    return points, residuals, jacobians
+
+
+def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 3) solutions of (N, 3, 3) ``A x = b``; least-norm (pseudo-inverse) when one is singular."""
+    try:
+        return np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.einsum("nij,nj->ni", np.linalg.pinv(A), b)
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """N points triangulated at once (``triangulate_many``): ``points`` (N, 3) world frame, m (NaN
+    where the rays are parallel); ``residuals`` (N, C, 2) observed - projected px, zero where
+    unseen; ``rms_px`` (N,) over each point's views (inf where it failed); ``covariances`` (N, 3, 3) m^2
+    (NaN where it failed)."""
+
+    points: np.ndarray
+    residuals: np.ndarray
+    rms_px: np.ndarray
+    covariances: np.ndarray
+
+
+def triangulate_many(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, sigma_px: float,
+                     ideal: np.ndarray | None = None, start: np.ndarray | None = None) -> Triangulation:
+    """``triangulate`` for N points at once, each from the cameras of ``stack`` it is seen in.
+
+    ``pixels``: (N, C, 2) observed pixels (distorted; any value where unseen); ``seen``: (N, C)
+    bool, at least two per point; ``ideal``: the same pixels undistorted when already known;
+    ``start``: (N, 3) their DLT points (``triangulate_dlt_many``) when already known.
+    """
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, len(stack), 2)
+    seen = np.asarray(seen, dtype=bool).reshape(-1, len(stack))
+    if len(pixels) == 0:
+        return Triangulation(np.zeros((0, 3)), np.zeros((0, len(stack), 2)), np.zeros(0), np.zeros((0, 3, 3)))
+    if start is None:
+        if ideal is None:
+            ideal = np.zeros_like(pixels)
+            for c in range(len(stack)):
+                ideal[seen[:, c], c] = undistort_pixels(pixels[seen[:, c], c], stack.K[c], stack.dist[c])
+        start = triangulate_dlt_many(stack.projections, ideal, seen)
+    points, residuals, jacobians = refine_points(stack, pixels, seen, start)
+    J = jacobians.reshape(len(points), -1, 3)
+    information = J.transpose(0, 2, 1) @ J
+    usable = np.all(np.isfinite(information), axis=(1, 2)) & np.all(np.isfinite(points), axis=1)
+    covariances = np.full((len(points), 3, 3), np.nan)
+    if np.any(usable):
+        covariances[usable] = np.linalg.pinv(information[usable]) * sigma_px**2
+    rms = np.full(len(points), np.inf)
+    rms[usable] = np.sqrt(np.sum(residuals[usable]**2, axis=(1, 2)) / np.count_nonzero(seen[usable], axis=1))
+    return Triangulation(points, residuals, rms, covariances)
 
 
 def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: float,
@@ -157,16 +248,14 @@ def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: fl
     """One world point from (V, 2) observed pixels, ``pixels[k]`` in ``cameras[k]`` (V >= 2):
     DLT on the undistorted pixels, then ``refine_point``; covariance ``(J^T J)^-1 sigma_px^2``
     for pixel noise of ``sigma_px`` per coordinate. The indices are carried into the result
-    (default: 0..V-1 and zeros)."""
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    ideal = np.array([undistort_pixels(p, c.K, c.dist)[0] for c, p in zip(cameras, pixels, strict=True)])
-    projections = np.array([projection_matrix(c.K, invert(c.T_rig_camera)) for c in cameras])
-    point, residuals, jacobian = refine_point(cameras, pixels, triangulate_dlt(projections, ideal))
-    information = jacobian.T @ jacobian
-    covariance = np.linalg.pinv(information) * sigma_px ** 2
+    (default: 0..V-1 and zeros). Rays that meet at infinity give ValueError."""
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(1, -1, 2)
+    found = triangulate_many(CameraStack.of(cameras), pixels, np.ones(pixels.shape[:2], bool), sigma_px)
+    if not np.all(np.isfinite(found.points[0])):
+        raise ValueError("triangulate: the rays are parallel (point at infinity)")
     views = len(cameras)
     return TriangulatedPoint(
-        point=point, rms_px=float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))), covariance=covariance,
+        point=found.points[0], rms_px=float(found.rms_px[0]), covariance=found.covariances[0],
         camera_indices=tuple(int(i) for i in (camera_indices if camera_indices is not None else range(views))),
         blob_indices=tuple(int(i) for i in (blob_indices if blob_indices is not None else [0] * views)),
     )

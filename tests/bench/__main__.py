@@ -1,6 +1,7 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
-``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``.
+``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
+``stereo``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -12,8 +13,9 @@ Then the codec's steps warm and cold in one process (``codec``), poses through a
 against peer to peer (``routing``), the scene renderers, the recorder and replay, the
 viewer, marker tracking (the live pipeline against the same work in one process), the
 pipeline with client apps subscribed against none (``apps``), the marker estimators'
-accuracy against ground truth and blob detection per frame (``blobs``) (each module's docstring
-says what it measures).
+accuracy against ground truth, blob detection per frame (``blobs``) and stereo tracking's stages
+in one process against the live pipeline at motion-capture rates (``stereo``) (each module's
+docstring says what it measures).
 Progress goes to stderr.
 """
 
@@ -40,6 +42,7 @@ from tests.bench.recorder import bench_recorder
 from tests.bench.routing import bench_routing
 from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
+from tests.bench.stereo import bench_stereo
 from tests.bench.traffic import (
     ImageCase,
     PoseSender,
@@ -100,7 +103,7 @@ def transport_bench() -> list[dict[str, Any]]:
 BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "transport": transport_bench, "codec": bench_codec, "routing": bench_routing, "scenes": bench_scenes,
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
-    "accuracy": report_lines, "blobs": bench_blobs,
+    "accuracy": report_lines, "blobs": bench_blobs, "stereo": bench_stereo,
 }
 
 

@@ -20,9 +20,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -30,6 +31,8 @@ from protocol.keys import Keys
 from services.bus.session import BusConfig, reachable
 from services.bus.transport import session_config
 from tests.bench.sink import REPLY
+
+T = TypeVar("T")
 
 ROOT = Path(__file__).resolve().parents[2]
 REPLY_S = 30.0
@@ -68,6 +71,28 @@ def direct_app(keys: Keys) -> AppLink:
 def routed_app(router: str, keys: Keys) -> AppLink:
     """The app and the bench process are both clients of the router at ``router``."""
     return AppLink("client", router, session_config("client", connect=(router,)), keys)
+
+
+def at_rate(items: Iterable[T], period_s: float) -> Iterator[T]:
+    """``items`` one every ``period_s`` seconds (0: as fast as they are taken), sleeping until each is due."""
+    due = time.perf_counter()
+    for item in items:
+        due += period_s
+        while (wait := due - time.perf_counter()) > 0:
+            time.sleep(wait)
+        yield item
+
+
+def stop_processes(processes: list[subprocess.Popen]) -> None:
+    """Terminate every process still running, then wait up to 5 s for each (killed after that)."""
+    for process in processes:
+        if process.poll() is None:
+            process.terminate()
+    for process in processes:
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
 
 
 def cpu_seconds(pid: int) -> float:

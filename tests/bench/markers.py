@@ -51,7 +51,7 @@ from services.estimation.marker_pose import MarkerPoseEstimator
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import node_command
 from services.launcher.router import router_config
-from tests.bench.link import cpu_seconds, free_port
+from tests.bench.link import at_rate, cpu_seconds, free_port, stop_processes
 
 ROOT = Path(__file__).resolve().parents[2]
 APP = ROOT / "examples" / "track_marker.py"
@@ -72,11 +72,7 @@ def in_process(settings: DetectorSettings, period_s: float = 0.0) -> dict[str, f
     frames = [scene.render(i).images[camera.name] for i in range(FRAMES)]
     detector, estimator = settings.detector(), MarkerPoseEstimator()
     times = []
-    due = time.perf_counter()
-    for image in frames:
-        due += period_s
-        while (wait := due - time.perf_counter()) > 0:
-            time.sleep(wait)
+    for image in at_rate(frames, period_s):
         started = time.perf_counter()
         found = detector.detect(image)
         estimator.estimate(found.ids, found.corners, found.side_m, camera.K, camera.dist)
@@ -141,14 +137,7 @@ def pipeline(settings: DetectorSettings, apps: int = 0, **node: Any) -> dict[str
                     "apps_cores": round(apps_cores, 3)} if apps else {})}
     finally:
         probe.close()
-        for process in processes:
-            if process.poll() is None:
-                process.terminate()
-        for process in processes:
-            try:
-                process.wait(5)
-            except subprocess.TimeoutExpired:
-                process.kill()
+        stop_processes(processes)
         session.close()
         router.close()
 

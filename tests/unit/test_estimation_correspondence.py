@@ -52,6 +52,24 @@ def test_a_near_tie_is_left_unmade():
     assert sorted(unambiguous(gated_assignment(clear, 1.0), clear, 1.0, 0.2)) == [(0, 0), (1, 1)]
 
 
+
+@pytest.mark.parametrize("seed", range(20))
+def test_kept_matches_are_those_whose_loss_costs_the_margin(seed):
+    """Against brute force, on sparse tables where many blobs have one partner only (the shortcut's case)."""
+    rng = np.random.default_rng(100 + seed)
+    cost = rng.uniform(0.0, 1.2, (rng.integers(1, 5), rng.integers(1, 5)))
+    cost[rng.random(cost.shape) < 0.6] = np.inf
+    margin = float(rng.uniform(0.1, 1.5))
+    matches = gated_assignment(cost, 1.0)
+    expected = []
+    for r, c in matches:
+        without = cost.copy()
+        without[r, c] = np.inf
+        if brute_force(without, 1.0) - brute_force(cost, 1.0) >= margin - 1e-12:
+            expected.append((r, c))
+    assert sorted(unambiguous(matches, cost, 1.0, margin)) == sorted(expected)
+
+
 ON_ONE_EPIPOLAR_PLANE = np.array([[-0.2, 0.0, 2.0], [0.25, 0.0, 2.4]])
 """Two points in the plane y = 0, which holds every camera centre of the bar: every camera pair
 sees them on one epipolar line, so two cameras cannot tell which blob is which."""

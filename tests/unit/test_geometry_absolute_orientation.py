@@ -8,6 +8,7 @@ from services.capture.scenes.ir_rig import LAYOUTS
 from services.geometry.absolute_orientation import (
     fit_rigid,
     least_squares_transform,
+    least_squares_transforms,
     pose_covariance,
     pose_jacobians,
     three_point_transform,
@@ -132,3 +133,20 @@ def test_covariance_predicts_the_monte_carlo_spread(name):
     whiten = np.linalg.inv(np.linalg.cholesky(predicted))
     spread = np.sqrt(np.linalg.eigvalsh(whiten @ sample @ whiten.T))
     assert np.all((spread > 0.7) & (spread < 1.3)), spread
+
+
+def test_many_sets_at_once_equal_one_at_a_time():
+    """Sets with their own subsets of pairs (some with a reflection to remove) give what each gives alone."""
+    rng = np.random.default_rng(21)
+    body = rng.uniform(-0.1, 0.1, (8, 5, 3))
+    world = np.array([transform_points(random_pose(rng), b) for b in body]) + rng.normal(0.0, 0.002, (8, 5, 3))
+    world[3] = world[3] * np.array([1.0, 1.0, -1.0])
+    used = np.ones((8, 5), bool)
+    used[1, 2] = used[4, 0] = used[5, 4] = used[5, 3] = False
+    transforms, rms = least_squares_transforms(body, world, used)
+    for k in range(len(body)):
+        alone = fit_rigid(body[k][used[k]], world[k][used[k]])
+        np.testing.assert_allclose(transforms[k], alone.T_world_body, atol=1e-12)
+        assert rms[k] == pytest.approx(alone.residual_rms, rel=1e-9)
+    with pytest.raises(ValueError, match="at least 3"):
+        least_squares_transforms(body[:1, :2], world[:1, :2])
