@@ -43,7 +43,7 @@ class MotionOptions:
     prediction; ``acceleration``: m/s^2 and ``angular_acceleration``: rad/s^2, the spread (one sigma, per
     axis) of the accelerations the model ignores, which grows a prediction's covariance."""
 
-    max_gap_ns: int = 100_000_000
+    max_gap_ns: int = 200_000_000
     acceleration: float = 5.0
     angular_acceleration: float = 20.0
 

@@ -92,7 +92,7 @@ class Params(BaseModel):
                                                      "matched near it first, one missing set bridged")
     predict_gate: float = Field(default=0.015, gt=0, description="farthest a point may lie from a sphere's "
                                                                   "predicted position, m")
-    predict_gap_s: float = Field(default=0.1, gt=0, description="longest time without a fit before a body's "
+    predict_gap_s: float = Field(default=0.2, gt=0, description="longest time without a fit before a body's "
                                                                 "motion is forgotten, s")
 
     @field_validator("cameras")

@@ -68,7 +68,7 @@ def test_a_prediction_resolves_what_distance_signatures_cannot():
     bodies = {"tool": LAYOUTS["tool"]}
     searched = match_bodies(bodies, points)
     assert list(searched.bodies["tool"].indices) == [3, 4, 5, -1]  # the ghosts
-    predicted = T_tool @ make_transform(matrix_from_rotvec(np.array([0.01, 0.0, -0.01])), [0.003, -0.002, 0.001])
+    predicted = T_tool @ make_transform(matrix_from_rotvec(np.array([0.01, 0.0, -0.01])), np.array([0.003, -0.002, 0.001]))
     matched = match_with_prediction(bodies, points, {"tool": predicted})
     assert list(matched.bodies["tool"].indices) == [0, 1, 2, -1]
     assert pose_error(matched.bodies["tool"].fit.T_world_body, T_tool)[1] < 0.001
@@ -80,7 +80,7 @@ def test_a_prediction_that_finds_nothing_falls_back_to_signatures_and_no_point_s
     points, truth = instant(20, rng)
     poses = SCENE.body_poses(20)
     # the wand predicted 10 cm off (nothing within the gate), the tool and head predicted onto each other
-    predictions = {"wand": poses["wand"] @ make_transform(np.eye(3), [0.1, 0.0, 0.0]),
+    predictions = {"wand": poses["wand"] @ make_transform(np.eye(3), np.array([0.1, 0.0, 0.0])),
                    "tool": poses["head"], "head": poses["head"], "glove": poses["glove"]}
     matched = match_with_prediction(LAYOUTS, points, predictions)
     assert set(matched.bodies) == set(LAYOUTS)
