@@ -68,7 +68,8 @@ def test_a_prediction_resolves_what_distance_signatures_cannot():
     bodies = {"tool": LAYOUTS["tool"]}
     searched = match_bodies(bodies, points)
     assert list(searched.bodies["tool"].indices) == [3, 4, 5, -1]  # the ghosts
-    predicted = T_tool @ make_transform(matrix_from_rotvec(np.array([0.01, 0.0, -0.01])), np.array([0.003, -0.002, 0.001]))
+    error = make_transform(matrix_from_rotvec(np.array([0.01, 0.0, -0.01])), np.array([0.003, -0.002, 0.001]))
+    predicted = T_tool @ error
     matched = match_with_prediction(bodies, points, {"tool": predicted})
     assert list(matched.bodies["tool"].indices) == [0, 1, 2, -1]
     assert pose_error(matched.bodies["tool"].fit.T_world_body, T_tool)[1] < 0.001
