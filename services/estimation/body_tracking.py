@@ -149,10 +149,17 @@ class BodyTracker:
         self.models = {name: ConstantVelocity(tracking.motion) for name in self.bodies}
         self.bridged: dict[str, int] = {}
         """Bodies published at the previous instant -> how many instants in a row they were bridged."""
+        self.stamp_ns: int | None = None
 
     def step(self, stamp_ns: int, points_world: np.ndarray, covariances: np.ndarray | None = None) -> Tracked:
         """Match the bodies among this instant's (M, 3) ``points_world`` (with (M, 3, 3) ``covariances`` or None),
-        update their motion and bridge those missing; ``stamp_ns`` after the previous step's."""
+        update their motion and bridge those missing. A ``stamp_ns`` not after the previous step's (a
+        recording played again from its start) starts every body afresh."""
+        if self.stamp_ns is not None and stamp_ns <= self.stamp_ns:
+            for model in self.models.values():
+                model.reset()
+            self.bridged = {}
+        self.stamp_ns = stamp_ns
         forecasts = {name: forecast for name, model in self.models.items()
                      if (forecast := model.predict(stamp_ns)) is not None}
         points = check_points(points_world, "points_world")

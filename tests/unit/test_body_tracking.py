@@ -105,6 +105,9 @@ def test_one_missing_instant_is_bridged_near_the_truth_then_the_body_is_lost():
     assert "tool" not in tracker.bridged  # its track ends here: the node publishes it lost
     back = tracker.step(stamp(16), instant(16, rng)[0])
     assert set(back.matching.bodies) == set(LAYOUTS) and back.predicted == {}
+    # time going back (a recording played again) starts every body afresh, nothing predicted
+    again = tracker.step(stamp(10), instant(10, rng, frozenset({"tool"}))[0])
+    assert again.predicted == {} and not any(model.ready for model in tracker.models.values())
     # a body seen once only has no motion yet: missing, it is lost at once
     fresh = BodyTracker(LAYOUTS)
     fresh.step(stamp(30), instant(30, rng)[0])
