@@ -22,6 +22,14 @@ the set's frames and ``frame_id`` ``world``:
   (tx, ty, tz, rx, ry, rz) in the body frame); a body found in the previous set and not in this
   one gets one ``lost`` pose (identity transform).
 
+With ``predict`` (off by default; off, the per-set path is the one above and nothing more), the bodies
+are followed from set to set (``services.estimation.body_tracking.BodyTracker``): each body's
+constant-velocity motion, from its last two fits and their stamps, predicts its pose in the next set;
+its spheres are looked for within ``predict_gate`` of where they should be before any search by
+distances; and a body found in the previous set and missing from this one gets one pose with state
+``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then
+``lost`` if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
+
 Until every camera has a calibration, sets are counted as skipped (``no_calibration``).
 """
 
@@ -52,6 +60,8 @@ from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
 if TYPE_CHECKING:
+    from services.estimation.body_motion import Prediction
+    from services.estimation.body_tracking import TrackingOptions
     from services.estimation.correspondence import CorrespondenceOptions
 
 WORLD = "world"
@@ -78,6 +88,12 @@ class Params(BaseModel):
     distance_tolerance: float = Field(default=0.003, gt=0, description="sphere distance tolerance of matching, m")
     gate_rms: float = Field(default=0.002, gt=0, description="largest residual RMS of a body's fit, m")
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
+    predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
+                                                     "matched near it first, one missing set bridged")
+    predict_gate: float = Field(default=0.015, gt=0, description="farthest a point may lie from a sphere's "
+                                                                  "predicted position, m")
+    predict_gap_s: float = Field(default=0.2, gt=0, description="longest time without a fit before a body's "
+                                                                "motion is forgotten, s")
 
     @field_validator("cameras")
     @classmethod
@@ -95,6 +111,13 @@ class Params(BaseModel):
 
     def matching(self) -> MatchOptions:
         return MatchOptions(distance_tolerance=self.distance_tolerance, gate_rms=self.gate_rms)
+
+    def tracking(self) -> TrackingOptions:
+        from services.estimation.body_motion import MotionOptions
+        from services.estimation.body_tracking import TrackingOptions
+
+        return TrackingOptions(gate=self.predict_gate,
+                               motion=MotionOptions(max_gap_ns=max(1, round(self.predict_gap_s * 1e9))))
 
 
 def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
@@ -194,6 +217,14 @@ def body_poses(header: Header, matching: Matching) -> list[Pose]:
     return poses
 
 
+def predicted_poses(header: Header, predicted: Mapping[str, Prediction]) -> list[Pose]:
+    """One ``predicted`` pose per body bridged: the predicted transform and its grown covariance, no inliers."""
+    return [Pose(header=header, child_frame_id=f"body/{name}", state=TrackingState.PREDICTED,
+                 transform=transform_from_matrix(p.T_world_body),
+                 covariance=tuple(float(v) for v in child_frame_covariance(p.covariance, p.T_world_body).ravel()))
+            for name, p in predicted.items()]
+
+
 class PosePublishers:
     """One publisher per body, made when the body is first found; one ``lost`` pose when it goes."""
 
@@ -203,6 +234,8 @@ class PosePublishers:
         self.tracks = TargetTracks()
 
     def put(self, header: Header, tracking: list[Pose]) -> None:
+        """Publish this set's poses (``tracking`` or ``predicted``), and one ``lost`` pose per body they lack
+        that the previous set had."""
         lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
                 for child in self.tracks.update(pose.child_frame_id for pose in tracking)]
         for pose in tracking + lost:
@@ -231,6 +264,11 @@ def run(node: Node, params: Params) -> None:
     poses = PosePublishers(node)
     names = list(bodies)
     correspondence, matching_options = params.correspondence(), params.matching()
+    tracker = None
+    if params.predict:
+        from services.estimation.body_tracking import BodyTracker
+
+        tracker = BodyTracker(bodies, matching_options, params.tracking())
     for joined in sets:
         first = joined[params.cameras[0]]
         header = first.header.model_copy(update={"frame_id": WORLD})
@@ -242,8 +280,13 @@ def run(node: Node, params: Params) -> None:
         found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
                                   correspondence)
         points, covariances = point_arrays(found)
-        matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
-        poses.put(header, body_poses(header, matching))
+        if tracker is None:
+            matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
+            poses.put(header, body_poses(header, matching))
+        else:
+            tracked = tracker.step(header.stamp_ns, points, covariances)
+            matching = tracked.matching
+            poses.put(header, body_poses(header, matching) + predicted_poses(header, tracked.predicted))
         points_out.put(points_message(header, found, names, matching))
 
 

@@ -1,0 +1,139 @@
+"""A constant-velocity motion model of one rigid body, for predicting its pose at the next instant.
+
+The model keeps the body's last two fitted poses ``T_world_body`` (4, 4) with their stamps (int
+nanoseconds) and, when known, their covariances ((6, 6), ``RigidFit``'s convention: world-frame
+``(dtheta, dt)``, radians then metres). From them it holds two velocities, both in the world frame:
+
+* angular: ``omega`` (3,) rad/s, the rotation vector per second with ``R_1 = exp(omega dt) R_0``;
+* linear: ``v`` (3,) m/s, of the body origin, ``t_1 = t_0 + v dt``;
+
+and predicts at a stamp ``s``, ``tau = s - s_1`` seconds after the newer pose::
+
+    R(s) = exp(omega tau) R_1,    t(s) = t_1 + v tau
+
+(the rotation turns about the body origin, the origin moves on a line; between the two poses this is
+the spherical linear interpolation of the rotation and the linear one of the translation).
+
+The predicted covariance (same convention) carries the two fits' covariances through the
+extrapolation, ``(1 + r)^2 S_1 + r^2 S_0`` with ``r = tau / dt`` (the fits taken as independent), plus
+what an unmodelled acceleration adds: ``(tau^2 / 2)^2`` times the squared ``angular_acceleration``
+(rad/s^2) on each rotation axis and the squared ``acceleration`` (m/s^2) on each translation axis.
+
+A pose newer than ``max_gap_ns`` after the previous one starts the model afresh (the old velocity
+says nothing any more), and no prediction is made more than ``max_gap_ns`` after the newest pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
+from services.geometry.se3 import check_transform, make_transform
+
+__all__ = ["DEFAULT_MOTION", "MotionOptions", "Prediction", "ConstantVelocity"]
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class MotionOptions:
+    """``max_gap_ns``: longest time (ns) between two poses of one motion, and from the newest pose to a
+    prediction; ``acceleration``: m/s^2 and ``angular_acceleration``: rad/s^2, the spread (one sigma, per
+    axis) of the accelerations the model ignores, which grows a prediction's covariance."""
+
+    max_gap_ns: int = 200_000_000
+    acceleration: float = 5.0
+    angular_acceleration: float = 20.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_gap_ns, bool) or not isinstance(self.max_gap_ns, int) or self.max_gap_ns <= 0:
+            raise ValueError(f"max_gap_ns must be an integer > 0 (nanoseconds), got {self.max_gap_ns!r}")
+        for name in ("acceleration", "angular_acceleration"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+DEFAULT_MOTION = MotionOptions()
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A predicted ``T_world_body`` (4, 4) at ``stamp_ns`` and its (6, 6) covariance (world-frame
+    ``(dtheta, dt)``, as ``RigidFit``'s)."""
+
+    stamp_ns: int
+    T_world_body: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Sample:
+    stamp_ns: int
+    T_world_body: np.ndarray
+    covariance: np.ndarray
+
+
+class ConstantVelocity:
+    """One body's constant-velocity model: ``update`` with each fitted pose, in stamp order; ``predict``."""
+
+    def __init__(self, options: MotionOptions = DEFAULT_MOTION):
+        self.options = options
+        self._samples: list[_Sample] = []
+
+    def reset(self) -> None:
+        """Forget every pose."""
+        self._samples = []
+
+    @property
+    def ready(self) -> bool:
+        """Whether two poses are known, so velocities (and predictions) exist."""
+        return len(self._samples) == 2
+
+    def update(self, stamp_ns: int, T_world_body: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """Take a fitted pose ``T_world_body`` (4, 4) at ``stamp_ns`` with its (6, 6) covariance (or None: zero).
+
+        A stamp not after the newest one is refused (ValueError); one more than ``max_gap_ns`` after it
+        starts the model afresh.
+        """
+        T = check_transform(T_world_body, "T_world_body")
+        sigma = np.zeros((6, 6)) if covariance is None else np.asarray(covariance, dtype=np.float64)
+        if sigma.shape != (6, 6):
+            raise ValueError(f"covariance must be (6, 6), got shape {sigma.shape}")
+        if self._samples:
+            newest = self._samples[-1].stamp_ns
+            if stamp_ns <= newest:
+                raise ValueError(f"stamp {stamp_ns} ns is not after the newest pose's, {newest} ns")
+            if stamp_ns - newest > self.options.max_gap_ns:
+                self._samples = []
+        self._samples = [*self._samples[-1:], _Sample(int(stamp_ns), T.copy(), sigma)]
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(omega, v)``: (3,) world-frame angular velocity (rad/s) and (3,) linear velocity (m/s) of the
+        origin; ValueError before two poses are known."""
+        if not self.ready:
+            raise ValueError("a velocity needs two poses")
+        old, new = self._samples
+        dt = (new.stamp_ns - old.stamp_ns) / NS_PER_S
+        R_old, R_new = old.T_world_body[:3, :3], new.T_world_body[:3, :3]
+        omega = rotvec_from_matrix(R_new @ R_old.T) / dt
+        v = (new.T_world_body[:3, 3] - old.T_world_body[:3, 3]) / dt
+        return omega, v
+
+    def predict(self, stamp_ns: int) -> Prediction | None:
+        """The pose at ``stamp_ns``, None before two poses are known or more than ``max_gap_ns`` after the newest."""
+        if not self.ready:
+            return None
+        old, new = self._samples
+        if stamp_ns - new.stamp_ns > self.options.max_gap_ns:
+            return None
+        omega, v = self.velocity()
+        tau = (stamp_ns - new.stamp_ns) / NS_PER_S
+        R, t = new.T_world_body[:3, :3], new.T_world_body[:3, 3]
+        T = make_transform(matrix_from_rotvec(omega * tau) @ R, t + v * tau)
+        ratio = (stamp_ns - new.stamp_ns) / (new.stamp_ns - old.stamp_ns)
+        drift = (0.5 * tau**2) ** 2 * np.repeat([self.options.angular_acceleration**2, self.options.acceleration**2], 3)
+        covariance = (1 + ratio) ** 2 * new.covariance + ratio**2 * old.covariance + np.diag(drift)
+        return Prediction(int(stamp_ns), T, (covariance + covariance.T) / 2)
