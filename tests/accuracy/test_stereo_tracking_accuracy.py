@@ -6,7 +6,8 @@ what the ``rigid_bodies`` node does per joined set (``tests.ir_tracking``). Requ
 
 * three cameras 0.8 m apart: body position error median <= 0.5 mm, rotation median <= 0.2 deg;
 * a sphere hidden from one camera in every half-second window: no pose off its body by more than
-  ``GHOST_MM`` / ``GHOST_DEG`` (2 and 3 cameras);
+  ``GHOST_MM`` / ``GHOST_DEG`` (2 and 3 cameras; the one ghost of 2 cameras is described in
+  ``TWO_CAMERA_GHOST``, and ``gate_rms`` = 1 mm refuses it);
 * with 3 cameras, a body of four or more spheres with one of them hidden from one camera is posed
   in every frame where it is posed without the occlusion, within the accuracy bound (with 2
   cameras the share kept is measured);
@@ -164,7 +165,7 @@ def test_no_ghost_body_with_two_cameras_and_a_tighter_fit_gate():
 
 def test_a_body_with_a_sphere_hidden_from_one_of_three_cameras_keeps_tracking():
     figures = hidden_sphere_figures(3)
-    print(figures, hidden_sphere_figures(2))
+    print(figures)
     assert figures["cases"] >= 50
     assert figures["posed"] == figures["cases"]
     assert figures["position_mm_median"] <= 0.5 and figures["rotation_deg_median"] <= 0.2
@@ -173,6 +174,7 @@ def test_a_body_with_a_sphere_hidden_from_one_of_three_cameras_keeps_tracking():
 
 def test_with_two_cameras_a_body_with_a_sphere_hidden_from_one_camera_is_posed_with_the_others():
     figures = hidden_sphere_figures(2)
+    print(figures)
     assert figures["cases"] >= 50
     assert figures["posed"] >= 0.5 * figures["cases"] and figures["all_spheres"] == 0
     assert figures["position_mm_median"] <= 0.5 and figures["position_mm_max"] <= GHOST_MM
