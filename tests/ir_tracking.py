@@ -21,7 +21,7 @@ from services.detection.blobs_node import Params as BlobsParams
 from services.detection.blobs_node import as_message, detector
 from services.estimation.correspondence import triangulate_blobs
 from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import Params, child_frame_covariance, pixels, point_arrays
+from services.estimation.rigid_bodies_node import Params, child_frame_covariance, pixels
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle, rotvec_from_matrix
 
@@ -79,13 +79,13 @@ def track(scene: IrRigScene, indices: Sequence[int], blobs: Sequence[Sequence[Bl
     which the truth is expressed in (default: identity, the scene's own rig)."""
     cameras = list(scene.cameras if cameras is None else cameras)
     params = params or Params(cameras=tuple(c.name for c in cameras))
-    correspondence, matching = params.correspondence(), params.matching()
+    correspondence, matching, noise = params.correspondence(), params.matching(), params.point_noise()
     out = []
     for index, frame in zip(indices, blobs, strict=True):
         found = triangulate_blobs(cameras, [pixels(b, params.flagged) for b in frame], correspondence)
         if not found:
             continue
-        points, covariances = point_arrays(found)
+        points, covariances = noise.arrays(found)
         truth = {name: T_world_body if T_frame_world is None else T_frame_world @ T_world_body
                  for name, T_world_body in scene.body_poses(index).items()}
         for name, match in match_bodies(scene.bodies, points, covariances, matching).bodies.items():

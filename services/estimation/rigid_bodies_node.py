@@ -37,10 +37,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator
 
 from protocol.detections import Blobs
 from protocol.keys import KeyName
@@ -52,6 +52,7 @@ from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
 from services.convert import camera_model, transform_from_matrix
 from services.estimation.bodies_file import check_bodies, load_bodies
+from services.estimation.centroid_noise import CentroidNoise
 from services.estimation.marker_tracking import TargetTracks
 from services.estimation.rigid_bodies import Matching, MatchOptions, match_bodies
 from services.geometry.camera import CameraModel
@@ -83,10 +84,14 @@ class Params(BaseModel):
     flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
     epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
     reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view, px")
-    sigma_px: float = Field(default=0.1, gt=0, description="centroid noise assumed by the covariances, px")
+    sigma_px: PositiveFloat | Literal["auto"] = Field(
+        default="auto", description="centroid noise of the covariances, px; auto: estimated from the points' "
+                                    "reprojection residuals over the last sets")
     min_views: int = Field(default=2, ge=2, description="fewest cameras that must see a point")
     distance_tolerance: float = Field(default=0.003, gt=0, description="sphere distance tolerance of matching, m")
-    gate_rms: float = Field(default=0.002, gt=0, description="largest residual RMS of a body's fit, m")
+    gate_rms: float = Field(default=0.001, gt=0, description="largest residual RMS of a body's fit, m: a few "
+                                                              "times the fits' RMS (0.1-0.3 mm), under what a "
+                                                              "wrong point within distance_tolerance gives")
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
     predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
                                                      "matched near it first, one missing set bridged")
@@ -106,8 +111,12 @@ class Params(BaseModel):
         from services.estimation.correspondence import CorrespondenceOptions
 
         return CorrespondenceOptions(epipolar_gate_px=self.epipolar_gate_px,
-                                     reprojection_gate_px=self.reprojection_gate_px, sigma_px=self.sigma_px,
+                                     reprojection_gate_px=self.reprojection_gate_px,
+                                     sigma_px=1.0 if self.sigma_px == "auto" else self.sigma_px,
                                      min_views=self.min_views)
+
+    def point_noise(self) -> PointNoise:
+        return PointNoise(None if self.sigma_px == "auto" else self.sigma_px)
 
     def matching(self) -> MatchOptions:
         return MatchOptions(distance_tolerance=self.distance_tolerance, gate_rms=self.gate_rms)
@@ -193,12 +202,32 @@ def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray
             np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3))
 
 
-def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching) -> Points3D:
-    """The set's points with the body each was matched to."""
+class PointNoise:
+    """The points' covariances under the centroid noise: ``sigma_px`` fixed (the points triangulated with it),
+    or None: estimated by a ``CentroidNoise`` from each set's residuals (the points triangulated with 1 px)."""
+
+    def __init__(self, sigma_px: float | None):
+        self.noise = CentroidNoise() if sigma_px is None else None
+
+    def arrays(self, found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
+        """``point_arrays`` of one set's points, their covariances scaled by the estimate once it has taken
+        them in."""
+        points, covariances = point_arrays(found)
+        if self.noise is None:
+            return points, covariances
+        sigma_px = self.noise.update(np.array([p.rms_px for p in found]), np.array([p.views for p in found]))
+        return points, covariances * sigma_px**2
+
+
+def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching,
+                   covariances: np.ndarray | None = None) -> Points3D:
+    """The set's points with the body each was matched to; ``covariances`` (N, 3, 3) m^2 when not the points'
+    own."""
     body = np.full(len(found), -1, np.int32)
     for match in matching.bodies.values():
         body[match.indices[match.indices >= 0]] = names.index(match.name)
-    points, covariances = point_arrays(found)
+    points, own = point_arrays(found)
+    covariances = own if covariances is None else covariances
     return Points3D(header=header, bodies=tuple(names), points=points,
                     residual_px=np.array([p.rms_px for p in found], np.float32),
                     views=np.array([p.views for p in found], np.uint8), covariances=covariances, body=body)
@@ -263,7 +292,7 @@ def run(node: Node, params: Params) -> None:
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
     poses = PosePublishers(node)
     names = list(bodies)
-    correspondence, matching_options = params.correspondence(), params.matching()
+    correspondence, matching_options, noise = params.correspondence(), params.matching(), params.point_noise()
     tracker = None
     if params.predict:
         from services.estimation.body_tracking import BodyTracker
@@ -279,7 +308,7 @@ def run(node: Node, params: Params) -> None:
             continue
         found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
                                   correspondence)
-        points, covariances = point_arrays(found)
+        points, covariances = noise.arrays(found)
         if tracker is None:
             matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
             poses.put(header, body_poses(header, matching))
@@ -287,7 +316,7 @@ def run(node: Node, params: Params) -> None:
             tracked = tracker.step(header.stamp_ns, points, covariances)
             matching = tracked.matching
             poses.put(header, body_poses(header, matching) + predicted_poses(header, tracked.predicted))
-        points_out.put(points_message(header, found, names, matching))
+        points_out.put(points_message(header, found, names, matching, covariances))
 
 
 def _inputs(params: Params) -> tuple[str, ...]:

@@ -83,7 +83,7 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
     instants = [scene.render(i) for i in range(INSTANTS)]
     detect = blobs_node.detector(blobs_node.Params())
     node = rigid_bodies_node.Params(cameras=tuple(names))
-    correspondence, matching_options = node.correspondence(), node.matching()
+    correspondence, matching_options, noise = node.correspondence(), node.matching(), node.point_noise()
     bodies, stack = scene.bodies, rig_geometry(scene.cameras).stack
     times: dict[str, list[float]] = defaultdict(list)
     for instant in at_rate(instants, period_s):
@@ -93,11 +93,11 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
         found = triangulate_blobs(scene.cameras, [rigid_bodies_node.pixels(b, False) for b in found_blobs],
                                   correspondence)
         t2 = time.perf_counter()
-        points, covariances = rigid_bodies_node.point_arrays(found)
+        points, covariances = noise.arrays(found)
         matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
         t3 = time.perf_counter()
         pose_header = _header("world")
-        messages = [rigid_bodies_node.points_message(pose_header, found, list(bodies), matching),
+        messages = [rigid_bodies_node.points_message(pose_header, found, list(bodies), matching, covariances),
                     *rigid_bodies_node.body_poses(pose_header, matching)]
         for message in messages:
             encode(message)
