@@ -15,7 +15,9 @@ the blobs without flags (``flagged`` uses the flagged ones too) are put in corre
 triangulated, the bodies matched among the points and each fitted. Outputs, with the header of
 the set's frames and ``frame_id`` ``world``:
 
-* ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none);
+* ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none); the
+  covariances are for centroid noise of ``sigma_px``, by default (``auto``) the running estimate of
+  ``services.estimation.centroid_noise.CentroidNoise`` from the points' reprojection residuals;
 * ``pose/body/<name>``: ``Pose`` ``T_world_body`` (child ``body/<name>``) per body found, state
   ``tracking``, with the spheres used (``quality.inliers``), the fit's residual RMS
   (``quality.residual_rms_m``) and its 6x6 covariance (``Pose``'s convention: perturbation
