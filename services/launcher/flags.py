@@ -60,6 +60,9 @@ def type_name(annotation: Any) -> str:
         return f"{type_name(key)} -> {'JSON' if value is Any else type_name(value)}"
     if origin is Literal:
         return "choice"
+    if origin in (Union, types.UnionType):
+        return " or ".join(" or ".join(map(repr, get_args(a))) if get_origin(a) is Literal else type_name(a)
+                           for a in get_args(annotation) if a is not type(None))
     if get_origin(annotation) is Annotated:
         return type_name(get_args(annotation)[0])
     name = getattr(annotation, "__name__", str(annotation))

@@ -77,7 +77,9 @@ def test_skipped_fields_get_no_flag():
                                                       (tuple[int, ...], "list of int"),
                                                       (dict[int, float], "int -> float"),
                                                       (dict[str, Any], "str -> JSON"),
-                                                      (Literal["a", "b"], "choice")])
+                                                      (Literal["a", "b"], "choice"),
+                                                      (float | Literal["auto"], "float or 'auto'"),
+                                                      (int | str, "int or str")])
 def test_type_names_for_help(annotation, expected):
     assert type_name(annotation) == expected
 
