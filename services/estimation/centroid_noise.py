@@ -20,6 +20,7 @@ moves the point without a residual and is not counted; it is far below the detec
 from __future__ import annotations
 
 from collections import deque
+from functools import cache
 
 import numpy as np
 from scipy.stats import chi2
@@ -41,13 +42,22 @@ def robust_variance(squares: np.ndarray, dof: np.ndarray, keep: float = 0.999) -
     squares, dof = squares[usable], dof[usable]
     if not len(dof):
         return None
-    scale = float(np.median(squares / chi2.ppf(0.5, dof)))
+    values, index = np.unique(dof, return_inverse=True)
+    median, limit, expected = (np.array(column)[index] for column in
+                               zip(*(_chi2_constants(int(d), keep) for d in values), strict=True))
+    scale = float(np.median(squares / median))
     if scale <= 0.0:
         return 0.0
-    limit = chi2.ppf(keep, dof)
     kept = squares <= scale * limit
-    expected = dof * chi2.cdf(limit, dof + 2) / keep
     return float(np.sum(squares[kept]) / np.sum(expected[kept]))
+
+
+@cache
+def _chi2_constants(dof: int, keep: float) -> tuple[float, float, float]:
+    """For ``chi2(dof)``: its median, its ``keep`` quantile, and its mean below that quantile over ``keep``
+    (the expected share of a kept point's sum of squares)."""
+    limit = float(chi2.ppf(keep, dof))
+    return float(chi2.ppf(0.5, dof)), limit, float(dof * chi2.cdf(limit, dof + 2) / keep)
 
 
 class CentroidNoise:
