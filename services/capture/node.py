@@ -261,9 +261,9 @@ def _publish_frame(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: 
         name = rename[own_name]
         header = Header(stamp_ns=stamp, frame_id=name, seq=seq)
         encoding = _ENCODINGS[(image.dtype, image.shape[2] if image.ndim == 3 else 1)]
-        images[name].put(Image(header=header, encoding=encoding, data=image))
-        if name in infos:
+        if name in infos:  # before the image: a node that takes the frame has been sent its calibration
             infos[name].put(camera_info(header, rig.calibration[name]))
+        images[name].put(Image(header=header, encoding=encoding, data=image))
         if name in truths:
             truths[name].put(GroundTruth(header=header, transforms=frame_transforms(frame.truth.get(own_name, []))))
 
