@@ -61,7 +61,7 @@ LINGER_S = 0.5
 REPORT_EVERY_S = 1.0
 LINKS_S = 2.0
 """How long a new node waits for its session's first link before asking whether its name is taken."""
-LOOK_S = 0.8
+LOOK_S = 0.3
 """How long a new node keeps asking whether its name's token is held before taking it as free."""
 STALE_S = 1.0
 """How long a token must stay held to count as a live holder of the name (see ``_refuse_taken_name``)."""
