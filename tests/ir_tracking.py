@@ -21,7 +21,8 @@ from services.detection.blobs_node import Params as BlobsParams
 from services.detection.blobs_node import as_message, detector
 from services.estimation.correspondence import triangulate_blobs
 from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import Params, child_frame_covariance, pixels
+from services.estimation.rigid_bodies_node import Params, pixels
+from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle, rotvec_from_matrix
 

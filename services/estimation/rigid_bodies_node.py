@@ -57,6 +57,7 @@ from services.estimation.bodies_file import check_bodies, load_bodies
 from services.estimation.centroid_noise import CentroidNoise
 from services.estimation.marker_tracking import TargetTracks
 from services.estimation.rigid_bodies import Matching, MatchOptions, match_bodies
+from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import TriangulatedPoint
 from services.runtime.kind import NodeKind
@@ -157,6 +158,8 @@ class Calibration:
         self.infos = infos
         self.models: dict[str, CameraModel] = {} if rig is None else {name: rig.camera(name) for name in cameras}
         self.waited = False
+        self.used: dict[str, dict] = {}
+        """The CameraInfo fields (all but the header) each camera's model was last built from."""
 
     def current(self) -> list[CameraModel] | None:
         """The cameras in ``cameras`` order, None while one has no calibration yet."""
@@ -174,28 +177,20 @@ class Calibration:
         return [name for name in self.cameras if name not in self.models]
 
     def refresh(self) -> None:
-        """Take in the newest CameraInfo of each camera that arrived (none with a rig file)."""
+        """Take in the newest CameraInfo of each camera that arrived (none with a rig file); a camera's model
+        is rebuilt only when its CameraInfo changed (a source sends it with every frame)."""
         for name, inbox in self.infos.items():
             newest = None
             while (received := inbox.take()) is not None:
                 newest = received.message
-            if newest is not None:
+            if newest is not None and newest.model_dump(exclude={"header"}) != self.used.get(name):
+                self.used[name] = newest.model_dump(exclude={"header"})
                 self.models[name] = camera_model(newest, name)
 
 
 def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
     """(N, 2) float64 centroids of the blobs to triangulate: the unflagged ones, or all with ``flagged``."""
     return blobs.centroids if flagged else blobs.centroids[blobs.flags == 0]
-
-
-def child_frame_covariance(covariance: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
-    """A ``RigidFit`` covariance ((6, 6), world-frame ``(dtheta, dt)``) as ``Pose.covariance`` wants it:
-    (6, 6) over ``(tx, ty, tz, rx, ry, rz)`` in the body frame (``T_true = T_est exp(xi)``)."""
-    R_t = np.asarray(T_world_body, np.float64)[:3, :3].T
-    A = np.zeros((6, 6))
-    A[:3, 3:] = R_t
-    A[3:, :3] = R_t
-    return A @ np.asarray(covariance, np.float64) @ A.T
 
 
 def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:

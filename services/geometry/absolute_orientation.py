@@ -227,3 +227,13 @@ def fit_rigid(points_body: np.ndarray, points_world: np.ndarray, covariances: np
     rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
     covariance = None if covariances is None else pose_covariance(T, body, covariances)
     return RigidFit(T, rms, len(body), covariance)
+
+
+def child_frame_covariance(covariance: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
+    """A ``RigidFit`` covariance ((6, 6), world-frame ``(dtheta, dt)``) as ``Pose.covariance`` wants it:
+    (6, 6) over ``(tx, ty, tz, rx, ry, rz)`` in the body frame (``T_true = T_est exp(xi)``)."""
+    R_t = np.asarray(T_world_body, np.float64)[:3, :3].T
+    A = np.zeros((6, 6))
+    A[:3, 3:] = R_t
+    A[3:, :3] = R_t
+    return A @ np.asarray(covariance, np.float64) @ A.T

@@ -24,12 +24,12 @@ from services.estimation.rigid_bodies import match_bodies
 from services.estimation.rigid_bodies_node import (
     Params,
     body_poses,
-    child_frame_covariance,
     load,
     pixels,
     point_arrays,
     points_message,
 )
+from services.geometry.absolute_orientation import child_frame_covariance
 from services.launcher.tracker import Tracker
 
 
