@@ -13,6 +13,7 @@ from strategies import quaternions
 from protocol import (
     Blobs,
     CameraInfo,
+    DecodeError,
     Header,
     Image,
     Keypoints,
@@ -23,6 +24,8 @@ from protocol import (
     Pose,
     PoseQuality,
     Transform,
+    decode,
+    encode,
     message_type,
     to_json,
 )
@@ -273,6 +276,27 @@ def test_keypoints_take_binary_float_or_no_descriptors(descriptors: np.ndarray):
     keypoints = Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
                           descriptors=descriptors)
     assert keypoints.descriptors.dtype == descriptors.dtype
+
+
+@pytest.mark.parametrize(("descriptors", "norm"), [(np.zeros((2, 32), np.uint8), "hamming"), (f32(2, 128), "l2"),
+                                                   (f32(2, 0), "")])
+def test_keypoints_say_how_their_descriptors_compare(descriptors: np.ndarray, norm: str):
+    keypoints = Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
+                          descriptors=descriptors)
+    assert keypoints.norm == norm
+
+
+def test_keypoints_of_version_1_without_a_method_still_decode():
+    keypoints = Keypoints(header=HEADER, method="orb", descriptor_type="ORB", points=f32(2, 2), sizes=f32(2),
+                          angles=f32(2), responses=f32(2), descriptors=np.arange(64, dtype=np.uint8).reshape(2, 32))
+    payload = encode(keypoints)
+    field = b'"method":"orb",'
+    assert payload.count(field) == 1
+    old = payload.replace(b'"version":2', b'"version":1', 1).replace(field, b" " * len(field))
+    decoded = decode(old)
+    assert decoded.method == "" and decoded == keypoints.model_copy(update={"method": ""})
+    with pytest.raises(DecodeError, match="version 3 is not understood"):
+        decode(payload.replace(b'"version":2', b'"version":3', 1))
 
 
 def test_keypoints_refuse_mismatched_descriptor_rows():
