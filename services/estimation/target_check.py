@@ -50,9 +50,8 @@ GOOD_KEYPOINTS = 500
 MIN_COVERAGE = 0.6
 MIN_ENTROPY = 0.85
 REPEAT_FRACTION = 0.3
-"""A twin lies within this fraction of the median distance between unrelated descriptors of its level.
-On the procedural ``planar_target`` texture 5 % of ORB keypoints come nearer than 0.31 of it; copies
-in a tiled image come within 0.01 (docs/feature-targets.md)."""
+"""A twin lies within this fraction of the median distance between unrelated descriptors of its level:
+below what rich unique texture gives, far above what copies of a tile give (docs/feature-targets.md)."""
 MAX_REPEATED = 0.2
 """More repeated keypoints than this draw a warning; more than ``POOR_REPEATED`` make the image ``poor``."""
 POOR_REPEATED = 0.5
