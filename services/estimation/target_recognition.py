@@ -9,14 +9,12 @@ Steps, each of which may end the attempt with the state saying why:
 2. Undistort the matched frame pixels (``cv2.undistortPoints`` back onto the same ``K``) and fit the
    homography target-image pixel -> undistorted frame pixel with OpenCV's USAC (MAGSAC++ by default,
    the fastest and most accurate variant measured for this job).
-3. The pose ``T_camera_target`` of the homography's inliers: OpenCV's IPPE candidates, scored by
-   their reprojection RMS (``services.geometry.planar_pnp``), each refined by Levenberg-Marquardt
-   (``services.geometry.refine``); the refined pose with the lowest RMS wins. Points whose residual
-   exceeds the homography threshold at that pose are then dropped and the pose refined once more.
+3. The pose ``T_camera_target`` of the homography's inliers, made as every target pose is
+   (``services.estimation.target_pose``): the best refined IPPE candidate, refined again without
+   the points whose residual exceeds the homography threshold.
 4. A pose is given only with at least ``min_inliers`` points and an RMS residual of at most
-   ``max_rms_px``; its 6x6 covariance over (tx, ty, tz, rx, ry, rz) (target frame, metres and radians;
-   the perturbation ``services.geometry.refine`` documents) is ``sigma^2 (J^T J)^-1`` with the per-axis
-   pixel noise ``sigma_px``, estimated from the residuals when not given.
+   ``max_rms_px``, with its 6x6 covariance over (tx, ty, tz, rx, ry, rz) (target frame, metres and
+   radians), the per-axis pixel noise ``sigma_px`` estimated from the residuals when not given.
 
 Frames are in OpenCV's camera frame; pixels put the centre of the top-left pixel at (0, 0).
 """
@@ -31,10 +29,9 @@ import cv2
 import numpy as np
 
 from services.estimation.target_features import Extractor, is_binary, make_extractor, to_grey
+from services.estimation.target_pose import fit_covariance, fit_planar_pose
 from services.estimation.targets import Target
 from services.geometry.camera import undistort_pixels
-from services.geometry.planar_pnp import Patch, PlanarView, ippe_candidates
-from services.geometry.refine import pose_covariances, refine_poses
 
 __all__ = [
     "Recognition",
@@ -47,8 +44,6 @@ __all__ = [
 FLANN_KDTREE = 1
 FLANN_TREES = 4
 FLANN_CHECKS = 64
-IDENTITY = np.eye(4)
-IDENTITY.flags.writeable = False
 
 
 class RecognitionState(StrEnum):
@@ -208,48 +203,17 @@ class TargetRecognizer:
         inliers = np.flatnonzero(mask.ravel())
         if len(inliers) < o.min_inliers:
             return Recognition(RecognitionState.TOO_FEW_INLIERS, name, len(matches), len(inliers))
-        refined = self._pose(self.target.points[target_rows[inliers]], pixels[inliers], K)
-        if refined is None:
+        fit = fit_planar_pose(self.target.points[target_rows[inliers]], pixels[inliers], K, o.threshold_px)
+        if fit is None:
             return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
-        T, rms_px, normal, kept = refined
-        inliers = inliers[kept]
+        inliers = inliers[fit.kept]
         if len(inliers) < o.min_inliers:
             return Recognition(RecognitionState.TOO_FEW_INLIERS, name, len(matches), len(inliers))
-        if rms_px > o.max_rms_px:
+        if fit.rms_px > o.max_rms_px:
             return Recognition(RecognitionState.REPROJECTION_TOO_HIGH, name, len(matches), len(inliers),
-                               rms_px=rms_px)
-        n = len(inliers)
-        sigma_px = o.sigma_px if o.sigma_px is not None else rms_px * math.sqrt(n / max(2 * n - 6, 1))
-        covariance, regular = pose_covariances(normal[None], sigma_px)
-        if not regular[0]:
-            return Recognition(RecognitionState.NO_POSE, name, len(matches), n)
-        return Recognition(RecognitionState.RECOGNISED, name, len(matches), n, T, H, frame_rows[inliers],
-                           target_rows[inliers], pixels[inliers], rms_px, covariance[0])
-
-    def _pose(self, points: np.ndarray, pixels: np.ndarray,
-              K: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
-        """``(T_camera_target, rms_px, J^T J, kept)`` from (M, 3) target points and (M, 2) undistorted
-        pixels: the best refined IPPE candidate, refined again on the ``kept`` (M,) bool points whose
-        residual is within the threshold; None when no candidate is in front or converges."""
-        candidates = ippe_candidates([PlanarView(points, pixels, (Patch(IDENTITY, points),))], K)[0]
-        if not candidates:
-            return None
-        count = len(candidates)
-        result = refine_poses(np.array([c.T for c in candidates]), np.broadcast_to(points, (count, *points.shape)),
-                              np.broadcast_to(pixels, (count, *pixels.shape)), K)
-        usable = np.flatnonzero(result.converged)
-        if not len(usable):
-            return None
-        best = usable[np.argmin(result.rms_px[usable])]
-        T = result.T[best]
-        projected = points @ T[:3, :3].T + T[:3, 3]
-        residuals = projected[:, :2] / projected[:, 2:] @ K[:2, :2].T + K[:2, 2] - pixels
-        kept = np.sum(residuals**2, axis=1) <= self.options.threshold_px**2
-        if kept.all():
-            return T, float(result.rms_px[best]), result.normal[best], kept
-        if kept.sum() < 4:
-            return None
-        again = refine_poses(T[None], points[kept][None], pixels[kept][None], K)
-        if not again.converged[0]:
-            return None
-        return again.T[0], float(again.rms_px[0]), again.normal[0], kept
+                               rms_px=fit.rms_px)
+        covariance = fit_covariance(fit, o.sigma_px)
+        if covariance is None:
+            return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
+        return Recognition(RecognitionState.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
+                           frame_rows[inliers], target_rows[inliers], pixels[inliers], fit.rms_px, covariance)
