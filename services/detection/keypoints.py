@@ -23,12 +23,21 @@ Spreading (``KeypointParams.spread``): the detector is asked for ``candidates`` 
 keeps at most ``max_count``; ``none`` keeps the ``max_count`` strongest. Descriptors are
 computed only for the keypoints kept. ORB's extractor drops keypoints closer than ``EDGE_PX``
 to the border, so corners it describes are only taken that far inside.
+
+ORB's placement (``orb_image_points``): OpenCV's ORB finds FAST corners at integer pixels
+``x_l`` of level ``l``, an image of ``round(W / s^l)`` x ``round(H / s^l)`` pixels resized with
+pixel-centre alignment, but reports them at ``x_l * s^l``. The point that level pixel
+shows in the input image is ``(x_l + 0.5) * W / W_l - 0.5`` (per axis), the mapping of every
+other pyramid in the project; the difference is about ``-0.5 (s^l - 1)`` px (towards the
+top-left) plus a scale error of up to ``(W / W_l - s^l) x_l`` from the rounded level size
+(measured in docs/feature-tracking.md). The detector moves ORB's keypoints to the correct point
+after describing them (the descriptor is sampled on the level, where ORB's own position is right).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Literal
 
 import cv2
@@ -38,7 +47,7 @@ from services.detection.corners import PATCH_PX, corner_keypoints, find_corners,
 from services.detection.spread import spread_anms, spread_grid
 
 __all__ = ["EDGE_PX", "METHODS", "TEBLID_SCALE", "KeypointDetector", "KeypointParams", "Keypoints", "detect_keypoints",
-           "teblid_available"]
+           "orb_image_points", "teblid_available"]
 
 Method = Literal["orb", "sift", "akaze", "harris", "shi_tomasi"]
 METHODS: tuple[Method, ...] = ("orb", "sift", "akaze", "harris", "shi_tomasi")
@@ -208,7 +217,10 @@ class KeypointDetector:
             found = self._detector.detect(grey, None)
             keypoints = [found[i] for i in self._keep(_points(found), _responses(found), grey.shape)]
         described, descriptors = self._extractor.compute(grey, keypoints) if keypoints else ((), None)
-        return self._table(list(described), descriptors)
+        table = self._table(list(described), descriptors)
+        if p.method != "orb":
+            return table
+        return replace(table, points=orb_image_points(table.points, table.octaves, grey.shape, p.scale_factor))
 
     def empty(self) -> Keypoints:
         """No keypoints, with descriptors of this detector's width and dtype."""
@@ -240,6 +252,19 @@ class KeypointDetector:
                          angles=np.array([k.angle for k in keypoints], np.float32), responses=responses[order],
                          octaves=octaves, descriptors=kept.astype(self._no_descriptors.dtype, copy=False),
                          method=self.params.method, descriptor_type=self.descriptor_type, norm=self.norm)
+
+
+def orb_image_points(points: np.ndarray, octaves: np.ndarray, shape: tuple[int, ...],
+                     scale_factor: float) -> np.ndarray:
+    """(N, 2) float32 input-image pixels of (N, 2) keypoint ``points`` as OpenCV's ORB reports them
+    (``x_l * s^l`` for pixel ``x_l`` of level ``octaves`` (N,) ``l``) in an image of ``shape`` (H, W)
+    with ORB's ``scale_factor`` ``s``: ``(x_l + 0.5) * W / W_l - 0.5`` per axis, with ORB's level size
+    ``W_l = round(W / s^l)`` computed as ORB computes it (in float32)."""
+    scales = np.power(np.float64(scale_factor), octaves.astype(np.float64)).astype(np.float32)[:, None]
+    size = np.array([shape[1], shape[0]], np.float32)
+    level_size = np.floor(size * (np.float32(1.0) / scales) + np.float32(0.5))
+    level_points = points.astype(np.float64) / scales
+    return ((level_points + 0.5) * (size / level_size) - 0.5).astype(np.float32)
 
 
 def _points(keypoints: Sequence[cv2.KeyPoint]) -> np.ndarray:
