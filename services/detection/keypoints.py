@@ -151,6 +151,13 @@ class KeypointParams:
             raise ValueError(f"keypoint parameters must have {', '.join(broken)}")
 
     @property
+    def descriptor_type(self) -> str:
+        """The extractor's name: ``TEBLID``, else the method's own (``ORB`` for the corner methods)."""
+        if self.descriptor == "teblid":
+            return "TEBLID"
+        return "ORB" if self.method in ("harris", "shi_tomasi") else self.method.upper()
+
+    @property
     def asked(self) -> int:
         """How many keypoints the detector is asked for before spreading."""
         return self.max_count if self.spread == "none" else int(np.ceil(self.max_count * self.candidates))
@@ -193,10 +200,7 @@ class KeypointDetector:
         native = _feature2d(params)
         self._detector = native
         self._extractor = _teblid(params.method) if params.descriptor == "teblid" else native
-        if params.descriptor == "teblid":
-            self.descriptor_type = "TEBLID"
-        else:
-            self.descriptor_type = "ORB" if self._corners else params.method.upper()
+        self.descriptor_type = params.descriptor_type
         self.norm: Norm = _NORMS[self._extractor.defaultNorm()]
         binary = self._extractor.descriptorType() != cv2.CV_32F
         self._no_descriptors = np.zeros((0, self._extractor.descriptorSize()), np.uint8 if binary else np.float32)

@@ -28,6 +28,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from services.detection.keypoints import KeypointParams
 from services.estimation.target_features import DEFAULT_FEATURE, Extractor, is_binary, make_extractor, to_grey
 from services.estimation.targets import MAX_LEVELS, pyramid_features
 
@@ -78,10 +79,10 @@ class Trackability:
     warnings: tuple[str, ...]
 
 
-def check_image(image: np.ndarray, feature: str = DEFAULT_FEATURE, extract: Extractor | None = None,
+def check_image(image: np.ndarray, feature: str | KeypointParams = DEFAULT_FEATURE, extract: Extractor | None = None,
                 max_levels: int = MAX_LEVELS) -> Trackability:
     """How trackable ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) is with the keypoints of
-    ``extract`` (default ``make_extractor(feature)``) over its pyramid."""
+    ``extract`` (default ``make_extractor(feature)``, a feature's name or detector settings) over its pyramid."""
     grey = to_grey(image)
     keypoints, descriptors, levels = pyramid_features(grey, extract or make_extractor(feature), max_levels)
     count = len(keypoints)

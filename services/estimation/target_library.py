@@ -5,8 +5,13 @@ JSON object, and the arrays ``keypoints`` (N, 2) float32 image pixels, ``levels`
 ``descriptors`` (N, D) uint8 or float32 and ``points`` (N, 3) float64 target frame (see
 ``services.estimation.targets``). The header::
 
-    {"format": "artrack-target", "version": 1, "name": "poster", "feature": "orb",
+    {"format": "artrack-target", "version": 2, "name": "poster",
+     "detector": {"method": "orb", "descriptor": "native", "max_count": 2000, ...},
      "width_m": 0.297, "image_size": [1024, 724], "image": "poster.png", "source": "/path/poster.jpg"}
+
+``detector`` holds every field of the ``KeypointParams`` that found the keypoints, so frames are
+described alike. Version 1 files (a feature name instead of the settings) are refused: the target
+is added again from its image.
 
 ``<name>.png`` is the target's grey image. Files are written to a temporary name and renamed, so
 a library never holds half a target. The default folder is ``$XDG_DATA_HOME/artrack/targets``,
@@ -24,12 +29,13 @@ import math
 import os
 import re
 import zipfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from services.detection.keypoints import KeypointDetector, KeypointParams
 from services.estimation.target_features import DEFAULT_FEATURE, Extractor
 from services.estimation.targets import Target, build_target, check_width, target_points
 
@@ -50,7 +56,7 @@ __all__ = [
 ]
 
 FORMAT = "artrack-target"
-VERSION = 1
+VERSION = 2
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 """Target names: a file stem and one key-expression chunk (a pose is published under the name)."""
 SUFFIX = ".npz"
@@ -81,7 +87,9 @@ class DamagedTargetError(TargetLibraryError):
 @dataclass(frozen=True)
 class TargetInfo:
     """A target's header: ``name``, ``feature``, ``width_m`` and ``height_m`` (metres), ``image_size``
-    (width, height) pixels, ``keypoints`` count, ``source`` (the image it was built from) and ``path``."""
+    (width, height) pixels, ``keypoints`` count, ``source`` (the image it was built from) and ``path``;
+    ``detector``: the settings that found the keypoints; ``per_level``: keypoints of each pyramid level,
+    finest first; ``descriptor``: what describes them, e.g. ``ORB, 32 bytes, hamming``."""
 
     name: str
     feature: str
@@ -91,6 +99,9 @@ class TargetInfo:
     keypoints: int
     source: str
     path: Path
+    detector: KeypointParams
+    per_level: tuple[int, ...]
+    descriptor: str
 
 
 def default_library_dir() -> Path:
@@ -122,7 +133,7 @@ def write_target(target: Target, path: Path, source: str = "") -> None:
     """Write ``target`` to ``path`` (``<name>.npz``) and its image beside it (``<name>.png``), each through
     a temporary file renamed into place."""
     image_path = path.with_suffix(".png")
-    header = {"format": FORMAT, "version": VERSION, "name": target.name, "feature": target.feature,
+    header = {"format": FORMAT, "version": VERSION, "name": target.name, "detector": asdict(target.detector),
               "width_m": target.width_m, "image_size": list(target.size_px), "image": image_path.name,
               "source": source}
     partial_image = image_path.with_name(f".{image_path.name}.partial.png")
@@ -148,18 +159,29 @@ def read_header(path: Path, arrays: dict[str, np.ndarray]) -> dict:
         raise DamagedTargetError(f"target file {path}: not an {FORMAT} file")
     if header.get("version") != VERSION:
         raise DamagedTargetError(f"target file {path}: format version {header.get('version')!r}, this "
-                                 f"version reads {VERSION}")
+                                 f"version reads {VERSION}: add the target again from its image")
     width_m, size = header.get("width_m"), header.get("image_size")
     if not (isinstance(width_m, (int, float)) and math.isfinite(width_m) and width_m > 0):
         raise DamagedTargetError(f"target file {path}: width_m {width_m!r} is not a positive number")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
         raise DamagedTargetError(f"target file {path}: image_size {size!r} is not [width, height] pixels")
-    for key in ("name", "feature", "image", "source"):
+    for key in ("name", "image", "source"):
         if not isinstance(header.get(key), str):
             raise DamagedTargetError(f"target file {path}: header has no {key}")
     if Path(header["image"]).name != header["image"]:
         raise DamagedTargetError(f"target file {path}: image {header['image']!r} is not a file beside it")
+    header["detector"] = read_detector(path, header.get("detector"))
     return header
+
+
+def read_detector(path: Path, settings: object) -> KeypointParams:
+    """The detector settings of a header's ``detector`` object; DamagedTargetError naming ``path`` otherwise."""
+    if not isinstance(settings, dict):
+        raise DamagedTargetError(f"target file {path}: header has no detector settings")
+    try:
+        return KeypointParams(**settings)
+    except (TypeError, ValueError) as error:
+        raise DamagedTargetError(f"target file {path}: detector settings {settings!r}: {error}") from error
 
 
 def read_target(path: str | Path) -> Target:
@@ -179,8 +201,14 @@ def read_target_file(path: Path) -> tuple[Target, dict]:
         raise DamagedTargetError(f"target file {path}: unreadable ({error})") from error
     header = read_header(path, arrays)
     descriptors = arrays.get("descriptors")
-    if descriptors is None or descriptors.ndim != 2 or descriptors.dtype not in (np.uint8, np.float32):
-        raise DamagedTargetError(f"target file {path}: descriptors missing or not (N, D) uint8/float32")
+    try:
+        expected = KeypointDetector(header["detector"]).empty().descriptors
+    except ValueError as error:
+        raise DamagedTargetError(f"target file {path}: {error}") from error
+    if descriptors is None or descriptors.ndim != 2 or descriptors.dtype != expected.dtype \
+            or descriptors.shape[1] != expected.shape[1]:
+        raise DamagedTargetError(f"target file {path}: descriptors missing or not (N, {expected.shape[1]}) "
+                                 f"{expected.dtype} as its detector gives")
     count = len(descriptors)
     for key, (ndim, dtype) in ARRAYS.items():
         array = arrays.get(key)
@@ -198,7 +226,7 @@ def read_target_file(path: Path) -> tuple[Target, dict]:
                                  f"px, the header says {size[0]}x{size[1]}")
     if not np.allclose(target_points(arrays["keypoints"], (size[0], size[1]), header["width_m"]), arrays["points"]):
         raise DamagedTargetError(f"target file {path}: points do not lie where the keypoints and width put them")
-    return Target(header["name"], image, float(header["width_m"]), header["feature"], arrays["keypoints"],
+    return Target(header["name"], image, float(header["width_m"]), header["detector"], arrays["keypoints"],
                   arrays["levels"], descriptors, arrays["points"]), header
 
 
@@ -220,8 +248,9 @@ class TargetLibrary:
             raise UnknownTargetError(f"no target {name!r} in {self.folder} (targets: {known})")
         return path
 
-    def add(self, image_path: str | Path, width_m: float, name: str | None = None, feature: str = DEFAULT_FEATURE,
-            extract: Extractor | None = None, replace: bool = False) -> Target:
+    def add(self, image_path: str | Path, width_m: float, name: str | None = None,
+            feature: str | KeypointParams = DEFAULT_FEATURE, extract: Extractor | None = None,
+            replace: bool = False) -> Target:
         """Build a target from the image file ``image_path`` printed ``width_m`` metres wide and store it as
         ``name`` (default: the file's stem); ``replace`` overwrites a target of that name."""
         image_path = Path(image_path)
@@ -256,8 +285,13 @@ class TargetLibrary:
     def info(self, name: str) -> TargetInfo:
         """What target ``name`` is (read and checked whole, as ``load``)."""
         target, header = read_target_file(self.existing(name))
+        per_level = tuple(int(n) for n in np.bincount(target.levels))
+        bits = target.descriptors.dtype == np.uint8
+        size = f"{target.descriptors.shape[1]} {'bytes' if bits else 'floats'}"
+        descriptor = f"{target.detector.descriptor_type}, {size}, {'hamming' if bits else 'l2'}"
         return TargetInfo(target.name, target.feature, target.width_m, target.height_m, target.size_px,
-                          len(target.keypoints), header["source"], self.path(name))
+                          len(target.keypoints), header["source"], self.path(name), target.detector, per_level,
+                          descriptor)
 
     def load(self, name: str) -> Target:
         """Target ``name``; UnknownTargetError when absent, DamagedTargetError when it cannot be read back."""

@@ -172,8 +172,8 @@ class TargetRecognizer:
     def recognise_image(self, image: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None,
                         extract: Extractor | None = None) -> Recognition:
         """``recognise`` on the keypoints of ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) found by
-        ``extract`` (default: the target's feature at its default settings)."""
-        points, descriptors = (extract or make_extractor(self.target.feature))(to_grey(image))
+        ``extract`` (default: the target's own detector settings)."""
+        points, descriptors = (extract or make_extractor(self.target.detector))(to_grey(image))
         return self.recognise(points, descriptors, K, dist)
 
     def recognise(self, points: np.ndarray, descriptors: np.ndarray, K: np.ndarray,

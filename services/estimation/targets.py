@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.estimation.target_features import DEFAULT_FEATURE, Extractor, make_extractor, to_grey
+from services.detection.keypoints import KeypointParams
+from services.estimation.target_features import DEFAULT_FEATURE, Extractor, feature_params, make_extractor, to_grey
 
 __all__ = [
     "MAX_LEVELS",
@@ -47,7 +48,8 @@ class Target:
     """One image target.
 
     ``name``; ``image``: (H, W) uint8 grey image; ``width_m``: the printed width, metres;
-    ``feature``: the extractor's name (keypoints and descriptors of a frame must come from the same);
+    ``detector``: the settings that found the keypoints (a frame's must be found alike; ``feature`` names
+    its method);
     ``keypoints``: (N, 2) float32 level-0 image pixels; ``levels``: (N,) uint8 pyramid level of each;
     ``descriptors``: (N, D) uint8 (binary) or float32; ``points``: (N, 3) float64 target frame, metres.
     """
@@ -55,11 +57,16 @@ class Target:
     name: str
     image: np.ndarray
     width_m: float
-    feature: str
+    detector: KeypointParams
     keypoints: np.ndarray
     levels: np.ndarray
     descriptors: np.ndarray
     points: np.ndarray
+
+    @property
+    def feature(self) -> str:
+        """The detector's method (``orb``, ``sift``, ...)."""
+        return self.detector.method
 
     @property
     def size_px(self) -> tuple[int, int]:
@@ -123,24 +130,26 @@ def pyramid_features(grey: np.ndarray, extract: Extractor,
             np.concatenate(levels))
 
 
-def build_target(name: str, image: np.ndarray, width_m: float, feature: str = DEFAULT_FEATURE,
+def build_target(name: str, image: np.ndarray, width_m: float, feature: str | KeypointParams = DEFAULT_FEATURE,
                  extract: Extractor | None = None, max_levels: int = MAX_LEVELS) -> Target:
     """The target ``name`` of ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) printed ``width_m`` wide.
 
-    ``extract``: the keypoint extractor (default ``make_extractor(feature)``); ``feature`` names it in
-    the target, for frames to be described alike. Raises ValueError for a width that is not a
-    positive finite number, an image smaller than ``MIN_TARGET_SIDE`` or one without any keypoint.
+    ``feature``: a feature's name (``feature_params``) or detector settings, recorded in the target for
+    frames to be described alike; ``extract``: the keypoint extractor (default: those settings'). Raises
+    ValueError for a width that is not a positive finite number, an image smaller than ``MIN_TARGET_SIDE``
+    or one without any keypoint.
     """
     width_m = check_width(width_m)
     grey = to_grey(image)
     if min(grey.shape) < MIN_TARGET_SIDE:
         raise ValueError(f"target image is {grey.shape[1]}x{grey.shape[0]} px; it needs at least "
                          f"{MIN_TARGET_SIDE} px on each side")
-    keypoints, descriptors, levels = pyramid_features(grey, extract or make_extractor(feature), max_levels)
+    detector = feature_params(feature) if isinstance(feature, str) else feature
+    keypoints, descriptors, levels = pyramid_features(grey, extract or make_extractor(detector), max_levels)
     if len(keypoints) == 0:
         raise ValueError("target image has no keypoints (no texture to recognise it by)")
     size_px = (grey.shape[1], grey.shape[0])
-    return Target(name, grey, width_m, feature, keypoints, levels, descriptors,
+    return Target(name, grey, width_m, detector, keypoints, levels, descriptors,
                   target_points(keypoints, size_px, width_m))
 
 

@@ -23,7 +23,7 @@ from services.geometry.evaluation import pose_error
 from tests.data import data_dir
 
 FRAMES = range(0, 600, 20)
-BARS = {"orb": (0.3, 0.1), "sift": (0.15, 0.05)}
+BARS = {"orb": (0.2, 0.05), "sift": (0.15, 0.05)}
 """Per feature: the largest median rotation error (deg) and translation error (% of distance) accepted."""
 DIST = np.array([-0.28, 0.09, 0.0005, -0.0003, -0.01])
 

@@ -5,7 +5,8 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.plane import texel_from_plane
-from services.estimation.target_features import make_extractor, to_grey
+from services.detection.keypoints import KeypointDetector
+from services.estimation.target_features import feature_params, make_extractor, to_grey
 from services.estimation.targets import MIN_LEVEL_SIDE, build_target, pyramid_features, target_points
 
 
@@ -90,3 +91,14 @@ def test_tiny_and_textureless_images_are_refused():
 def test_unknown_features_are_refused():
     with pytest.raises(ValueError, match="orb, sift"):
         make_extractor("surf")
+
+
+@pytest.mark.parametrize("feature", ["orb", "sift"])
+def test_a_target_is_described_by_the_keypoint_detector_it_records(scene, feature):
+    image = scene.texture[:400, :600]
+    target = build_target("poster", image, 0.2, feature)
+    assert target.detector == feature_params(feature) and target.feature == feature
+    found = KeypointDetector(target.detector).detect(image)
+    finest = target.levels == 0
+    np.testing.assert_array_equal(target.keypoints[finest], found.points)
+    np.testing.assert_array_equal(target.descriptors[finest], found.descriptors)
