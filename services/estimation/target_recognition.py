@@ -12,7 +12,10 @@ Steps, each of which may end the attempt with the state saying why:
 3. The pose ``T_camera_target`` of the homography's inliers, made as every target pose is
    (``services.estimation.target_pose``): the best refined IPPE candidate, refined again without
    the points whose residual exceeds the homography threshold.
-4. A pose is given only with at least ``min_inliers`` points and an RMS residual of at most
+4. The homography given with the pose is fitted again, by least squares, to the points the pose
+   rests on: the robust estimator's own depends on the order of the matches (its random samples),
+   this one only on the inliers.
+5. A pose is given only with at least ``min_inliers`` points and an RMS residual of at most
    ``max_rms_px``, with its 6x6 covariance over (tx, ty, tz, rx, ry, rz) (target frame, metres and
    radians), the per-axis pixel noise ``sigma_px`` estimated from the residuals when not given.
 
@@ -215,5 +218,6 @@ class TargetRecognizer:
         covariance = fit_covariance(fit, o.sigma_px)
         if covariance is None:
             return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
+        H, _ = cv2.findHomography(self.target_pixels[target_rows[inliers]], pixels[inliers], 0)
         return Recognition(RecognitionState.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
                            frame_rows[inliers], target_rows[inliers], pixels[inliers], fit.rms_px, covariance)
