@@ -88,7 +88,8 @@ class TargetAligner:
         w, h = self.target.size_px
         centre = np.array([[(w - 1) / 2, (h - 1) / 2], [(w + 1) / 2, (h - 1) / 2], [(w - 1) / 2, (h + 1) / 2]])
         mapped = cv2.perspectiveTransform(centre.reshape(-1, 1, 2), H).reshape(3, 2)
-        area = abs(float(np.cross(mapped[1] - mapped[0], mapped[2] - mapped[0])))
+        (a, b), (c, d) = mapped[1] - mapped[0], mapped[2] - mapped[0]
+        area = abs(float(a * d - b * c))
         texels_per_pixel = 1.0 / math.sqrt(max(area, 1e-12))
         return int(np.clip(math.floor(math.log2(max(texels_per_pixel, 1.0))), 0, len(self.levels) - 1))
 
