@@ -26,7 +26,9 @@ recognition the points are seeded the same way from the recognised pose.
 
 Several targets: one tracker per target. A frame's keypoints are needed only by trackers that fall
 back to recognition; ``FrameFeatures`` extracts them on first use and hands the same arrays to every
-such tracker of the frame (``track_targets`` does this for a list of trackers).
+such tracker of the frame (``track_targets`` does this for a list of trackers, one extraction per
+detector setting). Frames are described with the target's own detector settings (``Target.detector``),
+as recognition describes them.
 
 Frames: ``T_camera_target`` (4, 4) maps the target frame (origin at the image's centre, x right, y
 up, z towards the viewer) to OpenCV's camera frame. Tracked pixels are the frame's own (distorted)
@@ -43,6 +45,7 @@ from enum import StrEnum
 import cv2
 import numpy as np
 
+from services.detection.keypoints import KeypointParams
 from services.estimation.body_motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions
 from services.estimation.target_alignment import AlignmentOptions, TargetAligner
 from services.estimation.target_features import Extractor, make_extractor, to_grey
@@ -183,7 +186,7 @@ class TargetTracker:
         self.target = target
         self.options = options or TrackingOptions()
         self.recognizer = TargetRecognizer(target, recognition)
-        self.extract = extract or make_extractor(target.feature)
+        self.extract = extract or make_extractor(target.detector)
         self.aligner = TargetAligner(target, self.options.alignment)
         self.motion = ConstantVelocity(self.options.motion)
         self._tracks: _Tracks | None = None
@@ -358,11 +361,11 @@ def _project(points: np.ndarray, T_camera_target: np.ndarray, K: np.ndarray, dis
 def track_targets(trackers: Sequence[TargetTracker], image: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
                   stamp_ns: int) -> list[TargetPose]:
     """Every tracker's ``TargetPose`` in one frame, in order; the frame is converted to grey once and its
-    keypoints extracted at most once per feature kind, only when a tracker needs recognition."""
+    keypoints extracted at most once per detector setting, only when a tracker needs recognition."""
     grey = to_grey(image)
-    shared: dict[str, FrameFeatures] = {}
+    shared: dict[KeypointParams, FrameFeatures] = {}
     poses = []
     for tracker in trackers:
-        features = shared.setdefault(tracker.target.feature, FrameFeatures(grey, tracker.extract))
+        features = shared.setdefault(tracker.target.detector, FrameFeatures(grey, tracker.extract))
         poses.append(tracker.track(grey, K, dist, stamp_ns, features))
     return poses

@@ -80,7 +80,7 @@ def test_tracking_is_never_lost_and_at_least_as_accurate_as_recognition_alone(sc
     states = [p.state for p in poses]
     recognised = states.count(TrackState.RECOGNISED)
     assert states[0] is TrackState.RECOGNISED and recognised <= 2
-    recognizer, extract = TargetRecognizer(target), make_extractor(target.feature)
+    recognizer, extract = TargetRecognizer(target), make_extractor(target.detector)
     alone, recognised_s = [], []
     for frame in frames:
         start = time.perf_counter()
