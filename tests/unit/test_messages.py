@@ -229,6 +229,18 @@ def test_pose_refuses_a_covariance_that_is_not_6x6(covariance: tuple[float, ...]
         Pose(header=HEADER, child_frame_id="body/wand", covariance=covariance)
 
 
+def test_a_lost_pose_says_why_and_a_recognised_one_travels_at_version_3():
+    lost = Pose(header=HEADER, child_frame_id="target/poster", state="lost", reason="too_few_matches")
+    recognised = Pose(header=HEADER, child_frame_id="target/poster", state="recognised")
+    assert decode(encode(lost)) == lost and decode(encode(recognised)).state == "recognised"
+    assert b'"version":3' in encode(lost)
+
+
+def test_a_pose_of_version_2_still_decodes_with_no_reason():
+    old = encode(Pose(header=HEADER, child_frame_id="marker/7")).replace(b'"version":3', b'"version":2')
+    assert decode(old).reason == "" and decode(old).state == "tracking"
+
+
 # --- detections ---
 
 
