@@ -12,11 +12,17 @@ whose sigma grows with the distance from the focus in dioptres). With ``motion=s
 holds its pose of frame 0 (the light still changes), to measure how much a still target's pose
 shakes. Ground truth:
 ``("cam0", "target", T_cam0_target)`` in every frame.
+
+The scene settles the ``target`` of a tracker (``known_settings``): itself, as the URI
+``synthetic:planar_target`` followed by ``?name=value&...`` for each option that shapes the target
+(``TARGET_OPTIONS``) and differs from its default, from which a target is built afresh
+(``services.estimation.scene_targets``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +40,8 @@ OUTSIDE_GREY = 110
 PATH_PURPOSE, TEXTURE_PURPOSE, LIGHT_PURPOSE = 100, 101, 102
 LIGHT_PERIOD_RANGE_S = (6.0, 15.0)
 MOTIONS = ("sway", "static")
+TARGET_OPTIONS = ("seed", "target_width", "target_height", "texture_px")
+"""The options that shape the target's texture and size (and so its target's URI)."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +95,13 @@ class PlanarTargetScene(SyntheticScene):
         """(gain, horizontal slope, vertical slope) of the light over time."""
         K = intrinsics(o.width, o.height, HFOV_DEG)
         self.cameras = (CameraModel("cam0", o.width, o.height, K, np.zeros(5), np.eye(4)),)
+
+    def known_settings(self) -> dict[str, Any]:
+        """``target``: the URI of the scene's own target (see the module docstring)."""
+        default = PlanarTargetOptions()
+        given = [f"{name}={getattr(self.options, name)}" for name in TARGET_OPTIONS
+                 if getattr(self.options, name) != getattr(default, name)]
+        return {"target": (f"synthetic:{self.name}" + (f"?{'&'.join(given)}" if given else ""),)}
 
     def camera_pose(self, index: int) -> np.ndarray:
         """(4, 4) ``T_target_cam0`` of frame ``index`` (of frame 0 for ``motion=static``)."""
