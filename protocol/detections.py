@@ -79,17 +79,24 @@ class Blobs(Message):
 
 
 class Keypoints(Message):
-    """Image features with optional descriptors.
+    """Image features with optional descriptors; ``header`` is the image's (``frame_id`` the camera).
 
-    ``points``: (N, 2) float32 px; ``sizes``, ``angles`` (deg, OpenCV's convention),
-    ``responses``: (N,) float32; ``descriptors``: (N, D) uint8 for binary descriptors
-    (ORB: D = 32) or float32 (SIFT: D = 128), (N, 0) when none were computed.
-    ``descriptor_type`` names the extractor (``"ORB"``, ``"SIFT"``, ``""``).
+    ``points``: (N, 2) float32 px (x right, y down, centre of the top-left pixel at (0, 0));
+    ``sizes`` (px), ``angles`` (deg, OpenCV's convention), ``responses``: (N,) float32;
+    ``descriptors``: (N, D) uint8 for binary descriptors (ORB, TEBLID: D = 32; AKAZE: 61),
+    compared by Hamming distance, or float32 (SIFT: D = 128) compared by L2 distance (``norm``
+    says which), (N, 0) when none were computed. ``method`` names the detector (``"orb"``,
+    ``"sift"``, ``"akaze"``, ``"harris"``, ``"shi_tomasi"``), ``descriptor_type`` the extractor
+    (``"ORB"``, ``"TEBLID"``, ``"SIFT"``, ``"AKAZE"``, ``""``).
+
+    Version 2 added ``method``; version 1 payloads (older recordings) still decode, with it empty.
     """
 
     SCHEMA = "artrack.Keypoints"
-    VERSION = 1
+    VERSION = 2
+    READS_OLDER = (1,)
 
+    method: str = ""
     descriptor_type: str = ""
     points: Annotated[np.ndarray, array_field("float32", (None, 2))]
     sizes: Annotated[np.ndarray, array_field("float32", (None,))]
@@ -101,3 +108,10 @@ class Keypoints(Message):
     def _aligned(self) -> Keypoints:
         _same_rows(self, "points", "sizes", "angles", "responses", "descriptors")
         return self
+
+    @property
+    def norm(self) -> Literal["hamming", "l2", ""]:
+        """How descriptors compare: ``"hamming"`` (uint8, bits packed), ``"l2"`` (float32), ``""`` without any."""
+        if self.descriptors.shape[1] == 0:
+            return ""
+        return "hamming" if self.descriptors.dtype == np.uint8 else "l2"

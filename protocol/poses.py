@@ -22,10 +22,14 @@ class TrackingState(StrEnum):
 
     TRACKING = "tracking"
     """A fresh estimate from this frame's measurements."""
+    RECOGNISED = "recognised"
+    """A fresh estimate from this frame's measurements, found from scratch (a natural-feature target
+    recognised by its descriptors) rather than followed on from the previous frame."""
     PREDICTED = "predicted"
     """No measurement in this frame; the pose is carried over or predicted."""
     INITIALIZING = "initializing"
     LOST = "lost"
+    """No pose; ``Pose.reason`` may say why."""
     NO_CALIBRATION = "no_calibration"
     """The camera has no calibration, so no metric pose can be given."""
 
@@ -53,16 +57,21 @@ class Pose(Message):
     """One target's pose ``T_<header.frame_id>_<child_frame_id>`` with its quality.
 
     ``covariance`` is an optional row-major 6x6 matrix (36 numbers) over the perturbation
-    (tx, ty, tz, rx, ry, rz) in the child frame: metres and radians.
+    (tx, ty, tz, rx, ry, rz) in the child frame: metres and radians. ``reason``: why a ``lost``
+    pose has none, when the tracker knows (a natural-feature target: ``too_few_matches``, ...),
+    else empty.
+
+    Version 3 added the ``recognised`` state and ``reason``; versions 1 and 2 still decode.
     """
 
     SCHEMA = "artrack.Pose"
-    VERSION = 2
-    READS_OLDER = (1,)
+    VERSION = 3
+    READS_OLDER = (1, 2)
 
     child_frame_id: str
     transform: Transform = Transform()
     state: TrackingState = TrackingState.TRACKING
+    reason: str = ""
     quality: PoseQuality = PoseQuality()
     covariance: Covariance6 | None = None
 

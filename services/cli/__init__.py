@@ -10,7 +10,7 @@ import sys
 from importlib import metadata
 
 from services.bus.session import BusError
-from services.cli import bodies, calibrate, markers, observe, pipelines, recordings, run, scenes
+from services.cli import bodies, calibrate, markers, observe, pipelines, recordings, run, scenes, targets
 from services.cli.markers import PAPER_NAMES
 from services.launcher.pipeline import PipelineError
 from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
@@ -24,7 +24,8 @@ COMMANDS = (pipelines.add_up, observe.add_status, observe.add_config, pipelines.
             observe.add_echo, run.add_run, pipelines.add_kinds, pipelines.add_trackers, pipelines.add_demo,
             pipelines.add_node, observe.add_schemas, recordings.add_record, recordings.add_replay,
             recordings.add_control, recordings.add_info, recordings.add_export, recordings.add_eval,
-            recordings.add_view, calibrate.add_calibrate, markers.add_markers, scenes.add_scene, bodies.add_bodies)
+            recordings.add_view, calibrate.add_calibrate, markers.add_markers, scenes.add_scene, bodies.add_bodies,
+            targets.add_target)
 """Each adds its command to ``artrack``'s subcommands, in the order ``artrack --help`` lists them."""
 
 

@@ -141,7 +141,8 @@ def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: Ba
         if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
             value, uri = known[flag.field]
             taken[flag.key] = value
-            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, value, uri, flag.option)
+            shown = " ".join(map(str, value)) if isinstance(value, tuple | list) else value
+            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, shown, uri, flag.option)
     return taken
 
 

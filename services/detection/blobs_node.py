@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -31,12 +30,10 @@ from services.bus.pubsub import Role
 from services.detection.blobs import Blobs as FoundBlobs
 from services.detection.blobs import IrBlobParams, detect_ir_blobs
 from services.detection.colour_blobs import ColourBlobParams, HueModel, detect_colour_blobs
+from services.detection.grey import MONO16_SCALE, as_grey
 from services.detection.scale_space import LogBlobParams, detect_log_blobs
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
-
-MONO16_SCALE = 257.0
-"""A mono16 grey level per mono8 grey level (65535 / 255)."""
 
 
 class Params(BaseModel):
@@ -79,13 +76,6 @@ def detector(params: Params) -> Detector:
     colour = ColourBlobParams(**shape)
     model = HueModel(params.hue_deg, params.hue_width_deg / colour.width, params.min_saturation, params.min_value)
     return lambda data: _colour_blobs(data, model, colour)
-
-
-def as_grey(data: np.ndarray) -> np.ndarray:
-    """(H, W) grey levels of a mono (H, W) or BGR(A) (H, W, 3|4) frame."""
-    if data.ndim == 3:
-        return cv2.cvtColor(data, cv2.COLOR_BGR2GRAY if data.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    return data
 
 
 def _log_blobs(data: np.ndarray, settings: LogBlobParams) -> FoundBlobs:

@@ -94,7 +94,7 @@ class Params(DetectorSettings):
         return self
 
 
-class _Calibration:
+class FrameCalibration:
     """The camera model in use: a fixed file, or the newest CameraInfo of the camera.
 
     A capture node publishes a frame's CameraInfo just after the frame. The node takes in the
@@ -122,6 +122,15 @@ class _Calibration:
         self.model, note = fit_to_image(self.model, width, height, self._where)
         return note
 
+    def fit_frame(self, node: Node, image: Image) -> None:
+        """``fit`` to ``image``'s size, the note said in ``node``'s log; NodeError when the file cannot fit."""
+        try:
+            note = self.fit(image.data.shape[1], image.data.shape[0])
+        except CalibrationError as exc:
+            raise NodeError(str(exc)) from exc
+        if note is not None:
+            node.log.warning("%s", note)
+
     def current(self) -> CameraModel | None:
         """The model for the frame at hand."""
         if self.model is None and not self._fixed:
@@ -144,7 +153,7 @@ class _Calibration:
             self.model = camera_model(newest)
 
 
-class _Poses:
+class PosePublishers:
     """One publisher per target, created when the target first appears; remembers who was tracked.
 
     A frame's poses are all built before the first is sent, so they leave back to back, Zenoh
@@ -237,8 +246,8 @@ def run(node: Node, params: Params) -> None:
     node.configurable(params, apply)
     keys = node.keys
     infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
-    calibration = _Calibration(infos, fixed, str(params.calib))
-    poses = _Poses(node, params.camera)
+    calibration = FrameCalibration(infos, fixed, str(params.calib))
+    poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]
     if detector is None:
@@ -257,18 +266,14 @@ def run(node: Node, params: Params) -> None:
 
 
 def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
-              out: Publisher[MarkerDetections], calibration: _Calibration) -> Iterator[tuple[Image, MarkerDetections]]:
+              out: Publisher[MarkerDetections],
+              calibration: FrameCalibration) -> Iterator[tuple[Image, MarkerDetections]]:
     """Each frame from ``frames`` with its detections by ``live["detector"]`` (replaced by live
     changes; given the calibration known so far, if any, for its corner refinement), published on
     ``out`` once the frame's poses are out: the detections are a side output, and the poses
     should not wait for them."""
     for image in node.inputs(frames):
-        try:
-            note = calibration.fit(image.data.shape[1], image.data.shape[0])
-        except CalibrationError as exc:
-            raise NodeError(str(exc)) from exc
-        if note is not None:
-            node.log.warning("%s", note)
+        calibration.fit_frame(node, image)
         camera = calibration.model  # known now: the first frame does not wait for a CameraInfo to detect
         lens = (camera.K, camera.dist) if camera is not None else (None, None)
         detections = as_message(image.header, dictionary, live["detector"].detect(image.data, *lens))
@@ -277,7 +282,7 @@ def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector],
 
 
 def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | None,
-              estimator: MarkerPoseEstimator, poses: _Poses) -> FrameEstimate | None:
+              estimator: MarkerPoseEstimator, poses: PosePublishers) -> FrameEstimate | None:
     """Publish the poses of ``detections``; the estimate, None without calibration."""
     header = detections.header
     if camera is None:

@@ -6,7 +6,8 @@ camera):
 
 * a cube standing on the target: its base is the square of side ``size_m`` centred on the
   origin in the plane z = 0, its top the same square at z = +``size_m`` (magenta, BGR
-  ``CUBE_COLOR``);
+  ``CUBE_COLOR``); for a target given an ``outline`` ``(width_m, height_m)`` (an image target),
+  that rectangle centred on the origin in the plane z = 0 instead, in the same colour;
 * the axes from the origin, ``size_m`` long: x red, y green, z blue (``cv2.drawFrameAxes``'
   colours), drawn over the cube;
 * the label, white on a black outline, just above and right of the origin's image.
@@ -41,8 +42,6 @@ from services.geometry.se3 import transform_points
 CUBE_COLOR = (255, 0, 255)
 AXIS_COLORS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))
 """BGR colours of the x, y and z axes (as cv2.drawFrameAxes)."""
-SEGMENT_COLORS = (CUBE_COLOR,) * 12 + AXIS_COLORS
-"""Colour of each of ``cube_edges`` then ``axis_segments``, in drawing order."""
 NEAR_M = 1e-4
 """Edges are clipped to z >= NEAR_M, camera frame, metres."""
 FOV_MARGIN = 0.05
@@ -56,21 +55,24 @@ LABEL_OFFSET_PX = 4
 
 
 class OverlayTarget(NamedTuple):
-    """One target to draw: ``T`` (4, 4) ``T_camera_target``, cube side ``size_m`` (m), ``label``."""
+    """One target to draw: ``T`` (4, 4) ``T_camera_target``, cube side and axis length ``size_m`` (m),
+    ``label``; ``outline``: ``(width_m, height_m)`` of a rectangle drawn instead of the cube (None: the cube)."""
 
     T: np.ndarray
     size_m: float
     label: str = ""
+    outline: tuple[float, float] | None = None
 
 
 def draw_overlay(image: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
-                 targets: Sequence[tuple[np.ndarray, float, str]], *, thickness: int | None = None) -> np.ndarray:
-    """(H, W, 3) uint8 BGR copy of ``image`` with each target's cube, axes and label drawn on it.
+                 targets: Sequence[OverlayTarget | tuple[np.ndarray, float, str]], *,
+                 thickness: int | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 BGR copy of ``image`` with each target's cube (or outline), axes and label drawn on it.
 
     ``image``: (H, W) or (H, W, 3) uint8 (also (H, W, 4) BGRA and uint16 mono, see ``to_bgr8``);
     never modified. ``K``: (3, 3) intrinsics of the image; ``dist``: OpenCV distortion
-    coefficients (None or empty = none). ``targets``: ``(T_camera_target (4, 4), size_m, label)``
-    each (``OverlayTarget`` or plain tuples); an empty label draws no text. ``thickness``: line
+    coefficients (None or empty = none). ``targets``: ``OverlayTarget`` or plain tuples
+    ``(T_camera_target (4, 4), size_m, label)``; an empty label draws no text. ``thickness``: line
     width in pixels (default: 1 per 240 pixels of the image's smaller side, at least 1).
     What lies behind the camera or outside the view is not drawn (module docstring). Raises
     ValueError for an image, K, pose or size it cannot use.
@@ -83,14 +85,17 @@ def draw_overlay(image: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
     dist = np.zeros(5) if dist is None or np.size(dist) == 0 else np.asarray(dist, dtype=np.float64).ravel()
     thickness = thickness if thickness is not None else max(1, round(min(height, width) / 240))
     bounds = view_bounds(K, dist, width, height)
-    for T, size_m, label in targets:
+    for target in targets:
+        T, size_m, label, outline = OverlayTarget(*target)
         T = np.asarray(T, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"T_camera_target must be a finite (4, 4) matrix, got shape {T.shape}")
         if not (np.isfinite(size_m) and size_m > 0):
             raise ValueError(f"size_m must be a positive length in metres, got {size_m!r}")
-        segments = np.concatenate([cube_edges(size_m), axis_segments(size_m)])
-        _draw_segments(canvas, transform_points(T, segments.reshape(-1, 3)).reshape(-1, 2, 3), SEGMENT_COLORS,
+        shape = cube_edges(size_m) if outline is None else rectangle_edges(*outline)
+        segments = np.concatenate([shape, axis_segments(size_m)])
+        colors = (CUBE_COLOR,) * len(shape) + AXIS_COLORS
+        _draw_segments(canvas, transform_points(T, segments.reshape(-1, 3)).reshape(-1, 2, 3), colors,
                        K, dist, bounds, thickness)
         if label:
             _draw_label(canvas, label, T[:3, 3], K, dist, bounds)
@@ -124,6 +129,16 @@ def cube_edges(size_m: float) -> np.ndarray:
     ring = [(i, (i + 1) % 4) for i in range(4)]
     return np.array([[base[i], base[j]] for i, j in ring] + [[top[i], top[j]] for i, j in ring]
                     + [[base[i], top[i]] for i in range(4)])
+
+
+def rectangle_edges(width_m: float, height_m: float) -> np.ndarray:
+    """(4, 2, 3) end points of the edges of a ``width_m`` x ``height_m`` rectangle centred on the origin in the
+    plane z = 0, target frame (top, right, bottom, left); ValueError unless both sides are positive."""
+    if not (np.isfinite(width_m) and np.isfinite(height_m) and width_m > 0 and height_m > 0):
+        raise ValueError(f"an outline needs positive sides in metres, got {width_m!r} x {height_m!r}")
+    w, h = width_m / 2, height_m / 2
+    corners = np.array([[-w, h, 0.0], [w, h, 0.0], [w, -h, 0.0], [-w, -h, 0.0]])
+    return np.array([[corners[i], corners[(i + 1) % 4]] for i in range(4)])
 
 
 def axis_segments(length_m: float) -> np.ndarray:

@@ -43,8 +43,9 @@ from services.recorder.writing import RECORDING_METADATA
 
 FORMATS = ("tum", "csv", "jsonl")
 SUMMARISE_OVER = 16
-ESTIMATED = frozenset({TrackingState.TRACKING})
-"""Pose states a trajectory is made of: a fresh estimate from the frame's own measurements (a
+ESTIMATED = frozenset({TrackingState.TRACKING, TrackingState.RECOGNISED})
+"""Pose states a trajectory is made of: a fresh estimate from the frame's own measurements, followed
+on or recognised afresh (a
 ``predicted`` pose is carried over, no measurement of its own, and would weigh twice in ATE/RPE)."""
 
 

@@ -39,7 +39,7 @@ from protocol.system import ErrorReport, NodeStats
 from services.viewer import layout
 from services.viewer.images import RateGate, image_archetype
 
-DRAWN_STATES = frozenset({TrackingState.TRACKING, TrackingState.PREDICTED})
+DRAWN_STATES = frozenset({TrackingState.TRACKING, TrackingState.RECOGNISED, TrackingState.PREDICTED})
 STYLES = {
     "markers": rr.LineStrips2D.from_fields(colors=0x00DC5AFF),
     "keypoints": rr.Points2D.from_fields(colors=0xFFC800FF, radii=rr.Radius.ui_points(2.0)),

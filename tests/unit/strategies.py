@@ -134,7 +134,7 @@ def marker_detections(draw: st.DrawFn) -> MarkerDetections:
 def keypoints(draw: st.DrawFn) -> Keypoints:
     n, width = draw(rows), draw(st.sampled_from([0, 1, 32, 128]))
     descriptor_dtype = draw(st.sampled_from(["uint8", "float32"]))
-    return Keypoints(header=draw(headers), descriptor_type=draw(texts),
+    return Keypoints(header=draw(headers), method=draw(texts), descriptor_type=draw(texts),
                      points=draw(arrays("float32", (n, 2))), sizes=draw(arrays("float32", (n,))),
                      angles=draw(arrays("float32", (n,))), responses=draw(arrays("float32", (n,))),
                      descriptors=draw(arrays(descriptor_dtype, (n, width))))

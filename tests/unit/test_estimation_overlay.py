@@ -14,6 +14,7 @@ from services.estimation.overlay import (
     board_cube_size,
     cube_edges,
     draw_overlay,
+    rectangle_edges,
     to_bgr8,
 )
 from services.geometry.rotation import matrix_from_rotvec
@@ -77,6 +78,26 @@ def test_cube_and_axes_are_drawn_where_they_project_and_nowhere_else():
         cv2.line(near, tuple(map(int, p)), tuple(map(int, q)), 1, THICKNESS + 4)
     assert drawn.sum() > 500
     assert not np.any(changed(image, out, tolerance=4) & (near == 0)), "pixels away from the cube and axes changed"
+
+
+def test_an_outline_is_drawn_instead_of_the_cube():
+    T = facing([0.03, -0.02, 0.6])
+    image = grey()
+    outline = (0.12, 0.06)
+    out = draw_overlay(image, K, None, [OverlayTarget(T, SIZE / 2, "", outline)], thickness=THICKNESS)
+    drawn = changed(image, out)
+    edges = rectangle_edges(*outline)
+    assert all(at(drawn, p) for p in project(T, edges.mean(axis=1))), "an outline edge was not drawn"
+    near = np.zeros((H, W), np.uint8)
+    for a, b in np.concatenate([edges, axis_segments(SIZE / 2)]):
+        p, q = np.round(project(T, np.stack([a, b]))).astype(int)
+        cv2.line(near, tuple(map(int, p)), tuple(map(int, q)), 1, THICKNESS + 6)
+    assert not np.any(changed(image, out, tolerance=4) & (near == 0)), "pixels away from the outline and axes changed"
+
+
+def test_an_outline_needs_positive_sides():
+    with pytest.raises(ValueError, match="positive sides"):
+        rectangle_edges(0.1, 0.0)
 
 
 def test_axes_agree_with_opencvs_draw_frame_axes():

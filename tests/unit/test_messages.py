@@ -13,6 +13,7 @@ from strategies import quaternions
 from protocol import (
     Blobs,
     CameraInfo,
+    DecodeError,
     Header,
     Image,
     Keypoints,
@@ -23,6 +24,8 @@ from protocol import (
     Pose,
     PoseQuality,
     Transform,
+    decode,
+    encode,
     message_type,
     to_json,
 )
@@ -226,6 +229,18 @@ def test_pose_refuses_a_covariance_that_is_not_6x6(covariance: tuple[float, ...]
         Pose(header=HEADER, child_frame_id="body/wand", covariance=covariance)
 
 
+def test_a_lost_pose_says_why_and_a_recognised_one_travels_at_version_3():
+    lost = Pose(header=HEADER, child_frame_id="target/poster", state="lost", reason="too_few_matches")
+    recognised = Pose(header=HEADER, child_frame_id="target/poster", state="recognised")
+    assert decode(encode(lost)) == lost and decode(encode(recognised)).state == "recognised"
+    assert b'"version":3' in encode(lost)
+
+
+def test_a_pose_of_version_2_still_decodes_with_no_reason():
+    old = encode(Pose(header=HEADER, child_frame_id="marker/7")).replace(b'"version":3', b'"version":2')
+    assert decode(old).reason == "" and decode(old).state == "tracking"
+
+
 # --- detections ---
 
 
@@ -273,6 +288,27 @@ def test_keypoints_take_binary_float_or_no_descriptors(descriptors: np.ndarray):
     keypoints = Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
                           descriptors=descriptors)
     assert keypoints.descriptors.dtype == descriptors.dtype
+
+
+@pytest.mark.parametrize(("descriptors", "norm"), [(np.zeros((2, 32), np.uint8), "hamming"), (f32(2, 128), "l2"),
+                                                   (f32(2, 0), "")])
+def test_keypoints_say_how_their_descriptors_compare(descriptors: np.ndarray, norm: str):
+    keypoints = Keypoints(header=HEADER, points=f32(2, 2), sizes=f32(2), angles=f32(2), responses=f32(2),
+                          descriptors=descriptors)
+    assert keypoints.norm == norm
+
+
+def test_keypoints_of_version_1_without_a_method_still_decode():
+    keypoints = Keypoints(header=HEADER, method="orb", descriptor_type="ORB", points=f32(2, 2), sizes=f32(2),
+                          angles=f32(2), responses=f32(2), descriptors=np.arange(64, dtype=np.uint8).reshape(2, 32))
+    payload = encode(keypoints)
+    field = b'"method":"orb",'
+    assert payload.count(field) == 1
+    old = payload.replace(b'"version":2', b'"version":1', 1).replace(field, b" " * len(field))
+    decoded = decode(old)
+    assert decoded.method == "" and decoded == keypoints.model_copy(update={"method": ""})
+    with pytest.raises(DecodeError, match="version 3 is not understood"):
+        decode(payload.replace(b'"version":2', b'"version":3', 1))
 
 
 def test_keypoints_refuse_mismatched_descriptor_rows():

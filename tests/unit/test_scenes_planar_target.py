@@ -107,3 +107,20 @@ def test_texture_and_size_are_exposed(scene):
     assert scene.size_m == (0.297, 0.21)
     assert scene.texture.shape == (round(1024 * 0.21 / 0.297), 1024) and scene.texture.dtype == np.uint8
     assert np.ptp(scene.texture) > 200 and len(cv2.ORB_create(1000).detect(scene.texture)) >= 900
+
+
+def test_a_static_camera_holds_its_first_pose_while_the_light_changes():
+    still, moving = make_scene("planar_target", motion="static"), make_scene("planar_target")
+    first = still.render(0)
+    np.testing.assert_array_equal(first.truth["cam0"][0][2], moving.render(0).truth["cam0"][0][2])
+    later = still.render(150)
+    np.testing.assert_array_equal(later.truth["cam0"][0][2], first.truth["cam0"][0][2])
+    assert not np.array_equal(moving.render(150).truth["cam0"][0][2], first.truth["cam0"][0][2])
+    assert later.images["cam0"].tobytes() != first.images["cam0"].tobytes()
+    assert make_scene("planar_target", motion="static", lighting=0.0).render(150).images["cam0"].tobytes() == \
+        make_scene("planar_target", motion="static", lighting=0.0).render(0).images["cam0"].tobytes()
+
+
+def test_an_unknown_motion_is_refused():
+    with pytest.raises(ValueError, match="motion='spin'.*sway, static"):
+        make_scene("planar_target", motion="spin")

@@ -8,13 +8,21 @@ The camera (cam0; the rig is the camera, ``T_rig_camera`` = identity, no distort
 between 0.7 and 2.4 target widths from the target while looking at it. Over time the light
 changes (a global gain and a gradient across the image, both slowly varying) and the focus
 is fixed at the middle distance, so nearer and farther views are defocused (a gaussian blur
-whose sigma grows with the distance from the focus in dioptres). Ground truth:
+whose sigma grows with the distance from the focus in dioptres). With ``motion=static`` the camera
+holds its pose of frame 0 (the light still changes), to measure how much a still target's pose
+shakes. Ground truth:
 ``("cam0", "target", T_cam0_target)`` in every frame.
+
+The scene settles the ``target`` of a tracker (``known_settings``): itself, as the URI
+``synthetic:planar_target`` followed by ``?name=value&...`` for each option that shapes the target
+(``TARGET_OPTIONS``) and differs from its default, from which a target is built afresh
+(``services.estimation.scene_targets``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -31,19 +39,24 @@ HFOV_DEG = 56.0
 OUTSIDE_GREY = 110
 PATH_PURPOSE, TEXTURE_PURPOSE, LIGHT_PURPOSE = 100, 101, 102
 LIGHT_PERIOD_RANGE_S = (6.0, 15.0)
+MOTIONS = ("sway", "static")
+TARGET_OPTIONS = ("seed", "target_width", "target_height", "texture_px")
+"""The options that shape the target's texture and size (and so its target's URI)."""
 
 
 @dataclass(frozen=True)
 class PlanarTargetOptions(SceneOptions):
     """``target_width``/``target_height``: metres; ``texture_px``: texels across the target;
     ``lighting``: amplitude of the slow gain change (0 = constant light); ``defocus``: blur
-    sigma in pixels per dioptre away from the focus distance (0 = always sharp)."""
+    sigma in pixels per dioptre away from the focus distance (0 = always sharp); ``motion``: ``sway``
+    (the hand-held camera moving about) or ``static`` (the camera still at its pose of frame 0)."""
 
     target_width: float = 0.297
     target_height: float = 0.21
     texture_px: int = 1024
     lighting: float = 0.25
     defocus: float = 0.6
+    motion: str = "sway"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -52,6 +65,8 @@ class PlanarTargetOptions(SceneOptions):
         self.check_int("texture_px", 64, 8192)
         self.check_float("lighting", 0.0, 0.9)
         self.check_float("defocus", 0.0, 20.0)
+        if self.motion not in MOTIONS:
+            raise ValueError(f"option motion={self.motion!r}: must be one of {', '.join(MOTIONS)}")
 
 
 class PlanarTargetScene(SyntheticScene):
@@ -81,9 +96,16 @@ class PlanarTargetScene(SyntheticScene):
         K = intrinsics(o.width, o.height, HFOV_DEG)
         self.cameras = (CameraModel("cam0", o.width, o.height, K, np.zeros(5), np.eye(4)),)
 
+    def known_settings(self) -> dict[str, Any]:
+        """``target``: the URI of the scene's own target (see the module docstring)."""
+        default = PlanarTargetOptions()
+        given = [f"{name}={getattr(self.options, name)}" for name in TARGET_OPTIONS
+                 if getattr(self.options, name) != getattr(default, name)]
+        return {"target": (f"synthetic:{self.name}" + (f"?{'&'.join(given)}" if given else ""),)}
+
     def camera_pose(self, index: int) -> np.ndarray:
-        """(4, 4) ``T_target_cam0`` of frame ``index``."""
-        return self.path.pose(self.time_s(index))
+        """(4, 4) ``T_target_cam0`` of frame ``index`` (of frame 0 for ``motion=static``)."""
+        return self.path.pose(0.0 if self.options.motion == "static" else self.time_s(index))
 
     def draw(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Truth]]:
         camera = self.cameras[0]

@@ -1,0 +1,83 @@
+"""`artrack target add|list|show|remove|check` as a user runs them: a round trip through a library folder, the
+refusals in one line with exit 2, and the check's verdicts as exit codes."""
+
+import cv2
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return make_scene("planar_target").texture
+
+
+@pytest.fixture
+def poster(tmp_path, texture):
+    path = tmp_path / "poster.png"
+    cv2.imwrite(str(path), texture[:360, :480])
+    return path
+
+
+def one_line_error(proc, *fragments):
+    """Exit 2 with one stderr line holding every fragment."""
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.poll() == 2 and len(lines) == 1, proc.describe()
+    assert all(fragment in lines[0] for fragment in fragments), lines[0]
+
+
+def test_add_list_show_remove_round_trip(procs, tmp_path, poster):
+    library = str(tmp_path / "targets")
+    added = procs.run("target", "add", str(poster), "--width", "0.2", "--targets", library)
+    assert added.poll() == 0, added.describe()
+    assert added.stdout.startswith("poster: 480x360 px, 0.200 x 0.150 m, ") and library in added.stdout
+    sift = procs.run("target", "add", str(poster), "--width", "0.1", "--name", "small", "--feature", "sift",
+                     "--targets", library)
+    assert sift.poll() == 0, sift.describe()
+    listed = procs.run("target", "list", "--targets", library)
+    assert listed.poll() == 0, listed.describe()
+    lines = listed.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["poster", "small"]
+    assert "0.200 x 0.150 m, 480x360 px" in lines[0] and "orb keypoints" in lines[0] and "sift" in lines[1]
+    shown = procs.run("target", "show", "small", "--targets", library)
+    assert shown.poll() == 0, shown.describe()
+    fields = dict(line.split(": ", 1) for line in shown.stdout.splitlines())
+    assert fields["size"] == "480x360 px, 0.100 x 0.075 m" and fields["descriptors"] == "SIFT, 128 floats, l2"
+    assert fields["detector"].startswith("sift") and " at 1/1, " in fields["keypoints"]
+    assert fields["check"].split(":")[0] in ("good", "fair")
+    removed = procs.run("target", "remove", "poster", "--targets", library)
+    assert removed.poll() == 0 and "poster: removed" in removed.stdout, removed.describe()
+    assert [line.split(":")[0] for line in procs.run("target", "list", "--targets", library).stdout.splitlines()] \
+        == ["small"]
+    one_line_error(procs.run("target", "show", "poster", "--targets", library), "no target 'poster'", "small")
+    empty = procs.run("target", "list", "--targets", str(tmp_path / "none"))
+    assert empty.poll() == 0 and empty.stdout.startswith("no targets in"), empty.describe()
+
+
+def test_refusals_are_one_line_with_exit_2(procs, tmp_path, poster):
+    library = str(tmp_path / "targets")
+    one_line_error(procs.run("target", "add", str(tmp_path / "missing.png"), "--width", "0.2", "--targets", library),
+                   "missing.png: no such file")
+    for width in ("0", "-0.5", "nan"):
+        one_line_error(procs.run("target", "add", str(poster), "--width", width, "--targets", library),
+                       "positive number of metres")
+    assert procs.run("target", "add", str(poster), "--width", "0.2", "--targets", library).poll() == 0
+    one_line_error(procs.run("target", "add", str(poster), "--width", "0.3", "--targets", library),
+                   "target 'poster' already exists")
+    one_line_error(procs.run("target", "add", str(poster), "--width", "0.3", "--name", "other", "--feature", "surf",
+                             "--targets", library), "feature 'surf'")
+    one_line_error(procs.run("target", "remove", "other", "--targets", library), "no target 'other'")
+
+
+def test_check_verdicts_are_exit_codes(procs, tmp_path, texture):
+    images = {"good": texture, "fair": np.full(texture.shape, 128, np.uint8),
+              "poor": np.tile(texture[300:364, 300:380], (12, 13))[:texture.shape[0], :texture.shape[1]]}
+    images["fair"][:250, :300] = texture[:250, :300]
+    for verdict, status in (("good", 0), ("fair", 1), ("poor", 2)):
+        path = tmp_path / f"{verdict}.png"
+        cv2.imwrite(str(path), images[verdict])
+        checked = procs.run("target", "check", str(path))
+        assert checked.poll() == status and checked.stdout.startswith(f"{verdict}: "), checked.describe()
+        assert (verdict == "good") == ("warning:" not in checked.stdout)
+    one_line_error(procs.run("target", "check", str(tmp_path / "missing.png")), "missing.png: no such file")
