@@ -86,6 +86,10 @@ def test_an_empty_recording_is_a_valid_file(tmp_path):
     assert indexed(path) and read(path) == [] and Scan(path).damage is None
 
 
+DATA_END_HEAD = 9
+"""The DataEnd record's opcode and length: a file cut before they are whole ended unfinished."""
+
+
 def test_a_file_cut_anywhere_yields_an_intact_prefix_and_recover_indexes_it(tmp_path):
     path = tmp_path / "rec.mcap"
     items = traffic(12)
@@ -94,13 +98,13 @@ def test_a_file_cut_anywhere_yields_an_intact_prefix_and_recover_indexes_it(tmp_
     data_end = data.rindex(b"\x0f" + (4).to_bytes(8, "little"))  # the DataEnd record: opcode, length 4
     cut, fixed = tmp_path / "cut.mcap", tmp_path / "fixed.mcap"
     previous = 0
-    for size in range(8, len(data), 37):
+    for size in [*range(8, len(data), 37), *range(data_end - 1, data_end + DATA_END_HEAD + 2)]:
         cut.write_bytes(data[:size])
         scan = Scan(cut)
         got = [(r.channel.topic, r.message.data) for r in scan.messages()]
         assert got == items[: len(got)] and len(got) >= previous
         previous = len(got)
-        assert (scan.damage is None) == (size > data_end), size
+        assert (scan.damage is None) == (size >= data_end + DATA_END_HEAD), size
         if scan.damage is not None:
             assert 8 <= scan.damage.offset <= size and scan.damage.size == size
         recovered = recover(cut, fixed)

@@ -69,16 +69,28 @@ def test_tum_export_leaves_out_poses_without_an_estimate(tmp_path):
         tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 1, 3)]
 
 
-@pytest.mark.parametrize("state", [s for s in TrackingState if s != TrackingState.TRACKING])
-def test_tum_export_writes_tracking_poses_only(tmp_path, state):
+FRESH = (TrackingState.TRACKING, TrackingState.RECOGNISED)
+
+
+def _middle_pose_in(tmp_path, state: TrackingState) -> list[str]:
+    """TUM lines of three poses whose middle one has ``state``."""
     path = tmp_path / "states.mcap"
     writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "r"})
     for i in range(3):
         writer.write("ar/r/pose/m", encode(pose(i).model_copy(update={"state": state}) if i == 1 else pose(i)),
                      (i + 1) * MS)
     writer.close()
-    assert list(Export(path, "pose/m", "tum").lines()) == [
-        tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 2)]
+    return list(Export(path, "pose/m", "tum").lines())
+
+
+@pytest.mark.parametrize("state", [s for s in TrackingState if s not in FRESH])
+def test_tum_export_writes_fresh_estimates_only(tmp_path, state):
+    assert _middle_pose_in(tmp_path, state) == [tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 2)]
+
+
+def test_tum_export_keeps_a_pose_found_from_scratch(tmp_path):
+    assert _middle_pose_in(tmp_path, TrackingState.RECOGNISED) == [
+        tum_line(pose(i).header.stamp_ns, pose(i).transform) for i in (0, 1, 2)]
 
 
 def test_tum_export_of_poses_with_and_without_a_child_filter(recording):
