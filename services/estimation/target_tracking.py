@@ -312,8 +312,8 @@ class TargetTracker:
                points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(pixels, found)``: (M, 2) float32 distorted pixels of (M, 3) target ``points`` in ``grey``, found by
         Lucas-Kanade from the target drawn at ``T_camera_target`` (its gain and offset matched to the frame's
-        over the target), each starting where the pose projects it; (M,) bool, found and passing the
-        forward-backward check."""
+        over the target, the frame's own pixels around it so that the coarse levels see the same surroundings),
+        each starting where the pose projects it; (M,) bool, found and passing the forward-backward check."""
         frame = grey if dist is None else cv2.undistort(grey, K, dist)
         view = self.aligner.view(K, T_camera_target, grey.shape)
         if view is None or not len(points):
@@ -326,6 +326,7 @@ class TargetTracker:
         frame_mean, frame_std = cv2.meanStdDev(frame, mask=mask)
         gain = float(frame_std[0, 0]) / max(float(drawn_std[0, 0]), 1e-6)
         matched = cv2.convertScaleAbs(drawn, alpha=gain, beta=float(frame_mean[0, 0] - gain * drawn_mean[0, 0]))
+        matched = np.where(inside, matched, frame)
         start = project_points(points @ T_camera_target[:3, :3].T + T_camera_target[:3, 3], K).astype(np.float32)
         moved, found = self._flow(matched, frame, start, start)
         back, returned = self._flow(frame, matched, moved, start)

@@ -20,7 +20,7 @@ from services.estimation.target_recognition import (
 from services.estimation.targets import build_target
 from services.geometry.camera import intrinsics, undistort_pixels
 from services.geometry.evaluation import pose_error
-from tests.data import data_dir
+from tests.object_box import HAND_CHECKED_TOP_LEFT, OUTLINE, SCENE_FOV_DEG, box_images, box_outline
 
 FRAMES = range(0, 600, 20)
 BARS = {"orb": (0.2, 0.05), "sift": (0.15, 0.05)}
@@ -165,22 +165,12 @@ def test_bad_options_are_refused(options):
         RecognitionOptions(**options)
 
 
-HAND_CHECKED_TOP_LEFT = (118.5, 161.5)
-"""The box's top-left corner in box_in_scene.png, read off a 10x zoom (the right corners are occluded)."""
-OUTLINE = np.array([HAND_CHECKED_TOP_LEFT, (286.0, 175.0), (270.0, 298.5), (89.0, 271.5)])
-"""The box face's outline: the top-left corner as read, the others where its visible edges lead."""
-
-
 @pytest.mark.parametrize("feature", ["orb", "sift"])
 def test_the_box_is_found_in_the_cluttered_scene(feature):
-    folder = data_dir("object_box_opencv")
-    box = cv2.imread(str(folder / "box.png"), cv2.IMREAD_GRAYSCALE)
-    scene_image = cv2.imread(str(folder / "box_in_scene.png"), cv2.IMREAD_GRAYSCALE)
+    box, scene_image = box_images()
     target = build_target("box", box, 0.1, feature)
-    result = TargetRecognizer(target).recognise_image(scene_image, intrinsics(512, 384, 60.0))
+    result = TargetRecognizer(target).recognise_image(scene_image, intrinsics(512, 384, SCENE_FOV_DEG))
     assert result.recognised and result.inliers >= 30
-    h, w = box.shape
-    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]).reshape(-1, 1, 2)
-    outline = cv2.perspectiveTransform(corners, result.homography).reshape(4, 2)
+    outline = box_outline(result.homography, box.shape)
     assert np.linalg.norm(outline[0] - HAND_CHECKED_TOP_LEFT) < 2.0
     assert np.linalg.norm(outline - OUTLINE, axis=1).max() < 6.0
