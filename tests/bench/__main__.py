@@ -1,7 +1,7 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
-``keypoints``, ``stereo``.
+``keypoints``, ``feature_speed``, ``stereo``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -14,7 +14,8 @@ against peer to peer (``routing``), the scene renderers, the recorder and replay
 viewer, marker tracking (the live pipeline against the same work in one process), the
 pipeline with client apps subscribed against none (``apps``), the marker estimators'
 accuracy against ground truth, blob detection per frame (``blobs``), keypoint detection per frame
-(``keypoints``) and stereo tracking's stages
+(``keypoints``), image-target tracking and recognition per frame
+(``feature_speed``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``) (each module's
 docstring says what it measures).
 Progress goes to stderr.
@@ -36,6 +37,7 @@ from tests.accuracy.report import report_lines
 from tests.bench.apps import bench_apps
 from tests.bench.blobs import bench_blobs
 from tests.bench.codec import bench_codec
+from tests.bench.feature_speed import bench_feature_speed
 from tests.bench.figures import alternating, comparison_lines, machine_line, variant_line
 from tests.bench.keypoints import bench_keypoints
 from tests.bench.link import Sink
@@ -105,7 +107,8 @@ def transport_bench() -> list[dict[str, Any]]:
 BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "transport": transport_bench, "codec": bench_codec, "routing": bench_routing, "scenes": bench_scenes,
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
-    "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "stereo": bench_stereo,
+    "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints,
+    "feature_speed": bench_feature_speed, "stereo": bench_stereo,
 }
 
 
