@@ -97,9 +97,9 @@ class Params(BaseModel):
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
     min_inliers: int = Field(default=15, ge=4, description="points a recognised pose needs")
     max_rms_px: float = Field(default=1.5, gt=0, description="largest reprojection RMS of a recognised pose, px")
-    track_min_points: int = Field(default=30, ge=4, le=250, description="points a tracked pose needs")
+    track_min_points: int = Field(default=30, ge=4, le=150, description="points a tracked pose needs")
     track_max_rms_px: float = Field(default=1.0, gt=0, description="largest reprojection RMS of a tracked pose, px")
-    anchor_every: int = Field(default=1, ge=0, description="measure followed points afresh against the target "
+    anchor_every: int = Field(default=2, ge=0, description="measure followed points afresh against the target "
                                                            "every this many tracked frames (0: never)")
     align: bool = Field(default=False, description="refine each pose by direct alignment of the target image (ECC)")
     filter: bool = Field(default=False, description="smooth each pose with the One Euro filter")

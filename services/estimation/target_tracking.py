@@ -86,18 +86,23 @@ class TrackingOptions:
     every this many tracked frames the points are measured afresh against the target (0: never); ``sigma_px``:
     per-axis pixel noise of the covariance (None: from the residuals); ``align``: refine the final pose
     by direct alignment of the target image (``services.estimation.target_alignment``);
-    ``motion``: the constant-velocity model's options."""
+    ``motion``: the constant-velocity model's options.
 
-    window_px: int = 21
+    The defaults follow a target at 640x480 about three times as fast as 21 px windows, 400 points
+    and measuring them every frame, as accurately (docs/feature-targets.md): the motion model's
+    prediction leaves Lucas-Kanade little to search, and three levels keep the reach (about 50 px)
+    of a prediction that is off."""
+
+    window_px: int = 13
     levels: int = 3
     forward_backward_px: float = 0.5
     threshold_px: float = 2.0
     min_points: int = 30
     max_rms_px: float = 1.0
-    max_points: int = 400
-    refill_below: int = 250
+    max_points: int = 250
+    refill_below: int = 150
     spacing_px: float = 16.0
-    anchor_every: int = 1
+    anchor_every: int = 2
     sigma_px: float | None = None
     align: bool = False
     alignment: AlignmentOptions = field(default_factory=AlignmentOptions)

@@ -14,8 +14,8 @@ against peer to peer (``routing``), the scene renderers, the recorder and replay
 viewer, marker tracking (the live pipeline against the same work in one process), the
 pipeline with client apps subscribed against none (``apps``), the marker estimators'
 accuracy against ground truth, blob detection per frame (``blobs``), keypoint detection per frame
-(``keypoints``), natural-feature targets against OpenCV's per-frame recipe (``features``) and
-stereo tracking's stages
+(``keypoints``), image-target recognition and tracking per frame on one core against OpenCV's
+per-frame recipe (``features``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``) (each module's
 docstring says what it measures).
 Progress goes to stderr.

@@ -81,3 +81,18 @@ def test_check_verdicts_are_exit_codes(procs, tmp_path, texture):
         assert checked.poll() == status and checked.stdout.startswith(f"{verdict}: "), checked.describe()
         assert (verdict == "good") == ("warning:" not in checked.stdout)
     one_line_error(procs.run("target", "check", str(tmp_path / "missing.png")), "missing.png: no such file")
+
+
+@pytest.mark.parametrize(("name", "make", "why"), [
+    ("empty.png", lambda path: path.write_bytes(b""), "not an image OpenCV can read"),
+    ("tiny.png", lambda path: cv2.imwrite(str(path), np.random.default_rng(1).integers(0, 256, (20, 20), np.uint8)),
+     "20x20 px; it needs at least 32 px"),
+    ("flat.png", lambda path: cv2.imwrite(str(path), np.full((300, 400), 128, np.uint8)), "has no keypoints"),
+])
+def test_unusable_images_are_refused_naming_the_file(procs, tmp_path, name, make, why):
+    image = tmp_path / name
+    make(image)
+    library = tmp_path / "targets"
+    one_line_error(procs.run("target", "add", str(image), "--width", "0.2", "--targets", str(library)),
+                   f"target image {image}: ", why)
+    assert not library.exists() or not any(library.iterdir())

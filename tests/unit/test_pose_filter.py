@@ -63,11 +63,15 @@ def test_the_filter_stills_a_static_target():
 
 
 def test_the_filter_does_not_lag_on_motion():
+    """What the filter adds to the error on motion is under 2 % of a frame's motion: it trails by
+    less than a fiftieth of a frame (a plain low-pass at its 0.5 Hz cut-off would trail by about ten)."""
     raw, filtered, truth = tracked("sway", 90)
     before, after = median_errors(raw, truth), median_errors(filtered, truth)
-    print(f"\nmoving, median error against the truth: raw {before[0]:.4f} deg {before[1]:.4f} mm, "
-          f"filtered {after[0]:.4f} deg {after[1]:.4f} mm")
-    assert after[0] <= 1.1 * before[0] and after[1] <= 1.25 * before[1]
+    steps = np.array([pose_error(b, a) for a, b in zip(truth[:-1], truth[1:], strict=True)])
+    step_deg, step_mm = np.degrees(np.median(steps[:, 0])), 1e3 * np.median(steps[:, 1])
+    print(f"\nmoving ({step_deg:.2f} deg, {step_mm:.2f} mm a frame), median error against the truth: raw "
+          f"{before[0]:.4f} deg {before[1]:.4f} mm, filtered {after[0]:.4f} deg {after[1]:.4f} mm")
+    assert after[0] - before[0] < 0.02 * step_deg and after[1] - before[1] < 0.02 * step_mm
 
 
 def test_without_beta_the_lag_is_a_first_order_low_pass_one():
