@@ -30,7 +30,7 @@ from services.client import PoseUpdate, connect
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import node_command
 from services.launcher.router import router_config
-from tests.bench.frame_source import source_argv
+from tests.bench.frame_source import RENDERED, source_argv
 from tests.bench.link import free_port, stop_processes
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -78,11 +78,12 @@ class LiveBus:
             raise RuntimeError(f"nodes {sorted(set(nodes) - up)} did not come up")
         return started
 
-    def source(self, scene: str, rate: float, frames: int, **options: Any) -> subprocess.Popen:
-        """``tests.bench.frame_source`` publishing ``frames`` instants of ``scene`` at ``rate`` Hz."""
-        return self.start([sys.executable, "-m", "tests.bench.frame_source", *source_argv(scene, rate, frames,
-                                                                                            **options)],
-                          stdout=subprocess.PIPE, text=True)
+    def source(self, scene: str, rate: float, frames: int, rendered: int = RENDERED,
+               **options: Any) -> subprocess.Popen:
+        """``tests.bench.frame_source`` publishing ``frames`` instants of ``scene`` (``rendered`` of them
+        rendered first, cycled) at ``rate`` Hz; ``options`` are the scene's."""
+        argv = source_argv(scene, rate, frames, rendered, **options)
+        return self.start([sys.executable, "-m", "tests.bench.frame_source", *argv], stdout=subprocess.PIPE, text=True)
 
     def follow(self, source: subprocess.Popen) -> dict[str, Any]:
         """Wait until ``source`` has exited and no pose has come for ``QUIET_S``; the source's closing line."""
