@@ -21,8 +21,12 @@ once, only when a target needs recognition. Each target gets one ``Pose`` per fr
   ``reprojection_rms_px``: their RMS residual, undistorted pixels) and the 6x6 covariance over
   (tx, ty, tz, rx, ry, rz) in the target frame (metres, radians);
 * state ``lost`` (identity transform) with ``reason``: recognition's state (``no_features``,
-  ``too_few_matches``, ...), ``unusable_frame`` for a frame the tracker cannot read (counted and
-  reported on the node's errors key), or ``no_calibration`` before the camera has one.
+  ``too_few_matches``, ...), ``unusable_frame`` for a frame the tracker cannot read, or
+  ``no_calibration`` before the camera has one. ``no_features`` (a frame without a keypoint: flat,
+  black, out of focus), ``unusable_frame`` and ``no_calibration`` are counted among the node's
+  skipped inputs (once per frame) and reported on its errors key; a target merely out of view is
+  not. Frames may be ``mono8``, ``mono16`` or ``bgr8`` (made grey once); another layout is an
+  ``unusable_frame``.
 
 Why the node extracts keypoints itself, on demand, rather than joining a ``keypoints`` node's
 output by ``seq`` (``Node.synced``): a tracked frame needs no keypoints at all (Lucas-Kanade
@@ -69,7 +73,7 @@ from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroPoseFilter
 from services.estimation.scene_targets import is_scene_target, scene_target, scene_target_name
 from services.estimation.target_library import TargetLibrary
-from services.estimation.target_recognition import RecognitionOptions
+from services.estimation.target_recognition import RecognitionOptions, RecognitionState
 from services.estimation.target_tracking import TargetPose, TargetTracker, TrackingOptions, TrackState, track_targets
 from services.estimation.targets import Target
 from services.runtime.kind import NodeKind
@@ -242,6 +246,9 @@ def run(node: Node, params: Params) -> None:
                 found = frames_of.lost("unusable_frame")
                 node.report("unusable_frame", f"frame {image.header.seq}: {exc}", keys.image(params.camera))
         poses.publish([as_pose(image.header, pose) for pose in found])
+        if any(pose.reason == RecognitionState.NO_FEATURES for pose in found):
+            node.report(RecognitionState.NO_FEATURES.value, f"frame {image.header.seq}: no keypoints to recognise "
+                        "a target by", keys.image(params.camera))
         if overlay is not None:
             overlay.put(image, K, dist, found)
         calibration.refresh()

@@ -1,7 +1,7 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
-``keypoints``, ``features``, ``stereo``.
+``keypoints``, ``features``, ``features_bus``, ``stereo``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -15,7 +15,8 @@ viewer, marker tracking (the live pipeline against the same work in one process)
 pipeline with client apps subscribed against none (``apps``), the marker estimators'
 accuracy against ground truth, blob detection per frame (``blobs``), keypoint detection per frame
 (``keypoints``), image-target recognition and tracking per frame on one core against OpenCV's
-per-frame recipe (``features``) and stereo tracking's stages
+per-frame recipe (``features``), the same frames' poses over the bus against in process
+(``features_bus``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``) (each module's
 docstring says what it measures).
 Progress goes to stderr.
@@ -38,6 +39,7 @@ from tests.bench.apps import bench_apps
 from tests.bench.blobs import bench_blobs
 from tests.bench.codec import bench_codec
 from tests.bench.features import bench_features
+from tests.bench.features_bus import bench_features_bus
 from tests.bench.figures import alternating, comparison_lines, machine_line, variant_line
 from tests.bench.keypoints import bench_keypoints
 from tests.bench.link import Sink
@@ -108,7 +110,7 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "transport": transport_bench, "codec": bench_codec, "routing": bench_routing, "scenes": bench_scenes,
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
     "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "features": bench_features,
-    "stereo": bench_stereo,
+    "features_bus": bench_features_bus, "stereo": bench_stereo,
 }
 
 

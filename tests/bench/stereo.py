@@ -13,7 +13,7 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   ``match_bodies`` does), ``matching`` the rest of ``match_bodies``. ``total``: blobs +
   triangulate_blobs + match_bodies + messages. p50 / p99 ms after ``WARMUP`` instants.
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
-* ``pipeline``: ``tests.bench.stereo_source`` publishes pre-rendered frame pairs at ``rate``
+* ``pipeline``: ``tests.bench.frame_source`` publishes pre-rendered frame pairs at ``rate``
   (Image + CameraInfo per camera, the capture node's way), a ``blobs`` node per camera and the
   ``rigid_bodies`` node (given the scene's bodies in a bodies file) track, each node its own
   process, and this process follows the poses as a client app (``services.client``). Per
@@ -34,24 +34,18 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
-import uuid
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from protocol import encode
 from protocol.message import Header
-from services.bus.discovery import node_states
-from services.bus.session import BusConfig, open_session
 from services.capture.scenes import make_scene
-from services.client import PoseUpdate, connect
 from services.detection import blobs_node
 from services.estimation import rigid_bodies_node
 from services.estimation.bodies_file import save_bodies
@@ -59,10 +53,8 @@ from services.estimation.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.rigid_bodies import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariance
 from services.geometry.triangulation import triangulate_many
-from services.launcher.observe import wait_for_nodes
-from services.launcher.pipeline import node_command
-from services.launcher.router import router_config
-from tests.bench.link import at_rate, cpu_seconds, free_port, stop_processes
+from tests.bench.link import at_rate, cpu_seconds
+from tests.bench.live import LiveBus
 
 ROOT = Path(__file__).resolve().parents[2]
 RATES = (120.0, 240.0, 360.0)
@@ -158,68 +150,42 @@ def _percentiles(seconds: list[float]) -> dict[str, float]:
 def pipeline(rate: float) -> dict[str, Any]:
     """Source -> blobs nodes -> rigid_bodies node -> this client at ``rate`` Hz for ``SECONDS``."""
     frames = int(rate * SECONDS)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = zenoh.open(router_config((endpoint,), (), None))
-    bus = BusConfig(connect=(endpoint,), rig=f"bench{uuid.uuid4().hex[:6]}", autostart_router=False)
-    env = {**os.environ, **bus.to_env()}
-    session = open_session(bus)
     names = [f"cam{i}" for i in range(2)]
     bodies_file = Path(tempfile.mkdtemp(prefix="stereo_bench")) / "bodies.yaml"
     save_bodies(bodies_file, make_scene("ir_rig", body_count=BODIES).bodies)
     points_seen: list[int] = []
-    points_subscriber = session.declare_subscriber(bus.keys.points(), lambda sample: points_seen.append(1))
-    probe = connect(connect=endpoint, namespace=bus.namespace, rig=bus.rig, app="stereo_probe")
-    arrived: list[PoseUpdate] = []
-    probe.on_pose("**", arrived.append)
-    processes: list[subprocess.Popen] = []
     try:
-        nodes = {f"blobs-{name}": ("blobs", {"camera": name}) for name in names}
-        nodes["bodies"] = ("rigid_bodies", {"cameras": names, "bodies": str(bodies_file)})
-        processes += [subprocess.Popen(node_command(kind, name, params), cwd=ROOT, env=env)
-                      for name, (kind, params) in nodes.items()]
-        if wait_for_nodes(session, bus.keys, set(nodes), START_S) != set(nodes):
-            raise RuntimeError("the stereo nodes did not come up")
-        source = subprocess.Popen([sys.executable, "-m", "tests.bench.stereo_source", str(rate), str(frames)],
-                                  cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
-        processes.append(source)
-        cpu_before = [cpu_seconds(p.pid) for p in processes[:len(nodes)]]
-        own_before = time.process_time()
-        quiet_since, seen = time.monotonic(), 0
-        while time.monotonic() - quiet_since < QUIET_S or source.poll() is None:
-            time.sleep(0.1)
-            if len(arrived) != seen:
-                quiet_since, seen = time.monotonic(), len(arrived)
-        sent = json.loads(source.stdout.read() if source.stdout else "{}")
-        seconds = frames / sent.get("rate_hz", rate)
-        cores = {name: round((cpu_seconds(p.pid) - before) / seconds, 2)
-                 for name, p, before in zip(nodes, processes, cpu_before, strict=False)}
-        cores["client_and_router"] = round((time.process_time() - own_before) / seconds, 2)
-        arrivals: dict[int, int] = {}
-        stamps: dict[int, int] = {}
-        for update in arrived:
-            seq = update.pose.header.seq
-            arrivals[seq] = max(arrivals.get(seq, 0), update.received_ns)
-            stamps[seq] = update.pose.header.stamp_ns
-        latencies = [(arrivals[seq] - stamps[seq]) / 1e6 for seq in sorted(arrivals) if seq >= WARMUP]
-        p50, p99 = np.percentile(latencies, [50, 99])
-        states = node_states(session, bus.keys, 2.0)
-        stats = {name: states.get((bus.rig, name)) for name in nodes}
-        return {"rate_hz": rate, "sent": sent.get("sent"), "source_rate_hz": sent.get("rate_hz"),
-                "source_late": sent.get("late"), "p50_ms": round(float(p50), 3), "p99_ms": round(float(p99), 3),
-                "updates_per_s": round(len(arrivals) * sent.get("rate_hz", rate) / frames, 1),
-                "instants_with_poses": len(arrivals), "poses": len(arrived),
-                "dropped_pairs": frames - len(points_seen),
-                "node_dropped": {name: s.dropped if s else None for name, s in stats.items()},
-                "node_p50_ms": {name: s.processing_ms_p50 if s else None for name, s in stats.items()},
-                "node_p99_ms": {name: s.processing_ms_p99 if s else None for name, s in stats.items()},
-                "cores": cores}
+        with LiveBus("stereo_probe") as live:
+            points_subscriber = live.session.declare_subscriber(live.bus.keys.points(),
+                                                                lambda sample: points_seen.append(1))
+            nodes = {f"blobs-{name}": ("blobs", {"camera": name}) for name in names}
+            nodes["bodies"] = ("rigid_bodies", {"cameras": names, "bodies": str(bodies_file)})
+            node_processes = live.nodes(nodes)
+            source = live.source("ir_rig", rate, frames)
+            cpu_before = [cpu_seconds(p.pid) for p in node_processes]
+            own_before = time.process_time()
+            sent = live.follow(source)
+            seconds = frames / sent.get("rate_hz", rate)
+            cores = {name: round((cpu_seconds(p.pid) - before) / seconds, 2)
+                     for name, p, before in zip(nodes, node_processes, cpu_before, strict=True)}
+            cores["client_and_router"] = round((time.process_time() - own_before) / seconds, 2)
+            points_subscriber.undeclare()
+            latencies = live.latencies(WARMUP)
+            seqs = {update.pose.header.seq for update in live.arrived}
+            stats = live.stats(list(nodes))
+            poses = len(live.arrived)
     finally:
-        probe.close()
-        stop_processes(processes)
-        points_subscriber.undeclare()
-        session.close()
-        router.close()
         shutil.rmtree(bodies_file.parent, ignore_errors=True)
+    p50, p99 = np.percentile(latencies, [50, 99])
+    return {"rate_hz": rate, "sent": sent.get("sent"), "source_rate_hz": sent.get("rate_hz"),
+            "source_late": sent.get("late"), "p50_ms": round(float(p50), 3), "p99_ms": round(float(p99), 3),
+            "updates_per_s": round(len(seqs) * sent.get("rate_hz", rate) / frames, 1),
+            "instants_with_poses": len(seqs), "poses": poses,
+            "dropped_pairs": frames - len(points_seen),
+            "node_dropped": {name: s.dropped if s else None for name, s in stats.items()},
+            "node_p50_ms": {name: s.processing_ms_p50 if s else None for name, s in stats.items()},
+            "node_p99_ms": {name: s.processing_ms_p99 if s else None for name, s in stats.items()},
+            "cores": cores}
 
 
 def bench_stereo(rates: tuple[float, ...] = RATES) -> list[dict[str, Any]]:

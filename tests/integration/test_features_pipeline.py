@@ -3,14 +3,15 @@ exported, viewed and replayed; bad frames counted while the node goes on."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from protocol.message import Header
 from protocol.poses import Pose, TrackingState
-from protocol.sensors import Image
+from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene
+from services.convert import camera_info
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import errors, recorded, truth_by_frame
 from tests.viewer_contents import RrdContents
@@ -75,35 +76,37 @@ def test_a_target_not_in_the_library_is_refused_before_anything_starts(procs, tm
     assert "started" not in job.stderr
 
 
-def test_bad_frames_give_lost_poses_with_their_reason_and_the_node_goes_on(bus, procs, session, tmp_path):
+def test_every_encoding_is_recognised_and_a_featureless_frame_is_lost_counted_while_the_node_goes_on(
+        bus, procs, session):
     scene = make_scene("planar_target")
-    calib = tmp_path / "cam0.yaml"
-    write_camera_info(calib, scene.cameras[0])
+    camera = scene.cameras[0]
     keys = bus.keys
     poses = Inbox(session, keys.pose("cam0/target/planar_target"), Pose, Role.RESULT)
     frames = Publisher(session, keys.image("cam0"), Image, Role.RESULT)
+    infos = Publisher(session, keys.camera_info("cam0"), CameraInfo, Role.RESULT)
     try:
-        node = start_node(procs, "features", "features", target=["synthetic:planar_target"], calib=str(calib),
-                          depth=10)
+        node = start_node(procs, "features", "features", target=["synthetic:planar_target"], depth=10)
         wait_live(session, keys, {"features"}, [node])
-        wait_until(frames.matched, START_S, "the node to subscribe to the frames")
-        frame = scene.render(0).images["cam0"]
+        wait_until(lambda: frames.matched() and infos.matched(), START_S, "the node to subscribe")
+        infos.put(camera_info(Header(stamp_ns=1_000, frame_id="cam0"), camera))
+        frame, grey = scene.render(0).images["cam0"], np.full((480, 640), 128, np.uint8)
+        sent = [(frame, "mono8"), (grey, "mono8"), (cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), "bgr8"),
+                (grey, "mono8"), (frame.astype(np.uint16) * 257, "mono16"), (np.zeros((4, 4), np.uint8), "mono8"),
+                (frame, "mono8")]  # grey: no texture; 4x4: too small to hold a feature
         seen: dict[int, Pose] = {}
-
-        def put(seq: int, data: np.ndarray, encoding: str) -> None:
-            frames.put(Image(header=Header(stamp_ns=1_000 + seq, frame_id="cam0", seq=seq), encoding=encoding,
+        for seq, (data, encoding) in enumerate(sent):  # a lost target is recognised afresh in the next frame
+            frames.put(Image(header=Header(stamp_ns=2_000 + seq, frame_id="cam0", seq=seq), encoding=encoding,
                              data=data))
-            seen.update((p.header.seq, p) for p in collect(poses, lambda got: any(p.header.seq == seq for p in got)))
-
-        put(0, frame.astype(np.uint16) * 257, "mono16")          # 16 bits (the calibration is fitted to it)
-        put(1, np.repeat(frame[..., None], 3, axis=2), "bgr8")   # colour, followed on from the frame before
-        put(2, np.full_like(frame, 128), "mono8")                # no texture
-        put(3, np.zeros((4, 4), np.uint8), "mono8")              # too small to hold a feature
-        assert [(seen[i].state, seen[i].reason) for i in range(3)] == [
-            (TrackingState.RECOGNISED, ""), (TrackingState.TRACKING, ""), (TrackingState.LOST, "no_features")]
-        assert seen[3].state is TrackingState.LOST and seen[3].reason, seen[3]
+            got = collect(poses, lambda got, seq=seq: any(p.header.seq == seq for p in got))
+            seen.update((p.header.seq, p) for p in got)
+        recognised, no_features = (TrackingState.RECOGNISED, ""), (TrackingState.LOST, "no_features")
+        assert [(seen[i].state, seen[i].reason) for i in range(len(sent))] == [
+            recognised, no_features, recognised, no_features, recognised, no_features, recognised], seen
+        assert all(seen[i].quality.inliers >= 15 for i in (0, 2, 4, 6))
         stats = wait_until(lambda: states(session, keys).get("features"), START_S, "the node's state")
-        assert node.poll() is None and stats.processed == 4, stats
+        assert node.poll() is None and stats.processed == len(sent), stats
+        assert stats.skipped == {"no_features": 3}, stats.skipped
     finally:
+        infos.close()
         frames.close()
         poses.close()
