@@ -93,12 +93,11 @@ class TargetAligner:
         texels_per_pixel = 1.0 / math.sqrt(max(area, 1e-12))
         return int(np.clip(math.floor(math.log2(max(texels_per_pixel, 1.0))), 0, len(self.levels) - 1))
 
-    def view(self, K: np.ndarray, T_camera_target: np.ndarray,
-             shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(image, mask)``: the target as an undistorted camera ``K`` sees it at ``T_camera_target``, drawn
-        from the pyramid level ``level`` picks, and where it covers the frame ``margin_px`` in from its
-        outline; both (H, W) uint8 for a frame of ``shape`` (H, W). None when the target is behind the camera."""
-        H = self.homography(K, T_camera_target)
+    def view(self, H: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(image, mask)``: the target as the (3, 3) homography ``H`` (target-image pixel, level 0 ->
+        undistorted frame pixel) draws it, from the pyramid level ``level`` picks, and where it covers the
+        frame ``margin_px`` in from its outline; both (H, W) uint8 for a frame of ``shape`` (H, W). None when
+        the target is behind the camera."""
         k = self.level(H)
         outline = self._outline(H)
         if outline is None:

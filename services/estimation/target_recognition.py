@@ -18,7 +18,14 @@ Steps, each of which may end the attempt with the state saying why:
 4. The homography given with the pose is fitted again, by least squares, to the points the pose
    rests on: the robust estimator's own depends on the order of the matches (its random samples),
    this one only on the inliers.
-5. A pose is given only with at least ``min_inliers`` points and an RMS residual of at most
+5. With ``refine`` and the frame's pixels at hand (``recognise_image``, or ``recognise`` given ``grey``),
+   the inliers' target points are measured to a fraction of a pixel against the target drawn at that
+   homography (``services.estimation.target_measure``: Lucas-Kanade with a forward-backward check), the
+   homography is fitted again to them (USAC_MAGSAC with ``refine_threshold_px``, then least squares)
+   and the pose made again from them with that threshold. Keypoints place a target's points to about a
+   pixel of their pyramid level; the measured points are several times closer. When too few points
+   survive the measurement the keypoints' pose stands.
+6. A pose is given only with at least ``min_inliers`` points and an RMS residual of at most
    ``max_rms_px``, with its 6x6 covariance over (tx, ty, tz, rx, ry, rz) (target frame, metres and
    radians), the per-axis pixel noise ``sigma_px`` estimated from the residuals when not given.
 
@@ -34,7 +41,9 @@ from enum import StrEnum
 import cv2
 import numpy as np
 
+from services.estimation.target_alignment import TargetAligner
 from services.estimation.target_features import Extractor, is_binary, make_extractor, to_grey
+from services.estimation.target_measure import MeasureOptions, refine_homography
 from services.estimation.target_pose import fit_covariance, fit_planar_pose
 from services.estimation.targets import Target
 from services.geometry.camera import undistort_pixels
@@ -89,7 +98,12 @@ class RecognitionOptions:
     estimates it from the residuals. ``max_iterations``: of the robust estimator. ``index_above``: a
     binary target with more descriptors than this is matched through a hashing index (three times
     faster than brute force on a 5000-descriptor poster, 97 % of its matches); a smaller one by exact
-    Hamming brute force, which costs little there and misses no match a small target can ill spare."""
+    Hamming brute force, which costs little there and misses no match a small target can ill spare.
+    ``refine``: measure the inliers against the target image and fit the homography and pose again on
+    them (step 5 of the module's docstring; off by default: refined, recognition alone is about as accurate
+    as tracking, whose bar is to be at least as accurate, docs/accuracy.md); ``measure``: that
+    measurement's Lucas-Kanade settings; ``refine_threshold_px``: the refit's inlier threshold, undistorted
+    pixels; ``refine_points``: inliers measured at most (evenly through their order)."""
 
     ratio: float = 0.8
     cross_check: bool = False
@@ -101,6 +115,10 @@ class RecognitionOptions:
     confidence: float = 0.999
     max_iterations: int = 2000
     index_above: int = 2000
+    refine: bool = False
+    measure: MeasureOptions = field(default_factory=MeasureOptions)
+    refine_threshold_px: float = 1.0
+    refine_points: int = 100
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1:
@@ -116,6 +134,8 @@ class RecognitionOptions:
                              f"{self.max_iterations}")
         if self.index_above < 0:
             raise ValueError(f"index_above must be >= 0, got {self.index_above}")
+        if not self.refine_threshold_px > 0:
+            raise ValueError(f"refine_threshold_px must be > 0, got {self.refine_threshold_px}")
 
 
 @dataclass(frozen=True)
@@ -190,19 +210,22 @@ class TargetRecognizer:
         self.matcher.add([target.descriptors])
         self.matcher.train()
         self.target_pixels = target.keypoints.astype(np.float64)
+        self.aligner = TargetAligner(target)
 
     def recognise_image(self, image: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None,
                         extract: Extractor | None = None) -> Recognition:
         """``recognise`` on the keypoints of ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) found by
         ``extract`` (default: the target's own detector settings)."""
-        points, descriptors = (extract or make_extractor(self.target.detector))(to_grey(image))
-        return self.recognise(points, descriptors, K, dist)
+        grey = to_grey(image)
+        points, descriptors = (extract or make_extractor(self.target.detector))(grey)
+        return self.recognise(points, descriptors, K, dist, grey)
 
     def recognise(self, points: np.ndarray, descriptors: np.ndarray, K: np.ndarray,
-                  dist: np.ndarray | None = None) -> Recognition:
+                  dist: np.ndarray | None = None, grey: np.ndarray | None = None) -> Recognition:
         """The target in a frame with (N, 2) keypoint ``points`` (distorted pixels) and their (N, D)
         ``descriptors`` (of the target's kind), seen by the camera ``K`` (3, 3) with OpenCV distortion
-        coefficients ``dist`` (None: none)."""
+        coefficients ``dist`` (None: none); ``grey``: the frame itself, (H, W) uint8, for the refinement
+        (None: none)."""
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
             raise ValueError(f"K must be (3, 3), got {K.shape}")
@@ -238,5 +261,31 @@ class TargetRecognizer:
         if covariance is None:
             return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
         H, _ = cv2.findHomography(self.target_pixels[target_rows[inliers]], pixels[inliers], 0)
-        return Recognition(RecognitionState.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
-                           frame_rows[inliers], target_rows[inliers], pixels[inliers], fit.rms_px, covariance)
+        found = Recognition(RecognitionState.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
+                            frame_rows[inliers], target_rows[inliers], pixels[inliers], fit.rms_px, covariance)
+        if not o.refine or grey is None:
+            return found
+        return self._refined(found, H, grey, K, dist) or found
+
+    def _refined(self, found: Recognition, H: np.ndarray, grey: np.ndarray, K: np.ndarray,
+                 dist: np.ndarray | None) -> Recognition | None:
+        """``found`` with its (3, 3) homography ``H`` and pose made again from its inliers measured in the
+        (H, W) uint8 frame ``grey`` (step 5 of the module's docstring); None when too few points survive."""
+        o = self.options
+        frame = grey if dist is None or not np.any(dist) else cv2.undistort(grey, K, np.asarray(dist, np.float64))
+        refined = refine_homography(self.aligner, frame, H, self.target_pixels[found.inlier_target], o.measure,
+                                    o.refine_threshold_px, o.refine_points, o.min_inliers)
+        if refined is None:
+            return None
+        rows = np.flatnonzero(refined.kept)
+        fit = fit_planar_pose(self.target.points[found.inlier_target[rows]], refined.pixels[rows], K,
+                              o.refine_threshold_px)
+        if fit is None or fit.kept.sum() < o.min_inliers:
+            return None
+        covariance = fit_covariance(fit, o.sigma_px)
+        if covariance is None:
+            return None
+        rows = rows[fit.kept]
+        return Recognition(RecognitionState.RECOGNISED, found.target, found.matches, len(rows), fit.T_camera_target,
+                           refined.homography, found.inlier_frame[rows], found.inlier_target[rows],
+                           refined.pixels[rows], fit.rms_px, covariance)

@@ -49,6 +49,7 @@ from services.detection.keypoints import KeypointParams
 from services.estimation.body_motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions
 from services.estimation.target_alignment import AlignmentOptions, TargetAligner
 from services.estimation.target_features import Extractor, make_extractor, to_grey
+from services.estimation.target_measure import MeasureOptions, follow, measure_points
 from services.estimation.target_pose import fit_covariance, fit_planar_pose
 from services.estimation.target_recognition import RecognitionOptions, TargetRecognizer
 from services.estimation.targets import Target
@@ -63,7 +64,6 @@ __all__ = [
     "track_targets",
 ]
 
-LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 MIN_DEPTH_M = 1e-6
 
 
@@ -109,11 +109,8 @@ class TrackingOptions:
     motion: MotionOptions = DEFAULT_MOTION
 
     def __post_init__(self) -> None:
-        if self.window_px < 5 or self.window_px % 2 == 0:
-            raise ValueError(f"window_px must be an odd number >= 5, got {self.window_px}")
-        if not 0 <= self.levels <= 8:
-            raise ValueError(f"levels must be in [0, 8], got {self.levels}")
-        for name in ("forward_backward_px", "threshold_px", "max_rms_px", "spacing_px"):
+        _ = self.measure  # MeasureOptions checks window_px, levels and forward_backward_px
+        for name in ("threshold_px", "max_rms_px", "spacing_px"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 4 <= self.min_points <= self.refill_below <= self.max_points:
@@ -123,6 +120,11 @@ class TrackingOptions:
             raise ValueError(f"sigma_px must be > 0 or None, got {self.sigma_px}")
         if self.anchor_every < 0:
             raise ValueError(f"anchor_every must be >= 0, got {self.anchor_every}")
+
+    @property
+    def measure(self) -> MeasureOptions:
+        """The Lucas-Kanade settings of following and measuring points."""
+        return MeasureOptions(self.window_px, self.levels, self.forward_backward_px)
 
 
 @dataclass(frozen=True)
@@ -193,6 +195,7 @@ class TargetTracker:
         self.recognizer = TargetRecognizer(target, recognition)
         self.extract = extract or make_extractor(target.detector)
         self.aligner = TargetAligner(target, self.options.alignment)
+        self.measuring = self.options.measure
         self.motion = ConstantVelocity(self.options.motion)
         self._tracks: _Tracks | None = None
         self._unanchored = 0
@@ -227,7 +230,7 @@ class TargetTracker:
                 return tracked
         self.reset()
         points, descriptors = (features or FrameFeatures(grey, self.extract)).get()
-        found = self.recognizer.recognise(points, descriptors, K, dist)
+        found = self.recognizer.recognise(points, descriptors, K, dist, grey)
         if not found.recognised or found.T_camera_target is None:
             return TargetPose(TrackState.LOST, self.target.name, found.state.value)
         T = self._aligned(grey, K, dist, found.T_camera_target)
@@ -247,9 +250,7 @@ class TargetTracker:
         if visible.sum() < o.min_points:
             return None
         ids, points, start = tracks.ids[visible], tracks.points[visible], tracks.pixels[visible]
-        forward, found = self._flow(tracks.grey, grey, start, guesses[visible])
-        back, returned = self._flow(grey, tracks.grey, forward, start)
-        kept = found & returned & (np.sum((back - start) ** 2, axis=1) < o.forward_backward_px**2)
+        forward, kept = follow(tracks.grey, grey, start, guesses[visible], self.measuring)
         if kept.sum() < o.min_points:
             return None
         pixels = forward[kept]
@@ -271,15 +272,6 @@ class TargetTracker:
         self._tracks = followed
         return TargetPose(TrackState.TRACKING, self.target.name, "", T, int(fit.kept.sum()), fit.rms_px, covariance,
                           followed.points, followed.pixels)
-
-    def _flow(self, before: np.ndarray, after: np.ndarray, pixels: np.ndarray,
-              guesses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(pixels, found)``: (M, 2) float32 pixels in ``after`` of (M, 2) float32 ``pixels`` in ``before``,
-        searched from (M, 2) ``guesses`` coarse to fine, and (M,) bool whether each was found."""
-        side = self.options.window_px
-        moved, status, _ = cv2.calcOpticalFlowPyrLK(before, after, pixels, guesses.copy(), None, None, (side, side),
-                                                    self.options.levels, LK_CRITERIA, cv2.OPTFLOW_USE_INITIAL_FLOW)
-        return moved.reshape(-1, 2), status.ravel() == 1
 
     def _aligned(self, grey: np.ndarray, K: np.ndarray, dist: np.ndarray | None, T: np.ndarray) -> np.ndarray:
         """``T`` refined by direct alignment when the options ask for it and it succeeds, else ``T``."""
@@ -307,35 +299,20 @@ class TargetTracker:
         rows = np.flatnonzero(free)
         _, first = np.unique(keys[rows], return_index=True)
         chosen = rows[np.sort(first)][: max(o.max_points - len(tracks.ids), 0)]
-        placed, found = self._place(tracks.grey, K, dist, tracks.T_camera_target, points[chosen])
+        placed, found = self._place(tracks.grey, K, dist, tracks.T_camera_target, candidates[chosen])
         chosen = chosen[found]
         return _Tracks(tracks.grey, np.concatenate([tracks.ids, candidates[chosen]]),
                        np.concatenate([tracks.points, points[chosen]]),
                        np.concatenate([tracks.pixels, placed[found]]), tracks.T_camera_target)
 
     def _place(self, grey: np.ndarray, K: np.ndarray, dist: np.ndarray | None, T_camera_target: np.ndarray,
-               points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(pixels, found)``: (M, 2) float32 distorted pixels of (M, 3) target ``points`` in ``grey``, found by
-        Lucas-Kanade from the target drawn at ``T_camera_target`` (its gain and offset matched to the frame's
-        over the target, the frame's own pixels around it so that the coarse levels see the same surroundings),
-        each starting where the pose projects it; (M,) bool, found and passing the forward-backward check."""
+               ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pixels, found)``: (M, 2) float32 distorted pixels in ``grey`` of the target keypoints ``ids`` (M,),
+        measured against the target drawn at ``T_camera_target`` (``services.estimation.target_measure``), each
+        starting where the pose projects it; (M,) bool, measured."""
         frame = grey if dist is None else cv2.undistort(grey, K, dist)
-        view = self.aligner.view(K, T_camera_target, grey.shape)
-        if view is None or not len(points):
-            return np.zeros((len(points), 2), np.float32), np.zeros(len(points), bool)
-        drawn, mask = view
-        inside = mask > 0
-        if not inside.any():
-            return np.zeros((len(points), 2), np.float32), np.zeros(len(points), bool)
-        drawn_mean, drawn_std = cv2.meanStdDev(drawn, mask=mask)
-        frame_mean, frame_std = cv2.meanStdDev(frame, mask=mask)
-        gain = float(frame_std[0, 0]) / max(float(drawn_std[0, 0]), 1e-6)
-        matched = cv2.convertScaleAbs(drawn, alpha=gain, beta=float(frame_mean[0, 0] - gain * drawn_mean[0, 0]))
-        matched = np.where(inside, matched, frame)
-        start = project_points(points @ T_camera_target[:3, :3].T + T_camera_target[:3, 3], K).astype(np.float32)
-        moved, found = self._flow(matched, frame, start, start)
-        back, returned = self._flow(frame, matched, moved, start)
-        found &= returned & (np.sum((back - start) ** 2, axis=1) < self.options.forward_backward_px**2)
+        H = self.aligner.homography(K, T_camera_target)
+        moved, found = measure_points(self.aligner, frame, H, self.target.keypoints[ids], self.measuring)
         if dist is not None:
             rays = np.column_stack([moved, np.ones(len(moved))]) @ np.linalg.inv(K).T
             moved = project_points(rays, K, dist).astype(np.float32)
