@@ -11,7 +11,7 @@
 * Real pairs with ground-truth homographies (``homography_oxford_graf`` img1 -> img3,
   ``homography_hpatches_v_churchill`` 1 -> 2..6): image 1 is the target (its scale pyramid, as
   ``build_target`` makes it), the other image the frame; matched and fitted as recognition does
-  (``match_descriptors``, ``cv2.findHomography`` with recognition's USAC method, threshold and
+  (``match_descriptors``, exact, ``cv2.findHomography`` with recognition's USAC method, threshold and
   iterations, then the least-squares refit on the inliers) for each detector of ``DETECTORS``, beside
   the baseline. Score: the mean corner transfer error, the four outer corners of image 1 mapped by the
   estimated and the true homography, mean distance in pixels of the other image. Bar: on every pair the
@@ -169,11 +169,13 @@ def our_homography(reference: np.ndarray, image: np.ndarray,
     """``(H, inliers, H_refined, refined)``: the (3, 3) homography ``reference`` pixel -> ``image`` pixel as
     recognition finds it (the reference's pyramid keypoints, ratio-tested matches, USAC, least squares on the
     inliers) and as its refinement makes it again from the inliers measured against the reference
-    (``refine_homography``, recognition's settings), each with the points it rests on."""
+    (``refine_homography``, recognition's settings), each with the points it rests on. Binary descriptors
+    are matched by brute force, so the figures repeat from run to run (the hashing index recognition
+    uses for large targets draws random tables)."""
     options = RecognitionOptions()
     target = build_target("reference", reference, 1.0, params)
     points, descriptors = make_extractor(params)(image)
-    matches = match_descriptors(make_matcher(is_binary(descriptors)), descriptors, target.descriptors,
+    matches = match_descriptors(make_matcher(is_binary(descriptors), exact=True), descriptors, target.descriptors,
                                 options.ratio, options.cross_check)
     if len(matches) < 4:
         return None, 0, None, 0
