@@ -13,7 +13,7 @@ from services.bus.session import BusError
 from services.cli import bodies, calibrate, markers, observe, pipelines, recordings, run, scenes, targets
 from services.cli.markers import PAPER_NAMES
 from services.launcher.pipeline import PipelineError
-from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, setup_logging
+from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, native_logs_to_stderr, setup_logging
 from services.runtime.memory import tune_malloc
 
 __all__ = ["PAPER_NAMES", "main", "parser"]
@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     os.environ[FORMAT_ENV] = chosen  # processes started from here (`up`'s nodes) log the same way
     setup_logging(log_format=chosen)
+    native_logs_to_stderr()
     tune_malloc()
     try:
         return args.func(args)

@@ -68,3 +68,25 @@ def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, n
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
+
+
+def native_logs_to_stderr() -> None:
+    """Send what native libraries write to file descriptor 1 to stderr, keeping ``sys.stdout`` on
+    the process's real standard output.
+
+    Zenoh's own log lines (Rust, enabled by ``RUST_LOG``, and errors such as a gossip message
+    about an unknown link) are written to descriptor 1, where they would land in a command's
+    output (``status --json``, ``echo``, ``export``). After this call descriptor 1 is a copy of
+    stderr (and so is every child process's standard output), while Python's ``print`` writes to
+    a new descriptor on the original stdout. Does nothing when ``sys.stdout`` is not on
+    descriptor 1 (already moved, or replaced by a caller such as a test's capture)."""
+    try:
+        on_fd1 = sys.stdout is not None and sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):
+        on_fd1 = False
+    if not on_fd1:
+        return
+    sys.stdout.flush()
+    original = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = os.fdopen(original, "w", buffering=1, encoding=sys.stdout.encoding, errors=sys.stdout.errors)

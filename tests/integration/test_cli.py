@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -50,6 +51,13 @@ def test_list_shows_the_running_nodes_with_kind_and_pid(bus, procs, session):
         rows[name] = (rig, kind, int(pid))
     assert rows == {"cam": (bus.rig, "capture", cam.pid), "relay": (bus.rig, "echo", echo.pid)}, listed.stdout
     assert listed.stdout.split()[:3] == ["RIG", "NODE", "KIND"]
+
+
+def test_zenoh_log_lines_go_to_stderr_and_leave_json_output_whole(bus, procs):
+    status = procs.run("status", "--timeout", "1", "--json", env={"RUST_LOG": "info"})
+    assert "zenoh" in status.stderr  # Zenoh's own log lines were written, to stderr
+    report = json.loads(status.stdout)  # stdout holds the JSON document alone
+    assert report["healthy"] is False and report["pipelines"] == []
 
 
 def test_list_says_when_no_node_is_up(bus, procs):
