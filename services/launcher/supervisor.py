@@ -41,6 +41,8 @@ from services.runtime.restarts import RESTART_ENV
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+ZENOH_LINE_START = "\x1b["
+"""How Zenoh's own log lines begin (a colour code before their timestamp)."""
 RELAY_JOIN_S = 2.0
 """How long to wait, once a child exited, for the last of its stderr to come through."""
 
@@ -162,14 +164,15 @@ def _reason(code: int, last_line: str) -> str:
 
 
 def _relay(child: _Child, pipe) -> None:
-    """Copy the child's stderr to ours line by line, keeping its last non-blank line."""
+    """Copy the child's stderr to ours line by line, keeping its last non-blank line of its own (Zenoh's
+    log lines, which start with a terminal colour code, are copied but never taken as the reason)."""
     with pipe:
         for raw in pipe:
             line = raw.decode(errors="replace")
             with contextlib.suppress(OSError, ValueError):  # our stderr gone: keep reading, so the child never blocks
                 sys.stderr.write(line)
                 sys.stderr.flush()
-            if line.strip():
+            if line.strip() and not line.startswith(ZENOH_LINE_START):
                 child.last_line = line.strip()
 
 

@@ -31,6 +31,17 @@ def test_the_last_stderr_line_is_the_reason_a_child_exited(capfd):
     assert "starting\nno camera 7\n" in capfd.readouterr().err  # passed on, not swallowed
 
 
+def test_a_zenoh_log_line_after_the_childs_own_is_passed_on_but_is_not_the_reason(capfd):
+    zenoh_line = "\\x1b[2m2026-11-26T23:12Z\\x1b[0m \\x1b[31mERROR\\x1b[0m zenoh::net::protocol::gossip: unknown link"
+    code = f"import sys; print('no camera 7', file=sys.stderr); print('{zenoh_line}', file=sys.stderr); sys.exit(2)"
+    supervisor = Supervisor([_child("cam", code, restart=False)])
+    supervisor.start()
+    _until_settled(supervisor)
+    (health,) = supervisor.health()
+    assert (health.exit_code, health.reason) == (2, "no camera 7")
+    assert "unknown link" in capfd.readouterr().err
+
+
 def test_log_lines_are_reduced_to_their_message():
     text = "2026-11-25 11:14:56,085 ERROR [rec-a] artrack.recorder: node rec-a: x.mcap exists: choose another name"
     assert reason_of(text) == "node rec-a: x.mcap exists: choose another name"
