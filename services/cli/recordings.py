@@ -159,7 +159,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from services.recorder.trajectories import load_trajectory
 
     est = load_trajectory(args.est, args.format, key=args.est_key, child=args.child)
-    gt = load_trajectory(args.gt, args.format, key=args.gt_key, child=args.child)
+    gt = load_trajectory(args.gt, args.format, key=args.gt_key, child=args.gt_child or args.child)
     max_dt = {} if args.max_dt is None else {"max_dt_s": args.max_dt}
     evaluation = evaluate(est, gt, align=args.align, delta=args.delta, unit=args.delta_unit, **max_dt)
     if args.plot is not None:
@@ -244,6 +244,9 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--est-key", metavar="KEY", help="the pose key when EST is a recording")
     p.add_argument("--gt-key", metavar="KEY", help="the pose key when GT is a recording")
     p.add_argument("--child", metavar="FRAME", help="recordings: the child frame (needed for GroundTruth keys)")
+    p.add_argument("--gt-child", metavar="FRAME", help="recordings: GT's child frame when it is named otherwise than "
+                                                      "EST's (default --child), e.g. a scene's `target` against "
+                                                      "the features tracker's `target/NAME`")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view "
                                                                 "(needs the plot extra: matplotlib)")
     p.add_argument("--json", action="store_true", help="one JSON object instead of text")

@@ -133,6 +133,25 @@ def test_a_recording_key_against_its_ground_truth(tmp_path):
         artrack("eval", path, path, "--est-key", "pose/wand", "--gt-key", "cam0/truth"))
 
 
+def test_the_truth_may_name_its_child_frame_otherwise_than_the_estimate(tmp_path):
+    path = tmp_path / "session.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "lab"})
+    for i in range(10):
+        true = Transform(translation=(0.0, 0.01 * i, 0.5))
+        header = Header(stamp_ns=T0_NS + i * 33_333_333, frame_id="cam0", seq=i)
+        est = true.model_copy(update={"translation": (0.002, 0.01 * i, 0.5)})
+        writer.write("ar/lab/pose/cam0/target/poster",
+                     encode(Pose(header=header, child_frame_id="target/poster", transform=est)), i)
+        writer.write("ar/lab/cam0/truth", encode(GroundTruth(header=header, transforms=(
+            FrameTransform(parent_frame="cam0", child_frame="target", transform=true),))), i)
+    writer.close()
+    keys = ("--est-key", "pose/cam0/target/poster", "--gt-key", "cam0/truth", "--align", "none")
+    done = artrack("eval", path, path, *keys, "--gt-child", "target")
+    assert done.returncode == 0, done.stderr
+    assert "matched      10 poses" in done.stdout and figures(done.stdout)["ATE rmse"] == pytest.approx(0.002)
+    assert artrack("eval", path, path, *keys, "--child", "target").returncode == 2  # the estimate has no `target`
+
+
 def test_user_errors_are_one_line_and_exit_2(tmp_path):
     gt = write_tum(tmp_path / "gt.txt", walk(5, 1.0))
     assert f"cannot read {tmp_path / 'nowhere.txt'}: No such file or directory" in one_error_line(
