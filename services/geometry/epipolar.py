@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["skew", "fundamental_matrix", "epipolar_distances"]
+__all__ = ["skew", "fundamental_matrix", "epipolar_distances", "matched_epipolar_distances"]
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -40,3 +40,16 @@ def epipolar_distances(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.nda
     in_b = algebraic / np.maximum(np.linalg.norm(lines_b[:, :2], axis=1), 1e-300)[:, None]
     in_a = algebraic / np.maximum(np.linalg.norm(lines_a[:, :2], axis=1), 1e-300)[None, :]
     return np.maximum(in_a, in_b)
+
+
+def matched_epipolar_distances(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
+    """(N, 2) distances, px, of each match ``pixels_a[i]``, ``pixels_b[i]`` (both (N, 2) ideal pinhole
+    pixels): column 0 from ``pixels_a[i]`` to the epipolar line of ``pixels_b[i]`` in image a, column 1
+    from ``pixels_b[i]`` to the line of ``pixels_a[i]`` in image b."""
+    xa = np.hstack([np.asarray(pixels_a, dtype=np.float64).reshape(-1, 2), np.ones((len(pixels_a), 1))])
+    xb = np.hstack([np.asarray(pixels_b, dtype=np.float64).reshape(-1, 2), np.ones((len(pixels_b), 1))])
+    lines_b = xa @ F_b_a.T
+    lines_a = xb @ F_b_a
+    algebraic = np.abs(np.sum(xb * lines_b, axis=1))
+    return np.column_stack([algebraic / np.maximum(np.linalg.norm(lines_a[:, :2], axis=1), 1e-300),
+                            algebraic / np.maximum(np.linalg.norm(lines_b[:, :2], axis=1), 1e-300)])

@@ -76,3 +76,16 @@ def pose_from_homography(H: np.ndarray, K: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, M[:, 2]
     return T
+
+
+def transfer_errors(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(N, 2) transfer distances of N matches ``src[i]``, ``dst[i]`` (both (N, 2)) under ``dst ~ H src``:
+    column 0 ``|src - H^-1 dst|``, column 1 ``|dst - H src|``; inf where a point maps to infinity."""
+    H = np.asarray(H, dtype=np.float64)
+    columns = []
+    for M, start, end in ((np.linalg.inv(H), dst, src), (H, src, dst)):
+        mapped = np.hstack([np.asarray(start, dtype=np.float64).reshape(-1, 2), np.ones((len(start), 1))]) @ M.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            distance = np.linalg.norm(mapped[:, :2] / mapped[:, 2:] - np.asarray(end, dtype=np.float64), axis=1)
+        columns.append(np.where(np.isfinite(distance), distance, np.inf))
+    return np.column_stack(columns)

@@ -8,7 +8,7 @@ import pytest
 from services.capture.scenes import make_scene
 from services.estimation.correspondence import fundamental_matrices
 from services.geometry.camera import project_points, undistort_pixels
-from services.geometry.epipolar import epipolar_distances, skew
+from services.geometry.epipolar import epipolar_distances, matched_epipolar_distances, skew
 from services.geometry.se3 import invert, transform_points
 
 
@@ -60,3 +60,14 @@ def test_epipolar_distance_is_the_point_to_line_distance(scene):
     normal = line[:2] / np.linalg.norm(line[:2])
     shifted = pb + 0.7 * normal
     assert epipolar_distances(F, pa, shifted)[0, 0] == pytest.approx(0.7, rel=0.05)
+
+
+def test_matched_epipolar_distances_are_the_diagonal_of_all_pairs():
+    rng = np.random.default_rng(4)
+    F = rng.normal(size=(3, 3))
+    pa, pb = rng.uniform(0, 640, (30, 2)), rng.uniform(0, 480, (30, 2))
+    matched = matched_epipolar_distances(F, pa, pb)
+    assert matched.shape == (30, 2)
+    assert np.allclose(matched.max(axis=1), np.diag(epipolar_distances(F, pa, pb)))
+    line_b = F @ np.append(pa[0], 1.0)
+    assert matched[0, 1] == pytest.approx(abs(line_b @ np.append(pb[0], 1.0)) / np.linalg.norm(line_b[:2]))

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.geometry.camera import project_points
-from services.geometry.homography import DegenerateError, homography_dlt, pose_from_homography
+from services.geometry.homography import DegenerateError, homography_dlt, pose_from_homography, transfer_errors
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import make_transform, transform_points
 
@@ -72,3 +72,14 @@ def test_pose_is_in_front_of_the_camera_whatever_the_homography_sign():
 def test_degenerate_correspondences_are_refused(src):
     with pytest.raises(DegenerateError):
         homography_dlt(src, src * 2 + 1)
+
+
+def test_transfer_errors_both_ways():
+    H = np.array([[1.1, 0.02, 5.0], [-0.03, 0.95, -3.0], [1e-4, -2e-4, 1.0]])
+    src = np.random.default_rng(1).uniform(0, 600, (20, 2))
+    mapped = np.hstack([src, np.ones((20, 1))]) @ H.T
+    dst = mapped[:, :2] / mapped[:, 2:]
+    assert np.allclose(transfer_errors(H, src, dst), 0.0, atol=1e-9)
+    moved = dst + [0.0, 2.0]
+    errors = transfer_errors(H, src, moved)
+    assert np.allclose(errors[:, 1], 2.0) and np.all(errors[:, 0] > 0.5)

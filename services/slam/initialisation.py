@@ -1,0 +1,209 @@
+"""Map initialisation from two frames of one calibrated camera: a relative pose and 3D points, or the
+reason to wait for a later frame.
+
+Both an essential matrix and a homography are fitted to the matches by USAC (``two_view``). When
+the homography explains the matches about as well as the essential matrix, the view is dominated by
+a plane, or the camera only rotated: the homography is then the model that holds, and an essential
+matrix fitted to it is ill-determined (on a plane seen with noise it came out several degrees
+wrong). The two are compared as ORB-SLAM does: each match within a chi-square bound of a model
+adds ``5.991 - chi2`` of both images to that model's support (``two_view.essential_support``,
+``homography_support``; an epipolar distance has one degree of freedom, a transfer error two), and
+the homography is taken when ``S_H / (S_H + S_E) > planar_ratio``. Counting inliers at one pixel
+threshold instead does not work: a point-to-point transfer error exceeds a point-to-line distance
+for the same noise, and on a plane the homography then won only two matches in three.
+
+The chosen model's pose (essential: ``cv2.recoverPose``; homography: the decomposition of
+``cv2.decomposeHomographyMat`` with the most points in front of both cameras) is used to triangulate
+the model's inliers. It is accepted only with a median triangulation angle (parallax) large enough
+for depth to be measured, enough points in front of both cameras and, from a homography, a runner-up
+decomposition with clearly fewer points in front: two decompositions explain a plane's matches
+equally well, and when both put the points in front nothing tells them apart, so the result is
+``planar_wait`` rather than a guess. Pure rotation and too short a baseline end in
+``low_parallax``: a later frame, further away, may initialise.
+
+Frames: the first frame's camera frame is the map's frame; ``T_second_first`` (4, 4) maps it into
+the second frame's camera frame (OpenCV camera frames), its translation of unit norm (monocular
+scale is arbitrary); ``points`` (N, 3) float64 are in the first camera's frame, in those units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from services.geometry.camera import undistort_pixels
+from services.slam.two_view import (
+    Triangulated,
+    essential_support,
+    fit_essential,
+    fit_homography,
+    homography_support,
+    parallax_deg,
+    pose_from_essential,
+    poses_from_homography,
+    triangulate_pair,
+)
+
+__all__ = ["InitialisationState", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
+           "initialise"]
+
+
+class InitialisationState(StrEnum):
+    """What two frames allow: a map, or why not yet."""
+
+    INITIALISED = "initialised"
+    TOO_FEW_MATCHES = "too_few_matches"
+    """Fewer matches, or model inliers, than ``min_matches`` (or no model at all)."""
+    LOW_PARALLAX = "low_parallax"
+    """Median triangulation angle under ``min_parallax_deg``: pure rotation or too short a baseline."""
+    PLANAR_WAIT = "planar_wait"
+    """A plane dominates and its homography's two best decompositions cannot be told apart."""
+    FEW_IN_FRONT = "few_in_front"
+    """Under ``min_in_front`` of the inliers triangulate in front of both cameras: the pose is wrong."""
+
+
+class InitialisationModel(StrEnum):
+    """Which model gave the pose."""
+
+    NONE = "none"
+    ESSENTIAL = "essential"
+    HOMOGRAPHY = "homography"
+
+
+@dataclass(frozen=True)
+class InitialisationSettings:
+    """``threshold_px``: USAC inlier bound (epipolar distance, homography transfer error), px;
+    ``confidence``: USAC's; ``sigma_px``: the matches' pixel noise the models are scored with;
+    ``min_matches``: least matches and least model inliers; ``planar_ratio``: the homography is the
+    model when its support exceeds this fraction of both supports (ORB-SLAM's 0.45);
+    ``min_parallax_deg``: least median triangulation angle, degrees; ``min_in_front``: least fraction
+    of the inliers in front of both cameras; ``ambiguity_ratio``: a homography decomposition is taken
+    only when the second best has at most this fraction of its points in front;
+    ``max_rms_px``: largest reprojection error (RMS over both views) of a kept point, px."""
+
+    threshold_px: float = 1.0
+    confidence: float = 0.999
+    sigma_px: float = 1.0
+    min_matches: int = 50
+    planar_ratio: float = 0.45
+    min_parallax_deg: float = 1.0
+    min_in_front: float = 0.9
+    ambiguity_ratio: float = 0.75
+    max_rms_px: float = 2.0
+
+
+@dataclass(frozen=True)
+class TwoViewInitialisation:
+    """The outcome for N matches.
+
+    ``state``; ``model``; ``T_second_first`` (4, 4) float64, translation of unit norm (None when no
+    pose was found; given in the waiting states too when one was); ``inliers`` (N,) bool, the matches
+    triangulated in front of both cameras within ``max_rms_px`` (all False unless initialised);
+    ``points`` (N, 3) float64, first camera's frame, NaN where not an inlier; ``parallax_deg``
+    median triangulation angle of the model's inliers, degrees (NaN when not measured); ``in_front`` fraction
+    of the model's inliers in front of both cameras; ``essential_inliers`` / ``homography_inliers``
+    the two USAC inlier counts.
+    """
+
+    state: InitialisationState
+    model: InitialisationModel
+    T_second_first: np.ndarray | None
+    inliers: np.ndarray
+    points: np.ndarray
+    parallax_deg: float
+    in_front: float
+    essential_inliers: int
+    homography_inliers: int
+
+    @property
+    def initialised(self) -> bool:
+        return self.state is InitialisationState.INITIALISED
+
+
+def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarray, dist: np.ndarray,
+               settings: InitialisationSettings | None = None) -> TwoViewInitialisation:
+    """Try to start a map from N matches: ``pixels_first[i]`` (observed, distorted px) in the first
+    frame and ``pixels_second[i]`` in the second, both (N, 2), one camera of (3, 3) ``K`` and
+    plumb_bob ``dist`` (5,). Degenerate cases end in a waiting state, never in a map."""
+    s = settings or InitialisationSettings()
+    first = undistort_pixels(pixels_first, K, dist)
+    second = undistort_pixels(pixels_second, K, dist)
+    n = len(first)
+    wait = _Outcome(n)
+    if n < s.min_matches:
+        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+    E, essential_inliers = fit_essential(first, second, K, s.threshold_px, s.confidence)
+    H, homography_inliers = fit_homography(first, second, s.threshold_px, s.confidence)
+    wait.counts = int(essential_inliers.sum()), int(homography_inliers.sum())
+    if E is None and H is None:
+        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+    support_E = essential_support(E, K, first, second, s.sigma_px) if E is not None else 0.0
+    support_H = homography_support(H, first, second, s.sigma_px) if H is not None else 0.0
+    planar = support_H > s.planar_ratio * (support_H + support_E)
+    model_inliers = homography_inliers if planar else essential_inliers
+    if model_inliers.sum() < s.min_matches:
+        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+    a, b = first[model_inliers], second[model_inliers]
+    ambiguous = False
+    if planar:
+        assert H is not None
+        wait.model = InitialisationModel.HOMOGRAPHY
+        T, found, ambiguous = _pick_homography_pose(H, K, a, b, s.ambiguity_ratio)
+    else:
+        assert E is not None
+        wait.model = InitialisationModel.ESSENTIAL
+        T = pose_from_essential(E, first, second, K, essential_inliers)
+        found = triangulate_pair(K, T, a, b)
+    wait.T = T
+    wait.in_front = float(found.in_front.mean())
+    finite = np.all(np.isfinite(found.points), axis=1)
+    wait.parallax = float(np.median(parallax_deg(found.points[finite], T))) if finite.any() else 0.0
+    if wait.parallax < s.min_parallax_deg:
+        return wait.result(InitialisationState.LOW_PARALLAX)
+    if wait.in_front < s.min_in_front:
+        return wait.result(InitialisationState.FEW_IN_FRONT)
+    if ambiguous:
+        return wait.result(InitialisationState.PLANAR_WAIT)
+    kept = found.in_front & (found.rms_px <= s.max_rms_px)
+    inliers = np.zeros(n, bool)
+    inliers[np.flatnonzero(model_inliers)[kept]] = True
+    points = np.full((n, 3), np.nan)
+    points[inliers] = found.points[kept]
+    return wait.result(InitialisationState.INITIALISED, inliers, points)
+
+
+def _pick_homography_pose(H: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray,
+                          ambiguity_ratio: float) -> tuple[np.ndarray, Triangulated, bool]:
+    """``(T_b_a, its triangulation, ambiguous)``: the homography decomposition with the most of the
+    matches ``a``, ``b`` in front of both cameras; ambiguous when the runner-up has more than
+    ``ambiguity_ratio`` as many in front."""
+    scored = []
+    for T in poses_from_homography(H, K):
+        found = triangulate_pair(K, T, a, b)
+        scored.append((int(found.in_front.sum()), T, found))
+    scored.sort(key=lambda item: item[0], reverse=True)
+    count, T, found = scored[0]
+    return T, found, len(scored) > 1 and scored[1][0] > ambiguity_ratio * count
+
+
+class _Outcome:
+    """What is known so far of one ``initialise`` call, made into its result once the state is known."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.model = InitialisationModel.NONE
+        self.T: np.ndarray | None = None
+        self.counts = (0, 0)
+        self.parallax = float("nan")
+        self.in_front = 0.0
+
+    def result(self, state: InitialisationState, inliers: np.ndarray | None = None,
+               points: np.ndarray | None = None) -> TwoViewInitialisation:
+        return TwoViewInitialisation(
+            state=state, model=self.model, T_second_first=self.T,
+            inliers=np.zeros(self.n, bool) if inliers is None else inliers,
+            points=np.full((self.n, 3), np.nan) if points is None else points,
+            parallax_deg=self.parallax, in_front=self.in_front,
+            essential_inliers=self.counts[0], homography_inliers=self.counts[1])

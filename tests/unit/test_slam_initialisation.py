@@ -1,0 +1,156 @@
+"""Two-view initialisation on the ``room`` scene's geometry and on degenerate motions and scenes.
+
+Matches are exact projections of known 3D points (points spread over the room's faces, or a plane)
+with 0.5 px noise and, where said, 20 % of the second frame's pixels replaced by random ones.
+"""
+
+import numpy as np
+import pytest
+
+from services.capture.scenes import make_scene
+from services.geometry.camera import intrinsics, project_points
+from services.geometry.rotation import matrix_from_rotvec, rotation_angle
+from services.geometry.se3 import invert, make_transform, transform_points
+from services.slam.initialisation import InitialisationModel, InitialisationState, initialise
+
+NOISE_PX = 0.5
+POINTS_PER_M2 = 400
+K = intrinsics(640, 480, 64.0)
+
+
+@pytest.fixture(scope="module")
+def room():
+    """``(scene, (M, 3) world points spread uniformly over every face of the room)``."""
+    scene = make_scene("room")
+    rng = np.random.default_rng(1)
+    points = []
+    for face in scene.faces:
+        size = np.array([face.texture.width_m, face.texture.height_m])
+        on_face = rng.uniform(-0.5, 0.5, (int(POINTS_PER_M2 * size.prod()), 2)) * size
+        points.append(transform_points(face.T_world_face, np.column_stack([on_face, np.zeros(len(on_face))])))
+    return scene, np.vstack(points)
+
+
+def in_view(T_camera_world: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(M,) whether each world point is in front of the 640x480 camera and inside its image."""
+    points = transform_points(T_camera_world, points_world)
+    front = points[:, 2] > 0.1
+    pixels = project_points(np.where(front[:, None], points, 1.0), K)
+    return front & np.all((pixels >= 0) & (pixels <= (639, 479)), axis=1)
+
+
+def observe(T_first_world, T_second_world, points_world, seed, outliers=0.0, dist=None):
+    """``(pixels_first, pixels_second, points in the first camera's frame, outlier mask)`` of the points
+    seen by both cameras, with noise, a fraction ``outliers`` of the second frame's pixels random."""
+    rng = np.random.default_rng(seed)
+    seen = points_world[in_view(T_first_world, points_world) & in_view(T_second_world, points_world)]
+    first = transform_points(T_first_world, seen)
+    second = transform_points(T_second_world, seen)
+    pixels = [project_points(p, K, dist) + rng.normal(0.0, NOISE_PX, (len(p), 2)) for p in (first, second)]
+    wrong = rng.random(len(seen)) < outliers
+    pixels[1][wrong] = rng.uniform((0, 0), (640, 480), (wrong.sum(), 2))
+    return pixels[0], pixels[1], first, wrong
+
+
+def pose_errors_deg(T_estimated: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error, angle between the translation directions), degrees."""
+    direction = T_true[:3, 3] / np.linalg.norm(T_true[:3, 3])
+    angle = np.arccos(np.clip(T_estimated[:3, 3] @ direction, -1.0, 1.0))
+    return np.degrees(rotation_angle(T_estimated[:3, :3], T_true[:3, :3])), float(np.degrees(angle))
+
+
+@pytest.mark.parametrize(("first", "second"), [(0, 45), (100, 130), (100, 145)])
+def test_room_frames_far_enough_apart_initialise(room, first, second):
+    scene, points_world = room
+    T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (first, second))
+    pixels_first, pixels_second, truth, wrong = observe(T_first_world, T_second_world, points_world, first, 0.2)
+    result = initialise(pixels_first, pixels_second, K, np.zeros(5))
+
+    assert result.state is InitialisationState.INITIALISED and result.initialised
+    assert result.model is InitialisationModel.ESSENTIAL
+    T = result.T_second_first
+    assert T is not None and np.linalg.norm(T[:3, 3]) == pytest.approx(1.0)
+    rotation_deg, direction_deg = pose_errors_deg(T, T_second_world @ invert(T_first_world))
+    assert rotation_deg < 0.5 and direction_deg < 3.0
+    assert result.parallax_deg > 3.0 and result.in_front > 0.99
+
+    kept = result.inliers
+    assert kept.sum() > 0.9 * (~wrong).sum() and (kept & wrong).sum() < 0.01 * kept.sum()
+    assert np.all(np.isnan(result.points[~kept])) and np.all(np.isfinite(result.points[kept]))
+    points = result.points[kept]
+    for pixels, T_camera_first in ((pixels_first, np.eye(4)), (pixels_second, T)):
+        error = np.linalg.norm(project_points(transform_points(T_camera_first, points), K) - pixels[kept], axis=1)
+        assert np.median(error) < 1.0 and error.max() < 3.0
+    scale = np.sum(points * truth[kept]) / np.sum(points * points)
+    residual = np.linalg.norm(scale * points - truth[kept], axis=1) / np.linalg.norm(truth[kept], axis=1)
+    assert np.median(residual) < 0.03
+    assert scale == pytest.approx(np.linalg.norm(scene.camera_pose(second)[:3, 3] - scene.camera_pose(first)[:3, 3]),
+                                  rel=0.03)
+
+
+def test_distortion_is_undone_first(room):
+    scene, points_world = room
+    dist = np.array([-0.25, 0.08, 0.001, -0.001, 0.0])
+    T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 45))
+    pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 7, dist=dist)
+    result = initialise(pixels_first, pixels_second, K, dist)
+    assert result.initialised and result.T_second_first is not None
+    rotation_deg, direction_deg = pose_errors_deg(result.T_second_first, T_second_world @ invert(T_first_world))
+    assert rotation_deg < 0.3 and direction_deg < 2.0
+
+
+@pytest.mark.parametrize("axis", [(0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.3, 0.8, 0.5)])
+def test_pure_rotation_waits_for_parallax(room, axis):
+    scene, points_world = room
+    T_first_world = invert(scene.camera_pose(200))
+    rotation = make_transform(matrix_from_rotvec(np.radians(8.0) * np.array(axis) / np.linalg.norm(axis)), np.zeros(3))
+    pixels_first, pixels_second, _, _ = observe(T_first_world, rotation @ T_first_world, points_world, 3, 0.2)
+    result = initialise(pixels_first, pixels_second, K, np.zeros(5))
+    assert result.state is InitialisationState.LOW_PARALLAX and not result.initialised
+    assert result.parallax_deg < 0.5
+    assert not result.inliers.any() and np.all(np.isnan(result.points))
+
+
+def test_room_frames_too_close_wait_for_parallax(room):
+    scene, points_world = room
+    T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 2))
+    pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 5, 0.2)
+    assert initialise(pixels_first, pixels_second, K, np.zeros(5)).state is InitialisationState.LOW_PARALLAX
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_plane_is_initialised_from_its_homography_or_waited_out(seed):
+    """Points on one plane 3 m away: the homography is the model; a pose is given only when its
+    decompositions can be told apart, and it is then right."""
+    rng = np.random.default_rng(seed)
+    T_first_plane = make_transform(matrix_from_rotvec([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), 0.0]),
+                                   [0.0, 0.0, 3.0])
+    on_plane = np.column_stack([rng.uniform(-2.0, 2.0, (600, 2)), np.zeros(600)])
+    baseline = rng.normal(0.0, 1.0, 3)
+    T_second_first = make_transform(matrix_from_rotvec(rng.normal(0.0, 0.08, 3)),
+                                    0.4 * baseline / np.linalg.norm(baseline))
+    pixels_first, pixels_second, _, _ = observe(T_first_plane, T_second_first @ T_first_plane, on_plane, seed)
+    result = initialise(pixels_first, pixels_second, K, np.zeros(5))
+    assert result.model is InitialisationModel.HOMOGRAPHY
+    assert result.state in (InitialisationState.INITIALISED, InitialisationState.PLANAR_WAIT)
+    if result.initialised:
+        assert result.T_second_first is not None
+        rotation_deg, direction_deg = pose_errors_deg(result.T_second_first, T_second_first)
+        assert rotation_deg < 0.3 and direction_deg < 2.0
+    else:
+        assert not result.inliers.any()
+
+
+def test_too_few_matches(room):
+    scene, points_world = room
+    T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 45))
+    pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 0)
+    result = initialise(pixels_first[:40], pixels_second[:40], K, np.zeros(5))
+    assert result.state is InitialisationState.TOO_FEW_MATCHES and result.T_second_first is None
+    assert result.inliers.shape == (40,) and result.points.shape == (40, 3)
+
+
+def test_random_matches_do_not_initialise():
+    rng = np.random.default_rng(0)
+    pixels_first, pixels_second = (rng.uniform((0, 0), (640, 480), (300, 2)) for _ in range(2))
+    assert not initialise(pixels_first, pixels_second, K, np.zeros(5)).initialised
