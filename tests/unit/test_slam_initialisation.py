@@ -83,6 +83,8 @@ def test_room_frames_far_enough_apart_initialise(room, first, second):
         assert np.median(error) < 1.0 and error.max() < 3.0
     scale = np.sum(points * truth[kept]) / np.sum(points * points)
     residual = np.linalg.norm(scale * points - truth[kept], axis=1) / np.linalg.norm(truth[kept], axis=1)
+    print(f"\nframes {first}/{second}: {len(pixels_first)} matches, rotation {rotation_deg:.2f} deg, direction "
+          f"{direction_deg:.2f} deg, parallax {result.parallax_deg:.1f} deg, points {100 * np.median(residual):.1f} %")
     assert np.median(residual) < 0.03
     assert scale == pytest.approx(np.linalg.norm(scene.camera_pose(second)[:3, 3] - scene.camera_pose(first)[:3, 3]),
                                   rel=0.03)
