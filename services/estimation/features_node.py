@@ -53,6 +53,7 @@ and axes drawn (``services.estimation.overlay``), its frame id ``<frame's frame_
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -187,18 +188,13 @@ class _Frames:
         if pose.T_camera_target is None:
             smoother.reset()
             return pose
-        return _with_transform(pose, smoother(stamp_ns, pose.T_camera_target))
+        return dataclasses.replace(pose, T_camera_target=smoother(stamp_ns, pose.T_camera_target))
 
     def lost(self, reason: str) -> list[TargetPose]:
         """A ``lost`` pose of every target, for ``reason``; the next frame starts every target afresh."""
         for tracker in self.trackers:
             tracker.reset()
         return [TargetPose(TrackState.LOST, tracker.target.name, reason) for tracker in self.trackers]
-
-
-def _with_transform(pose: TargetPose, T: np.ndarray) -> TargetPose:
-    return TargetPose(pose.state, pose.target, pose.reason, T, pose.inliers, pose.rms_px, pose.covariance,
-                      pose.points, pose.pixels)
 
 
 class _Overlay:

@@ -14,7 +14,7 @@ The template is the level of the target image's pyramid (``cv2.pyrDown``, which 
 coordinates exactly by 1/2 per level) whose pixels are closest to, but not larger than, the frame's
 pixels at the target's centre, so the alignment neither aliases nor wastes time on detail the frame
 cannot show. Only frame pixels inside the target's outline, ``margin_px`` in from it, take part. A
-distorted frame is undistorted first (``cv2.undistort``, onto the same ``K``).
+distorted frame is undistorted first (``geometry.camera.undistort_image``, onto the same ``K``).
 
 The refinement is refused (None) when ECC fails, its correlation is below ``min_correlation``, or it
 moves a point of the visible target by more than ``max_shift_px`` (it has left the basin it started in).
@@ -30,7 +30,7 @@ import numpy as np
 
 from services.estimation.target_pose import fit_planar_pose
 from services.estimation.targets import Target, target_points
-from services.geometry.camera import plane_homography
+from services.geometry.camera import plane_homography, undistort_image
 
 __all__ = ["AlignmentOptions", "TargetAligner"]
 
@@ -112,7 +112,7 @@ class TargetAligner:
         ``K`` (3, 3) with OpenCV distortion ``dist`` (None: none), starting from ``T_camera_target``;
         None when refused (see the module's docstring)."""
         o = self.options
-        frame = grey if dist is None else cv2.undistort(grey, K, dist)
+        frame = grey if dist is None else undistort_image(grey, K, dist)
         H = self.homography(K, T_camera_target)
         k = self.level(H)
         scale = np.diag([2.0**k, 2.0**k, 1.0])

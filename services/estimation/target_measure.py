@@ -18,7 +18,7 @@ Tracking anchors its points this way (``services.estimation.target_tracking``), 
 its homography and pose on the points so measured (``refine_homography``).
 
 Pixels put the centre of the top-left pixel at (0, 0); frames are (H, W) uint8 and undistorted
-(``cv2.undistort`` onto the same ``K`` first when the lens distorts).
+(``geometry.camera.undistort_image`` onto the same ``K`` first when the lens distorts).
 """
 
 from __future__ import annotations

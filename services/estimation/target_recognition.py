@@ -46,7 +46,7 @@ from services.estimation.target_features import Extractor, is_binary, make_extra
 from services.estimation.target_measure import MeasureOptions, refine_homography
 from services.estimation.target_pose import fit_covariance, fit_planar_pose
 from services.estimation.targets import Target
-from services.geometry.camera import undistort_pixels
+from services.geometry.camera import undistort_image, undistort_pixels
 
 __all__ = [
     "Recognition",
@@ -272,7 +272,7 @@ class TargetRecognizer:
         """``found`` with its (3, 3) homography ``H`` and pose made again from its inliers measured in the
         (H, W) uint8 frame ``grey`` (step 5 of the module's docstring); None when too few points survive."""
         o = self.options
-        frame = grey if dist is None or not np.any(dist) else cv2.undistort(grey, K, np.asarray(dist, np.float64))
+        frame = grey if dist is None or not np.any(dist) else undistort_image(grey, K, dist)
         refined = refine_homography(self.aligner, frame, H, self.target_pixels[found.inlier_target], o.measure,
                                     o.refine_threshold_px, o.refine_points, o.min_inliers)
         if refined is None:

@@ -42,7 +42,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-import cv2
 import numpy as np
 
 from services.detection.keypoints import KeypointParams
@@ -53,7 +52,7 @@ from services.estimation.target_measure import MeasureOptions, follow, measure_p
 from services.estimation.target_pose import fit_covariance, fit_planar_pose
 from services.estimation.target_recognition import RecognitionOptions, TargetRecognizer
 from services.estimation.targets import Target
-from services.geometry.camera import project_points, undistort_pixels
+from services.geometry.camera import project_points, undistort_image, undistort_pixels
 
 __all__ = [
     "FrameFeatures",
@@ -161,10 +160,6 @@ class FrameFeatures:
         self.grey = grey
         self.extract = extract
         self._found: tuple[np.ndarray, np.ndarray] | None = None
-
-    @property
-    def extracted(self) -> bool:
-        return self._found is not None
 
     def get(self) -> tuple[np.ndarray, np.ndarray]:
         """``(points, descriptors)``: (N, 2) float32 pixels and (N, D) descriptors (``Extractor``'s)."""
@@ -310,7 +305,7 @@ class TargetTracker:
         """``(pixels, found)``: (M, 2) float32 distorted pixels in ``grey`` of the target keypoints ``ids`` (M,),
         measured against the target drawn at ``T_camera_target`` (``services.estimation.target_measure``), each
         starting where the pose projects it; (M,) bool, measured."""
-        frame = grey if dist is None else cv2.undistort(grey, K, dist)
+        frame = grey if dist is None else undistort_image(grey, K, dist)
         H = self.aligner.homography(K, T_camera_target)
         moved, found = measure_points(self.aligner, frame, H, self.target.keypoints[ids], self.measuring)
         if dist is not None:

@@ -8,6 +8,7 @@ plumb_bob coefficients (k1, k2, p1, p2, k3).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -113,3 +114,24 @@ def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.
         return np.zeros((0, 2))
     return cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.asarray(dist, dtype=np.float64), P=K,
                                criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
+
+
+def undistort_image(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """``image`` (H, W[, C]) taken by ``K`` (3, 3) with OpenCV distortion ``dist``, resampled (bilinear) as
+    the distortion-free pinhole ``K`` sees it: what ``cv2.undistort`` gives, but the remap tables are
+    made once per camera and image size rather than on every call."""
+    h, w = image.shape[:2]
+    K_key = tuple(np.asarray(K, dtype=np.float64).ravel().tolist())
+    dist_key = tuple(np.asarray(dist, dtype=np.float64).ravel().tolist())
+    map_xy, map_fraction = _undistort_maps(K_key, dist_key, w, h)
+    return cv2.remap(image, map_xy, map_fraction, cv2.INTER_LINEAR)
+
+
+@lru_cache(maxsize=8)
+def _undistort_maps(K: tuple[float, ...], dist: tuple[float, ...], width: int,
+                    height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed-point remap tables (``CV_16SC2`` and its fractions) of ``undistort_image``'s camera."""
+    matrix = np.array(K).reshape(3, 3)
+    map_xy, map_fraction = cv2.initUndistortRectifyMap(matrix, np.array(dist), None, matrix, (width, height),
+                                                       cv2.CV_16SC2)
+    return map_xy, map_fraction
