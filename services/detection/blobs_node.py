@@ -11,8 +11,8 @@ the frame's header unchanged, zero rows when nothing was found. ``method`` picks
 * ``colour`` (``services.detection.colour_blobs``): pixels whose hue is near ``hue_deg``; needs
   bgr8 (or bgra8) frames. A mono frame gets an empty Blobs and is reported as skipped.
 
-What cannot be done with a frame is said once in the node's log (and counted on its errors key
-every time). One frame may wait while another is searched (``depth``).
+A frame the method cannot work on is counted as skipped and reported
+(``services.detection.detector_node``). One frame may wait while another is searched (``depth``).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.detections import BlobMethod, Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.detection.blobs import Blobs as FoundBlobs
 from services.detection.blobs import IrBlobParams, detect_ir_blobs
 from services.detection.colour_blobs import ColourBlobParams, HueModel, detect_colour_blobs
+from services.detection.detector_node import UnusableFrame, detect_frames
 from services.detection.grey import MONO16_SCALE, as_grey
 from services.detection.scale_space import LogBlobParams, detect_log_blobs
 from services.runtime.kind import NodeKind
@@ -57,10 +57,6 @@ class Params(BaseModel):
 
 
 Detector = Callable[[np.ndarray], FoundBlobs]
-
-
-class UnusableFrame(ValueError):
-    """A frame the chosen method cannot work on; the message says why."""
 
 
 def detector(params: Params) -> Detector:
@@ -101,18 +97,8 @@ def run(node: Node, params: Params) -> None:
         find = detector(params)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
-    frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     out = node.publisher(node.keys.blobs(params.camera), Blobs, Role.RESULT)
-    said: set[str] = set()
-    for image in node.inputs(frames):
-        try:
-            found = find(image.data)
-        except UnusableFrame as exc:
-            if str(exc) not in said:
-                said.add(str(exc))
-                node.log.warning("%s: %s", node.keys.image(params.camera), exc)
-            node.report("unusable_frame", str(exc), node.keys.image(params.camera))
-            found = FoundBlobs.from_rows([])
+    for image, found in detect_frames(node, params.camera, params.depth, find, lambda: FoundBlobs.from_rows([])):
         out.put(as_message(image.header, params.method, found))
 
 

@@ -8,8 +8,8 @@ kept, spread over the frame by ``grid`` bucketing (cells of ``cell_px``), ``anms
 all (``none``).
 
 Frames may be mono8, mono16 (scaled to 8 bits by 1/257), bgr8 or bgra8 (made grey). A frame
-with a side under ``MIN_SIDE_PX`` gets an empty Keypoints and is reported as skipped, said
-once in the node's log (and counted on its errors key every time). One frame may wait while
+with a side under ``MIN_SIDE_PX`` gets an empty Keypoints and is reported as skipped
+(``services.detection.detector_node``). One frame may wait while
 another is searched (``depth``).
 """
 
@@ -21,8 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.detections import Keypoints
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.sensors import Image
 from services.bus.pubsub import Role
+from services.detection.detector_node import UnusableFrame, detect_frames
 from services.detection.grey import as_grey8
 from services.detection.keypoints import EDGE_PX, Descriptor, KeypointDetector, KeypointParams, Method, Spread
 from services.detection.keypoints import Keypoints as FoundKeypoints
@@ -55,10 +55,6 @@ class Params(BaseModel):
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy")
 
 
-class UnusableFrame(ValueError):
-    """A frame the detector cannot work on; the message says why."""
-
-
 def settings(params: Params) -> KeypointParams:
     """The algorithm's settings for the node's ``params``."""
     return KeypointParams(method=params.method, descriptor=params.descriptor, max_count=params.max_count,
@@ -88,18 +84,9 @@ def run(node: Node, params: Params) -> None:
         keypoints = KeypointDetector(settings(params))
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
-    frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     out = node.publisher(node.keys.keypoints(params.camera), Keypoints, Role.RESULT)
-    said: set[str] = set()
-    for image in node.inputs(frames):
-        try:
-            found = frame_keypoints(keypoints, image.data)
-        except UnusableFrame as exc:
-            if str(exc) not in said:
-                said.add(str(exc))
-                node.log.warning("%s: %s", node.keys.image(params.camera), exc)
-            node.report("unusable_frame", str(exc), node.keys.image(params.camera))
-            found = keypoints.empty()
+    for image, found in detect_frames(node, params.camera, params.depth,
+                                      lambda data: frame_keypoints(keypoints, data), keypoints.empty):
         out.put(as_message(image.header, found))
 
 
