@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import cv2
@@ -47,6 +48,17 @@ def per_frame_us(variants: dict[str, Callable[[np.ndarray], object]], frames: li
     return {name: values[WARMUP:] for name, values in times.items()}
 
 
+@contextmanager
+def one_opencv_thread() -> Iterator[None]:
+    """OpenCV on one thread inside the block (per-frame figures of one core), as many as before after it."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+
+
 def figures(values: list[float]) -> dict[str, float]:
     p50, p99 = np.percentile(values, [50, 99])
     return {"p50_us": round(float(p50), 1), "p99_us": round(float(p99), 1)}
@@ -64,9 +76,7 @@ def colour_frame(rng: np.random.Generator) -> tuple[np.ndarray, tuple[int, int, 
 
 
 def bench_blobs() -> list[dict[str, Any]]:
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with one_opencv_thread():
         scene = make_scene("ir_rig", width=WIDTH, height=HEIGHT, body_count=BODIES, noise_std=NOISE_STD)
         camera = scene.cameras[0].name
         frames = [scene.render(i).images[camera] for i in range(FRAMES)]
@@ -98,8 +108,6 @@ def bench_blobs() -> list[dict[str, Any]]:
             {**common, "variant": "colour", **figures(colour["colour"]), "frames": LOG_FRAMES,
              "discs": COLOUR_DISCS},
         ]
-    finally:
-        cv2.setNumThreads(threads)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-import cv2
 import numpy as np
 
 from services.capture.scenes import make_scene
@@ -32,7 +31,7 @@ from services.estimation.target_features import make_extractor
 from services.estimation.target_recognition import TargetRecognizer, make_matcher
 from services.estimation.target_tracking import TargetTracker
 from services.estimation.targets import build_target
-from tests.bench.blobs import per_frame_us
+from tests.bench.blobs import one_opencv_thread, per_frame_us
 from tests.feature_baseline import SiftBaseline
 
 WIDTH, HEIGHT = 640, 480
@@ -42,9 +41,7 @@ TARGET_SPEEDUP = 4.0
 
 
 def bench_features() -> list[dict[str, Any]]:
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with one_opencv_thread():
         scene = make_scene("planar_target", width=WIDTH, height=HEIGHT)
         camera = scene.cameras[0]
         frames = [scene.render(2 * i).images[camera.name] for i in range(FRAMES)]
@@ -76,8 +73,6 @@ def bench_features() -> list[dict[str, Any]]:
                 line |= {"target": f">= {TARGET_SPEEDUP}", "met": speedup >= TARGET_SPEEDUP}
             lines.append(line)
         return lines
-    finally:
-        cv2.setNumThreads(threads)
 
 
 def _counted(posed_one: Callable[[np.ndarray], bool], posed: dict[str, int], name: str) -> Callable[[np.ndarray], bool]:

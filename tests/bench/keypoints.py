@@ -22,7 +22,7 @@ import numpy as np
 from services.capture.scenes import make_scene
 from services.detection.grey import as_grey8
 from services.detection.keypoints import METHODS, KeypointDetector, KeypointParams
-from tests.bench.blobs import WARMUP, per_frame_us
+from tests.bench.blobs import WARMUP, one_opencv_thread, per_frame_us
 
 WIDTH, HEIGHT = 640, 480
 FRAMES = 25
@@ -30,9 +30,7 @@ MAX_COUNT = 1000
 
 
 def bench_keypoints() -> list[dict[str, Any]]:
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with one_opencv_thread():
         scene = make_scene("planar_target", width=WIDTH, height=HEIGHT)
         camera = scene.cameras[0].name
         frames = [as_grey8(scene.render(i).images[camera]) for i in range(FRAMES + WARMUP)]
@@ -50,8 +48,6 @@ def bench_keypoints() -> list[dict[str, Any]]:
         return [{**common, "variant": name, "p50_ms": round(float(np.percentile(values, 50)) / 1e3, 2),
                  "p99_ms": round(float(np.percentile(values, 99)) / 1e3, 2),
                  "keypoints_mean": round(float(counts[name]), 1)} for name, values in times.items()]
-    finally:
-        cv2.setNumThreads(threads)
 
 
 if __name__ == "__main__":

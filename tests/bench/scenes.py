@@ -14,9 +14,8 @@ import json
 import time
 from typing import Any
 
-import cv2
-
 from services.capture.scenes import make_scene
+from tests.bench.blobs import one_opencv_thread
 
 WIDTH, HEIGHT = 640, 480
 TARGET_FPS = {"markers": 100, "planar_target": 100, "ir_rig": 100, "room": 30}
@@ -40,9 +39,7 @@ def frames_per_second(scene, frames: int) -> float:
 
 def bench_scenes() -> list[dict[str, Any]]:
     """One figure per scene and variant (two for ir_rig: per camera and per rig)."""
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with one_opencv_thread():
         lines = []
         for scene_name, target in TARGET_FPS.items():
             for variant, options in VARIANTS.items():
@@ -55,8 +52,6 @@ def bench_scenes() -> list[dict[str, Any]]:
                 if cameras > 1:
                     lines.append({**common, "per": "rig", "fps": round(rig_fps, 1)})
         return lines
-    finally:
-        cv2.setNumThreads(threads)
 
 
 if __name__ == "__main__":
