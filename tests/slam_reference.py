@@ -62,6 +62,33 @@ def _project(K: np.ndarray, camera: np.ndarray) -> np.ndarray:
     return camera[:, :2] / camera[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
 
 
+def robust_residuals(K: np.ndarray, T: np.ndarray, points: np.ndarray, pixels: np.ndarray, sigmas: np.ndarray,
+                     huber_px: float) -> np.ndarray:
+    """(2M,) rescaled whitened errors ``sqrt(rho(s) / s) * e / sigma`` of M observations: per-observation
+    poses (M, 4, 4), points (M, 3), pixels (M, 2), sigmas (M,)."""
+    camera = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
+    e = (_project(K, camera) - pixels) / sigmas[:, None]
+    s = np.sum(e * e, axis=1)
+    scale = np.sqrt(huber(s, huber_px) / np.maximum(s, 1e-300))
+    return (e * np.where(s > 0, scale, 1.0)[:, None]).ravel()
+
+
+def reference_refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points: np.ndarray, pixels: np.ndarray,
+                          sigmas: np.ndarray, huber_px: float = HUBER_PX) -> np.ndarray:
+    """(4, 4) pose minimising the module's cost over one pose (rotation vector and translation) with
+    the (N, 3) points fixed, from ``T_camera_world``."""
+    def pose(x: np.ndarray) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = matrix_from_rotvec(x[:3]), x[3:]
+        return T
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return robust_residuals(K, np.broadcast_to(pose(x), (len(points), 4, 4)), points, pixels, sigmas, huber_px)
+
+    x0 = np.concatenate([rotvec_from_matrix(T_camera_world[:3, :3]), T_camera_world[:3, 3]])
+    return pose(least_squares(residuals, x0, method="trf", x_scale="jac", ftol=1e-12, xtol=1e-12, gtol=1e-12).x)
+
+
 def reference_bundle_adjust(problem: BundleProblem, huber_px: float = HUBER_PX,
                             tolerance: float = 1e-12) -> ReferenceResult:
     """Minimise the module's cost over the free poses and the points seen twice or more, from the
@@ -89,11 +116,7 @@ def reference_bundle_adjust(problem: BundleProblem, huber_px: float = HUBER_PX,
 
     def residuals(x: np.ndarray) -> np.ndarray:
         T, X = unpack(x)
-        camera = np.einsum("mij,mj->mi", T[:, :3, :3], X[point_slot]) + T[:, :3, 3]
-        e = (_project(problem.K, camera) - pixels) / sigmas[:, None]
-        s = np.sum(e * e, axis=1)
-        scale = np.sqrt(huber(s, huber_px) / np.maximum(s, 1e-300))
-        return (e * np.where(s > 0, scale, 1.0)[:, None]).ravel()
+        return robust_residuals(problem.K, T, X[point_slot], pixels, sigmas, huber_px)
 
     sparsity = lil_matrix((2 * len(pixels), offset + 3 * len(moving)), dtype=np.int8)
     rows = np.arange(len(pixels))

@@ -36,10 +36,11 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
+from services.geometry.refine import augmented_rows, damped_steps, increments, normal_equations, point_basis
 from services.geometry.se3 import check_transform
 
 __all__ = ["CHI2_2DOF_95", "HUBER_PX", "BundleProblem", "BundleResult", "PoseRefinement", "bundle_adjust",
-           "reprojection_errors"]
+           "refine_pose", "reprojection_errors"]
 
 CHI2_2DOF_95 = 5.991
 """95 % quantile of the chi-square distribution with two degrees of freedom: an observation whose
@@ -117,7 +118,10 @@ def reprojection_errors(K: np.ndarray, T_camera_world: np.ndarray, points_world:
     infinite where a point is not in front of its camera."""
     T = np.asarray(T_camera_world, dtype=np.float64)
     points = np.asarray(points_world, dtype=np.float64)
-    camera = np.einsum("...ij,...j->...i", T[..., :3, :3], points) + T[..., :3, 3]
+    if T.ndim == 2:
+        camera = points @ T[:3, :3].T + T[:3, 3]
+    else:
+        camera = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
     depth = camera[:, 2]
     front = depth > 0
     safe = np.where(front, depth, 1.0)[:, None]
@@ -330,3 +334,81 @@ def bundle_adjust(problem: BundleProblem, *, max_iterations: int = 20, huber_px:
     return BundleResult(poses, points, errors, outliers, _rms(before[~outliers]), _rms(errors[~outliers]),
                         0 if ceres is None else int(ceres.num_successful_steps + ceres.num_unsuccessful_steps) - 1,
                         time.perf_counter() - start)
+
+
+def _robust_cost(errors: np.ndarray, sigmas: np.ndarray, huber_px: float) -> float:
+    """``0.5 * sum(rho(s))`` of the whitened squared errors (infinite when a point is behind)."""
+    squared = (errors / sigmas) ** 2
+    bent = np.where(squared <= huber_px ** 2, squared, 2 * huber_px * np.sqrt(squared) - huber_px ** 2)
+    return float(0.5 * np.sum(bent))
+
+
+def _refine_round(K: np.ndarray, T: np.ndarray, points: np.ndarray, pixels: np.ndarray, sigmas: np.ndarray,
+                  huber_px: float, max_iterations: int) -> np.ndarray:
+    """``T`` (4, 4) lowering the robust cost of these observations: Levenberg-Marquardt on the
+    iteratively reweighted normal equations (Huber weights ``rho'(s)`` over ``sigma^2``), a step
+    kept only when it lowers the robust cost itself."""
+    basis = point_basis(points[None])
+    cost = _robust_cost(reprojection_errors(K, T, points, pixels), sigmas, huber_px)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        rows, _ = augmented_rows(T[None], basis, pixels[None], K)
+        squared = np.sum((rows[0, :, :, 6] / sigmas[:, None]) ** 2, axis=1)
+        weights = np.where(squared <= huber_px ** 2, 1.0, huber_px / np.sqrt(np.maximum(squared, 1e-300)))
+        rows *= (np.sqrt(weights) / sigmas)[None, :, None, None]
+        normal = normal_equations(rows)
+        while damping < 1e12:
+            steps, singular = damped_steps(normal, np.array([damping]))
+            if singular:
+                return T
+            candidate = T @ increments(steps)[0]
+            candidate_cost = _robust_cost(reprojection_errors(K, candidate, points, pixels), sigmas, huber_px)
+            if candidate_cost < cost:
+                break
+            damping *= 10
+        else:
+            return T
+        converged = cost - candidate_cost <= 1e-6 * cost or np.abs(steps).max() < 1e-9
+        T, cost, damping = candidate, candidate_cost, max(damping / 10, 1e-12)
+        if converged:
+            break
+    return T
+
+
+def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndarray, pixels: np.ndarray,
+                sigmas: np.ndarray | None = None, *, huber_px: float = HUBER_PX, rounds: int = 2,
+                max_iterations: int = 10) -> PoseRefinement:
+    """Refine one camera pose against fixed points: (N, 3) ``points_world`` seen at (N, 2) undistorted
+    ``pixels`` with (N,) ``sigmas`` (px, None for all 1) under the pinhole ``K``, from the start
+    ``T_camera_world`` (4, 4).
+
+    Minimises the module's robust cost (Huber at ``huber_px`` on the whitened error). Each of
+    ``rounds`` runs up to ``max_iterations`` Levenberg-Marquardt iterations on the observations then
+    classed inliers (all, at first), and classes them afresh by the chi-square test; dropping the
+    outliers after the first round removes the pull they keep under Huber's bounded influence (as
+    ORB-SLAM's pose optimisation does). pycolmap's ``refine_absolute_pose`` was measured against this
+    (docs/slam.md): a Cauchy loss without per-observation sigmas, and slower per point. Points behind
+    the camera are outliers. Raises ValueError on malformed inputs or fewer than 3 points.
+    """
+    K = _check_K(K)
+    T = check_transform(T_camera_world, "T_camera_world")
+    points = np.asarray(points_world, dtype=np.float64)
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 3 or not np.all(np.isfinite(points)):
+        raise ValueError(f"points_world must be (N, 3) finite with N >= 3, got shape {points.shape}")
+    if pixels.shape != points.shape[:1] + (2,) or not np.all(np.isfinite(pixels)):
+        raise ValueError(f"pixels must be ({len(points)}, 2) finite like points_world, got shape {pixels.shape}")
+    sigmas = _check_sigmas(sigmas, len(points))
+    if rounds < 1 or max_iterations < 1 or not huber_px > 0:
+        raise ValueError(f"rounds and max_iterations must be >= 1 and huber_px > 0, got {rounds}, "
+                         f"{max_iterations} and {huber_px}")
+    inliers = reprojection_errors(K, T, points, pixels) < np.inf
+    for _ in range(rounds):
+        if inliers.sum() < 3:
+            break
+        T = _refine_round(K, T, points[inliers], pixels[inliers], sigmas[inliers], huber_px, max_iterations)
+        errors = reprojection_errors(K, T, points, pixels)
+        inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
+    errors = reprojection_errors(K, T, points, pixels)
+    inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
+    return PoseRefinement(T, inliers, _rms(errors[inliers]))
