@@ -33,44 +33,12 @@ from services.slam.initialisation import initialise
 from services.slam.map import PointArrays, SlamMap
 from services.slam.mapping import LocalMapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent
+from services.slam.optimisation import refine_pose
 from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
 __all__ = ["SlamState", "Tracked", "Tracker"]
-
-
-@dataclass(frozen=True)
-class PoseRefinement:
-    """``T_camera_world`` (4, 4); ``inliers`` (N,) bool; ``rms_px`` over the inliers."""
-
-    T_camera_world: np.ndarray
-    inliers: np.ndarray
-    rms_px: float
-
-
-def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndarray, pixels: np.ndarray,
-                sigmas: np.ndarray | None = None) -> PoseRefinement:
-    """Pose-only refinement with the points fixed: ``cv2.solvePnPRefineLM`` on the inliers, then the
-    inliers re-chosen (chi-square, 2 dof, on error / sigma), four rounds."""
-    sigmas = np.ones(len(pixels)) if sigmas is None else sigmas
-    T = np.array(T_camera_world, np.float64)
-    inliers = np.ones(len(pixels), bool)
-    errors = np.full(len(pixels), np.inf)
-    for _ in range(4):
-        if np.count_nonzero(inliers) < 6:
-            break
-        rvec, tvec = cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].copy().reshape(3, 1)
-        rvec, tvec = cv2.solvePnPRefineLM(points_world[inliers], pixels[inliers], K, None, rvec, tvec)
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        camera = points_world @ T[:3, :3].T + T[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            projected = camera[:, :2] / camera[:, 2:] @ K[:2, :2].T + K[:2, 2]
-        errors = np.linalg.norm(projected - pixels, axis=1)
-        inliers = (camera[:, 2] > 0) & ((errors / sigmas) ** 2 < 5.991)
-    rms = float(np.sqrt(np.mean(errors[inliers] ** 2))) if np.any(inliers) else float("nan")
-    return PoseRefinement(T, inliers, rms)
 
 
 class SlamState(StrEnum):

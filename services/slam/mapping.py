@@ -33,6 +33,7 @@ from services.geometry.se3 import invert
 from services.geometry.triangulation import triangulate_many
 from services.slam.map import Keyframe, SlamMap
 from services.slam.matching import match_descriptors, rotation_consistent
+from services.slam.optimisation import BundleProblem, bundle_adjust
 from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
@@ -146,10 +147,66 @@ class LocalMapper:
             self.triangulate(keyframe_id)
         with stage_timer(timings, "fuse"):
             self.fuse(keyframe_id)
+        with stage_timer(timings, "bundle_adjustment"):
+            with self.map.lock:
+                window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
+            self.adjust(window)
         self.timings_ms = timings
 
     def adjust_initial_map(self, first: int, second: int) -> None:
-        """The map's first two keyframes and points, as initialisation made them."""
+        """Bundle adjust the map's first two keyframes and points (the first fixed, and the scale)."""
+        self.adjust([first, second])
+
+    def adjust(self, window: list[int]) -> None:
+        """Local bundle adjustment of the keyframes ``window`` and every point they observe; the other
+        keyframes observing those points stay fixed (and the map's first keyframe: with fewer than two
+        fixed, the scale is held too). Outlier observations are removed afterwards."""
+        s = self.settings
+        with self.map.lock:
+            problem = self._problem(window)
+        if problem is None:
+            return
+        try:
+            result = bundle_adjust(problem, max_iterations=s.ba_iterations, fix_scale=len(problem.fixed) < 2)
+        except ValueError as error:
+            logger.warning("local bundle adjustment skipped: %s", error)
+            return
+        with self.map.lock:
+            for keyframe_id, T in result.poses.items():
+                if keyframe_id not in problem.fixed and keyframe_id in self.map.keyframes:
+                    self.map.set_pose(keyframe_id, T)
+            for point_id, position in result.points.items():
+                self.map.set_position(point_id, position)
+            for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
+                                             problem.point_ids[result.outliers].tolist(), strict=True):
+                self.map.remove_observation(point_id, keyframe_id)
+            for point_id in result.points:
+                if point_id in self.map.points:
+                    self.map.update_point(point_id)
+
+    def _problem(self, window: list[int]) -> BundleProblem | None:
+        """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
+        frame_ids, point_ids, pixels, sigmas = [], [], [], []
+        poses: dict[int, np.ndarray] = {}
+        points: dict[int, np.ndarray] = {}
+        for point_id in self.map.points_of(window).tolist():
+            point = self.map.points[point_id]
+            points[point_id] = point.position.copy()
+            for keyframe_id, index in point.observations.items():
+                keyframe = self.map.keyframes[keyframe_id]
+                frame_ids.append(keyframe_id)
+                point_ids.append(point_id)
+                pixels.append(keyframe.features.pixels[index])
+                sigmas.append(keyframe.features.sigmas[index])
+                poses.setdefault(keyframe_id, keyframe.T_camera_world.copy())
+        if not points:
+            return None
+        fixed = (set(poses) - set(window)) | ({min(self.map.keyframes)} & set(poses))
+        if not fixed:
+            fixed = {min(poses)}
+        return BundleProblem(K=self.K, poses=poses, points=points, frame_ids=np.array(frame_ids, np.int64),
+                             point_ids=np.array(point_ids, np.int64), pixels=np.array(pixels, np.float64),
+                             fixed=frozenset(fixed), sigmas=np.array(sigmas, np.float64))
 
     def triangulate(self, keyframe_id: int) -> int:
         """New points between keyframe ``keyframe_id`` and its best covisible keyframes; how many."""
