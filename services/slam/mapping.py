@@ -180,9 +180,6 @@ class LocalMapper:
             for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
                                              problem.point_ids[result.outliers].tolist(), strict=True):
                 self.map.remove_observation(point_id, keyframe_id)
-            for point_id in result.points:
-                if point_id in self.map.points:
-                    self.map.update_point(point_id)
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
         """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
@@ -296,9 +293,9 @@ class LocalMapper:
 def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
     """(Na, Nb) px distance from each of (Nb, 2) ``pixels_b`` to the epipolar line in image b of each of
     (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
-    lines = np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T
-    algebraic = lines[:, :2] @ pixels_b.T + lines[:, 2:]
-    return np.abs(algebraic) / np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-300)[:, None]
+    lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
+    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
+    return np.abs(lines[:, :2] @ pixels_b.T.astype(np.float32) + lines[:, 2:])
 
 
 class _Pair:
