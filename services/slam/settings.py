@@ -14,8 +14,9 @@ class SlamSettings:
 
     Initialisation: a reference frame is matched with each new frame (keypoints within
     ``init_window_px``, descriptor distance at most ``match_max_distance``, ratio ``init_ratio``)
-    until ``services.slam.initialisation.initialise`` accepts the pair; the reference is replaced after ``reference_max_age`` frames, or at once when it has too few matches. A map
-    starts only with ``init_min_points`` points.
+    until ``services.slam.initialisation.initialise`` accepts the pair; the reference is replaced
+    after ``reference_max_age`` frames, or at once when it has too few matches. A map starts only
+    with ``init_min_points`` points.
 
     Tracking: search by projection of the last frame's points around the constant-velocity
     prediction within ``motion_window_px`` (per level scale; doubled when under ``min_motion_matches``
