@@ -239,8 +239,9 @@ class LocalMapper:
 
     def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
         """``(keypoints of the keyframe, keypoints of the neighbour)``: unmatched keypoint pairs whose
-        descriptors match (distance, ratio, one per keypoint, consistent orientation) within the
-        one-degree-of-freedom chi-square bound of each other's epipolar line."""
+        descriptors match (distance, ratio, one per keypoint, consistent orientation), the neighbour's
+        keypoint within the one-degree-of-freedom chi-square bound (its level's sigma) of the epipolar
+        line of the keyframe's."""
         s = self.settings
         first, second = pair.keyframe.features, pair.neighbour.features
         free_a = np.flatnonzero(pair.keyframe.point_ids < 0)
@@ -249,8 +250,8 @@ class LocalMapper:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
         epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
-        sigma2 = np.maximum(first.sigmas[free_a, None], second.sigmas[None, free_b]) ** 2
-        allowed = (epipolar**2 < CHI2_ONE_DOF * sigma2).astype(np.uint8)
+        bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
+        allowed = (epipolar < bounds[None]).view(np.uint8)
         a, b = match_descriptors(first.descriptors[free_a], second.descriptors[free_b],
                                  s.triangulation_max_distance, s.triangulation_ratio, allowed)
         a, b = free_a[a], free_b[b]
