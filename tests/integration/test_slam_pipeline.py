@@ -13,8 +13,13 @@ from protocol.message import Header
 from protocol.poses import Pose, TrackingState
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Publisher, Role
+from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene
-from services.convert import camera_info
+from services.convert import camera_info, camera_model, matrix_from_transform
+from services.geometry.camera import CameraModel
+from services.geometry.evaluation import score_trajectory
+from services.recorder.trajectories import read_kitti
+from tests.data import data_dir
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import recorded
 from tests.viewer_contents import RrdContents
@@ -80,6 +85,38 @@ def test_slam_run_tracks_the_room_records_exports_scores_and_views(procs, tmp_pa
     points = viewed.rows("world/map/points", "Points3D:positions")[-1]  # the final map may come as the viewer stops
     assert len(points.values) == len(next(c for c in clouds if c.header.seq == points.times["seq"]).points)
     assert viewed.rows("stats/stage_ms/cam0/total", "Scalars:scalars")
+
+
+def test_slam_on_the_real_tum_folder_with_a_calibration_file_scores_against_its_ground_truth(procs, tmp_path):
+    folder = data_dir("tum_rgbd_fr3_long_office_household_1hz")
+    calib, out = tmp_path / "fr3.yaml", tmp_path / "tum.mcap"
+    write_camera_info(calib, CameraModel("cam0", 640, 480, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1]]),
+                                         np.zeros(5), np.eye(4)))  # TUM's freiburg3 colour camera
+    job = procs.artrack("run", "slam", "--source", f"images:{folder / 'rgb'}", "--calib", str(calib), "--stamps",
+                        "source", "--fps", "5", "--depth", "20", "--no-mapping-thread", "--record", str(out),
+                        name="job")  # sent at 5 fps, stamped with the sequence's own times
+    assert job.wait(8 * START_S) == 0, job.describe()
+    scored = procs.run("eval", str(out), str(folder / "groundtruth.txt"), "--est-key", KEY, "--align", "sim3", "--json")
+    assert scored.poll() == 0, scored.describe()
+    figures = json.loads(scored.stdout)
+    assert figures["matched"] >= 18 and figures["ate_m"]["rmse"] <= 0.04, figures  # 20 frames about 1 s apart
+
+
+def test_slam_on_the_real_kitti_folder_is_calibrated_by_its_calib_file(procs, tmp_path):
+    folder = data_dir("vo_kitti_odometry_seq06_frames000-050")
+    out = tmp_path / "kitti.mcap"
+    job = procs.artrack("run", "slam", "--source", f"images:{folder / 'image_0'}", "--fps", "10", "--frames", "20",
+                        "--depth", "20", "--no-mapping-thread", "--record", str(out), name="job")
+    assert job.wait(8 * START_S) == 0, job.describe()
+    messages = recorded(out)
+    prefix = next(key for key in messages if key.endswith("/cam0/image")).removesuffix("/cam0/image")
+    camera = camera_model(messages[f"{prefix}/cam0/camera_info"][0])
+    assert np.allclose(camera.K, [[707.0912, 0, 601.8873], [0, 707.0912, 183.1104], [0, 0, 1]])  # calib.txt's P0
+    tracking = [p for p in messages[f"{prefix}/{KEY}"] if p.state is TrackingState.TRACKING]
+    assert len(tracking) >= 15, [p.state for p in messages[f"{prefix}/{KEY}"]]
+    truth = read_kitti(folder / "poses.txt").poses[[p.header.seq for p in tracking]]  # KITTI poses are by frame
+    score = score_trajectory(np.array([matrix_from_transform(p.transform) for p in tracking]), truth, "sim3")
+    assert score.ate.stats.rmse <= 0.2, score.ate.stats  # metres, over the 20 m the car drives
 
 
 def test_garbage_and_unusable_frames_are_counted_while_the_node_goes_on(bus, procs, session):
