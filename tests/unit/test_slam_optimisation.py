@@ -11,19 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.geometry.camera import intrinsics, project_points
+from services.geometry.camera import project_points
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert, transform_points
 from services.slam.optimisation import CHI2_2DOF_95, BundleProblem, bundle_adjust, refine_pose
-from tests.slam_problems import (
-    HEIGHT,
-    PYRAMID_SCALE,
-    WIDTH,
-    keyframe_poses,
-    perturbed_pose,
-    random_pixels,
-    synthetic_problem,
-)
+from tests.slam_problems import pose_problem, synthetic_problem
 from tests.slam_reference import reference_bundle_adjust, reference_refine_pose, robust_cost
 
 
@@ -145,25 +137,9 @@ def test_bad_problems_raise_one_clear_error(name, message):
         bundle_adjust(broken(sp.problem, name))
 
 
-def pose_case(seed: int, count: int = 1000, levels: int = 4):
-    """A keyframe's true pose, (N, 3) points in its view, their noisy pixels (10 % random), sigmas,
-    the gross mask, and a start 1 deg and 5 cm off."""
-    rng = np.random.default_rng(seed)
-    T = keyframe_poses(5)[1]
-    points = rng.uniform((-3.0, -2.0, 5.0), (3.0, 2.0, 9.0), size=(count, 3))
-    camera = transform_points(T, points)
-    K = intrinsics(WIDTH, HEIGHT, 64.0)
-    pixels = camera[:, :2] / camera[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
-    sigmas = PYRAMID_SCALE ** rng.integers(0, levels, count)
-    pixels += rng.normal(size=pixels.shape) * sigmas[:, None]
-    gross = rng.random(count) < 0.1
-    pixels[gross] = random_pixels(rng, pixels[gross])
-    return K, T, points, pixels, sigmas, gross, perturbed_pose(T, rng, 1.0, 0.05)
-
-
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_refine_pose_recovers_a_perturbed_pose_and_flags_outliers(seed):
-    K, T, points, pixels, sigmas, gross, start = pose_case(seed)
+    K, T, points, pixels, sigmas, gross, start = pose_problem(seed)
     result = refine_pose(K, start, points, pixels, sigmas)
     angle, distance = pose_errors({0: result.T_camera_world}, {0: T})
     assert angle < 0.1 and distance < 0.02
@@ -177,7 +153,7 @@ def test_refine_pose_recovers_a_perturbed_pose_and_flags_outliers(seed):
 
 def test_refine_pose_one_round_matches_scipy():
     """One round on every observation minimises the same robust cost as scipy's least_squares."""
-    K, T, points, pixels, sigmas, _, start = pose_case(4, count=400)
+    K, T, points, pixels, sigmas, _, start = pose_problem(4, count=400)
     result = refine_pose(K, start, points, pixels, sigmas, rounds=1, max_iterations=50)
     reference = reference_refine_pose(K, start, points, pixels, sigmas)
     angle, distance = pose_errors({0: result.T_camera_world}, {0: reference})
@@ -190,7 +166,7 @@ def test_refine_pose_one_round_matches_scipy():
     ({"K": np.ones((3, 3))}, "zero-skew pinhole"),
 ])
 def test_refine_pose_bad_input_raises(change, message):
-    K, _, points, pixels, sigmas, _, start = pose_case(5)
+    K, _, points, pixels, sigmas, _, start = pose_problem(5)
     arguments = {"K": K, "T_camera_world": start, "points_world": points, "pixels": pixels, "sigmas": sigmas}
     with pytest.raises(ValueError, match=message):
         refine_pose(**{**arguments, **change})
