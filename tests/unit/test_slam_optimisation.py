@@ -61,21 +61,26 @@ def test_error_falls_to_noise_and_outliers_are_flagged(levels):
 
 
 def test_fixed_poses_do_not_move_and_lonely_points_stay():
+    """Fixed poses stay bit for bit; points seen once are left as given, and one behind its only
+    keyframe is an outlier with an infinite error."""
     sp = synthetic_problem(np.random.default_rng(3), keyframes=10, points=500, fixed=(0, 4, 9))
     problem = sp.problem
     ids, counts = np.unique(problem.point_ids, return_counts=True)
     lonely = ids[counts == 1]
-    extra = max(problem.points) + 1
+    ahead, behind = max(problem.points) + 1, max(problem.points) + 2
+    behind_world = transform_points(invert(problem.poses[4]), np.array([0.0, 0.0, -3.0]))[0]
     problem = dataclasses.replace(
-        problem, points={**problem.points, extra: np.array([0.0, 0.0, 7.0])},
-        frame_ids=np.r_[problem.frame_ids, 5], point_ids=np.r_[problem.point_ids, extra],
-        pixels=np.vstack([problem.pixels, [[100.0, 100.0]]]))
+        problem, points={**problem.points, ahead: np.array([0.0, 0.0, 7.0]), behind: behind_world},
+        frame_ids=np.r_[problem.frame_ids, 5, 4], point_ids=np.r_[problem.point_ids, ahead, behind],
+        pixels=np.vstack([problem.pixels, [[100.0, 100.0], [320.0, 240.0]]]))
     result = bundle_adjust(problem)
     for k in (0, 4, 9):
         assert np.array_equal(result.poses[k], problem.poses[k])
     assert pose_errors(result.poses, {k: problem.poses[k] for k in (2, 7)})[0] > 0.1
-    for point in [*lonely.tolist(), extra]:
+    for point in [*lonely.tolist(), ahead, behind]:
         assert np.array_equal(result.points[point], problem.points[point])
+    assert result.errors_px[-1] == np.inf and result.outliers[-1]
+    assert np.isfinite(result.errors_px[-2])
 
 
 def test_exact_data_recovers_the_truth():
@@ -149,6 +154,16 @@ def test_refine_pose_recovers_a_perturbed_pose_and_flags_outliers(seed):
     whitened = np.linalg.norm(pixels - projected, axis=1) / sigmas
     assert np.array_equal(result.inliers, whitened ** 2 <= CHI2_2DOF_95)
     assert 0.8 < result.rms_px < 2.0
+
+
+def test_refine_pose_leaves_out_points_behind_the_camera():
+    K, T, points, pixels, sigmas, gross, start = pose_problem(6, count=300)
+    behind = transform_points(invert(T), np.array([[0.0, 0.0, -3.0], [1.0, 0.5, -6.0]]))
+    result = refine_pose(K, start, np.vstack([points, behind]), np.vstack([pixels, [[320.0, 240.0], [10.0, 20.0]]]),
+                         np.r_[sigmas, 1.0, 1.0])
+    assert not result.inliers[-2:].any()
+    angle, distance = pose_errors({0: result.T_camera_world}, {0: T})
+    assert angle < 0.2 and distance < 0.03
 
 
 def test_refine_pose_one_round_matches_scipy():
