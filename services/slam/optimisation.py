@@ -402,7 +402,8 @@ def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndar
     outliers after the first round removes the pull they keep under Huber's bounded influence (as
     ORB-SLAM's pose optimisation does). pycolmap's ``refine_absolute_pose`` was measured against this
     (docs/slam.md): a Cauchy loss without per-observation sigmas, and slower per point. Points behind
-    the camera are outliers. Raises ValueError on malformed inputs or fewer than 3 points.
+    the camera are outliers; with fewer than three observations to refine on, the pose stays as it
+    is. Raises ValueError on malformed inputs or fewer than 3 points.
     """
     K = _check_K(K)
     T = check_transform(T_camera_world, "T_camera_world")
@@ -416,13 +417,13 @@ def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndar
     if rounds < 1 or max_iterations < 1 or not huber_px > 0:
         raise ValueError(f"rounds and max_iterations must be >= 1 and huber_px > 0, got {rounds}, "
                          f"{max_iterations} and {huber_px}")
-    inliers = reprojection_errors(K, T, points, pixels) < np.inf
-    for _ in range(rounds):
-        if inliers.sum() < 3:
-            break
-        T = _refine_round(K, T, points[inliers], pixels[inliers], sigmas[inliers], huber_px, max_iterations)
-        errors = reprojection_errors(K, T, points, pixels)
-        inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     errors = reprojection_errors(K, T, points, pixels)
+    used = errors < np.inf
+    for _ in range(rounds):
+        if used.sum() < 3:
+            break
+        T = _refine_round(K, T, points[used], pixels[used], sigmas[used], huber_px, max_iterations)
+        errors = reprojection_errors(K, T, points, pixels)
+        used = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     return PoseRefinement(T, inliers, _rms(errors[inliers]))
