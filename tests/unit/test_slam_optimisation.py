@@ -93,10 +93,11 @@ def test_exact_data_recovers_the_truth():
     assert result.final_rms_px < 1e-6 and not result.outliers.any()
 
 
-def test_fix_scale_with_one_fixed_keyframe():
+@pytest.mark.parametrize("levels", [0, 4])
+def test_fix_scale_with_one_fixed_keyframe(levels):
     """One fixed keyframe and ``fix_scale``: exact data is recovered up to one scale about that keyframe."""
     sp = synthetic_problem(np.random.default_rng(5), keyframes=8, points=500, noise_px=0.0, gross_fraction=0.0,
-                           fixed=(0,))
+                           fixed=(0,), levels=levels)
     result = bundle_adjust(sp.problem, max_iterations=100, tolerance=0.0, fix_scale=True)
     origin = invert(sp.poses[0])[:3, 3]
     true = np.stack([invert(sp.poses[k])[:3, 3] - origin for k in sorted(sp.poses)])
