@@ -231,8 +231,12 @@ class _Scene:
 def _scene(K: np.ndarray, observations: _Observations) -> _Scene:
     """The reconstruction the module docstring describes: one camera per distinct sigma in one rig,
     one frame per observed keyframe, one image per keyframe and sigma, one 3D point per point seen
-    at least twice (pycolmap refuses shorter tracks; a free point seen once constrains nothing)."""
-    sigmas, level = np.unique(observations.sigmas, return_inverse=True)
+    at least twice (pycolmap refuses shorter tracks; a free point seen once constrains nothing). The
+    rig's reference camera is the sigma observed most often: Ceres evaluates its observations' cost
+    without composing the rig offset, several times faster."""
+    sigmas, level, counts = np.unique(observations.sigmas, return_inverse=True, return_counts=True)
+    busiest_first = np.argsort(-counts, kind="stable")
+    sigmas, level = sigmas[busiest_first], np.argsort(busiest_first)[level]
     reconstruction = pycolmap.Reconstruction()
     rig = pycolmap.Rig(rig_id=1)
     for index, sigma in enumerate(sigmas.tolist()):
