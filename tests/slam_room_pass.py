@@ -1,0 +1,103 @@
+"""Passes of ``SlamSystem`` over frames of the ``room`` scene, scored against its ground truth, for
+the relocalisation and map file tests.
+
+Run as a module it is the second process of the map file test: it loads a map file in
+localisation-only mode, runs a pass and writes what it found::
+
+    PYTHONPATH=. python -m tests.slam_room_pass MAP_FILE FRAMES OUT.npz
+
+``OUT.npz`` holds ``states`` (F,) str, ``poses`` (F, 4, 4) ``T_world_camera`` (NaN without a pose)
+and ``truth`` (F, 4, 4) ``T_world_cam0`` of the scene.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.capture.scenes import make_scene
+from services.geometry.evaluation import Similarity, absolute_trajectory_error, apply_similarity
+from services.geometry.rotation import rotation_angle
+from services.slam.system import FrameResult, SlamSystem
+
+NANOSECONDS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class RoomPass:
+    """F frames: ``states`` (F,) str, ``poses`` (F, 4, 4) ``T_world_camera`` of the map (NaN rows
+    without a pose), ``truth`` (F, 4, 4) ``T_world_cam0`` of the scene."""
+
+    states: np.ndarray
+    poses: np.ndarray
+    truth: np.ndarray
+
+    @property
+    def posed(self) -> np.ndarray:
+        """(F,) bool: frames with a pose."""
+        return np.all(np.isfinite(self.poses), axis=(1, 2))
+
+    def alignment(self) -> Similarity:
+        """The Sim(3) (Umeyama on the camera centres) taking the map's world onto the scene's."""
+        return absolute_trajectory_error(self.poses[self.posed], self.truth[self.posed], "sim3").alignment
+
+    def ate_m(self) -> float:
+        """RMS position error (m) of the posed frames after their own Sim(3) alignment."""
+        return float(absolute_trajectory_error(self.poses[self.posed], self.truth[self.posed], "sim3").stats.rmse)
+
+
+def room_scene():
+    """The ``room`` scene of these tests (640x480, 30 fps, seed 0)."""
+    return make_scene("room")
+
+
+def feed(system: SlamSystem, scene, index: int, image: np.ndarray | None = None) -> FrameResult:
+    """Frame ``index`` of ``scene`` through ``system`` (or ``image`` in its place, at its time)."""
+    frame = scene.render(index)
+    return system.process(int(round(frame.time_s * NANOSECONDS)), frame.images["cam0"] if image is None else image)
+
+
+def run_pass(system: SlamSystem, scene, indices: range | list[int]) -> RoomPass:
+    """Every frame of ``indices`` through ``system``."""
+    states, poses, truth = [], [], []
+    for index in indices:
+        result = feed(system, scene, index)
+        states.append(result.state.value)
+        poses.append(np.full((4, 4), np.nan) if result.T_world_camera is None else result.T_world_camera)
+        truth.append(scene.camera_pose(index))
+    return RoomPass(np.array(states), np.array(poses).reshape(-1, 4, 4), np.array(truth).reshape(-1, 4, 4))
+
+
+def aligned_errors(T_world_camera: np.ndarray, T_true: np.ndarray, alignment: Similarity,
+                   rotation_fix: np.ndarray) -> tuple[float, float]:
+    """``(position error m, rotation error deg)`` of one (4, 4) pose of the map brought into the scene's
+    world by ``alignment``, its orientation corrected by ``rotation_fix`` (3, 3) (``orientation_fix``)."""
+    aligned = apply_similarity(alignment, T_world_camera[None])[0]
+    error_m = float(np.linalg.norm(aligned[:3, 3] - T_true[:3, 3]))
+    return error_m, float(np.degrees(rotation_angle(rotation_fix @ aligned[:3, :3], T_true[:3, :3])))
+
+
+def orientation_fix(run: RoomPass, alignment: Similarity) -> np.ndarray:
+    """(3, 3) the rotation best taking the aligned orientations of ``run``'s posed frames onto the
+    truth's (chordal mean): the Sim(3) from camera centres alone leaves the rotation poorly fixed
+    when the path is short."""
+    aligned = apply_similarity(alignment, run.poses[run.posed])
+    M = np.einsum("nij,nkj->ik", run.truth[run.posed][:, :3, :3], aligned[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def main(argv: list[str]) -> int:
+    map_path, frames, out = argv[0], int(argv[1]), argv[2]
+    scene = room_scene()
+    system = SlamSystem(scene.cameras[0], mapping_thread=False, map_path=map_path, localisation_only=True)
+    run = run_pass(system, scene, range(frames))
+    system.close()
+    np.savez(out, states=run.states, poses=run.poses, truth=run.truth)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
