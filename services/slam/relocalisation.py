@@ -42,9 +42,10 @@ from services.slam.timing import stage_timer
 
 __all__ = ["Relocalisation", "Relocaliser", "solve_pnp"]
 
-LSH_INDEX = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
+FlannParams = dict[str, bool | int | float | str]
+LSH_INDEX: FlannParams = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
 """FLANN's LSH (algorithm 6): 6 hash tables of 12-bit keys, probing neighbouring buckets one bit away."""
-LSH_SEARCH = {"checks": 50}
+LSH_SEARCH: FlannParams = {"checks": 50}
 COVISIBLE_OF_CANDIDATE = 10
 """A candidate's local map: the candidate and this many of its best covisible keyframes."""
 PNP_ITERATIONS, PNP_CONFIDENCE = 300, 0.999
