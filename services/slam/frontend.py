@@ -1,6 +1,7 @@
 """Tracking: the camera pose of every frame against the map, and the decision to make it a keyframe.
 
-Until a map exists, a reference frame is matched by descriptor with each new frame and handed to
+Until a map exists, a reference frame is matched by descriptor with each new frame (each keypoint
+with the keypoints within a window around its pixel on a neighbouring level) and handed to
 ``services.slam.initialisation.initialise``; the first accepted pair makes the map's first two
 keyframes and points (scaled so that their median depth is 1). The reference frame is replaced
 when it is ``reference_max_age`` frames old, or when it shares too few matches with the new one.
@@ -30,11 +31,13 @@ from enum import StrEnum
 import numpy as np
 
 from services.geometry.camera import CameraModel
+from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
+from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import initialise
 from services.slam.map import PointArrays, SlamMap
 from services.slam.mapping import LocalMapper, need_keyframe
-from services.slam.matching import match_descriptors, rotation_consistent
+from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
 from services.slam.optimisation import refine_pose
 from services.slam.projection import project_points, search_projected
 from services.slam.relocalisation import Relocaliser, solve_pnp
@@ -91,7 +94,8 @@ class Tracker:
         self._index = -1
         self._reference: _Frame | None = None
         self._last: _Frame | None = None
-        self._velocity: np.ndarray | None = None
+        self._velocity: tuple[np.ndarray, float] | None = None
+        """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
         self._lost = int(bool(slam_map.keyframes))
         self._relocaliser = Relocaliser(slam_map, self.K, self.size, settings)
         self.localisation_only = localisation_only
@@ -117,8 +121,10 @@ class Tracker:
             self._reference = frame
             return Tracked(SlamState.INITIALISING, "new_reference")
         with stage_timer(timings, "match"):
-            a, b = match_descriptors(reference.features.descriptors, features.descriptors, s.match_max_distance,
-                                     s.match_ratio)
+            first = reference.features
+            a, b = search_by_projection(first.pixels, np.full(len(first), s.init_window_px), first.levels,
+                                        first.descriptors, features.pixels, features.levels, features.descriptors,
+                                        np.ones(len(features), bool), s.match_max_distance, s.init_ratio)
             consistent = rotation_consistent(reference.features.angles[a], features.angles[b])
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
@@ -164,37 +170,29 @@ class Tracker:
         return second.id
 
     def _track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
-        s = self.settings
         last = self._last
         point_ids = np.full(len(features), -1, np.int64)
-        T = None
+        found = None
         reason = "too_few_matches"
         if self._lost == 0 and last is not None:
-            with stage_timer(timings, "match"):
-                predicted = last.T_camera_world if self._velocity is None else self._velocity @ last.T_camera_world
-                points, rows, keypoints = self._search_last(last, features, predicted)
-            if len(rows) >= s.min_motion_matches:
-                with stage_timer(timings, "pose"):
-                    refined = refine_pose(self.K, predicted, points.positions[rows], features.pixels[keypoints],
-                                          features.sigmas[keypoints])
-                if np.count_nonzero(refined.inliers) >= s.min_motion_matches // 2:
-                    T = refined.T_camera_world
-                    point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
-        if T is None and self._lost == 0 and last is not None:
-            T = self._relocate(last, features, point_ids, timings)
-        elif T is None:
-            found = self._relocaliser.relocalise(features, timings)
-            T, reason, point_ids = found.T_camera_world, found.reason, found.point_ids
-        if T is None:
+            T = self._follow_motion(last, stamp_ns, features, point_ids, timings)
+            if T is not None:
+                with stage_timer(timings, "local_map"):
+                    found = self._track_local_map(T, features, point_ids)
+        if found is None:
+            point_ids[:] = -1
+            T, reason = self._relocate(last, features, point_ids, timings)
+            if T is not None:
+                with stage_timer(timings, "local_map"):
+                    found = self._track_local_map(T, features, point_ids)
+        if found is None:
             self._lost += 1
-            return Tracked(SlamState.LOST, reason)
-        with stage_timer(timings, "local_map"):
-            T, rms = self._track_local_map(T, features, point_ids)
+            return Tracked(SlamState.LOST, reason or "too_few_matches")
+        T, rms = found
         tracked = int(np.count_nonzero(point_ids >= 0))
-        if tracked < s.min_tracked:
-            self._lost += 1
-            return Tracked(SlamState.LOST, "too_few_matches")
-        self._velocity = T @ np.linalg.inv(last.T_camera_world) if self._lost == 0 and last is not None else None
+        self._velocity = None
+        if self._lost == 0 and last is not None and stamp_ns > last.stamp_ns:
+            self._velocity = (T @ np.linalg.inv(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
         self._lost = 0
         frame = _Frame(self._index, stamp_ns, features, T, point_ids)
         self._last = frame
@@ -203,6 +201,29 @@ class Tracker:
             if not self.localisation_only and self._wants_keyframe(frame, tracked):
                 keyframe_id = self._insert_keyframe(frame)
         return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
+
+    def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
+                       timings: dict[str, float]) -> np.ndarray | None:
+        """The pose refined from the last frame's points found around the constant-velocity prediction
+        (the last motion scaled to this frame's time step); None with too few. Fills ``point_ids``."""
+        s = self.settings
+        with stage_timer(timings, "match"):
+            predicted = last.T_camera_world
+            if self._velocity is not None:
+                delta, dt = self._velocity
+                ratio = (stamp_ns - last.stamp_ns) * 1e-9 / dt
+                rotation = matrix_from_rotvec(rotvec_from_matrix(delta[:3, :3]) * ratio)
+                predicted = make_transform(rotation, delta[:3, 3] * ratio) @ last.T_camera_world
+            points, rows, keypoints = self._search_last(last, features, predicted)
+        if len(rows) < s.min_motion_matches:
+            return None
+        with stage_timer(timings, "pose"):
+            refined = refine_pose(self.K, predicted, points.positions[rows], features.pixels[keypoints],
+                                  features.sigmas[keypoints])
+        if np.count_nonzero(refined.inliers) < s.min_motion_matches:
+            return None
+        point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
+        return refined.T_camera_world
 
     def _search_last(self, last: _Frame, features: FrameFeatures,
                      T: np.ndarray) -> tuple[PointArrays, np.ndarray, np.ndarray]:
@@ -222,10 +243,15 @@ class Tracker:
                 break
         return points, rows, keypoints
 
-    def _relocate(self, last: _Frame, features: FrameFeatures, point_ids: np.ndarray,
-                  timings: dict[str, float]) -> np.ndarray | None:
+    def _relocate(self, last: _Frame | None, features: FrameFeatures, point_ids: np.ndarray,
+                  timings: dict[str, float]) -> tuple[np.ndarray | None, str]:
         """A pose from descriptor matches with the local map of the last tracked frame by PnP RANSAC
-        then refinement; None when too few inliers. Fills ``point_ids``."""
+        then refinement, or from the whole map after a lost frame (``relocalisation.Relocaliser``);
+        None and why not when too few inliers. Fills ``point_ids``."""
+        if self._lost or last is None:
+            relocalised = self._relocaliser.relocalise(features, timings)
+            point_ids[:] = relocalised.point_ids
+            return relocalised.T_camera_world, relocalised.reason
         s = self.settings
         with stage_timer(timings, "match"):
             keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
@@ -235,15 +261,15 @@ class Tracker:
         with stage_timer(timings, "pose"):
             solved = solve_pnp(self.K, s, points.positions[rows], features, keypoints)
         if solved is None:
-            return None
+            return None, "too_few_matches"
         refined, used = solved
         point_ids[keypoints[used][refined.inliers]] = points.ids[rows[used][refined.inliers]]
-        return refined.T_camera_world
+        return refined.T_camera_world, ""
 
     def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
-                         point_ids: np.ndarray) -> tuple[np.ndarray, float]:
+                         point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Search the local map's points around pose ``T`` and refine on every match; ``point_ids``
-        keeps the inliers. Returns the refined pose and its RMS, px."""
+        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers."""
         s = self.settings
         keyframes = self.map.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
         if keyframes:
@@ -262,6 +288,8 @@ class Tracker:
         self.map.count_visible(everything.ids, refined.inliers)
         point_ids[:] = -1
         point_ids[matched[refined.inliers]] = everything.ids[refined.inliers]
+        if np.count_nonzero(refined.inliers) < s.min_tracked:
+            return None
         return refined.T_camera_world, float(refined.rms_px)
 
     def _wants_keyframe(self, frame: _Frame, tracked: int) -> bool:

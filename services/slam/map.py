@@ -43,10 +43,15 @@ class Keyframe:
     features: FrameFeatures
     point_ids: np.ndarray
 
-    @property
-    def centre(self) -> np.ndarray:
-        """(3,) the camera centre, world frame."""
-        return -self.T_camera_world[:3, :3].T @ self.T_camera_world[:3, 3]
+    centre: np.ndarray = field(init=False)
+    """(3,) the camera centre, world frame (kept up to date by ``set_pose``)."""
+
+    def __post_init__(self) -> None:
+        self.set_pose(self.T_camera_world)
+
+    def set_pose(self, T_camera_world: np.ndarray) -> None:
+        self.T_camera_world = np.array(T_camera_world, np.float64)
+        self.centre = -self.T_camera_world[:3, :3].T @ self.T_camera_world[:3, 3]
 
 
 @dataclass
@@ -210,7 +215,7 @@ class SlamMap:
 
     def set_pose(self, keyframe_id: int, T_camera_world: np.ndarray) -> None:
         with self.lock:
-            self.keyframes[keyframe_id].T_camera_world = np.array(T_camera_world, np.float64)
+            self.keyframes[keyframe_id].set_pose(T_camera_world)
             self.revision += 1
 
     def set_position(self, point_id: int, position: np.ndarray) -> None:

@@ -180,9 +180,6 @@ class LocalMapper:
             for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
                                              problem.point_ids[result.outliers].tolist(), strict=True):
                 self.map.remove_observation(point_id, keyframe_id)
-            for point_id in result.points:
-                if point_id in self.map.points:
-                    self.map.update_point(point_id)
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
         """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
@@ -242,8 +239,9 @@ class LocalMapper:
 
     def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
         """``(keypoints of the keyframe, keypoints of the neighbour)``: unmatched keypoint pairs whose
-        descriptors match (distance, ratio, one per keypoint, consistent orientation) within the
-        one-degree-of-freedom chi-square bound of each other's epipolar line."""
+        descriptors match (distance, ratio, one per keypoint, consistent orientation), the neighbour's
+        keypoint within the one-degree-of-freedom chi-square bound (its level's sigma) of the epipolar
+        line of the keyframe's."""
         s = self.settings
         first, second = pair.keyframe.features, pair.neighbour.features
         free_a = np.flatnonzero(pair.keyframe.point_ids < 0)
@@ -252,8 +250,8 @@ class LocalMapper:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
         epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
-        sigma2 = np.maximum(first.sigmas[free_a, None], second.sigmas[None, free_b]) ** 2
-        allowed = (epipolar**2 < CHI2_ONE_DOF * sigma2).astype(np.uint8)
+        bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
+        allowed = (epipolar < bounds[None]).view(np.uint8)
         a, b = match_descriptors(first.descriptors[free_a], second.descriptors[free_b],
                                  s.triangulation_max_distance, s.triangulation_ratio, allowed)
         a, b = free_a[a], free_b[b]
@@ -296,9 +294,9 @@ class LocalMapper:
 def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
     """(Na, Nb) px distance from each of (Nb, 2) ``pixels_b`` to the epipolar line in image b of each of
     (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
-    lines = np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T
-    algebraic = lines[:, :2] @ pixels_b.T + lines[:, 2:]
-    return np.abs(algebraic) / np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-300)[:, None]
+    lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
+    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
+    return np.abs(lines[:, :2] @ pixels_b.T.astype(np.float32) + lines[:, 2:])
 
 
 class _Pair:

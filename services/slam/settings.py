@@ -12,10 +12,11 @@ class SlamSettings:
     """Features: ``max_keypoints`` ORB keypoints spread over a grid, a pyramid of ``levels`` levels
     each ``scale_factor`` smaller, FAST threshold ``fast_threshold`` (grey levels).
 
-    Initialisation: a reference frame is matched with each new frame (``match_max_distance``,
-    ``match_ratio``) until ``services.slam.initialisation.initialise`` accepts the pair; the reference
-    is replaced after ``reference_max_age`` frames, or at once when it has too few matches. A map
-    starts only with ``init_min_points`` points.
+    Initialisation: a reference frame is matched with each new frame (keypoints within
+    ``init_window_px``, descriptor distance at most ``match_max_distance``, ratio ``init_ratio``)
+    until ``services.slam.initialisation.initialise`` accepts the pair; the reference is replaced
+    after ``reference_max_age`` frames, or at once when it has too few matches. A map starts only
+    with ``init_min_points`` points.
 
     Tracking: search by projection of the last frame's points around the constant-velocity
     prediction within ``motion_window_px`` (per level scale; doubled when under ``min_motion_matches``
@@ -49,6 +50,8 @@ class SlamSettings:
     fast_threshold: int = 20
     match_max_distance: int = 64
     match_ratio: float = 0.8
+    init_window_px: float = 100.0
+    init_ratio: float = 0.9
     reference_max_age: int = 30
     init_min_points: int = 80
     projection_max_distance: int = 100
