@@ -18,7 +18,8 @@ Arrays (K keyframes holding N keypoints in all, P points, M observations):
 * ``point_ids`` (P,) int64, ``point_positions`` (P, 3) float64 world, ``point_visible`` and
   ``point_found`` (P,) int64 (the tracking counters);
 * ``observation_points``, ``observation_keyframes``, ``observation_keypoints`` (M,) int64: point id,
-  keyframe id, keypoint index within that keyframe.
+  keyframe id, keypoint index within that keyframe; each point's in the order it gained them (its
+  representative descriptor breaks ties by that order).
 
 A point's representative descriptor, viewing direction and distance range are not stored: loading
 recomputes them from the observations (``SlamMap.update_point``), as the mapper does. Loading
@@ -76,7 +77,7 @@ def save_map(slam_map: SlamMap, camera: CameraModel, path: str | os.PathLike[str
         keyframes = [slam_map.keyframes[k] for k in sorted(slam_map.keyframes)]
         points = [slam_map.points[p] for p in sorted(slam_map.points)]
         sizes = [len(k.features) for k in keyframes]
-        observations = np.array([(p.id, k, i) for p in points for k, i in sorted(p.observations.items())],
+        observations = np.array([(p.id, k, i) for p in points for k, i in p.observations.items()],
                                 np.int64).reshape(-1, 3)
         arrays = {
             "keyframe_ids": np.array([k.id for k in keyframes], np.int64),
