@@ -6,8 +6,8 @@ localisation-only mode, runs a pass and writes what it found::
 
     PYTHONPATH=. python -m tests.slam_room_pass MAP_FILE FRAMES OUT.npz
 
-``OUT.npz`` holds ``states`` (F,) str, ``poses`` (F, 4, 4) ``T_world_camera`` (NaN without a pose)
-and ``truth`` (F, 4, 4) ``T_world_cam0`` of the scene.
+``OUT.npz`` holds ``states``, ``poses``, ``truth`` and ``keyframe_ids`` of the pass (``RoomPass``)
+and ``revision_change``, how much the map's revision grew during the pass.
 """
 
 from __future__ import annotations
@@ -28,11 +28,13 @@ NANOSECONDS = 1_000_000_000
 @dataclass(frozen=True)
 class RoomPass:
     """F frames: ``states`` (F,) str, ``poses`` (F, 4, 4) ``T_world_camera`` of the map (NaN rows
-    without a pose), ``truth`` (F, 4, 4) ``T_world_cam0`` of the scene."""
+    without a pose), ``truth`` (F, 4, 4) ``T_world_cam0`` of the scene, ``keyframe_ids`` (F,) int64
+    (-1 for a frame not made a keyframe)."""
 
     states: np.ndarray
     poses: np.ndarray
     truth: np.ndarray
+    keyframe_ids: np.ndarray
 
     @property
     def posed(self) -> np.ndarray:
@@ -61,13 +63,15 @@ def feed(system: SlamSystem, scene, index: int, image: np.ndarray | None = None)
 
 def run_pass(system: SlamSystem, scene, indices: range | list[int]) -> RoomPass:
     """Every frame of ``indices`` through ``system``."""
-    states, poses, truth = [], [], []
+    states, poses, truth, keyframe_ids = [], [], [], []
     for index in indices:
         result = feed(system, scene, index)
         states.append(result.state.value)
         poses.append(np.full((4, 4), np.nan) if result.T_world_camera is None else result.T_world_camera)
         truth.append(scene.camera_pose(index))
-    return RoomPass(np.array(states), np.array(poses).reshape(-1, 4, 4), np.array(truth).reshape(-1, 4, 4))
+        keyframe_ids.append(-1 if result.keyframe_id is None else result.keyframe_id)
+    return RoomPass(np.array(states), np.array(poses).reshape(-1, 4, 4), np.array(truth).reshape(-1, 4, 4),
+                    np.array(keyframe_ids, np.int64))
 
 
 def aligned_errors(T_world_camera: np.ndarray, T_true: np.ndarray, alignment: Similarity,
@@ -93,9 +97,11 @@ def main(argv: list[str]) -> int:
     map_path, frames, out = argv[0], int(argv[1]), argv[2]
     scene = room_scene()
     system = SlamSystem(scene.cameras[0], mapping_thread=False, map_path=map_path, localisation_only=True)
+    revision = system.map_revision
     run = run_pass(system, scene, range(frames))
     system.close()
-    np.savez(out, states=run.states, poses=run.poses, truth=run.truth)
+    np.savez(out, states=run.states, poses=run.poses, truth=run.truth, keyframe_ids=run.keyframe_ids,
+             revision_change=system.map_revision - revision)
     return 0
 
 
