@@ -65,7 +65,7 @@ class SlamSettings:
     local_ratio: float = 0.8
     min_tracked: int = 30
     keyframe_ratio: float = 0.9
-    min_keyframe_gap_s: float = 0.25
+    min_keyframe_gap_s: float = 0.5
     max_keyframe_gap_s: float = 1.0
     triangulation_neighbours: int = 10
     triangulation_max_distance: int = 50
