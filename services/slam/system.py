@@ -66,10 +66,14 @@ class SlamSystem:
         self.camera = camera
         self.settings = settings or SlamSettings()
         s = self.settings
+        if localisation_only and map_path is None:
+            raise ValueError("localisation_only needs a map to localise in (map_path)")
         self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else load_map(map_path, camera)
         if map_path is not None and (self.map.levels, self.map.scale_factor) != (s.levels, s.scale_factor):
             raise MapFileError(map_path, f"made with a pyramid of {self.map.levels} levels x {self.map.scale_factor},"
                                          f" these settings use {s.levels} x {s.scale_factor}")
+        if map_path is not None and not self.map.keyframes:
+            raise MapFileError(map_path, "holds no keyframes")
         self.localisation_only = localisation_only
         self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)

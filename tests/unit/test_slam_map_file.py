@@ -145,3 +145,14 @@ def test_the_system_refuses_a_map_of_another_camera_or_pyramid(saved):
         SlamSystem(camera(width=1280), mapping_thread=False, map_path=saved)
     with pytest.raises(MapFileError, match="pyramid"):
         SlamSystem(camera(), SlamSettings(levels=4), mapping_thread=False, map_path=saved)
+
+
+def test_an_empty_map_or_no_map_is_refused_for_localisation(tmp_path):
+    s = SlamSettings()
+    empty = tmp_path / "empty.npz"
+    save_map(SlamMap(s.scale_factor, s.levels), camera(), empty)
+    assert load_map(empty, camera()).keyframes == {}
+    with pytest.raises(MapFileError, match="no keyframes"):
+        SlamSystem(camera(), mapping_thread=False, map_path=empty, localisation_only=True)
+    with pytest.raises(ValueError, match="map_path"):
+        SlamSystem(camera(), mapping_thread=False, localisation_only=True)
