@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -120,8 +121,9 @@ def _open(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
             return {name: archive[name] for name in archive.files}
     except FileNotFoundError:
         raise MapFileError(path, "no such file") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise MapFileError(path, f"not a readable map file (truncated or not an .npz archive: {error})") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        raise MapFileError(path, f"not a readable map file (truncated, damaged or not an .npz archive: "
+                                 f"{error})") from None
 
 
 def _header(path: str | os.PathLike[str], arrays: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -121,6 +121,10 @@ def test_truncated_garbage_and_missing_files_are_refused(saved, tmp_path):
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(data[: len(data) // 2])
     assert "not a readable map file" in refusal(truncated, camera())
+    for start in (len(data) // 3, len(data) // 2, 2 * len(data) // 3):
+        damaged = tmp_path / f"damaged{start}.npz"
+        damaged.write_bytes(data[:start] + bytes(64) + data[start + 64:])
+        assert "not a readable map file" in refusal(damaged, camera())
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(np.random.default_rng(1).integers(0, 256, 5000, dtype=np.uint8).tobytes())
     assert "not a readable map file" in refusal(garbage, camera())

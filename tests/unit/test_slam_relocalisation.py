@@ -109,8 +109,9 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
     assert back.timings_ms.get("relocalise_candidates", 0) > 0, "the frame after lost ones goes through relocalisation"
     for result, index in ((jump, 1310), (back, 820)):
         error_m, error_deg = aligned_errors(result.T_world_camera, scene.camera_pose(index), alignment, fix)
+        stages = ", ".join(f"{k} {v:.0f} ms" for k, v in result.timings_ms.items())
         print(f"frame {index}: {result.tracked} points, {error_m * 100:.1f} cm, {error_deg:.2f} deg after the "
-              f"Sim(3) alignment (first pass ATE {first.ate_m() * 100:.1f} cm)")
+              f"Sim(3) alignment (first pass ATE {first.ate_m() * 100:.1f} cm); {stages}")
         assert error_m < MAX_POSITION_ERROR_M and error_deg < MAX_ROTATION_ERROR_DEG
     following = feed(system, scene, 821)
     assert following.state == SlamState.TRACKING and "relocalise_candidates" not in following.timings_ms
