@@ -104,6 +104,9 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
     assert jump.state == SlamState.TRACKING and jump.T_world_camera is not None
     blank_results = [feed(system, scene, 1311, np.full((480, 640), level, np.uint8)) for level in (0, 128, 255)]
     assert [(r.state, r.reason, r.T_world_camera) for r in blank_results] == [(SlamState.LOST, "no_texture", None)] * 3
+    elsewhere = feed(system, make_scene("room", seed=7), 40)
+    assert elsewhere.state == SlamState.LOST and elsewhere.T_world_camera is None
+    assert elsewhere.reason in ("no_candidates", "too_few_matches", "not_confirmed")
     back = feed(system, scene, 820)
     assert back.state == SlamState.TRACKING and back.T_world_camera is not None
     assert back.timings_ms.get("relocalise_candidates", 0) > 0, "the frame after lost ones goes through relocalisation"
