@@ -111,3 +111,21 @@ def synthetic_problem(rng: np.random.Generator, *, keyframes: int = 10, points: 
                             frame_ids=frame_array.astype(np.int64), point_ids=point_array.astype(np.int64),
                             pixels=observed, fixed=frozenset(fixed), sigmas=sigmas if levels else None)
     return SyntheticProblem(problem, truth, cloud, gross)
+
+
+def pose_problem(seed: int, count: int = 1000, levels: int = 4) -> tuple[np.ndarray, ...]:
+    """One keyframe's pose-only problem: ``(K, T, points, pixels, sigmas, gross, start)``, the true
+    ``T_camera_world`` (4, 4) of a keyframe of ``keyframe_poses``, (N, 3) world points in its view,
+    their pixels (N, 2) with noise of each (N,) sigma (random pyramid levels below ``levels``), 10 %
+    replaced by random pixels (``gross`` (N,) bool), and a start 1 deg and 5 cm off."""
+    rng = np.random.default_rng(seed)
+    T = keyframe_poses(5)[1]
+    points = rng.uniform((-3.0, -2.0, 5.0), (3.0, 2.0, 9.0), size=(count, 3))
+    K = intrinsics(WIDTH, HEIGHT, 64.0)
+    camera = transform_points(T, points)
+    pixels = camera[:, :2] / camera[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
+    sigmas = PYRAMID_SCALE ** rng.integers(0, levels, count)
+    pixels += rng.normal(size=pixels.shape) * sigmas[:, None]
+    gross = rng.random(count) < 0.1
+    pixels[gross] = random_pixels(rng, pixels[gross])
+    return K, T, points, pixels, sigmas, gross, perturbed_pose(T, rng, 1.0, 0.05)

@@ -103,10 +103,18 @@ class PoseRefinement:
 
 @dataclass(frozen=True)
 class _Observations:
-    """Checked arrays of a problem: (M,) keyframe ids, point ids, sigmas and (M, 2) pixels."""
+    """A problem checked and indexed. ``keyframes`` (F,) int64 ids of the observed keyframes, sorted;
+    ``poses`` (F, 4, 4) their start; ``fixed`` (F,) bool. ``point_keys`` (P,) int64 ids of every point
+    of the problem, ``positions`` (P, 3) their start. Per observation (M,): ``frame_rows`` into
+    ``keyframes``, ``point_rows`` into ``point_keys``, ``sigmas``; ``pixels`` (M, 2)."""
 
-    frame_ids: np.ndarray
-    point_ids: np.ndarray
+    keyframes: np.ndarray
+    poses: np.ndarray
+    fixed: np.ndarray
+    point_keys: np.ndarray
+    positions: np.ndarray
+    frame_rows: np.ndarray
+    point_rows: np.ndarray
     pixels: np.ndarray
     sigmas: np.ndarray
 
@@ -151,8 +159,34 @@ def _check_sigmas(sigmas: np.ndarray | None, count: int) -> np.ndarray:
     return sigmas
 
 
+def _stacked_points(points: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys, positions)``: (P,) int64 ids and (P, 3) float64 positions of ``points``; ValueError naming
+    the first that is not a finite (3,) vector."""
+    keys = np.fromiter(points, dtype=np.int64, count=len(points))
+    try:
+        positions = np.array(list(points.values()), dtype=np.float64).reshape(len(keys), 3)
+    except ValueError:
+        positions = np.full((len(keys), 3), np.nan)
+    if not np.all(np.isfinite(positions)):
+        for key, X in points.items():
+            X = np.asarray(X, dtype=np.float64)
+            if X.shape != (3,) or not np.all(np.isfinite(X)):
+                raise ValueError(f"points[{key}] must be (3,) finite, got shape {X.shape}")
+    return keys, positions
+
+
+def _rows(ids: np.ndarray, keys: np.ndarray, name: str, what: str) -> np.ndarray:
+    """Row of each of ``ids`` in the sorted ``keys``; ValueError listing ids that are not there."""
+    rows = np.minimum(np.searchsorted(keys, ids), max(len(keys) - 1, 0))
+    missing = (keys[rows] != ids) if len(keys) else np.ones(len(ids), dtype=bool)
+    if missing.any():
+        unknown = np.unique(ids[missing]).tolist()
+        raise ValueError(f"{name} names ids with no {what}: {unknown[:5]}{' ...' if len(unknown) > 5 else ''}")
+    return rows
+
+
 def _check_problem(problem: BundleProblem) -> _Observations:
-    """The problem's observation arrays, checked; ValueError naming the first thing wrong."""
+    """The problem checked and indexed; ValueError naming the first thing wrong."""
     _check_K(problem.K)
     frame_ids = np.asarray(problem.frame_ids)
     point_ids = np.asarray(problem.point_ids)
@@ -166,45 +200,45 @@ def _check_problem(problem: BundleProblem) -> _Observations:
     sigmas = _check_sigmas(problem.sigmas, count)
     for key, T in problem.poses.items():
         check_transform(T, f"poses[{key}]")
-    for key, X in problem.points.items():
-        X = np.asarray(X, dtype=np.float64)
-        if X.shape != (3,) or not np.all(np.isfinite(X)):
-            raise ValueError(f"points[{key}] must be (3,) finite, got shape {X.shape}")
-    for name, ids, known in (("frame_ids", frame_ids, problem.poses), ("point_ids", point_ids, problem.points),
-                             ("fixed", np.array(sorted(problem.fixed), dtype=np.int64), problem.poses)):
-        unknown = sorted(set(np.unique(ids).tolist()) - set(known))
-        if unknown:
-            raise ValueError(f"{name} names ids with no {'pose' if known is problem.poses else 'point'}: "
-                             f"{unknown[:5]}{' ...' if len(unknown) > 5 else ''}")
-    observed = set(np.unique(frame_ids).tolist())
-    if not observed - problem.fixed:
+    point_keys, positions = _stacked_points(problem.points)
+    pose_keys = np.sort(np.fromiter(problem.poses, dtype=np.int64, count=len(problem.poses)))
+    _rows(frame_ids, pose_keys, "frame_ids", "pose")
+    _rows(np.array(sorted(problem.fixed), dtype=np.int64), pose_keys, "fixed", "pose")
+    order = np.argsort(point_keys)
+    point_rows = order[_rows(point_ids, point_keys[order], "point_ids", "point")]
+    keyframes, frame_rows = np.unique(frame_ids.astype(np.int64), return_inverse=True)
+    fixed = np.isin(keyframes, np.array(sorted(problem.fixed), dtype=np.int64))
+    if fixed.all():
         raise ValueError("no free pose: every observed keyframe is in fixed, nothing would move")
-    if not observed & problem.fixed:
+    if not fixed.any():
         raise ValueError("no observed keyframe is fixed: the map's frame (the gauge) would float; fix at least one")
-    return _Observations(frame_ids.astype(np.int64), point_ids.astype(np.int64), pixels, sigmas)
+    poses = np.stack([np.asarray(problem.poses[k], dtype=np.float64) for k in keyframes.tolist()])
+    return _Observations(keyframes, poses, fixed, point_keys, positions, frame_rows, point_rows, pixels, sigmas)
 
 
 @dataclass(frozen=True)
 class _Scene:
-    """A pycolmap reconstruction of a problem: pycolmap frame id of each observed keyframe id, pycolmap
-    point id of each point id with two or more observations, the image ids."""
+    """A pycolmap reconstruction of a problem: pycolmap frame id ``f + 1`` holds observed keyframe row
+    ``f``; ``points`` maps rows of ``point_keys`` seen at least twice to pycolmap point ids; the image
+    and camera ids."""
 
     reconstruction: pycolmap.Reconstruction
-    frames: dict[int, int]
     points: dict[int, int]
     images: list[int]
     cameras: list[int]
 
 
-def _scene(K: np.ndarray, poses: dict[int, np.ndarray], points: dict[int, np.ndarray],
-           observations: _Observations) -> _Scene:
+def _scene(K: np.ndarray, observations: _Observations) -> _Scene:
     """The reconstruction the module docstring describes: one camera per distinct sigma in one rig,
-    one frame per observed keyframe, one image per keyframe and sigma, one 3D point per point id seen
-    at least twice (pycolmap refuses shorter tracks; a free point seen once constrains nothing)."""
-    sigmas, level = np.unique(observations.sigmas, return_inverse=True)
+    one frame per observed keyframe, one image per keyframe and sigma, one 3D point per point seen
+    at least twice (pycolmap refuses shorter tracks; a free point seen once constrains nothing). The
+    rig's reference camera is the sigma observed most often: Ceres evaluates its observations' cost
+    without composing the rig offset, several times faster."""
+    sigmas, level, counts = np.unique(observations.sigmas, return_inverse=True, return_counts=True)
+    busiest_first = np.argsort(-counts, kind="stable")
+    sigmas, level = sigmas[busiest_first], np.argsort(busiest_first)[level]
     reconstruction = pycolmap.Reconstruction()
     rig = pycolmap.Rig(rig_id=1)
-    cameras = []
     for index, sigma in enumerate(sigmas.tolist()):
         camera = pycolmap.Camera(camera_id=index + 1, model="PINHOLE", width=max(1, round(2 * K[0, 2] / sigma)),
                                  height=max(1, round(2 * K[1, 2] / sigma)),
@@ -214,45 +248,42 @@ def _scene(K: np.ndarray, poses: dict[int, np.ndarray], points: dict[int, np.nda
             rig.add_ref_sensor(camera.sensor_id)
         else:
             rig.add_sensor(camera.sensor_id, pycolmap.Rigid3d())
-        cameras.append(index + 1)
     reconstruction.add_rig(rig)
-    order = np.lexsort((level, observations.frame_ids))
-    keys = np.stack([observations.frame_ids[order], level[order]], axis=1)
+    order = np.lexsort((level, observations.frame_rows))
+    keys = np.stack([observations.frame_rows[order], level[order]], axis=1)
     starts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1), True])
     image_of, slot_of = np.empty(len(order), dtype=np.int64), np.empty(len(order), dtype=np.int64)
-    frames: dict[int, int] = {}
     images_of_frame: dict[int, list[pycolmap.Image]] = {}
-    for image_id, (start, stop) in enumerate(zip(starts[:-1], starts[1:], strict=True), start=1):
+    for image_id, (start, stop) in enumerate(zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True), start=1):
         members = order[start:stop]
-        keyframe, camera_index = (int(v) for v in keys[start])
-        frame_id = frames.setdefault(keyframe, len(frames) + 1)
-        image = pycolmap.Image(name=f"{keyframe}/{camera_index}", keypoints=observations.pixels[members]
-                               / sigmas[camera_index], camera_id=camera_index + 1, image_id=image_id)
-        image.frame_id = frame_id
-        images_of_frame.setdefault(frame_id, []).append(image)
-        image_of[members], slot_of[members] = image_id, np.arange(len(members))
-    for keyframe, frame_id in frames.items():
+        row, camera_index = keys[start].tolist()
+        image = pycolmap.Image(name=str(image_id), keypoints=observations.pixels[members] / sigmas[camera_index],
+                               camera_id=camera_index + 1, image_id=image_id)
+        image.frame_id = row + 1
+        images_of_frame.setdefault(row + 1, []).append(image)
+        image_of[members], slot_of[members] = image_id, np.arange(stop - start)
+    for frame_id, images in images_of_frame.items():
         frame = pycolmap.Frame(frame_id=frame_id, rig_id=1,
-                               rig_from_world=pycolmap.Rigid3d(np.asarray(poses[keyframe], dtype=np.float64)[:3]))
-        for image in images_of_frame[frame_id]:
+                               rig_from_world=pycolmap.Rigid3d(observations.poses[frame_id - 1, :3]))
+        for image in images:
             frame.add_data_id(image.data_id)
         reconstruction.add_frame(frame)
-        for image in images_of_frame[frame_id]:
+        for image in images:
             reconstruction.add_image(image)
         reconstruction.register_frame(frame_id)
-    by_point = np.argsort(observations.point_ids, kind="stable")
-    ids = observations.point_ids[by_point]
-    bounds = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1], True])
-    point_map: dict[int, int] = {}
+    by_point = np.argsort(observations.point_rows, kind="stable")
+    rows = observations.point_rows[by_point]
+    bounds = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1], True]).tolist()
+    image_list, slot_list, row_list = image_of[by_point].tolist(), slot_of[by_point].tolist(), rows.tolist()
+    points: dict[int, int] = {}
     for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
         if stop - start < 2:
             continue
-        members = by_point[start:stop]
-        track = pycolmap.Track([pycolmap.TrackElement(int(i), int(j))
-                                for i, j in zip(image_of[members], slot_of[members], strict=True)])
-        point_id = int(ids[start])
-        point_map[point_id] = reconstruction.add_point3D(np.asarray(points[point_id], dtype=np.float64), track)
-    return _Scene(reconstruction, frames, point_map, list(range(1, len(starts))), cameras)
+        track = pycolmap.Track()
+        for k in range(start, stop):
+            track.add_element(image_list[k], slot_list[k])
+        points[row_list[start]] = reconstruction.add_point3D(observations.positions[row_list[start]], track)
+    return _Scene(reconstruction, points, list(range(1, len(starts))), list(range(1, len(sigmas) + 1)))
 
 
 def _options(max_iterations: int, huber_px: float, tolerance: float) -> pycolmap.BundleAdjustmentOptions:
@@ -269,20 +300,6 @@ def _options(max_iterations: int, huber_px: float, tolerance: float) -> pycolmap
     options.ceres.solver_options.function_tolerance = tolerance
     options.ceres.solver_options.num_threads = 1
     return options
-
-
-def _observation_poses(poses: dict[int, np.ndarray], frame_ids: np.ndarray) -> np.ndarray:
-    """(M, 4, 4) pose of each observation's keyframe."""
-    keys = np.unique(frame_ids)
-    stacked = np.stack([np.asarray(poses[int(k)], dtype=np.float64) for k in keys])
-    return stacked[np.searchsorted(keys, frame_ids)]
-
-
-def _observation_points(points: dict[int, np.ndarray], point_ids: np.ndarray) -> np.ndarray:
-    """(M, 3) position of each observation's point."""
-    keys = np.unique(point_ids)
-    stacked = np.stack([np.asarray(points[int(k)], dtype=np.float64) for k in keys])
-    return stacked[np.searchsorted(keys, point_ids)]
 
 
 def bundle_adjust(problem: BundleProblem, *, max_iterations: int = 20, huber_px: float = HUBER_PX,
@@ -302,36 +319,37 @@ def bundle_adjust(problem: BundleProblem, *, max_iterations: int = 20, huber_px:
     if max_iterations < 1 or not huber_px > 0:
         raise ValueError(f"max_iterations must be >= 1 and huber_px > 0, got {max_iterations} and {huber_px}")
     K = _check_K(problem.K)
-    scene = _scene(K, problem.poses, problem.points, observations)
+    scene = _scene(K, observations)
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in scene.images:
         config.add_image(image_id)
     for camera_id in scene.cameras:
         config.set_constant_cam_intrinsics(camera_id)
-    for keyframe, frame_id in scene.frames.items():
-        if keyframe in problem.fixed:
-            config.set_constant_rig_from_world_pose(frame_id)
+    for row in np.flatnonzero(observations.fixed).tolist():
+        config.set_constant_rig_from_world_pose(row + 1)
     if fix_scale:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     summary = pycolmap.create_default_bundle_adjuster(_options(max_iterations, huber_px, tolerance), config,
                                                       scene.reconstruction).solve()
     ceres = getattr(summary, "ceres_summary", None)
     reconstruction = scene.reconstruction
-    poses = {key: np.asarray(T, dtype=np.float64).copy() for key, T in problem.poses.items()}
-    for keyframe, frame_id in scene.frames.items():
-        if keyframe not in problem.fixed:
-            rig_from_world = reconstruction.frame(frame_id).rig_from_world
-            assert rig_from_world is not None
-            poses[keyframe][:3] = rig_from_world.matrix()
-    points = {key: np.asarray(X, dtype=np.float64).copy() for key, X in problem.points.items()}
-    for point, point_id in scene.points.items():
-        points[point] = np.array(reconstruction.point3D(point_id).xyz, dtype=np.float64)
-    errors = reprojection_errors(K, _observation_poses(poses, observations.frame_ids),
-                                 _observation_points(points, observations.point_ids), observations.pixels)
+    solved_poses = observations.poses.copy()
+    for row in np.flatnonzero(~observations.fixed).tolist():
+        rig_from_world = reconstruction.frame(row + 1).rig_from_world
+        assert rig_from_world is not None
+        solved_poses[row, :3] = rig_from_world.matrix()
+    positions = observations.positions.copy()
+    for row, point_id in scene.points.items():
+        positions[row] = reconstruction.point3D(point_id).xyz
+    frame_rows, point_rows = observations.frame_rows, observations.point_rows
+    errors = reprojection_errors(K, solved_poses[frame_rows], positions[point_rows], observations.pixels)
     outliers = ~((errors / observations.sigmas) ** 2 <= CHI2_2DOF_95)
-    before = reprojection_errors(K, _observation_poses(problem.poses, observations.frame_ids),
-                                 _observation_points(problem.points, observations.point_ids), observations.pixels)
-    return BundleResult(poses, points, errors, outliers, _rms(before[~outliers]), _rms(errors[~outliers]),
+    before = reprojection_errors(K, observations.poses[frame_rows], observations.positions[point_rows],
+                                 observations.pixels)
+    poses = {key: np.array(T, dtype=np.float64) for key, T in problem.poses.items()}
+    poses.update(zip(observations.keyframes.tolist(), solved_poses, strict=True))
+    return BundleResult(poses, dict(zip(observations.point_keys.tolist(), positions, strict=True)), errors, outliers,
+                        _rms(before[~outliers]), _rms(errors[~outliers]),
                         0 if ceres is None else int(ceres.num_successful_steps + ceres.num_unsuccessful_steps) - 1,
                         time.perf_counter() - start)
 
@@ -388,7 +406,8 @@ def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndar
     outliers after the first round removes the pull they keep under Huber's bounded influence (as
     ORB-SLAM's pose optimisation does). pycolmap's ``refine_absolute_pose`` was measured against this
     (docs/slam.md): a Cauchy loss without per-observation sigmas, and slower per point. Points behind
-    the camera are outliers. Raises ValueError on malformed inputs or fewer than 3 points.
+    the camera are outliers; with fewer than three observations to refine on, the pose stays as it
+    is. Raises ValueError on malformed inputs or fewer than 3 points.
     """
     K = _check_K(K)
     T = check_transform(T_camera_world, "T_camera_world")
@@ -402,13 +421,13 @@ def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndar
     if rounds < 1 or max_iterations < 1 or not huber_px > 0:
         raise ValueError(f"rounds and max_iterations must be >= 1 and huber_px > 0, got {rounds}, "
                          f"{max_iterations} and {huber_px}")
-    inliers = reprojection_errors(K, T, points, pixels) < np.inf
-    for _ in range(rounds):
-        if inliers.sum() < 3:
-            break
-        T = _refine_round(K, T, points[inliers], pixels[inliers], sigmas[inliers], huber_px, max_iterations)
-        errors = reprojection_errors(K, T, points, pixels)
-        inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     errors = reprojection_errors(K, T, points, pixels)
+    used = errors < np.inf
+    for _ in range(rounds):
+        if used.sum() < 3:
+            break
+        T = _refine_round(K, T, points[used], pixels[used], sigmas[used], huber_px, max_iterations)
+        errors = reprojection_errors(K, T, points, pixels)
+        used = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     inliers = (errors / sigmas) ** 2 <= CHI2_2DOF_95
     return PoseRefinement(T, inliers, _rms(errors[inliers]))

@@ -11,19 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.geometry.camera import intrinsics, project_points
+from services.geometry.camera import project_points
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert, transform_points
 from services.slam.optimisation import CHI2_2DOF_95, BundleProblem, bundle_adjust, refine_pose
-from tests.slam_problems import (
-    HEIGHT,
-    PYRAMID_SCALE,
-    WIDTH,
-    keyframe_poses,
-    perturbed_pose,
-    random_pixels,
-    synthetic_problem,
-)
+from tests.slam_problems import pose_problem, synthetic_problem
 from tests.slam_reference import reference_bundle_adjust, reference_refine_pose, robust_cost
 
 
@@ -69,21 +61,26 @@ def test_error_falls_to_noise_and_outliers_are_flagged(levels):
 
 
 def test_fixed_poses_do_not_move_and_lonely_points_stay():
+    """Fixed poses stay bit for bit; points seen once are left as given, and one behind its only
+    keyframe is an outlier with an infinite error."""
     sp = synthetic_problem(np.random.default_rng(3), keyframes=10, points=500, fixed=(0, 4, 9))
     problem = sp.problem
     ids, counts = np.unique(problem.point_ids, return_counts=True)
     lonely = ids[counts == 1]
-    extra = max(problem.points) + 1
+    ahead, behind = max(problem.points) + 1, max(problem.points) + 2
+    behind_world = transform_points(invert(problem.poses[4]), np.array([0.0, 0.0, -3.0]))[0]
     problem = dataclasses.replace(
-        problem, points={**problem.points, extra: np.array([0.0, 0.0, 7.0])},
-        frame_ids=np.r_[problem.frame_ids, 5], point_ids=np.r_[problem.point_ids, extra],
-        pixels=np.vstack([problem.pixels, [[100.0, 100.0]]]))
+        problem, points={**problem.points, ahead: np.array([0.0, 0.0, 7.0]), behind: behind_world},
+        frame_ids=np.r_[problem.frame_ids, 5, 4], point_ids=np.r_[problem.point_ids, ahead, behind],
+        pixels=np.vstack([problem.pixels, [[100.0, 100.0], [320.0, 240.0]]]))
     result = bundle_adjust(problem)
     for k in (0, 4, 9):
         assert np.array_equal(result.poses[k], problem.poses[k])
     assert pose_errors(result.poses, {k: problem.poses[k] for k in (2, 7)})[0] > 0.1
-    for point in [*lonely.tolist(), extra]:
+    for point in [*lonely.tolist(), ahead, behind]:
         assert np.array_equal(result.points[point], problem.points[point])
+    assert result.errors_px[-1] == np.inf and result.outliers[-1]
+    assert np.isfinite(result.errors_px[-2])
 
 
 def test_exact_data_recovers_the_truth():
@@ -96,10 +93,11 @@ def test_exact_data_recovers_the_truth():
     assert result.final_rms_px < 1e-6 and not result.outliers.any()
 
 
-def test_fix_scale_with_one_fixed_keyframe():
+@pytest.mark.parametrize("levels", [0, 4])
+def test_fix_scale_with_one_fixed_keyframe(levels):
     """One fixed keyframe and ``fix_scale``: exact data is recovered up to one scale about that keyframe."""
     sp = synthetic_problem(np.random.default_rng(5), keyframes=8, points=500, noise_px=0.0, gross_fraction=0.0,
-                           fixed=(0,))
+                           fixed=(0,), levels=levels)
     result = bundle_adjust(sp.problem, max_iterations=100, tolerance=0.0, fix_scale=True)
     origin = invert(sp.poses[0])[:3, 3]
     true = np.stack([invert(sp.poses[k])[:3, 3] - origin for k in sorted(sp.poses)])
@@ -145,25 +143,9 @@ def test_bad_problems_raise_one_clear_error(name, message):
         bundle_adjust(broken(sp.problem, name))
 
 
-def pose_case(seed: int, count: int = 1000, levels: int = 4):
-    """A keyframe's true pose, (N, 3) points in its view, their noisy pixels (10 % random), sigmas,
-    the gross mask, and a start 1 deg and 5 cm off."""
-    rng = np.random.default_rng(seed)
-    T = keyframe_poses(5)[1]
-    points = rng.uniform((-3.0, -2.0, 5.0), (3.0, 2.0, 9.0), size=(count, 3))
-    camera = transform_points(T, points)
-    K = intrinsics(WIDTH, HEIGHT, 64.0)
-    pixels = camera[:, :2] / camera[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
-    sigmas = PYRAMID_SCALE ** rng.integers(0, levels, count)
-    pixels += rng.normal(size=pixels.shape) * sigmas[:, None]
-    gross = rng.random(count) < 0.1
-    pixels[gross] = random_pixels(rng, pixels[gross])
-    return K, T, points, pixels, sigmas, gross, perturbed_pose(T, rng, 1.0, 0.05)
-
-
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_refine_pose_recovers_a_perturbed_pose_and_flags_outliers(seed):
-    K, T, points, pixels, sigmas, gross, start = pose_case(seed)
+    K, T, points, pixels, sigmas, gross, start = pose_problem(seed)
     result = refine_pose(K, start, points, pixels, sigmas)
     angle, distance = pose_errors({0: result.T_camera_world}, {0: T})
     assert angle < 0.1 and distance < 0.02
@@ -175,9 +157,19 @@ def test_refine_pose_recovers_a_perturbed_pose_and_flags_outliers(seed):
     assert 0.8 < result.rms_px < 2.0
 
 
+def test_refine_pose_leaves_out_points_behind_the_camera():
+    K, T, points, pixels, sigmas, gross, start = pose_problem(6, count=300)
+    behind = transform_points(invert(T), np.array([[0.0, 0.0, -3.0], [1.0, 0.5, -6.0]]))
+    result = refine_pose(K, start, np.vstack([points, behind]), np.vstack([pixels, [[320.0, 240.0], [10.0, 20.0]]]),
+                         np.r_[sigmas, 1.0, 1.0])
+    assert not result.inliers[-2:].any()
+    angle, distance = pose_errors({0: result.T_camera_world}, {0: T})
+    assert angle < 0.2 and distance < 0.03
+
+
 def test_refine_pose_one_round_matches_scipy():
     """One round on every observation minimises the same robust cost as scipy's least_squares."""
-    K, T, points, pixels, sigmas, _, start = pose_case(4, count=400)
+    K, T, points, pixels, sigmas, _, start = pose_problem(4, count=400)
     result = refine_pose(K, start, points, pixels, sigmas, rounds=1, max_iterations=50)
     reference = reference_refine_pose(K, start, points, pixels, sigmas)
     angle, distance = pose_errors({0: result.T_camera_world}, {0: reference})
@@ -190,7 +182,7 @@ def test_refine_pose_one_round_matches_scipy():
     ({"K": np.ones((3, 3))}, "zero-skew pinhole"),
 ])
 def test_refine_pose_bad_input_raises(change, message):
-    K, _, points, pixels, sigmas, _, start = pose_case(5)
+    K, _, points, pixels, sigmas, _, start = pose_problem(5)
     arguments = {"K": K, "T_camera_world": start, "points_world": points, "pixels": pixels, "sigmas": sigmas}
     with pytest.raises(ValueError, match=message):
         refine_pose(**{**arguments, **change})
