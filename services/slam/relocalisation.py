@@ -8,11 +8,11 @@ on a map loaded from a file).
    ``pnp_min_inliers``, at most ``reloc_candidates``) are the candidates. Measured against
    exhaustive matching (``matching.match_descriptors``, every keypoint against every point) on the
    room scene's map (``tests/unit/test_slam_relocalisation.py``, figures in docs/slam.md): the LSH
-   index costs about 1 ms to build, so it is built afresh on each call, its queries take half the
-   time of the exhaustive match or less, and it finds 98-99.7 % of the exhaustive matches; votes
-   only rank keyframes, so the approximate neighbour is enough, and its cost grows far slower than
-   the exhaustive match's with the map's size. A bag of binary words (ORB-SLAM's DBoW2) needs a
-   vocabulary trained offline; maps of a few thousand points do without.
+   index takes under a millisecond to build, so it is built afresh on each call, its queries take
+   about half the time of the exhaustive match, and it finds 98-99.7 % of the exhaustive matches;
+   votes only rank keyframes, so the approximate neighbour is enough, and its cost grows far
+   slower than the exhaustive match's with the map's size. A bag of binary words (ORB-SLAM's
+   DBoW2) needs a vocabulary trained offline; maps of a few thousand points do without.
 2. **Pose.** For each candidate in turn, the frame is matched again with the points of the
    candidate and its covisible keyframes only (fewer distractors, so more matches pass the ratio
    test); PnP with RANSAC (``cv2.solvePnPRansac``, SQPNP) on those matches, then a robust pose-only
