@@ -52,6 +52,17 @@ class FrameResult:
     timings_ms: dict[str, float]
 
 
+def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: SlamSettings) -> SlamMap:
+    """The map file's map, refused (``MapFileError``) without keyframes or made with another ORB pyramid."""
+    slam_map = load_map(path, camera)
+    if (slam_map.levels, slam_map.scale_factor) != (settings.levels, settings.scale_factor):
+        raise MapFileError(path, f"made with a pyramid of {slam_map.levels} levels x {slam_map.scale_factor}, "
+                                 f"these settings use {settings.levels} x {settings.scale_factor}")
+    if not slam_map.keyframes:
+        raise MapFileError(path, "holds no keyframes")
+    return slam_map
+
+
 class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
     (each keyframe is processed before ``process`` returns: deterministic).
@@ -68,12 +79,7 @@ class SlamSystem:
         s = self.settings
         if localisation_only and map_path is None:
             raise ValueError("localisation_only needs a map to localise in (map_path)")
-        self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else load_map(map_path, camera)
-        if map_path is not None and (self.map.levels, self.map.scale_factor) != (s.levels, s.scale_factor):
-            raise MapFileError(map_path, f"made with a pyramid of {self.map.levels} levels x {self.map.scale_factor},"
-                                         f" these settings use {s.levels} x {s.scale_factor}")
-        if map_path is not None and not self.map.keyframes:
-            raise MapFileError(map_path, "holds no keyframes")
+        self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
         self.localisation_only = localisation_only
         self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
