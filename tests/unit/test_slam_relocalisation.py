@@ -20,7 +20,7 @@ from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.matching import match_descriptors
 from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
 from services.slam.system import SlamState, SlamSystem
-from tests.slam_room_pass import aligned_errors, feed, orientation_fix, room_scene, run_pass
+from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
 MAPPED_FRAMES = 120
 JUMPS = {1310: 92, 820: 54}
