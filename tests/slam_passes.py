@@ -97,11 +97,7 @@ def run_pass(system: SlamSystem, scene, indices: Iterable[int]) -> SlamPass:
 
 
 def first_frames(name: str, count: int) -> tuple[CameraModel, Frames]:
-    """The camera and the first ``count`` frames of sequence ``name`` (``room`` or one of
-    ``slam_sequences``)."""
-    if name == "room":
-        scene = room_scene()
-        return scene.cameras[0], room_frames(scene, range(count))
+    """The camera and the first ``count`` frames of sequence ``name`` (``slam_sequences.sequence``)."""
     frames = sequence(name)
     return frames.camera, itertools.islice(frames.frames, count)
 

@@ -25,10 +25,11 @@ A point's representative descriptor, viewing direction and distance range are no
 recomputes them from the observations (``SlamMap.update_point``), as the mapper does. Loading
 renumbers keyframes and points in their saved order.
 
-A file is refused with ``MapFileError`` (a ValueError), one line naming the file and what is wrong:
-not a map file (truncated, garbage, another format), another version, another camera (image size,
-or ``K`` entries more than ``K_TOLERANCE_PX`` apart, or distortion more than ``DIST_TOLERANCE``), or
-arrays that do not agree with each other.
+A file is refused with ``MapFileError`` (a ValueError), one line naming the file and what is
+wrong: not a map file (truncated, damaged, garbage, another format), another version, another
+camera (image size, or ``K`` entries more than ``K_TOLERANCE_PX`` apart, or distortion more than
+``DIST_TOLERANCE``), or arrays that do not agree with each other. A file that cannot be written
+raises it too.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def _camera_header(camera: CameraModel) -> dict[str, Any]:
 
 def save_map(slam_map: SlamMap, camera: CameraModel, path: str | os.PathLike[str]) -> dict[str, Any]:
     """Write ``slam_map`` of ``camera`` to ``path`` (replaced atomically: written beside it, then
-    renamed). Returns the header written."""
+    renamed). Returns the header written; ``MapFileError`` when the file cannot be written."""
     with slam_map.lock:
         keyframes = [slam_map.keyframes[k] for k in sorted(slam_map.keyframes)]
         points = [slam_map.points[p] for p in sorted(slam_map.points)]
@@ -105,9 +106,13 @@ def save_map(slam_map: SlamMap, camera: CameraModel, path: str | os.PathLike[str
                              "observations": len(observations)}}
     target = Path(path)
     partial = target.with_name(target.name + ".partial")
-    with open(partial, "wb") as stream:
-        np.savez_compressed(stream, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
-    os.replace(partial, target)
+    try:
+        with open(partial, "wb") as stream:
+            np.savez_compressed(stream, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+        os.replace(partial, target)
+    except OSError as error:
+        partial.unlink(missing_ok=True)
+        raise MapFileError(path, f"cannot be written ({error.strerror or error})") from None
     return header
 
 

@@ -71,6 +71,13 @@ def test_a_map_comes_back_as_it_was_saved(tmp_path):
         assert np.array_equal(a.point_ids, b.point_ids)
 
 
+def test_an_unwritable_path_is_one_clear_error(tmp_path):
+    target = tmp_path / "no such folder" / "map.npz"
+    with pytest.raises(MapFileError, match="cannot be written") as caught:
+        save_map(random_map(), camera(), target)
+    assert str(target) in str(caught.value) and not target.parent.exists()
+
+
 def rewritten(path, target, change) -> None:
     """Copy the map file ``path`` to ``target`` with ``change(header, arrays)`` applied."""
     with np.load(path) as archive:
