@@ -13,14 +13,17 @@ on a map loaded from a file).
    votes only rank keyframes, so the approximate neighbour is enough, and its cost grows far
    slower than the exhaustive match's with the map's size. A bag of binary words (ORB-SLAM's
    DBoW2) needs a vocabulary trained offline; maps of a few thousand points do without.
-2. **Pose.** For each candidate in turn, the frame is matched again with the points of the
-   candidate and its covisible keyframes only (fewer distractors, so more matches pass the ratio
-   test); PnP with RANSAC (``cv2.solvePnPRansac``, SQPNP) on those matches, then a robust pose-only
-   refinement (``optimisation.refine_pose``) on the RANSAC inliers (``solve_pnp``).
-3. **Confirmation.** The refined pose projects the points of that local map into the frame; they
-   are searched for around their projections (``projection.search_projected``, a window of
-   ``reloc_window_px``) and the pose refined on every match. The candidate is accepted with at
-   least ``reloc_min_inliers`` inliers; otherwise the next candidate is tried.
+2. **Pose.** For each candidate in turn, the frame is matched again with the points the candidate
+   observes only (few distractors, so more matches pass the ratio test), and the matches whose
+   keypoint orientation turned unlike most others between the candidate and the frame are dropped
+   (``matching.rotation_consistent``): a frame of another place keeps too few for PnP and costs
+   no RANSAC. PnP with RANSAC (``cv2.solvePnPRansac``, SQPNP) on those matches, then a robust
+   pose-only refinement (``optimisation.refine_pose``) on the RANSAC inliers (``solve_pnp``).
+3. **Confirmation.** The refined pose projects the points of the candidate's local map (it and its
+   ``COVISIBLE_OF_CANDIDATE`` best covisible keyframes) into the frame; they are searched for
+   around their projections (``projection.search_projected``, a window of ``reloc_window_px``) and
+   the pose refined on every match. The candidate is accepted with at least
+   ``reloc_min_inliers`` inliers; otherwise the next candidate is tried.
 
 Reasons while it fails: ``no_candidates`` (no keyframe shares enough descriptors with the frame),
 ``too_few_matches`` (no candidate gave a PnP pose), ``not_confirmed`` (poses found, none confirmed).
@@ -36,7 +39,7 @@ import numpy as np
 
 from services.slam.features import FrameFeatures
 from services.slam.map import PointArrays, SlamMap
-from services.slam.matching import match_descriptors
+from services.slam.matching import match_descriptors, rotation_consistent
 from services.slam.optimisation import PoseRefinement, refine_pose
 from services.slam.projection import Projected, project_points, search_projected
 from services.slam.settings import SlamSettings
@@ -131,10 +134,7 @@ class Relocaliser:
         reason = "too_few_matches"
         with stage_timer(timings, "relocalise_pose"):
             for keyframe_id in candidates:
-                with self.map.lock:
-                    group = [keyframe_id] + self.map.covisible(keyframe_id, COVISIBLE_OF_CANDIDATE)
-                    points = self.map.arrays(self.map.points_of(group))
-                found = self._try(points, features)
+                found = self._try(keyframe_id, features)
                 if found is None:
                     continue
                 reason = "not_confirmed"
@@ -144,17 +144,39 @@ class Relocaliser:
                     return Relocalisation(T, point_ids, "", candidates, keyframe_id, inliers)
         return Relocalisation(None, nothing, reason, candidates)
 
-    def _try(self, points: PointArrays, features: FrameFeatures) -> tuple[np.ndarray, np.ndarray] | None:
-        """PnP on descriptor matches with a candidate's local map ``points``, then the confirming
-        projection search; the pose and (N,) point id per keypoint, or None without a PnP pose."""
+    def _observed(self, keyframe_id: int) -> tuple[PointArrays, np.ndarray, PointArrays] | None:
+        """The points keyframe ``keyframe_id`` observes, their keypoints' angles there (P,) degrees,
+        and the points of its local map; None when it is gone."""
+        with self.map.lock:
+            keyframe = self.map.keyframes.get(keyframe_id)
+            if keyframe is None:
+                return None
+            indices = np.flatnonzero(keyframe.point_ids >= 0)
+            own = self.map.arrays(keyframe.point_ids[indices])
+            angles = keyframe.features.angles[indices[np.isin(keyframe.point_ids[indices], own.ids)]]
+            group = [keyframe_id] + self.map.covisible(keyframe_id, COVISIBLE_OF_CANDIDATE)
+            return own, angles, self.map.arrays(self.map.points_of(group))
+
+    def _try(self, keyframe_id: int, features: FrameFeatures) -> tuple[np.ndarray, np.ndarray] | None:
+        """PnP on descriptor matches with the points candidate ``keyframe_id`` observes, then the
+        confirming projection search of its local map; the pose and (N,) point id per keypoint, or
+        None without a PnP pose."""
         s = self.settings
-        rows, keypoints = match_descriptors(points.descriptors, features.descriptors, s.match_max_distance,
+        observed = self._observed(keyframe_id)
+        if observed is None:
+            return None
+        own, angles, points = observed
+        rows, keypoints = match_descriptors(own.descriptors, features.descriptors, s.match_max_distance,
                                             s.match_ratio)
-        solved = solve_pnp(self.K, s, points.positions[rows], features, keypoints)
+        consistent = rotation_consistent(angles[rows], features.angles[keypoints])
+        rows, keypoints = rows[consistent], keypoints[consistent]
+        solved = solve_pnp(self.K, s, own.positions[rows], features, keypoints)
         if solved is None:
             return None
         refined, used = solved
-        rows, keypoints = rows[used][refined.inliers], keypoints[used][refined.inliers]
+        found = own.ids[rows[used][refined.inliers]]
+        keypoints = keypoints[used][refined.inliers]
+        rows = np.searchsorted(points.ids, found)
         available = np.ones(len(features), bool)
         available[keypoints] = False
         projected = project_points(points, refined.T_camera_world, self.K, self.size, self.map.scale_factor,

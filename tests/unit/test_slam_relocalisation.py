@@ -117,6 +117,7 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
     elsewhere = feed(system, make_scene("room", seed=7), 40)
     assert elsewhere.state == SlamState.LOST and elsewhere.T_world_camera is None
     assert elsewhere.reason in ("no_candidates", "too_few_matches", "not_confirmed")
+    print(f"a frame of another room: lost ({elsewhere.reason}) in {elsewhere.timings_ms['total']:.0f} ms")
     back = feed(system, scene, 820)
     assert back.state == SlamState.TRACKING and back.T_world_camera is not None
     assert back.timings_ms.get("relocalise_candidates", 0) > 0, "the frame after lost ones goes through relocalisation"
