@@ -38,11 +38,12 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
-    ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
-    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``,
-    ``keyframe``, ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was
-    mapped inline (included in ``keyframe``), ``total``)."""
+    ``bad_image``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
+    (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
+    without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
+    (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
+    that starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
+    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``total``)."""
 
     state: SlamState
     reason: str
