@@ -7,7 +7,8 @@ same frames: it must relocalise on its first frame, track every frame after, cha
 map, and its poses, brought into the truth's world by the Sim(3) of the first pass (same map, same
 world), must be within ``MARGIN_M`` of the first pass's ATE. Sequences: the synthetic room (frames
 0-149), TUM fr3 long_office_household at 1 Hz (20 frames) and KITTI 06 (frames 0-50). Loaded without
-``localisation_only``, the room's map grows again on the frames after.
+``localisation_only``, the room's map grows again on the frames after. Maps saved while the mapping
+thread works load whole.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.slam.map_file import read_header
+from services.slam.map_file import load_map, read_header
 from services.slam.system import SlamSystem
 from tests.accuracy.slam_sequences import KITTI, TUM
 from tests.data import data_dir
@@ -96,3 +97,31 @@ def test_a_loaded_map_grows_when_mapping(first_passes):
     print(f"frames {count}-{count + 59} on the loaded map, mapping: {len(made)} keyframes made, position error "
           f"under the first pass's alignment {100 * error_m:.2f} cm RMS")
     assert error_m <= 3 * first.ate_m()
+
+
+def test_maps_saved_while_the_mapping_thread_works_load_whole(tmp_path):
+    scene = room_scene()
+    system = SlamSystem(scene.cameras[0], mapping_thread=True)
+    saved = []
+    try:
+        for index in range(90):
+            run_pass(system, scene, [index])
+            if index % 10 == 9:
+                path = tmp_path / f"at{index}.npz"
+                system.save_map(path)
+                saved.append(path)
+    finally:
+        system.close()
+    sizes = []
+    for path in saved:
+        header = read_header(path)
+        counts = header["counts"]
+        if counts["keyframes"] == 0:
+            continue
+        loaded = load_map(path, scene.cameras[0])
+        assert (len(loaded.keyframes), len(loaded.points)) == (counts["keyframes"], counts["points"])
+        assert all(len(p.observations) >= 1 and p.id in loaded.keyframes[k].point_ids
+                   for p in loaded.points.values() for k in p.observations)
+        sizes.append(counts["keyframes"])
+    print(f"{len(saved)} maps saved while mapping, keyframes {sizes}, all loaded whole")
+    assert len(sizes) >= 5 and sizes == sorted(sizes)
