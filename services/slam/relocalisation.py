@@ -8,7 +8,8 @@ on a map loaded from a file).
    ``pnp_min_inliers``, at most ``reloc_candidates``) are the candidates. Measured against
    exhaustive matching (``matching.match_descriptors``, every keypoint against every point) on the
    room scene's map (``tests/unit/test_slam_relocalisation.py``, figures in docs/slam.md): the LSH
-   index takes under a millisecond to build, so it is built afresh on each call, its queries take
+   index takes under a millisecond to build (it is rebuilt whenever the map changed; never in
+   localisation-only mode, where copying a large map's points would cost more), its queries take
    about half the time of the exhaustive match, and it finds 98-99.7 % of the exhaustive matches;
    votes only rank keyframes, so the approximate neighbour is enough, and its cost grows far
    slower than the exhaustive match's with the map's size. A bag of binary words (ORB-SLAM's
@@ -105,22 +106,35 @@ class Relocaliser:
         self.K = np.asarray(K, np.float64)
         self.size = size
         self.settings = settings
+        self._index: tuple[int, np.ndarray, cv2.FlannBasedMatcher] | None = None
+
+    def _point_index(self) -> tuple[np.ndarray, cv2.FlannBasedMatcher] | None:
+        """(P,) ids of the map's points and an LSH index of their descriptors (row i is point ``ids[i]``),
+        made again when the map's revision changed; None with fewer than two points."""
+        with self.map.lock:
+            revision = self.map.revision
+            if self._index is None or self._index[0] != revision:
+                points = self.map.arrays(np.array(sorted(self.map.points), np.int64))
+                if len(points) < 2:
+                    return None
+                matcher = cv2.FlannBasedMatcher(LSH_INDEX, LSH_SEARCH)
+                matcher.add([points.descriptors])
+                matcher.train()
+                self._index = (revision, points.ids, matcher)
+            return self._index[1], self._index[2]
 
     def candidates(self, features: FrameFeatures) -> list[int]:
         """Keyframe ids ranked by the votes of the map points the frame's descriptors match, best
         first; only those with at least ``pnp_min_inliers`` votes, at most ``reloc_candidates``."""
         s = self.settings
-        with self.map.lock:
-            points = self.map.arrays(np.array(sorted(self.map.points), np.int64))
-        if len(points) < 2 or len(features) == 0:
+        index = self._point_index()
+        if index is None or len(features) == 0:
             return []
-        matcher = cv2.FlannBasedMatcher(LSH_INDEX, LSH_SEARCH)
-        matcher.add([points.descriptors])
-        matcher.train()
+        ids, matcher = index
         pairs = matcher.knnMatch(features.descriptors, k=2)
         matched = {best.trainIdx for best, second in (m for m in pairs if len(m) == 2)
                    if best.distance <= s.match_max_distance and best.distance < s.match_ratio * second.distance}
-        votes = self.map.observers(points.ids[sorted(matched)])
+        votes = self.map.observers(ids[sorted(matched)])
         return [k for k, n in votes.most_common(s.reloc_candidates) if n >= s.pnp_min_inliers]
 
     def relocalise(self, features: FrameFeatures, timings: dict[str, float]) -> Relocalisation:

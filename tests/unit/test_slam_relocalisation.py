@@ -58,6 +58,17 @@ def test_candidates_rank_the_keyframes_near_the_frame_first(mapped):
         assert candidates and min(seconds[:2]) < 1.0
 
 
+def test_the_point_index_is_made_again_only_when_the_map_changed(mapped):
+    system, _, _ = mapped
+    relocaliser = Relocaliser(system.map, system.camera.K, (640, 480), system.settings)
+    first, again = relocaliser._point_index(), relocaliser._point_index()
+    assert first is not None and again is not None and again[1] is first[1]
+    keyframe_id, _, T_world_camera = system.keyframe_poses()[0]
+    system.map.set_pose(keyframe_id, np.linalg.inv(T_world_camera))
+    changed = relocaliser._point_index()
+    assert changed is not None and changed[1] is not first[1] and np.array_equal(changed[0], first[0])
+
+
 def test_a_frame_of_another_room_stays_lost_with_a_reason(mapped):
     system, scene, _ = mapped
     other = make_scene("room", seed=7)
