@@ -34,7 +34,7 @@ from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
-from services.slam.initialisation import initialise
+from services.slam.initialisation import InitialisationState, initialise
 from services.slam.map import PointArrays, SlamMap
 from services.slam.mapping import LocalMapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
@@ -129,7 +129,7 @@ class Tracker:
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
             found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
-        if found.state == "too_few_matches":
+        if found.state is InitialisationState.TOO_FEW_MATCHES:
             self._reference = frame
         if not found.initialised or found.T_second_first is None:
             return Tracked(SlamState.INITIALISING, found.state.value)
