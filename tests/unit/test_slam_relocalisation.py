@@ -40,6 +40,10 @@ def mapped():
     system.close()
 
 
+def relocaliser_of(system: SlamSystem) -> Relocaliser:
+    return Relocaliser(system.map, system.camera.K, (system.camera.width, system.camera.height), system.settings)
+
+
 def features_of(system: SlamSystem, scene, index: int) -> FrameFeatures:
     s = system.settings
     extractor = FeatureExtractor(system.camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
@@ -48,7 +52,7 @@ def features_of(system: SlamSystem, scene, index: int) -> FrameFeatures:
 
 def test_candidates_rank_the_keyframes_near_the_frame_first(mapped):
     system, scene, first = mapped
-    relocaliser = Relocaliser(system.map, system.camera.K, (640, 480), system.settings)
+    relocaliser = relocaliser_of(system)
     stamps = {k: stamp for k, stamp, _ in system.keyframe_poses()}
     for index, nearest in JUMPS.items():
         features = features_of(system, scene, index)
@@ -60,7 +64,7 @@ def test_candidates_rank_the_keyframes_near_the_frame_first(mapped):
 
 def test_the_point_index_is_made_again_only_when_the_map_changed(mapped):
     system, _, _ = mapped
-    relocaliser = Relocaliser(system.map, system.camera.K, (640, 480), system.settings)
+    relocaliser = relocaliser_of(system)
     first, again = relocaliser._point_index(), relocaliser._point_index()
     assert first is not None and again is not None and again[1] is first[1]
     keyframe_id, _, T_world_camera = system.keyframe_poses()[0]
@@ -69,10 +73,23 @@ def test_the_point_index_is_made_again_only_when_the_map_changed(mapped):
     assert changed is not None and changed[1] is not first[1] and np.array_equal(changed[0], first[0])
 
 
+def test_descriptors_like_no_point_of_the_map_give_no_candidates(mapped):
+    system, _, _ = mapped
+    rng = np.random.default_rng(3)
+    count = 1000
+    levels = rng.integers(0, system.settings.levels, count)
+    features = FrameFeatures(pixels=rng.uniform(0, [640, 480], (count, 2)), levels=levels,
+                             angles=rng.uniform(0, 360, count).astype(np.float32),
+                             descriptors=rng.integers(0, 256, (count, 32), dtype=np.uint8),
+                             sigmas=system.settings.scale_factor ** levels.astype(np.float64))
+    found = relocaliser_of(system).relocalise(features, {})
+    assert (found.reason, found.candidates, found.T_camera_world) == ("no_candidates", (), None)
+
+
 def test_a_frame_of_another_room_stays_lost_with_a_reason(mapped):
     system, scene, _ = mapped
     other = make_scene("room", seed=7)
-    relocaliser = Relocaliser(system.map, system.camera.K, (640, 480), system.settings)
+    relocaliser = relocaliser_of(system)
     features = features_of(system, other, 40)
     found = relocaliser.relocalise(features, {})
     assert found.T_camera_world is None and np.all(found.point_ids == -1)
