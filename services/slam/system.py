@@ -2,6 +2,9 @@
 
 It ties together the feature extraction (``features``), the tracker (``frontend``), the map
 (``map``) and the local mapper (``mapping``, on its own thread unless ``mapping_thread=False``).
+A map saved by an earlier run (``map_file``) can be given at the start: the system relocalises
+in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
+keyframes, points or bundle adjustment), otherwise mapping carries on from it.
 Frames: the world is the first keyframe's camera frame (OpenCV camera frame), in the map's
 arbitrary monocular units; ``T_world_camera`` (4, 4) maps the frame's camera frame into it.
 """
@@ -9,6 +12,7 @@ arbitrary monocular units; ``T_world_camera`` (4, 4) maps the frame's camera fra
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,11 +22,12 @@ from services.geometry.se3 import invert
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
 from services.slam.map import SlamMap
+from services.slam.map_file import MapFileError, load_map, save_map
 from services.slam.mapping import LocalMapper
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["FrameResult", "SlamSettings", "SlamState", "SlamSystem"]
+__all__ = ["FrameResult", "MapFileError", "SlamSettings", "SlamState", "SlamSystem"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,11 +38,12 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
-    ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
-    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``,
-    ``keyframe``, ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was
-    mapped inline (included in ``keyframe``), ``total``)."""
+    ``bad_image``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
+    (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
+    without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
+    (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
+    that starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
+    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``total``)."""
 
     state: SlamState
     reason: str
@@ -48,18 +54,40 @@ class FrameResult:
     timings_ms: dict[str, float]
 
 
+def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: SlamSettings) -> SlamMap:
+    """The map file's map, refused (``MapFileError``) without keyframes or made with another ORB pyramid."""
+    slam_map = load_map(path, camera)
+    if (slam_map.levels, slam_map.scale_factor) != (settings.levels, settings.scale_factor):
+        raise MapFileError(path, f"made with a pyramid of {slam_map.levels} levels x {slam_map.scale_factor}, "
+                                 f"these settings use {settings.levels} x {settings.scale_factor}")
+    if not slam_map.keyframes:
+        raise MapFileError(path, "holds no keyframes")
+    return slam_map
+
+
 class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
-    (each keyframe is processed before ``process`` returns: deterministic)."""
+    (each keyframe is processed before ``process`` returns: deterministic).
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True):
+    ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
+    fit this camera or these settings' pyramid). ``localisation_only``: never change the map.
+    ``save_path``: where ``close`` saves the map (None: not saved)."""
+
+    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True,
+                 map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
+                 save_path: str | os.PathLike[str] | None = None):
         self.camera = camera
         self.settings = settings or SlamSettings()
         s = self.settings
-        self.map = SlamMap(s.scale_factor, s.levels)
+        if localisation_only and map_path is None:
+            raise ValueError("localisation_only needs a map to localise in (map_path)")
+        self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
+        self.localisation_only = localisation_only
+        self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
-        self._mapper = LocalMapper(self.map, camera.K, (camera.width, camera.height), s, threaded=mapping_thread)
-        self._tracker = Tracker(camera, s, self.map, self._mapper)
+        self._mapper = LocalMapper(self.map, camera.K, (camera.width, camera.height), s,
+                                   threaded=mapping_thread and not localisation_only)
+        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
         self._threaded = mapping_thread
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
@@ -108,6 +136,13 @@ class SlamSystem:
         """Grows whenever keyframes or points change."""
         return self.map.revision
 
+    def save_map(self, path: str | os.PathLike[str]) -> None:
+        """Write the map to ``path`` (``map_file`` format): a snapshot taken under the map's lock."""
+        save_map(self.map, self.camera, path)
+
     def close(self) -> None:
-        """Stop the mapping thread (after the keyframes it was given)."""
+        """Stop the mapping thread (after the keyframes it was given), then save the map to
+        ``save_path`` when one was given."""
         self._mapper.close()
+        if self.save_path is not None:
+            save_map(self.map, self.camera, self.save_path)
