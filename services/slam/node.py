@@ -237,13 +237,12 @@ class _CameraSlam:
         if path is None:
             return
         if system is None or not system.map.keyframes:
-            self._node.log.warning("no map saved to %s: %s holds no keyframe", path, self._params.camera)
+            self._node.log.warning("no map saved to %s: no map of %s with keyframes", path, self._params.camera)
             return
         try:
             system.save_map(path)
         except MapFileError as error:
             self._node.log.error("%s", error)
-            self._node.report("map_not_saved", str(error))
             return
         self._node.log.info("map of %s saved to %s: %d keyframes, %d points", self._params.camera, path,
                             len(system.map.keyframes), len(system.map.points))

@@ -134,7 +134,7 @@ def test_the_node_goes_on_past_a_map_of_another_camera_and_says_once_when_its_ma
         wait_live(session, keys, {"slam"}, [node])
         wait_until(lambda: frames.matched() and infos.matched(), START_S, "the node to subscribe")
         camera = scene.cameras[0]
-        other = dataclasses.replace(camera, K=camera.K * [[1.05], [1.05], [1]])  # focal lengths 5 % longer
+        other = dataclasses.replace(camera, K=camera.K * [[1.05, 1, 1], [1, 1.05, 1], [1, 1, 1]])  # fx, fy 5 % up
         calibrate(other, 1)
         refused = [(send(seq, 10).state, seen[seq].reason) for seq in range(3)]
         assert refused == [(TrackingState.LOST, "map_refused")] * 3, refused
@@ -153,8 +153,8 @@ def test_the_node_goes_on_past_a_map_of_another_camera_and_says_once_when_its_ma
         gone.rmdir()  # the map is saved as the node stops: it cannot be, and the node says so in one line
         os.kill(node.pid, signal.SIGTERM)
         assert node.wait(STOP_S) == 0, node.describe()
-        errors = [line for line in node.stderr.splitlines() if "ERROR" in line]
-        assert len(errors) == 2 and f"map file {gone / 'saved.map.npz'}: cannot be written" in errors[1], node.stderr
+        unsaved = [line for line in node.stderr.splitlines() if "saved.map.npz" in line]
+        assert len(unsaved) == 1 and "ERROR" in unsaved[0] and "cannot be written" in unsaved[0], node.stderr
     finally:
         infos.close()
         frames.close()
