@@ -242,7 +242,7 @@ class Tracker:
         s = self.settings
         with stage_timer(timings, "match"):
             if self._lost:
-                candidates = np.array(sorted(self.map.points), np.int64)
+                candidates = self.map.point_ids()
             else:
                 keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
                 candidates = self.map.points_of(keyframes)
