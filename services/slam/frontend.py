@@ -38,7 +38,7 @@ from services.slam.initialisation import InitialisationState, initialise
 from services.slam.map import PointArrays, SlamMap
 from services.slam.mapping import LocalMapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
-from services.slam.optimisation import refine_pose
+from services.slam.optimisation import refine_pose, reprojection_errors
 from services.slam.projection import project_points, search_projected
 from services.slam.relocalisation import Relocaliser, solve_pnp
 from services.slam.settings import SlamSettings
@@ -143,8 +143,12 @@ class Tracker:
             return Tracked(SlamState.INITIALISING, "too_few_points")
         last = self._last
         assert last is not None
-        tracked = int(np.count_nonzero(last.point_ids >= 0))
-        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), tracked, 0.0, keyframe_id)
+        seen = np.flatnonzero(last.point_ids >= 0)
+        points = self.map.arrays(last.point_ids[seen])
+        seen = seen[np.isin(last.point_ids[seen], points.ids)]
+        errors = reprojection_errors(self.K, last.T_camera_world, points.positions, features.pixels[seen])
+        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), len(seen),
+                       float(np.sqrt(np.mean(errors**2))), keyframe_id)
 
     def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
                    T_second_first: np.ndarray) -> int | None:

@@ -16,7 +16,8 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
    observations it finds to be outliers are removed.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
-waits for it, or inline in ``enqueue`` (deterministic, for tests).
+waits for it, or inline in ``enqueue`` (deterministic, for tests). A keyframe processed while
+others wait gets only steps 1 and 2.
 """
 
 from __future__ import annotations
@@ -139,19 +140,22 @@ class LocalMapper:
                     self._busy.clear()
 
     def process(self, keyframe_id: int) -> None:
-        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``."""
+        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``.
+        When more keyframes wait in the queue, fusion and bundle adjustment are left to the last of
+        them (as ORB-SLAM does): new points for the tracker come first."""
         s = self.settings
         timings: dict[str, float] = {}
         with stage_timer(timings, "cull"):
             self.map.cull_points(keyframe_id, s.cull_found_ratio, s.cull_min_observations, probation=3)
         with stage_timer(timings, "triangulate"):
             self.triangulate(keyframe_id)
-        with stage_timer(timings, "fuse"):
-            self.fuse(keyframe_id)
-        with stage_timer(timings, "bundle_adjustment"):
-            with self.map.lock:
-                window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
-            self.adjust(window)
+        if self._queue.empty():
+            with stage_timer(timings, "fuse"):
+                self.fuse(keyframe_id)
+            with stage_timer(timings, "bundle_adjustment"):
+                with self.map.lock:
+                    window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
+                self.adjust(window)
         self.timings_ms = timings
 
     def adjust_initial_map(self, first: int, second: int) -> None:
