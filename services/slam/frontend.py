@@ -102,6 +102,12 @@ class Tracker:
         self._reference_keyframe = -1
         self._last_keyframe_stamp = 0
 
+    @property
+    def reference_keyframe(self) -> int:
+        """The id of the keyframe sharing most points with the last tracked frame (the frame itself when
+        it became a keyframe); -1 before the map exists."""
+        return self._reference_keyframe
+
     def track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
         """The outcome of one frame's ``features``; adds the stages' milliseconds to ``timings``."""
         self._index += 1

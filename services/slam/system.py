@@ -89,6 +89,8 @@ class SlamSystem:
                                    threaded=mapping_thread and not localisation_only)
         self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
         self._threaded = mapping_thread
+        self._tracked: list[tuple[int, int, np.ndarray]] = []
+        """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
         """Track one frame: grey (H, W) or BGR(A) (H, W, 3|4), uint8 or uint16, of the camera's size.
@@ -103,9 +105,21 @@ class SlamSystem:
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
+        if tracked.T_camera_world is not None:
+            self._remember(stamp_ns, tracked.T_camera_world, tracked.keyframe_id)
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
         return FrameResult(tracked.state, tracked.reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
+
+    def _remember(self, stamp_ns: int, T_camera_world: np.ndarray, keyframe_id: int | None) -> None:
+        """Keep a tracked frame's pose relative to its reference keyframe (itself when it became one)."""
+        if keyframe_id is not None:
+            self._tracked.append((stamp_ns, keyframe_id, np.eye(4)))
+            return
+        with self.map.lock:
+            keyframe = self.map.keyframes.get(self._tracker.reference_keyframe)
+            if keyframe is not None:
+                self._tracked.append((stamp_ns, keyframe.id, T_camera_world @ invert(keyframe.T_camera_world)))
 
     def _fits(self, image: np.ndarray) -> bool:
         size = (self.camera.height, self.camera.width)
@@ -123,6 +137,17 @@ class SlamSystem:
         """(keyframe id, stamp_ns, (4, 4) T_world_camera) of every keyframe, oldest first."""
         with self.map.lock:
             return [(k.id, k.stamp_ns, invert(k.T_camera_world)) for k in self.map.keyframes.values()]
+
+    def trajectory(self) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, (4, 4) T_world_camera)`` of every frame tracked so far, oldest first: each frame's
+        pose relative to its reference keyframe (as tracked) composed with that keyframe's current,
+        bundle-adjusted pose. Frames never tracked are left out. Keyframes are never removed from a
+        map, so every tracked frame keeps its reference."""
+        tracked = list(self._tracked)
+        with self.map.lock:
+            keyframes = {k.id: k.T_camera_world.copy() for k in self.map.keyframes.values()}
+        return [(stamp_ns, invert(T_camera_keyframe @ keyframes[keyframe_id]))
+                for stamp_ns, keyframe_id, T_camera_keyframe in tracked if keyframe_id in keyframes]
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, positions (N, 3) world)`` of every map point."""
