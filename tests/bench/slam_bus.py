@@ -15,7 +15,7 @@ the map's keyframes come ``FPS``-paced in both variants). The node's default opt
   published, frames dropped while busy) and the CPU the node used (``node_cores``, 1.0 = one busy core).
 * ``overhead``: pipeline p50 - in-process p50.
 
-``python -m tests.bench.slam_bus`` prints the lines (about a minute and a half).
+``python -m tests.bench.slam_bus`` prints the lines (about 80 s).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from tests.bench.live import LiveBus
 
 SCENE = "room"
 WIDTH, HEIGHT = 640, 480
-FPS = 15.0
-FRAMES = 300
+FPS = 5.0
+FRAMES = 150
 WARMUP = 10
 
 
