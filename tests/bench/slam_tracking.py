@@ -14,12 +14,13 @@ skipped with a line saying so when the data set is absent). Each sequence goes t
 Per variant: ``tracking`` = ``timings_ms["total"]`` less the inline mapping, over every frame (the
 initialisation's included), as frames a second (1000 / mean ms) and p50 / p90 ms, and the tracking
 thread's CPU ms per frame (``cpu``; less the inline mapping's CPU; the figure least moved by other
-work on the machine); p50 / p90 of each
-stage of ``FrameResult.timings_ms`` over the tracked frames (``keyframe`` less the inline mapping);
+work on the machine); p50 / p90 of each stage of ``FrameResult.timings_ms`` over the tracked frames
+(``keyframe`` less the inline mapping);
 ``frames_waited_on_mapping``: frames whose tracking included a keyframe's mapping (inline) or waited at
 least ``LOCK_WAIT_MS`` for the map's lock while the mapper held it (the map's lock is wrapped for the
 run to time the tracking thread's waits; ``lock_wait_ms_max`` the longest); ``kept_rate`` whether the
-thread variant got through the frames at the sequence's rate; states at the end.
+thread variant got through the frames at the sequence's rate (``reached_hz``); frames tracked and lost,
+keyframes at the end.
 
 Per keyframe of local mapping (``mapping_*`` lines): the mapper's own stage times (``cull``,
 ``triangulate``, ``fuse``, ``bundle_adjustment``; ``LocalMapper.timings_ms``) and its wall and thread CPU
