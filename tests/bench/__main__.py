@@ -1,7 +1,7 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
-``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``.
+``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``, ``slam_tracking``, ``slam_bus``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -17,9 +17,11 @@ accuracy against ground truth, blob detection per frame (``blobs``), keypoint de
 (``keypoints``), image-target recognition and tracking per frame on one core against OpenCV's
 per-frame recipe (``features``), the same frames' poses over the bus against in process
 (``features_bus``) and stereo tracking's stages
-in one process against the live pipeline at motion-capture rates (``stereo``), and SLAM's bundle
-adjustment and pose refinement on synthetic problems (``slam``) (each module's
-docstring says what it measures).
+in one process against the live pipeline at motion-capture rates (``stereo``), SLAM's bundle
+adjustment and pose refinement on synthetic problems (``slam``), SLAM's tracking per frame and local
+mapping per keyframe on one core, with the mapping thread and inline (``slam_tracking``), and the SLAM
+node's poses over the bus against in process (``slam_bus``) (each module's docstring says what it
+measures).
 Progress goes to stderr.
 """
 
@@ -50,6 +52,8 @@ from tests.bench.routing import bench_routing
 from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
 from tests.bench.slam import bench_slam
+from tests.bench.slam_bus import bench_slam_bus
+from tests.bench.slam_tracking import bench_slam_tracking
 from tests.bench.stereo import bench_stereo
 from tests.bench.traffic import (
     ImageCase,
@@ -113,6 +117,7 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
     "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "features": bench_features,
     "features_bus": bench_features_bus, "stereo": bench_stereo, "slam": bench_slam,
+    "slam_tracking": bench_slam_tracking, "slam_bus": bench_slam_bus,
 }
 
 
