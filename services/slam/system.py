@@ -31,6 +31,10 @@ __all__ = ["FrameResult", "MapFileError", "SlamSettings", "SlamState", "SlamSyst
 
 logger = logging.getLogger(__name__)
 
+STEP_BACK_S = 1.0
+"""A frame stamped no later than the previous one, and at most this many seconds before it, is out of
+order (skipped); one stamped further back is a jump in the sequence, tracked (or relocalised) as usual."""
+
 
 @dataclass(frozen=True)
 class FrameResult:
@@ -38,7 +42,7 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
+    ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
     (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
     without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
     (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
@@ -65,17 +69,29 @@ def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: Sla
     return slam_map
 
 
+def _check_camera(camera: CameraModel) -> None:
+    """ValueError (one line) for a camera matrix SLAM cannot work with: focal lengths not finite and
+    positive, or a principal point outside the image."""
+    fx, fy, cx, cy = (float(v) for v in np.asarray(camera.K, np.float64)[[0, 1, 0, 1], [0, 1, 2, 2]])
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0 and 0 <= cx < camera.width
+            and 0 <= cy < camera.height):
+        raise ValueError(f"camera {camera.name}: fx {fx}, fy {fy} must be positive and the principal point "
+                         f"({cx}, {cy}) within the {camera.width}x{camera.height} image")
+
+
 class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
     (each keyframe is processed before ``process`` returns: deterministic).
 
     ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
-    fit this camera or these settings' pyramid). ``localisation_only``: never change the map.
+    fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
+    lengths or with its principal point outside the image). ``localisation_only``: never change the map.
     ``save_path``: where ``close`` saves the map (None: not saved)."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True,
                  map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
                  save_path: str | os.PathLike[str] | None = None):
+        _check_camera(camera)
         self.camera = camera
         self.settings = settings or SlamSettings()
         s = self.settings
@@ -89,15 +105,21 @@ class SlamSystem:
                                    threaded=mapping_thread and not localisation_only)
         self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
         self._threaded = mapping_thread
+        self._last_stamp: int | None = None
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
         """Track one frame: grey (H, W) or BGR(A) (H, W, 3|4), uint8 or uint16, of the camera's size.
-        Never raises on a bad frame: it comes back lost (or initialising) with the reason."""
+        Never raises on a bad frame: it comes back lost (or initialising) with the reason. A frame of the
+        wrong size or type (``bad_image``) or out of order (``out_of_order``, see ``STEP_BACK_S``) is
+        skipped: the tracker does not see it, the next frame goes on from the last one."""
         timings: dict[str, float] = {}
         with stage_timer(timings, "total"):
             if not self._fits(image):
                 tracked = Tracked(self._tracker_state(), "bad_image")
+            elif self._out_of_order(stamp_ns):
+                tracked = Tracked(self._tracker_state(), "out_of_order")
             else:
+                self._last_stamp = stamp_ns
                 with stage_timer(timings, "keypoints"):
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
@@ -115,6 +137,13 @@ class SlamSystem:
             logger.warning("frame skipped: expected (%d, %d[, 3|4]) uint8/uint16, got %s %s", *size,
                            getattr(image, "shape", None), getattr(image, "dtype", None))
         return good
+
+    def _out_of_order(self, stamp_ns: int) -> bool:
+        back_s = np.inf if self._last_stamp is None else (self._last_stamp - stamp_ns) * 1e-9
+        skipped = 0 <= back_s <= STEP_BACK_S
+        if skipped:
+            logger.warning("frame skipped: stamped %.3f s before the previous frame (out of order)", back_s)
+        return skipped
 
     def _tracker_state(self) -> SlamState:
         return SlamState.LOST if self.map.keyframes else SlamState.INITIALISING
