@@ -19,6 +19,7 @@ import numpy as np
 
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import invert
+from services.slam.calibration_check import check_focal
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
 from services.slam.map import SlamMap
@@ -34,6 +35,8 @@ logger = logging.getLogger(__name__)
 STEP_BACK_S = 1.0
 """A frame stamped no later than the previous one, and at most this many seconds before it, is out of
 order (skipped); one stamped further back is a jump in the sequence, tracked (or relocalised) as usual."""
+CHECK_KEYFRAMES = 5
+"""The camera matrix is checked against the map (``calibration_check``) once, when it holds this many keyframes."""
 
 
 @dataclass(frozen=True)
@@ -42,12 +45,14 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
-    (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
-    without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
-    (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
-    that starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
-    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``total``)."""
+    ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``; a
+    tracked frame's is ``calibration_suspect`` once the camera matrix was found not to fit the map,
+    ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
+    ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
+    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``,
+    ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was mapped inline
+    (included in ``keyframe``), ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost
+    one, ``calibration_check`` on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
 
     state: SlamState
     reason: str
@@ -106,6 +111,8 @@ class SlamSystem:
         self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
         self._threaded = mapping_thread
         self._last_stamp: int | None = None
+        self._calibration: str | None = None
+        """"ok", "calibration_suspect", or None before the check."""
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
         """Track one frame: grey (H, W) or BGR(A) (H, W, 3|4), uint8 or uint16, of the camera's size.
@@ -125,9 +132,24 @@ class SlamSystem:
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
+            if tracked.keyframe_id is not None and self._calibration is None and len(self.map.keyframes) >= \
+                    CHECK_KEYFRAMES:
+                with stage_timer(timings, "calibration_check"):
+                    self._check_calibration()
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
-        return FrameResult(tracked.state, tracked.reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
+        reason = tracked.reason
+        if tracked.state is SlamState.TRACKING and self._calibration == "calibration_suspect":
+            reason = self._calibration
+        return FrameResult(tracked.state, reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
+
+    def _check_calibration(self) -> None:
+        check = check_focal(self.map, self.camera.K, (self.camera.width, self.camera.height))
+        if check is None:
+            return
+        self._calibration = "calibration_suspect" if check.suspect else "ok"
+        logger.log(logging.WARNING if check.suspect else logging.INFO, "camera %s: %s%s", self.camera.name,
+                   check.line(), ": the calibration looks wrong, poses are suspect" if check.suspect else "")
 
     def _fits(self, image: np.ndarray) -> bool:
         size = (self.camera.height, self.camera.width)
