@@ -10,7 +10,8 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
 * ``pose/slam/<camera>``, every frame: a ``Pose`` ``T_<map_frame>_<camera>`` (child frame the frame's
   ``frame_id``, else the camera's name), state ``initializing`` (no map yet), ``tracking`` or ``lost``,
   ``reason`` when not tracking (the system's: ``low_parallax``, ``too_few_matches``, ...; the node's own:
-  ``no_calibration``, ``unusable_frame``), quality ``inliers`` (map points tracked in the frame) and
+  ``no_calibration``, ``unusable_frame``; ``calibration_suspect`` on a tracked frame once the camera matrix
+  failed the system's check), quality ``inliers`` (map points tracked in the frame) and
   ``reprojection_rms_px``. The map frame is the first keyframe's camera frame, and its scale is arbitrary
   (monocular): compare with ground truth after a similarity alignment (``artrack eval --align sim3``).
 * ``<camera>/keyframes``: a ``Keyframes`` message (ids, stamps, (K, 4, 4) ``T_map_camera``), whenever the
