@@ -310,7 +310,7 @@ class Tracker:
             reference_tracked = 0 if reference is None else sum(
                 1 for p in reference.point_ids[reference.point_ids >= 0].tolist()
                 if p in self.map.points and len(self.map.points[p].observations) >= least)
-        return need_keyframe(s, (frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked, reference_tracked,
+        return need_keyframe(s, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked, reference_tracked,
                              self.mapper.idle)
 
     def _insert_keyframe(self, frame: _Frame) -> int:

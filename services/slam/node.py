@@ -10,7 +10,8 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
 * ``pose/slam/<camera>``, every frame: a ``Pose`` ``T_<map_frame>_<camera>`` (child frame the frame's
   ``frame_id``, else the camera's name), state ``initializing`` (no map yet), ``tracking`` or ``lost``,
   ``reason`` when not tracking (the system's: ``low_parallax``, ``too_few_matches``, ...; the node's own:
-  ``no_calibration``, ``unusable_frame``), quality ``inliers`` (map points tracked in the frame) and
+  ``no_calibration``, ``unusable_frame``; ``calibration_suspect`` on a tracked frame once the camera matrix
+  failed the system's check), quality ``inliers`` (map points tracked in the frame) and
   ``reprojection_rms_px``. The map frame is the first keyframe's camera frame, and its scale is arbitrary
   (monocular): compare with ground truth after a similarity alignment (``artrack eval --align sim3``).
 * ``<camera>/keyframes``: a ``Keyframes`` message (ids, stamps, (K, 4, 4) ``T_map_camera``), whenever the
@@ -32,8 +33,10 @@ frames below) while the node goes on.
 Frames the node cannot use are counted among its skipped inputs and reported on its errors key, and get a
 ``lost`` pose: ``no_calibration`` before the camera has one, ``unusable_frame`` for a frame whose size is
 not the calibration's or that the system refuses. Payloads that do not decode are counted by the inbox.
-A frame whose stamp is not after the previous one (a source started over), or a new calibration, starts a
-new map (from ``map`` again when given); the system is closed when the node stops.
+A frame stamped at most ``STEP_BACK_S`` (1 s) before the newest one so far (late, or the same stamp twice) is
+out of order: skipped by the system, it gets a ``lost`` pose ``out_of_order`` and is counted and reported like
+the frames above. A frame stamped further back (a source started over), or a new calibration, starts a new map
+(from ``map`` again when given); the system is closed when the node stops.
 """
 
 from __future__ import annotations
@@ -60,7 +63,7 @@ from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.slam.map_file import MapFileError, read_header
-from services.slam.system import FrameResult, SlamState, SlamSystem
+from services.slam.system import STEP_BACK_S, FrameResult, SlamState, SlamSystem
 
 STATES = {SlamState.INITIALISING: TrackingState.INITIALIZING, SlamState.TRACKING: TrackingState.TRACKING,
           SlamState.LOST: TrackingState.LOST}
@@ -152,13 +155,15 @@ class _CameraSlam:
 
     def system_for(self, camera: CameraModel, stamp_ns: int) -> SlamSystem:
         """The system for a frame of ``camera`` stamped ``stamp_ns``: a new one (a new map, or ``map``'s) at
-        the first frame, after a new calibration and when the stamps start over. ``MapFileError`` when
+        the first frame, after a new calibration and when the stamps start over (step back by more than
+        ``STEP_BACK_S``; a frame less far back is the system's to skip). ``MapFileError`` when
         ``map`` does not fit ``camera`` (once logged as an error; raised again for every frame of it)."""
         if self._refused is not None and _same_camera(camera, self._refused[0]):
             raise self._refused[1]
-        restarted = self._last_stamp is not None and stamp_ns <= self._last_stamp
+        last = self._last_stamp
+        restarted = last is not None and last - stamp_ns > STEP_BACK_S * 1e9
         recalibrated = self._camera is not None and not _same_camera(camera, self._camera)
-        self._last_stamp = stamp_ns
+        self._last_stamp = stamp_ns if last is None or restarted else max(last, stamp_ns)
         if self.system is None or restarted or recalibrated:
             if self.system is not None:
                 self._node.log.warning("a new map for %s: %s", self._params.camera,
@@ -294,6 +299,9 @@ def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | 
         slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="unusable_frame"))
         node.report("unusable_frame", f"frame {header.seq}: {exc}", where)
         return
+    if result.reason == "out_of_order":
+        node.report("out_of_order", f"frame {header.seq}: stamped {header.stamp_ns} ns, not after an earlier frame",
+                    where)
     slam.publish(header, child, result)
 
 

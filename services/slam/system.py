@@ -19,6 +19,7 @@ import numpy as np
 
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import invert
+from services.slam.calibration_check import check_focal
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
 from services.slam.map import SlamMap
@@ -31,6 +32,12 @@ __all__ = ["FrameResult", "MapFileError", "SlamSettings", "SlamState", "SlamSyst
 
 logger = logging.getLogger(__name__)
 
+STEP_BACK_S = 1.0
+"""A frame stamped no later than the previous one, and at most this many seconds before it, is out of
+order (skipped); one stamped further back is a jump in the sequence, tracked (or relocalised) as usual."""
+CHECK_KEYFRAMES = 5
+"""The camera matrix is checked against the map (``calibration_check``) once, when it holds this many keyframes."""
+
 
 @dataclass(frozen=True)
 class FrameResult:
@@ -38,12 +45,14 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
-    (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
-    without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
-    (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
-    that starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
-    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``total``)."""
+    ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``; a
+    tracked frame's is ``calibration_suspect`` once the camera matrix was found not to fit the map,
+    ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
+    ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
+    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``,
+    ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was mapped inline
+    (included in ``keyframe``), ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost
+    one, ``calibration_check`` on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
 
     state: SlamState
     reason: str
@@ -65,17 +74,29 @@ def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: Sla
     return slam_map
 
 
+def _check_camera(camera: CameraModel) -> None:
+    """ValueError (one line) for a camera matrix SLAM cannot work with: focal lengths not finite and
+    positive, or a principal point outside the image."""
+    fx, fy, cx, cy = (float(v) for v in np.asarray(camera.K, np.float64)[[0, 1, 0, 1], [0, 1, 2, 2]])
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0 and 0 <= cx < camera.width
+            and 0 <= cy < camera.height):
+        raise ValueError(f"camera {camera.name}: fx {fx}, fy {fy} must be positive and the principal point "
+                         f"({cx}, {cy}) within the {camera.width}x{camera.height} image")
+
+
 class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
     (each keyframe is processed before ``process`` returns: deterministic).
 
     ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
-    fit this camera or these settings' pyramid). ``localisation_only``: never change the map.
+    fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
+    lengths or with its principal point outside the image). ``localisation_only``: never change the map.
     ``save_path``: where ``close`` saves the map (None: not saved)."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True,
                  map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
                  save_path: str | os.PathLike[str] | None = None):
+        _check_camera(camera)
         self.camera = camera
         self.settings = settings or SlamSettings()
         s = self.settings
@@ -91,24 +112,39 @@ class SlamSystem:
         self._threaded = mapping_thread
         self._tracked: list[tuple[int, int, np.ndarray]] = []
         """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
+        self._last_stamp: int | None = None
+        self._calibration: str | None = None
+        """"ok", "calibration_suspect", or None before the check."""
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
         """Track one frame: grey (H, W) or BGR(A) (H, W, 3|4), uint8 or uint16, of the camera's size.
-        Never raises on a bad frame: it comes back lost (or initialising) with the reason."""
+        Never raises on a bad frame: it comes back lost (or initialising) with the reason. A frame of the
+        wrong size or type (``bad_image``) or out of order (``out_of_order``, see ``STEP_BACK_S``) is
+        skipped: the tracker does not see it, the next frame goes on from the last one."""
         timings: dict[str, float] = {}
         with stage_timer(timings, "total"):
             if not self._fits(image):
                 tracked = Tracked(self._tracker_state(), "bad_image")
+            elif self._out_of_order(stamp_ns):
+                tracked = Tracked(self._tracker_state(), "out_of_order")
             else:
+                self._last_stamp = stamp_ns
                 with stage_timer(timings, "keypoints"):
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
+            if tracked.keyframe_id is not None and self._calibration is None and len(self.map.keyframes) >= \
+                    CHECK_KEYFRAMES:
+                with stage_timer(timings, "calibration_check"):
+                    self._check_calibration()
         if tracked.T_camera_world is not None:
             self._remember(stamp_ns, tracked.T_camera_world, tracked.keyframe_id)
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
-        return FrameResult(tracked.state, tracked.reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
+        reason = tracked.reason
+        if tracked.state is SlamState.TRACKING and self._calibration == "calibration_suspect":
+            reason = self._calibration
+        return FrameResult(tracked.state, reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
 
     def _remember(self, stamp_ns: int, T_camera_world: np.ndarray, keyframe_id: int | None) -> None:
@@ -121,6 +157,14 @@ class SlamSystem:
             if keyframe is not None:
                 self._tracked.append((stamp_ns, keyframe.id, T_camera_world @ invert(keyframe.T_camera_world)))
 
+    def _check_calibration(self) -> None:
+        check = check_focal(self.map, self.camera.K, (self.camera.width, self.camera.height))
+        if check is None:
+            return
+        self._calibration = "calibration_suspect" if check.suspect else "ok"
+        logger.log(logging.WARNING if check.suspect else logging.INFO, "camera %s: %s%s", self.camera.name,
+                   check.line(), ": the calibration looks wrong, poses are suspect" if check.suspect else "")
+
     def _fits(self, image: np.ndarray) -> bool:
         size = (self.camera.height, self.camera.width)
         good = (isinstance(image, np.ndarray) and image.dtype in (np.uint8, np.uint16) and image.shape[:2] == size
@@ -129,6 +173,13 @@ class SlamSystem:
             logger.warning("frame skipped: expected (%d, %d[, 3|4]) uint8/uint16, got %s %s", *size,
                            getattr(image, "shape", None), getattr(image, "dtype", None))
         return good
+
+    def _out_of_order(self, stamp_ns: int) -> bool:
+        back_s = np.inf if self._last_stamp is None else (self._last_stamp - stamp_ns) * 1e-9
+        skipped = 0 <= back_s <= STEP_BACK_S
+        if skipped:
+            logger.warning("frame skipped: stamped %.3f s before the previous frame (out of order)", back_s)
+        return skipped
 
     def _tracker_state(self) -> SlamState:
         return SlamState.LOST if self.map.keyframes else SlamState.INITIALISING

@@ -140,7 +140,8 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
     fix = orientation_fix(first, alignment)
     jump = feed(system, scene, 1310)
     assert jump.state == SlamState.TRACKING and jump.T_world_camera is not None
-    blank_results = [feed(system, scene, 1311, np.full((480, 640), level, np.uint8)) for level in (0, 128, 255)]
+    blank_results = [feed(system, scene, 1311 + i, np.full((480, 640), level, np.uint8))
+                     for i, level in enumerate((0, 128, 255))]
     assert [(r.state, r.reason, r.T_world_camera) for r in blank_results] == [(SlamState.LOST, "no_texture", None)] * 3
     elsewhere = feed(system, make_scene("room", seed=7), 40)
     assert elsewhere.state == SlamState.LOST and elsewhere.T_world_camera is None
