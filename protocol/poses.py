@@ -58,8 +58,8 @@ class Pose(Message):
 
     ``covariance`` is an optional row-major 6x6 matrix (36 numbers) over the perturbation
     (tx, ty, tz, rx, ry, rz) in the child frame: metres and radians. ``reason``: why a ``lost``
-    pose has none, when the tracker knows (a natural-feature target: ``too_few_matches``, ...),
-    else empty.
+    pose has none, when the tracker knows (a natural-feature target: ``too_few_matches``, ...);
+    on a pose that has one, a warning that qualifies it (SLAM: ``calibration_suspect``); else empty.
 
     Version 3 added the ``recognised`` state and ``reason``; versions 1 and 2 still decode.
     """
