@@ -9,7 +9,7 @@ procedural texture; the north wall (y = +width/2) also carries a chessboard post
 With the ``marker`` option an ArUco marker hangs on the north wall beside the poster (``MARKER_CENTRE_M``),
 on a white sheet a quarter of its side wider on every side, ``MARKER_OFFSET_M`` in front of the wall; its
 frame is ArUco's (origin at its centre, x right, y up, z out of the wall into the room). With seed 0
-the camera sees it whole in frames 48-122 and 190-260 (from two sides of the room) and again from 620.
+the camera sees it whole in frames 45-121 and 191-264 (from two sides of the room), 616-701 and 739-826.
 
 The camera (cam0; the rig is the camera, ``T_rig_camera`` = identity, no distortion) walks
 over the free middle of the room at eye height 1.35 to 1.65 m (above every box), looking
