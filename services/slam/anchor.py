@@ -24,19 +24,21 @@ Two fits (``method``):
   averaged. Each frame's rotation ``R_map_camera R_camera_marker`` is one estimate of the marker's
   orientation in the map; their robust mean (the chordal mean, ``scipy.spatial.transform.Rotation.mean``,
   over the pairs left after trimming to the closest half and then to ``max_rotation_deg``) is the
-  anchor's rotation. The scale is not observable from one frame; the marker's origin ``o`` (map)
-  and ``k = 1 / s`` are solved together, by linear least squares, from every frame's
-  ``o - k R_map_camera t_camera_marker = c_map`` (the camera centre plus the marker's metric offset
-  in map units must land on the same point): a triangulation of the marker's centre whose depth
-  scale is the unknown. It uses the part of a marker pose that is precise: the marker's position
-  in the camera (to a few millimetres), not its orientation, whose error (about a degree for a
-  marker 50 px wide) turns into centimetres on the camera centre at a few metres' distance. It needs
-  parallax: rays to the marker from places apart.
+  anchor's rotation. The scale is not observable from one frame; the marker's origin and the scale
+  are solved together from every frame's ``s o - s c_map = R_map_camera t_camera_marker`` (the camera
+  centre plus the marker's metric offset must land on the same point), linear in ``(s o, s)``, by
+  least squares with each frame's equations whitened by the covariance of the marker's position
+  (from the pose covariance, plus ``pose_std_m`` for the SLAM pose): a triangulation of the
+  marker's centre whose scale is the unknown. It uses the part of a marker pose that is precise,
+  the marker's position in the camera: its bearing to a fraction of a pixel, its distance to a
+  fraction of a percent; not its orientation, whose error (a degree or more for a marker 50 px
+  wide) turns into centimetres on the camera centre at a few metres' distance. Any baseline
+  serves, towards the marker (the distances change) or across (the bearings change).
 * ``"centres"``: Umeyama's closed form with scale (``geometry.absolute_orientation.umeyama_alignment``)
   between the camera centres in the map and in the marker frame (``-R_camera_marker^T t_camera_marker``).
   Simple and standard, but each metric centre carries the marker's orientation error times the
   distance, and the rotation comes from the shape of the path alone (it needs a path that is not
-  a straight line). ``tests/unit/test_slam_anchor.py`` compares the two on the same noisy
+  a straight line: ``min_breadth_m``). ``tests/unit/test_slam_anchor.py`` compares the two on the same noisy
   sightings: ``rays`` is the more accurate in scale, position and rotation.
 
 Refitting: the fit is redone after every accepted pair, over the last ``max_frames`` accepted
@@ -45,8 +47,8 @@ best how the map around the marker relates to metres; a fit over a few hundred p
 a few milliseconds. An anchor is reported once the inliers number ``min_frames`` and their camera
 centres, the SLAM ones carried into the marker frame by the fit (more precise than the marker poses'),
 spread over ``min_baseline_m`` (twice their RMS distance from their mean: two places ``b`` apart give
-``b``) with rays to the marker ``min_parallax_deg`` apart (twice the RMS angle of the marker-to-camera
-directions from their mean).
+``b``); for ``centres`` also across their main direction over ``min_breadth_m`` (twice their RMS
+distance from their best line).
 
 All frames are OpenCV camera frames and ArUco marker frames (x right, y up, z out of the marker);
 ``T_a_b`` maps b coordinates into a.
@@ -84,7 +86,7 @@ class AnchorSettings:
     pose_std_m: float = 0.005
     min_frames: int = 20
     min_baseline_m: float = 0.3
-    min_parallax_deg: float = 5.0
+    min_breadth_m: float = 0.2
     max_frames: int = 900
 
     def __post_init__(self) -> None:
@@ -95,8 +97,8 @@ class AnchorSettings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"anchor setting {name}={getattr(self, name)!r}: must be > 0")
-        if not (self.min_baseline_m >= 0 and self.min_parallax_deg >= 0):
-            raise ValueError("anchor settings min_baseline_m and min_parallax_deg must be >= 0")
+        if not (self.min_baseline_m >= 0 and self.min_breadth_m >= 0):
+            raise ValueError("anchor settings min_baseline_m and min_breadth_m must be >= 0")
         if not 3 <= self.min_frames <= self.max_frames:
             raise ValueError(f"anchor settings need 3 <= min_frames <= max_frames, got {self.min_frames} and "
                              f"{self.max_frames}")
@@ -130,7 +132,8 @@ class AnchorStatus(StrEnum):
     ANCHORED = "anchored"
     TOO_FEW_FRAMES = "too_few_frames"
     SHORT_BASELINE = "short_baseline"
-    LOW_PARALLAX = "low_parallax"
+    COLLINEAR = "collinear"
+    """``centres`` only: the camera centres lie too close to one line for the rotation."""
     INCONSISTENT = "inconsistent"
     """Enough pairs, but fewer than ``min_frames`` of them agree with the fit."""
 
@@ -143,7 +146,7 @@ class Anchor:
     ``scale``: ``s``, metres per map unit; ``frames``: inlier pairs used; ``outliers``: kept pairs left
     out as inconsistent; ``residual_m``: RMS position residual of the inliers (metres; for ``rays`` the
     marker's centre, for ``centres`` the camera's); ``rotation_residual_deg``: RMS angle between each
-    inlier's marker orientation and the fitted one; ``baseline_m``, ``parallax_deg``: as the settings
+    inlier's marker orientation and the fitted one; ``baseline_m``, ``breadth_m``: as the settings
     define them, over the inliers.
     """
 
@@ -154,7 +157,7 @@ class Anchor:
     residual_m: float
     rotation_residual_deg: float
     baseline_m: float
-    parallax_deg: float
+    breadth_m: float
 
     @property
     def similarity(self) -> Similarity:
@@ -240,35 +243,33 @@ class MarkerAnchor:
         pairs = Pair(*(np.array([getattr(pair, name) for pair in self._pairs]) for name in Pair.__dataclass_fields__))
         max_angle = np.radians(s.max_rotation_deg)
         inliers = rotation_inliers(pairs.R_map_marker, max_angle)
-        fit = None
-        for _ in range(4):
-            if inliers.sum() < s.min_frames:
-                break
-            fit = self._fit(pairs, inliers)
+        if inliers.sum() < s.min_frames:
+            self.status = AnchorStatus.INCONSISTENT
+            return None
+        fit = self._fit(pairs, inliers)
+        baseline, breadth = extents(fit.s * pairs.c_map[inliers])
+        if baseline < s.min_baseline_m:
+            self.status = AnchorStatus.SHORT_BASELINE
+            return None
+        if s.method == "centres" and breadth < s.min_breadth_m:
+            self.status = AnchorStatus.COLLINEAR
+            return None
+        for _ in range(3):
             bound = max(s.min_outlier_m, s.outlier_factor * float(np.median(fit.residual_m[inliers])))
             kept = (fit.residual_m <= bound) & (fit.angle_rad <= max_angle)
             if np.array_equal(kept, inliers):
                 break
             inliers = kept
-        if fit is None or inliers.sum() < s.min_frames:
-            self.status = AnchorStatus.INCONSISTENT
-            return None
-        centres = fit.s * pairs.c_map[inliers] @ fit.R.T + fit.t
-        baseline = 2 * rms(centres - centres.mean(axis=0))
-        directions = centres / np.linalg.norm(centres, axis=1, keepdims=True)
-        mean_direction = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
-        parallax = 2 * np.degrees(rms(np.arccos(np.clip(directions @ mean_direction, -1.0, 1.0))))
-        if baseline < s.min_baseline_m:
-            self.status = AnchorStatus.SHORT_BASELINE
-            return None
-        if parallax < s.min_parallax_deg:
-            self.status = AnchorStatus.LOW_PARALLAX
-            return None
+            if inliers.sum() < s.min_frames:
+                self.status = AnchorStatus.INCONSISTENT
+                return None
+            fit = self._fit(pairs, inliers)
+        baseline, breadth = extents(fit.s * pairs.c_map[inliers])
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = fit.s * fit.R, fit.t
         self.status = AnchorStatus.ANCHORED
         self.anchor = Anchor(T, fit.s, int(inliers.sum()), int((~inliers).sum()), rms(fit.residual_m[inliers]),
-                             float(np.degrees(rms(fit.angle_rad[inliers]))), float(baseline), float(parallax))
+                             float(np.degrees(rms(fit.angle_rad[inliers]))), baseline, breadth)
         return self.anchor
 
     def _fit(self, pairs: Pair, used: np.ndarray) -> Fit:
@@ -310,6 +311,13 @@ def rotation_inliers(R: np.ndarray, max_angle: float) -> np.ndarray:
     closest = angles <= np.median(angles)
     mean = Rotation.from_matrix(R[closest]).mean().as_matrix()
     return angles_to(R, mean) <= max_angle
+
+
+def extents(centres: np.ndarray) -> tuple[float, float]:
+    """``(baseline, breadth)`` of (N, 3) camera centres: twice their RMS distance from their mean, and from
+    their best line."""
+    spread = np.linalg.svd(centres - centres.mean(axis=0), compute_uv=False) / np.sqrt(len(centres))
+    return 2 * float(np.linalg.norm(spread)), 2 * float(np.linalg.norm(spread[1:]))
 
 
 def rms(values: np.ndarray) -> float:

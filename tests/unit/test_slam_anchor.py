@@ -125,7 +125,7 @@ def test_noisy_sightings_give_scale_within_half_a_percent(seed):
     assert anchor.status == AnchorStatus.ANCHORED and anchor.anchor is not None
     assert answers[None] > 100 and answers.get(Refusal.AMBIGUOUS, 0) > 0
     assert abs(scale) < 0.5 and rotation < 0.3 and rmse < 0.015 and rotation_rms < 0.3
-    assert anchor.anchor.baseline_m > 0.8 and anchor.anchor.parallax_deg > 9
+    assert anchor.anchor.baseline_m > 0.8 and anchor.anchor.breadth_m > 0.3
 
 
 def test_rays_are_more_accurate_than_camera_centres():
@@ -154,19 +154,38 @@ def test_too_little_baseline_is_refused():
     assert few.status == AnchorStatus.TOO_FEW_FRAMES
 
 
+def add_exact(anchor: MarkerAnchor, world_poses: list[np.ndarray]) -> None:
+    """Add exact sightings of the marker from cameras at ``world_poses`` (``T_world_camera``)."""
+    to_map = Similarity(WORLD_FROM_MAP.R.T, -WORLD_FROM_MAP.R.T @ WORLD_FROM_MAP.t / METRES_PER_UNIT,
+                        1 / METRES_PER_UNIT)
+    for T in world_poses:
+        T_camera_marker = invert(T) @ scene().T_world_marker
+        sighting = MarkerSighting(T_camera_marker, 0.1, False, np.diag([1e-6, 1e-6, 1e-4, 1e-4, 1e-4, 1e-4]))
+        assert anchor.add(apply_similarity(to_map, T[None])[0], sighting) is None
+
+
 def test_turning_on_the_spot_is_refused():
     """A camera that only turns: rays from one place, whatever the number of frames."""
-    room = scene()
-    T_world_camera = room.camera_pose(90)
-    turns = [T_world_camera @ make_transform(matrix_from_rotvec([0.0, a, 0.0]), np.zeros(3))
-             for a in np.radians(np.linspace(-6, 6, 40))]
+    T_world_camera = scene().camera_pose(90)
     anchor = MarkerAnchor()
-    for T in turns:
-        T_camera_marker = invert(T) @ room.T_world_marker
-        T_map_camera = apply_similarity(Similarity(WORLD_FROM_MAP.R.T, -WORLD_FROM_MAP.R.T @ WORLD_FROM_MAP.t
-                                                   / METRES_PER_UNIT, 1 / METRES_PER_UNIT), T[None])[0]
-        assert anchor.add(T_map_camera, MarkerSighting(T_camera_marker, 0.1, False, np.eye(6) * 1e-6)) is None
+    add_exact(anchor, [T_world_camera @ make_transform(matrix_from_rotvec([0.0, a, 0.0]), np.zeros(3))
+                       for a in np.radians(np.linspace(-6, 6, 40))])
     assert anchor.status == AnchorStatus.SHORT_BASELINE and anchor.anchor is None
+
+
+def test_walking_straight_at_the_marker_serves_rays_not_centres():
+    """Camera centres on one line towards the marker: the distances give the scale, the per-frame marker
+    orientations the rotation; Umeyama on the centres cannot tell the rotation about that line."""
+    T_world_camera = scene().camera_pose(90)
+    towards = scene().T_world_marker[:3, 3] - T_world_camera[:3, 3]
+    steps = [make_transform(T_world_camera[:3, :3], T_world_camera[:3, 3] + f * towards)
+             for f in np.linspace(0.0, 0.3, 40)]
+    rays, centres = MarkerAnchor(), MarkerAnchor(AnchorSettings(method="centres"))
+    add_exact(rays, steps)
+    add_exact(centres, steps)
+    assert rays.anchor is not None and abs(rays.anchor.scale / METRES_PER_UNIT - 1) < 1e-9
+    assert rays.anchor.breadth_m < 1e-6 < 0.5 < rays.anchor.baseline_m
+    assert centres.status == AnchorStatus.COLLINEAR and centres.anchor is None
 
 
 def test_bad_sightings_are_refused():
@@ -227,6 +246,7 @@ def test_refits_over_the_newest_pairs():
     ({"min_frames": 2}, "min_frames <= max_frames"),
     ({"min_frames": 50, "max_frames": 40}, "min_frames <= max_frames"),
     ({"min_baseline_m": -1.0}, "min_baseline_m"),
+    ({"min_breadth_m": -1.0}, "min_breadth_m"),
 ])
 def test_bad_settings_are_refused(settings, message):
     with pytest.raises(ValueError, match=message):
