@@ -46,11 +46,20 @@ point-to-point transfer error two."""
 def fit_essential(pixels_a: np.ndarray, pixels_b: np.ndarray, K: np.ndarray, threshold_px: float,
                   confidence: float) -> tuple[np.ndarray | None, np.ndarray]:
     """``(E_b_a (3, 3) or None, inliers (N,) bool)`` by USAC (``ESSENTIAL_METHOD``); ``threshold_px``
-    bounds a match's distance to its epipolar line. None (and no inliers) when nothing was found."""
+    bounds a match's distance to its epipolar line. None (and no inliers) when nothing was found.
+
+    USAC is given normalised coordinates (``K^-1`` applied, the threshold divided by the focal
+    length): with pixels and KITTI's ``K`` (1226 x 370 px, principal point 10 px left of the centre)
+    OpenCV 5.0's USAC essential estimators returned nothing on 384 good matches, which plain
+    RANSAC fitted with 328 inliers; in normalised coordinates USAC found 362."""
     if len(pixels_a) < 5:
         return None, np.zeros(len(pixels_a), bool)
-    E, mask = cv2.findEssentialMat(pixels_a, pixels_b, K, method=ESSENTIAL_METHOD, prob=confidence,
-                                   threshold=threshold_px, maxIters=MAX_ITERATIONS)
+    K_inv = np.linalg.inv(K)
+    normalised_a = pixels_a @ K_inv[:2, :2].T + K_inv[:2, 2]
+    normalised_b = pixels_b @ K_inv[:2, :2].T + K_inv[:2, 2]
+    E, mask = cv2.findEssentialMat(normalised_a, normalised_b, np.eye(3), method=ESSENTIAL_METHOD, prob=confidence,
+                                   threshold=threshold_px / float(np.sqrt(K[0, 0] * K[1, 1])),
+                                   maxIters=MAX_ITERATIONS)
     if E is None or E.shape[0] < 3 or mask is None:
         return None, np.zeros(len(pixels_a), bool)
     return E[:3], mask.ravel().astype(bool)

@@ -1,7 +1,7 @@
 """``python -m tests.bench [NAME ...]``: run the benchmarks named (all when none is), print one JSON
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
-``keypoints``, ``features``, ``features_bus``, ``stereo``.
+``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -17,7 +17,8 @@ accuracy against ground truth, blob detection per frame (``blobs``), keypoint de
 (``keypoints``), image-target recognition and tracking per frame on one core against OpenCV's
 per-frame recipe (``features``), the same frames' poses over the bus against in process
 (``features_bus``) and stereo tracking's stages
-in one process against the live pipeline at motion-capture rates (``stereo``) (each module's
+in one process against the live pipeline at motion-capture rates (``stereo``), and SLAM's bundle
+adjustment and pose refinement on synthetic problems (``slam``) (each module's
 docstring says what it measures).
 Progress goes to stderr.
 """
@@ -48,6 +49,7 @@ from tests.bench.recorder import bench_recorder
 from tests.bench.routing import bench_routing
 from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
+from tests.bench.slam import bench_slam
 from tests.bench.stereo import bench_stereo
 from tests.bench.traffic import (
     ImageCase,
@@ -110,7 +112,7 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "transport": transport_bench, "codec": bench_codec, "routing": bench_routing, "scenes": bench_scenes,
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
     "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "features": bench_features,
-    "features_bus": bench_features_bus, "stereo": bench_stereo,
+    "features_bus": bench_features_bus, "stereo": bench_stereo, "slam": bench_slam,
 }
 
 

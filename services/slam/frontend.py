@@ -1,0 +1,314 @@
+"""Tracking: the camera pose of every frame against the map, and the decision to make it a keyframe.
+
+Until a map exists, a reference frame is matched by descriptor with each new frame (each keypoint
+with the keypoints within a window around its pixel on a neighbouring level) and handed to
+``services.slam.initialisation.initialise``; the first accepted pair makes the map's first two
+keyframes and points (scaled so that their median depth is 1). The reference frame is replaced
+when it is ``reference_max_age`` frames old, or when it shares too few matches with the new one.
+
+Then, for each frame (as ORB-SLAM does):
+
+1. Predict the pose with a constant-velocity model and search the last frame's points by
+   projection around it (``projection``), with a wider window when too few are found; refine the
+   pose on those matches (robust, pose only).
+2. When that fails (too few matches or inliers: after a gap, a jerk, or frames ~1 s apart), match
+   the frame's descriptors with the points of the local map (all the map's points when the last
+   frame was lost) and solve PnP with RANSAC (``cv2.solvePnPRansac``, SQPNP), then refine.
+3. Search the local map (the points of the keyframes observing the matched points and of their
+   best covisible keyframes) by projection with the refined pose, and refine again on all matches.
+
+Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import cv2
+import numpy as np
+
+from services.geometry.camera import CameraModel
+from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
+from services.geometry.se3 import make_transform
+from services.slam.features import FrameFeatures
+from services.slam.initialisation import initialise
+from services.slam.map import PointArrays, SlamMap
+from services.slam.mapping import LocalMapper, need_keyframe
+from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
+from services.slam.optimisation import refine_pose
+from services.slam.projection import project_points, search_projected
+from services.slam.settings import SlamSettings
+from services.slam.timing import stage_timer
+
+__all__ = ["SlamState", "Tracked", "Tracker"]
+
+
+class SlamState(StrEnum):
+    """Where the tracker is: no map yet, tracking the map, or lost."""
+
+    INITIALISING = "initialising"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """One frame's outcome: ``state``; ``reason`` ("" when tracking); ``T_camera_world`` (4, 4) or None;
+    ``tracked`` map points kept as inliers; ``rms_px`` their reprojection RMS (NaN without a pose);
+    ``keyframe_id`` when the frame became a keyframe."""
+
+    state: SlamState
+    reason: str
+    T_camera_world: np.ndarray | None = None
+    tracked: int = 0
+    rms_px: float = float("nan")
+    keyframe_id: int | None = None
+
+
+@dataclass
+class _Frame:
+    """A frame the tracker remembers: ``index`` counts frames; ``point_ids`` (N,) int64 per keypoint."""
+
+    index: int
+    stamp_ns: int
+    features: FrameFeatures
+    T_camera_world: np.ndarray
+    point_ids: np.ndarray
+
+
+class Tracker:
+    """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper``."""
+
+    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: LocalMapper):
+        self.K = np.asarray(camera.K, np.float64)
+        self.size = (camera.width, camera.height)
+        self.settings = settings
+        self.map = slam_map
+        self.mapper = mapper
+        self._index = -1
+        self._reference: _Frame | None = None
+        self._last: _Frame | None = None
+        self._velocity: tuple[np.ndarray, float] | None = None
+        """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
+        self._lost = 0
+        self._reference_keyframe = -1
+        self._last_keyframe_stamp = 0
+
+    def track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
+        """The outcome of one frame's ``features``; adds the stages' milliseconds to ``timings``."""
+        self._index += 1
+        started = self.map.keyframes and self._last is not None
+        if len(features) < self.settings.min_tracked:
+            self._lost += int(bool(started))
+            return Tracked(SlamState.LOST if started else SlamState.INITIALISING, "no_texture")
+        if not started:
+            return self._initialise(stamp_ns, features, timings)
+        return self._track(stamp_ns, features, timings)
+
+    def _initialise(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
+        s = self.settings
+        frame = _Frame(self._index, stamp_ns, features, np.eye(4), np.full(len(features), -1, np.int64))
+        reference = self._reference
+        if reference is None or self._index - reference.index > s.reference_max_age:
+            self._reference = frame
+            return Tracked(SlamState.INITIALISING, "new_reference")
+        with stage_timer(timings, "match"):
+            first = reference.features
+            a, b = search_by_projection(first.pixels, np.full(len(first), s.init_window_px), first.levels,
+                                        first.descriptors, features.pixels, features.levels, features.descriptors,
+                                        np.ones(len(features), bool), s.match_max_distance, s.init_ratio)
+            consistent = rotation_consistent(reference.features.angles[a], features.angles[b])
+            a, b = a[consistent], b[consistent]
+        with stage_timer(timings, "pose"):
+            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
+        if found.state == "too_few_matches":
+            self._reference = frame
+        if not found.initialised or found.T_second_first is None:
+            return Tracked(SlamState.INITIALISING, found.state.value)
+        if int(found.inliers.sum()) < s.init_min_points:
+            return Tracked(SlamState.INITIALISING, "too_few_points")
+        with stage_timer(timings, "mapping"):
+            keyframe_id = self._start_map(reference, frame, a[found.inliers], b[found.inliers],
+                                          found.points[found.inliers], found.T_second_first)
+        if keyframe_id is None:
+            self._reference = frame
+            return Tracked(SlamState.INITIALISING, "too_few_points")
+        last = self._last
+        assert last is not None
+        tracked = int(np.count_nonzero(last.point_ids >= 0))
+        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), tracked, 0.0, keyframe_id)
+
+    def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
+                   T_second_first: np.ndarray) -> int | None:
+        """The map's first two keyframes and points (median depth scaled to 1, then bundle adjusted);
+        the second keyframe's id, or None (map cleared) when too few points survive."""
+        scale = 1.0 / float(np.median(points[:, 2]))
+        T = T_second_first.copy()
+        T[:3, 3] *= scale
+        first = self.map.add_keyframe(reference.stamp_ns, np.eye(4), reference.features, reference.point_ids)
+        second = self.map.add_keyframe(frame.stamp_ns, T, frame.features, frame.point_ids)
+        for point, i, j in zip(points * scale, a, b, strict=True):
+            self.map.add_point(point, {first.id: int(i), second.id: int(j)})
+        self.mapper.adjust_initial_map(first.id, second.id)
+        if len(self.map.points) < self.settings.init_min_points:
+            self.map.clear()
+            return None
+        frame.T_camera_world = second.T_camera_world.copy()
+        frame.point_ids = second.point_ids.copy()
+        self._last = frame
+        self._velocity = None
+        self._reference_keyframe = second.id
+        self._last_keyframe_stamp = frame.stamp_ns
+        return second.id
+
+    def _track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
+        last = self._last
+        assert last is not None
+        point_ids = np.full(len(features), -1, np.int64)
+        found = None
+        if self._lost == 0:
+            T = self._follow_motion(last, stamp_ns, features, point_ids, timings)
+            if T is not None:
+                with stage_timer(timings, "local_map"):
+                    found = self._track_local_map(T, features, point_ids)
+        if found is None:
+            point_ids[:] = -1
+            T = self._relocate(last, features, point_ids, timings)
+            if T is not None:
+                with stage_timer(timings, "local_map"):
+                    found = self._track_local_map(T, features, point_ids)
+        if found is None:
+            self._lost += 1
+            return Tracked(SlamState.LOST, "too_few_matches")
+        T, rms = found
+        tracked = int(np.count_nonzero(point_ids >= 0))
+        dt = (stamp_ns - last.stamp_ns) * 1e-9
+        self._velocity = (T @ np.linalg.inv(last.T_camera_world), dt) if self._lost == 0 and dt > 0 else None
+        self._lost = 0
+        frame = _Frame(self._index, stamp_ns, features, T, point_ids)
+        self._last = frame
+        keyframe_id = None
+        with stage_timer(timings, "keyframe"):
+            if self._wants_keyframe(frame, tracked):
+                keyframe_id = self._insert_keyframe(frame)
+        return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
+
+    def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
+                       timings: dict[str, float]) -> np.ndarray | None:
+        """The pose refined from the last frame's points found around the constant-velocity prediction
+        (the last motion scaled to this frame's time step); None with too few. Fills ``point_ids``."""
+        s = self.settings
+        with stage_timer(timings, "match"):
+            predicted = last.T_camera_world
+            if self._velocity is not None:
+                delta, dt = self._velocity
+                ratio = (stamp_ns - last.stamp_ns) * 1e-9 / dt
+                rotation = matrix_from_rotvec(rotvec_from_matrix(delta[:3, :3]) * ratio)
+                predicted = make_transform(rotation, delta[:3, 3] * ratio) @ last.T_camera_world
+            points, rows, keypoints = self._search_last(last, features, predicted)
+        if len(rows) < s.min_motion_matches:
+            return None
+        with stage_timer(timings, "pose"):
+            refined = refine_pose(self.K, predicted, points.positions[rows], features.pixels[keypoints],
+                                  features.sigmas[keypoints])
+        if np.count_nonzero(refined.inliers) < s.min_motion_matches:
+            return None
+        point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
+        return refined.T_camera_world
+
+    def _search_last(self, last: _Frame, features: FrameFeatures,
+                     T: np.ndarray) -> tuple[PointArrays, np.ndarray, np.ndarray]:
+        """The last frame's points, and ``(rows, keypoints)`` of those found around the predicted pose."""
+        s = self.settings
+        seen = np.flatnonzero(last.point_ids >= 0)
+        points = self.map.arrays(last.point_ids[seen])
+        seen = seen[np.isin(last.point_ids[seen], points.ids)]
+        projected = project_points(points, T, self.K, self.size, self.map.scale_factor, self.map.levels)
+        available = np.ones(len(features), bool)
+        for window in (s.motion_window_px, 2 * s.motion_window_px):
+            rows, keypoints = search_projected(points, projected, features, available, window, self.map.scale_factor,
+                                               s.projection_max_distance, s.motion_ratio)
+            consistent = rotation_consistent(last.features.angles[seen[rows]], features.angles[keypoints])
+            rows, keypoints = rows[consistent], keypoints[consistent]
+            if len(rows) >= s.min_motion_matches:
+                break
+        return points, rows, keypoints
+
+    def _relocate(self, last: _Frame, features: FrameFeatures, point_ids: np.ndarray,
+                  timings: dict[str, float]) -> np.ndarray | None:
+        """A pose from descriptor matches with the local map of the last tracked frame (the whole map
+        after a lost frame) by PnP RANSAC then refinement; None when too few inliers. Fills ``point_ids``."""
+        s = self.settings
+        with stage_timer(timings, "match"):
+            if self._lost:
+                candidates = np.array(sorted(self.map.points), np.int64)
+            else:
+                keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
+                candidates = self.map.points_of(keyframes)
+            points = self.map.arrays(candidates)
+            rows, keypoints = match_descriptors(points.descriptors, features.descriptors, s.match_max_distance,
+                                                s.match_ratio)
+        if len(rows) < s.pnp_min_inliers:
+            return None
+        with stage_timer(timings, "pose"):
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(points.positions[rows], features.pixels[keypoints], self.K,
+                                                         None, reprojectionError=s.pnp_threshold_px,
+                                                         iterationsCount=300, confidence=0.999,
+                                                         flags=cv2.SOLVEPNP_SQPNP)
+            if not ok or inliers is None or len(inliers) < s.pnp_min_inliers:
+                return None
+            inliers = inliers.ravel()
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+            rows, keypoints = rows[inliers], keypoints[inliers]
+            refined = refine_pose(self.K, T, points.positions[rows], features.pixels[keypoints],
+                                  features.sigmas[keypoints])
+        if np.count_nonzero(refined.inliers) < s.pnp_min_inliers:
+            return None
+        point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
+        return refined.T_camera_world
+
+    def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
+                         point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """Search the local map's points around pose ``T`` and refine on every match; ``point_ids``
+        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers."""
+        s = self.settings
+        keyframes = self.map.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
+        if keyframes:
+            self._reference_keyframe = keyframes[0]
+        local = self.map.points_of(keyframes)
+        points = self.map.arrays(local[~np.isin(local, point_ids)])
+        projected = project_points(points, T, self.K, self.size, self.map.scale_factor, self.map.levels)
+        rows, keypoints = search_projected(points, projected, features, point_ids < 0, s.local_window_px,
+                                           self.map.scale_factor, s.projection_max_distance, s.local_ratio)
+        point_ids[keypoints] = points.ids[rows]
+        matched = np.flatnonzero(point_ids >= 0)
+        everything = self.map.arrays(point_ids[matched])
+        matched = matched[np.isin(point_ids[matched], everything.ids)]
+        refined = refine_pose(self.K, T, everything.positions, features.pixels[matched], features.sigmas[matched])
+        self.map.count_visible(points.ids[projected.rows])
+        self.map.count_visible(everything.ids, refined.inliers)
+        point_ids[:] = -1
+        point_ids[matched[refined.inliers]] = everything.ids[refined.inliers]
+        if np.count_nonzero(refined.inliers) < s.min_tracked:
+            return None
+        return refined.T_camera_world, float(refined.rms_px)
+
+    def _wants_keyframe(self, frame: _Frame, tracked: int) -> bool:
+        s = self.settings
+        with self.map.lock:
+            reference = self.map.keyframes.get(self._reference_keyframe)
+            least = 2 if len(self.map.keyframes) <= 2 else 3
+            reference_tracked = 0 if reference is None else sum(
+                1 for p in reference.point_ids[reference.point_ids >= 0].tolist()
+                if p in self.map.points and len(self.map.points[p].observations) >= least)
+        return need_keyframe(s, (frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked, reference_tracked,
+                             self.mapper.idle)
+
+    def _insert_keyframe(self, frame: _Frame) -> int:
+        keyframe = self.map.add_keyframe(frame.stamp_ns, frame.T_camera_world, frame.features, frame.point_ids)
+        self._reference_keyframe = keyframe.id
+        self._last_keyframe_stamp = frame.stamp_ns
+        self.mapper.enqueue(keyframe.id)
+        return keyframe.id

@@ -1,0 +1,315 @@
+"""Local mapping: what happens to the map when a keyframe arrives, away from the tracking of frames.
+
+For each new keyframe, in order (ORB-SLAM's local mapping):
+
+1. Cull recent points that failed (``SlamMap.cull_points``).
+2. Triangulate new points between the keyframe's unmatched keypoints and those of its best
+   covisible keyframes: descriptor matches within a chi-square bound of the epipolar line,
+   triangulated (``services.geometry.triangulation.triangulate_many``), kept when in front of both
+   cameras, seen under enough parallax, within a chi-square bound of both observations and at
+   distances that agree with their pyramid levels.
+3. Fuse duplicates: the keyframe's points projected into its neighbours (and theirs into it); a
+   match with a keypoint that has another point merges the two, one without adds an observation.
+4. Local bundle adjustment (``services.slam.optimisation.bundle_adjust``) of the keyframe, its
+   covisible keyframes and their points, every other keyframe observing those points fixed; the
+   observations it finds to be outliers are removed.
+
+``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
+waits for it, or inline in ``enqueue`` (deterministic, for tests).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+
+import numpy as np
+
+from services.geometry.camera import CameraModel
+from services.geometry.camera_stack import CameraStack
+from services.geometry.epipolar import fundamental_matrix
+from services.geometry.se3 import invert
+from services.geometry.triangulation import triangulate_many
+from services.slam.map import Keyframe, SlamMap
+from services.slam.matching import match_descriptors, rotation_consistent
+from services.slam.optimisation import BundleProblem, bundle_adjust
+from services.slam.projection import project_points, search_projected
+from services.slam.settings import SlamSettings
+from services.slam.timing import stage_timer
+
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "need_keyframe", "triangulation_checks"]
+
+logger = logging.getLogger(__name__)
+
+CHI2_ONE_DOF, CHI2_TWO_DOF = 3.841, 5.991
+"""95 % chi-square bounds: an epipolar distance has one degree of freedom, a reprojection error two."""
+MIN_BASELINE_RATIO = 0.01
+"""Keyframes closer than this fraction of the neighbour's median scene depth are not triangulated from."""
+SCALE_SLACK = 1.5
+FUSE_WINDOW_PX = 3.0
+
+
+def need_keyframe(settings: SlamSettings, seconds_since: float, tracked: int, reference_tracked: int,
+                  mapper_idle: bool) -> bool:
+    """Whether a tracked frame becomes a keyframe: it tracks ``tracked`` points where its reference
+    keyframe tracks ``reference_tracked`` well-observed ones, ``seconds_since`` after the last
+    keyframe. Under ``keyframe_ratio`` of the reference's points (new area in view) it does once
+    ``min_keyframe_gap_s`` passed and the mapper is idle, or once ``max_keyframe_gap_s`` passed;
+    and always when nearly lost (under twice ``min_tracked``)."""
+    s = settings
+    if tracked < 2 * s.min_tracked:
+        return True
+    new_area = tracked < s.keyframe_ratio * reference_tracked
+    due = seconds_since >= s.max_keyframe_gap_s or (seconds_since >= s.min_keyframe_gap_s and mapper_idle)
+    return new_area and due
+
+
+def triangulation_checks(points: np.ndarray, centres: np.ndarray, residuals: np.ndarray, depths: np.ndarray,
+                         sigmas: np.ndarray, min_parallax_deg: float) -> np.ndarray:
+    """(N,) bool: which of N points triangulated from two views are kept.
+
+    ``points`` (N, 3) world; ``centres`` (2, 3) the two camera centres; ``residuals`` (N, 2, 2)
+    observed - projected px; ``depths`` (N, 2); ``sigmas`` (N, 2) px per observation (their level
+    scale). Kept: finite, in front of both cameras, rays at least ``min_parallax_deg`` apart, each
+    reprojection within ``CHI2_TWO_DOF`` sigma^2, and distances to the two cameras in a ratio within
+    ``SCALE_SLACK`` of the ratio of the two levels' scales."""
+    finite = np.all(np.isfinite(points), axis=1)
+    safe = np.where(finite[:, None], points, 0.0)
+    rays = safe[:, None, :] - centres[None]
+    lengths = np.linalg.norm(rays, axis=2)
+    cos = np.sum(rays[:, 0] * rays[:, 1], axis=1) / np.maximum(lengths[:, 0] * lengths[:, 1], 1e-300)
+    chi2 = np.sum(residuals**2, axis=2) / sigmas**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance_ratio = lengths[:, 0] / lengths[:, 1]
+        level_ratio = sigmas[:, 0] / sigmas[:, 1]
+        scale_ok = (distance_ratio * SCALE_SLACK >= level_ratio) & (distance_ratio <= level_ratio * SCALE_SLACK)
+        in_front = np.all(depths > 0, axis=1)
+    return (finite & in_front & (cos < np.cos(np.radians(min_parallax_deg))) & np.all(chi2 < CHI2_TWO_DOF, axis=1)
+            & scale_ok)
+
+
+class LocalMapper:
+    """Processes new keyframes of ``slam_map`` (a camera of intrinsics ``K`` (3, 3), undistorted)."""
+
+    def __init__(self, slam_map: SlamMap, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
+                 threaded: bool):
+        self.map = slam_map
+        self.K = np.asarray(K, np.float64)
+        self.size = size
+        self.settings = settings
+        self.timings_ms: dict[str, float] = {}
+        self._queue: queue.Queue[int | None] = queue.Queue()
+        self._busy = threading.Event()
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
+            self._thread.start()
+
+    @property
+    def idle(self) -> bool:
+        """No keyframe waiting or being processed."""
+        return self._queue.empty() and not self._busy.is_set()
+
+    def enqueue(self, keyframe_id: int) -> None:
+        """Hand over a new keyframe: queued for the thread, or processed at once without one."""
+        if self._thread is None:
+            self.process(keyframe_id)
+        else:
+            self._busy.set()
+            self._queue.put(keyframe_id)
+
+    def close(self) -> None:
+        """Stop the thread after the keyframes already queued."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+
+    def _run(self) -> None:
+        while (keyframe_id := self._queue.get()) is not None:
+            self._busy.set()
+            try:
+                self.process(keyframe_id)
+            except Exception:
+                logger.exception("local mapping failed on keyframe %d; the map stays as it was", keyframe_id)
+            finally:
+                if self._queue.empty():
+                    self._busy.clear()
+
+    def process(self, keyframe_id: int) -> None:
+        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``."""
+        s = self.settings
+        timings: dict[str, float] = {}
+        with stage_timer(timings, "cull"):
+            self.map.cull_points(keyframe_id, s.cull_found_ratio, s.cull_min_observations, probation=3)
+        with stage_timer(timings, "triangulate"):
+            self.triangulate(keyframe_id)
+        with stage_timer(timings, "fuse"):
+            self.fuse(keyframe_id)
+        with stage_timer(timings, "bundle_adjustment"):
+            with self.map.lock:
+                window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
+            self.adjust(window)
+        self.timings_ms = timings
+
+    def adjust_initial_map(self, first: int, second: int) -> None:
+        """Bundle adjust the map's first two keyframes and points (the first fixed, and the scale)."""
+        self.adjust([first, second])
+
+    def adjust(self, window: list[int]) -> None:
+        """Local bundle adjustment of the keyframes ``window`` and every point they observe; the other
+        keyframes observing those points stay fixed (and the map's first keyframe: with fewer than two
+        fixed, the scale is held too). Outlier observations are removed afterwards."""
+        s = self.settings
+        with self.map.lock:
+            problem = self._problem(window)
+        if problem is None:
+            return
+        try:
+            result = bundle_adjust(problem, max_iterations=s.ba_iterations, fix_scale=len(problem.fixed) < 2)
+        except ValueError as error:
+            logger.warning("local bundle adjustment skipped: %s", error)
+            return
+        with self.map.lock:
+            for keyframe_id, T in result.poses.items():
+                if keyframe_id not in problem.fixed and keyframe_id in self.map.keyframes:
+                    self.map.set_pose(keyframe_id, T)
+            for point_id, position in result.points.items():
+                self.map.set_position(point_id, position)
+            for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
+                                             problem.point_ids[result.outliers].tolist(), strict=True):
+                self.map.remove_observation(point_id, keyframe_id)
+
+    def _problem(self, window: list[int]) -> BundleProblem | None:
+        """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
+        frame_ids, point_ids, pixels, sigmas = [], [], [], []
+        poses: dict[int, np.ndarray] = {}
+        points: dict[int, np.ndarray] = {}
+        for point_id in self.map.points_of(window).tolist():
+            point = self.map.points[point_id]
+            points[point_id] = point.position.copy()
+            for keyframe_id, index in point.observations.items():
+                keyframe = self.map.keyframes[keyframe_id]
+                frame_ids.append(keyframe_id)
+                point_ids.append(point_id)
+                pixels.append(keyframe.features.pixels[index])
+                sigmas.append(keyframe.features.sigmas[index])
+                poses.setdefault(keyframe_id, keyframe.T_camera_world.copy())
+        if not points:
+            return None
+        fixed = (set(poses) - set(window)) | ({min(self.map.keyframes)} & set(poses))
+        if not fixed:
+            fixed = {min(poses)}
+        return BundleProblem(K=self.K, poses=poses, points=points, frame_ids=np.array(frame_ids, np.int64),
+                             point_ids=np.array(point_ids, np.int64), pixels=np.array(pixels, np.float64),
+                             fixed=frozenset(fixed), sigmas=np.array(sigmas, np.float64))
+
+    def triangulate(self, keyframe_id: int) -> int:
+        """New points between keyframe ``keyframe_id`` and its best covisible keyframes; how many."""
+        s = self.settings
+        made = 0
+        for neighbour_id in self.map.covisible(keyframe_id, s.triangulation_neighbours):
+            with self.map.lock:
+                keyframe, neighbour = self.map.keyframes[keyframe_id], self.map.keyframes.get(neighbour_id)
+                if neighbour is None:
+                    continue
+                pair = _Pair(keyframe, neighbour, self.map)
+            if not pair.wide_enough():
+                continue
+            a, b = self._epipolar_matches(pair)
+            if len(a) == 0:
+                continue
+            cameras = [CameraModel(str(k.id), 0, 0, self.K, np.zeros(5), invert(k.T_camera_world))
+                       for k in (keyframe, neighbour)]
+            stack = CameraStack.of(cameras)
+            pixels = np.stack([keyframe.features.pixels[a], neighbour.features.pixels[b]], axis=1)
+            found = triangulate_many(stack, pixels, np.ones((len(a), 2), bool), 1.0, ideal=pixels)
+            sigmas = np.stack([keyframe.features.sigmas[a], neighbour.features.sigmas[b]], axis=1)
+            centres = np.array([keyframe.centre, neighbour.centre])
+            with np.errstate(invalid="ignore"):
+                depths = stack.depths(np.nan_to_num(found.points))
+            kept = triangulation_checks(found.points, centres, found.residuals, depths, sigmas, s.min_parallax_deg)
+            with self.map.lock:
+                for i, j, point in zip(a[kept], b[kept], found.points[kept], strict=True):
+                    if keyframe.point_ids[i] < 0 and neighbour.point_ids[j] < 0:
+                        self.map.add_point(point, {keyframe.id: int(i), neighbour.id: int(j)})
+                        made += 1
+        return made
+
+    def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
+        """``(keypoints of the keyframe, keypoints of the neighbour)``: unmatched keypoint pairs whose
+        descriptors match (distance, ratio, one per keypoint, consistent orientation), the neighbour's
+        keypoint within the one-degree-of-freedom chi-square bound (its level's sigma) of the epipolar
+        line of the keyframe's."""
+        s = self.settings
+        first, second = pair.keyframe.features, pair.neighbour.features
+        free_a = np.flatnonzero(pair.keyframe.point_ids < 0)
+        free_b = np.flatnonzero(pair.neighbour.point_ids < 0)
+        if len(free_a) == 0 or len(free_b) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
+        epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
+        bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
+        allowed = (epipolar < bounds[None]).view(np.uint8)
+        a, b = match_descriptors(first.descriptors[free_a], second.descriptors[free_b],
+                                 s.triangulation_max_distance, s.triangulation_ratio, allowed)
+        a, b = free_a[a], free_b[b]
+        consistent = rotation_consistent(first.angles[a], second.angles[b])
+        return a[consistent], b[consistent]
+
+    def fuse(self, keyframe_id: int) -> int:
+        """Merge the keyframe's points with duplicates in its covisible keyframes, both ways; how many
+        observations were merged or added."""
+        s = self.settings
+        changed = 0
+        neighbours = self.map.covisible(keyframe_id, s.triangulation_neighbours)
+        for source, target in [(keyframe_id, n) for n in neighbours] + [(n, keyframe_id) for n in neighbours]:
+            with self.map.lock:
+                if source not in self.map.keyframes or target not in self.map.keyframes:
+                    continue
+                points = self.map.arrays(self.map.points_of([source]))
+                keyframe = self.map.keyframes[target]
+                T, features, owners = keyframe.T_camera_world.copy(), keyframe.features, keyframe.point_ids.copy()
+            points = self.map.arrays(points.ids[~np.isin(points.ids, owners)])
+            projected = project_points(points, T, self.K, self.size, self.map.scale_factor, self.map.levels)
+            rows, keypoints = search_projected(points, projected, features, np.ones(len(features), bool),
+                                               FUSE_WINDOW_PX, self.map.scale_factor, s.triangulation_max_distance,
+                                               1.0)
+            with self.map.lock:
+                for point_id, index in zip(points.ids[rows].tolist(), keypoints.tolist(), strict=True):
+                    if point_id not in self.map.points or target in self.map.points[point_id].observations:
+                        continue
+                    owner = int(keyframe.point_ids[index])
+                    if owner < 0:
+                        self.map.add_observation(point_id, target, index)
+                    elif owner in self.map.points:
+                        kept, merged = sorted((owner, point_id),
+                                              key=lambda p: -len(self.map.points[p].observations))
+                        self.map.merge_points(kept, merged)
+                    changed += 1
+        return changed
+
+
+def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
+    """(Na, Nb) px distance from each of (Nb, 2) ``pixels_b`` to the epipolar line in image b of each of
+    (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
+    lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
+    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
+    return np.abs(lines[:, :2] @ pixels_b.T.astype(np.float32) + lines[:, 2:])
+
+
+class _Pair:
+    """A keyframe and a neighbour to triangulate from (copies of their poses)."""
+
+    def __init__(self, keyframe: Keyframe, neighbour: Keyframe, slam_map: SlamMap):
+        self.keyframe, self.neighbour = keyframe, neighbour
+        self.T_neighbour_keyframe = neighbour.T_camera_world @ invert(keyframe.T_camera_world)
+        seen = neighbour.point_ids[neighbour.point_ids >= 0]
+        positions = slam_map.arrays(seen).positions
+        depths = positions @ neighbour.T_camera_world[2, :3] + neighbour.T_camera_world[2, 3]
+        self.median_depth = float(np.median(depths)) if len(depths) else np.inf
+
+    def wide_enough(self) -> bool:
+        baseline = float(np.linalg.norm(self.T_neighbour_keyframe[:3, 3]))
+        return baseline > MIN_BASELINE_RATIO * self.median_depth

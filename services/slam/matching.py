@@ -1,0 +1,124 @@
+"""Matching ORB descriptors between frames and map points, as ORB-SLAM does.
+
+Descriptors are (N, 32) uint8 rows of 256 packed bits, compared by Hamming distance (bits that
+differ, 0..256). Pixels are undistorted px (``features``); ``levels`` are pyramid levels.
+
+* ``match_descriptors``: every descriptor of one set against every one of another (brute force,
+  OpenCV's ``BFMatcher``), kept when its best distance is small enough and clearly better than its
+  second best (Lowe's ratio test) and no other row claims the same column.
+* ``search_by_projection``: map points already projected into a frame, each compared only with
+  the frame's keypoints within a window around its predicted pixel (a radius growing with the
+  predicted pyramid level) and on a neighbouring level; the same two tests.
+* ``rotation_consistent``: the matches whose keypoint orientations turned by about the same angle
+  as most others (a histogram of 30 bins, its three fullest kept): a cheap check that rejects
+  matches no rigid image motion explains.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["HAMMING_BITS", "hamming", "hamming_matrix", "match_descriptors", "search_by_projection",
+           "rotation_consistent", "best_two"]
+
+HAMMING_BITS = 256
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int32)
+ROTATION_BINS = 30
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) int Hamming distances between rows ``a[i]`` and ``b[i]``, both (N, 32) uint8."""
+    if len(a) == 0:
+        return np.zeros(0, np.int32)
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1)
+
+
+def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(Na, Nb) int Hamming distances between every row of (Na, 32) ``a`` and every row of (Nb, 32) ``b``."""
+    return _POPCOUNT[np.bitwise_xor(a[:, None], b[None])].sum(axis=2)
+
+
+def best_two(groups: np.ndarray, costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For pairs given as (P,) ``groups`` and (P,) ``costs``: ``(rows, best, second)`` where ``rows``
+    indexes each group's cheapest pair, ``best`` its cost and ``second`` the group's second cheapest
+    cost (inf when the group has one pair)."""
+    if len(groups) == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    order = np.lexsort((costs, groups))
+    g = groups[order]
+    first = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    has_second = (first + 1 < len(g)) & (g[np.minimum(first + 1, len(g) - 1)] == g[first])
+    second = np.where(has_second, costs[order][np.minimum(first + 1, len(g) - 1)], np.inf)
+    return order[first], costs[order][first].astype(np.float64), second.astype(np.float64)
+
+
+def _unique_columns(rows: np.ndarray, columns: np.ndarray, costs: np.ndarray) -> np.ndarray:
+    """Indices into the (M,) matches keeping, for every column, only its cheapest row."""
+    keep, _, _ = best_two(columns, costs)
+    return np.sort(keep)
+
+
+def match_descriptors(a: np.ndarray, b: np.ndarray, max_distance: int, ratio: float,
+                      allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows of a, rows of b)`` (M,) int64 each: descriptor matches between (Na, 32) ``a`` and
+    (Nb, 32) ``b`` whose distance is at most ``max_distance`` and below ``ratio`` times the row's
+    second best (among the pairs ``allowed`` (Na, Nb) uint8 non-zero, when given); one match per
+    row of b (the closest)."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, b, k=2, mask=allowed)
+    found = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance if len(m) == 2 else np.inf)
+                      for m in pairs if len(m)], np.float64).reshape(-1, 4)
+    good = (found[:, 2] <= max_distance) & (found[:, 2] < ratio * found[:, 3])
+    found = found[good]
+    kept = _unique_columns(found[:, 0].astype(np.int64), found[:, 1].astype(np.int64), found[:, 2])
+    return found[kept, 0].astype(np.int64), found[kept, 1].astype(np.int64)
+
+
+def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.ndarray, descriptors: np.ndarray,
+                         frame_pixels: np.ndarray, frame_levels: np.ndarray, frame_descriptors: np.ndarray,
+                         available: np.ndarray, max_distance: int, ratio: float,
+                         level_slack: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``(point rows, keypoint indices)`` (M,) int64: each of P projected points matched to at most
+    one free keypoint of the frame.
+
+    ``predicted`` (P, 2) px, ``radii`` (P,) px search windows, ``levels`` (P,) predicted pyramid
+    levels, ``descriptors`` (P, 32); the frame's N keypoints ``frame_pixels`` (N, 2),
+    ``frame_levels`` (N,), ``frame_descriptors`` (N, 32), ``available`` (N,) bool (keypoints already
+    matched are False). A candidate lies within the point's radius and within ``level_slack``
+    levels of its predicted level; the best is kept when at most ``max_distance`` and under
+    ``ratio`` times the second best; a keypoint claimed by several points goes to the closest."""
+    free = np.flatnonzero(available)
+    if len(predicted) == 0 or len(free) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    tree = cKDTree(frame_pixels[free])
+    neighbours = tree.query_ball_point(predicted, radii)
+    counts = np.fromiter((len(n) for n in neighbours), np.int64, len(neighbours))
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rows = np.repeat(np.arange(len(predicted)), counts)
+    columns = free[np.concatenate([np.asarray(n, np.int64) for n in neighbours if len(n)])]
+    near_level = np.abs(frame_levels[columns] - levels[rows]) <= level_slack
+    rows, columns = rows[near_level], columns[near_level]
+    distances = hamming(descriptors[rows], frame_descriptors[columns])
+    best, best_distance, second = best_two(rows, distances)
+    good = (best_distance <= max_distance) & (best_distance < ratio * second)
+    best = best[good]
+    kept = best[_unique_columns(rows[best], columns[best], distances[best])]
+    return rows[kept], columns[kept]
+
+
+def rotation_consistent(angles_a: np.ndarray, angles_b: np.ndarray) -> np.ndarray:
+    """(M,) bool: the matches whose orientation change ``angles_b - angles_a`` (degrees, (M,) each)
+    falls in one of the three fullest of ``ROTATION_BINS`` bins (a bin under a tenth of the fullest
+    is not kept)."""
+    if len(angles_a) == 0:
+        return np.zeros(0, bool)
+    turn = np.mod(np.asarray(angles_b, np.float64) - np.asarray(angles_a, np.float64), 360.0)
+    bins = np.minimum((turn * ROTATION_BINS / 360.0).astype(np.int64), ROTATION_BINS - 1)
+    counts = np.bincount(bins, minlength=ROTATION_BINS)
+    top = np.argsort(-counts, kind="stable")[:3]
+    top = top[counts[top] >= 0.1 * counts[top[0]]]
+    return np.isin(bins, top)

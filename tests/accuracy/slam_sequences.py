@@ -1,0 +1,166 @@
+"""Sequences with ground truth for the monocular SLAM system, and one run of ``SlamSystem`` over one.
+
+* ``room``: the synthetic ``room`` scene, 640x480 at 30 fps (``services.capture.scenes``).
+* ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
+* ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
+
+The system runs with ``mapping_thread=False`` (deterministic). Scoring: ATE RMSE after a Sim(3)
+alignment (``services.geometry.evaluation``) of every frame given a pose, against the ground truth
+of the same frame. ``python -m tests.accuracy.slam_sequences [room|kitti|tum ...]`` prints the figures.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.capture.scenes import make_scene
+from services.geometry.camera import CameraModel
+from services.geometry.evaluation import absolute_trajectory_error, associate
+from services.recorder.trajectories import read_kitti, read_tum
+from services.slam.system import SlamState, SlamSystem
+from tests.data import data_root
+
+KITTI = "vo_kitti_odometry_seq06_frames000-050"
+TUM = "tum_rgbd_fr3_long_office_household_1hz"
+TUM_K = np.array([[535.4, 0.0, 320.1], [0.0, 539.2, 247.6], [0.0, 0.0, 1.0]])
+ROOM_FRAMES = 600
+MAX_GT_DT_NS = 20_000_000
+"""A TUM image is scored against the ground-truth sample within 20 ms (the first image has none)."""
+
+Frames = Iterator[tuple[int, np.ndarray, np.ndarray | None]]
+"""(stamp_ns, image, true T_world_camera or None)."""
+
+
+@dataclass(frozen=True)
+class Sequence:
+    name: str
+    camera: CameraModel
+    frames: Frames
+
+
+def room() -> Sequence:
+    scene = make_scene("room")
+
+    def frames() -> Frames:
+        for index in range(ROOM_FRAMES):
+            frame = scene.render(index)
+            yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
+
+    return Sequence("room", scene.cameras[0], frames())
+
+
+def kitti(folder: Path) -> Sequence:
+    P0 = np.array((folder / "calib.txt").read_text().splitlines()[0].split()[-12:], float).reshape(3, 4)
+    truth = read_kitti(folder / "poses.txt").poses
+    files = sorted((folder / "image_0").glob("*.png"))
+    first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
+    camera = CameraModel("cam0", first.shape[1], first.shape[0], P0[:, :3], np.zeros(5), np.eye(4))
+
+    def frames() -> Frames:
+        for index, path in enumerate(files):
+            yield index * 100_000_000, cv2.imread(str(path), cv2.IMREAD_UNCHANGED), truth[index]
+
+    return Sequence("kitti", camera, frames())
+
+
+def tum(folder: Path) -> Sequence:
+    truth = read_tum(folder / "groundtruth.txt")
+    assert truth.stamps_ns is not None
+    files = sorted((folder / "rgb").glob("*.png"))
+    stamps = np.array([round(float(path.stem) * 1e9) for path in files], np.int64)
+    pairs = dict(associate(stamps, truth.stamps_ns, MAX_GT_DT_NS).tolist())
+    camera = CameraModel("rgb", 640, 480, TUM_K, np.zeros(5), np.eye(4))
+
+    def frames() -> Frames:
+        for index, path in enumerate(files):
+            gt = truth.poses[pairs[index]] if index in pairs else None
+            yield int(stamps[index]), cv2.imread(str(path), cv2.IMREAD_UNCHANGED), gt
+
+    return Sequence("tum", camera, frames())
+
+
+@dataclass(frozen=True)
+class SlamRun:
+    """A run's figures: ``ate_m`` (Sim(3)-aligned RMSE over the ``scored`` frames), ``length_m`` of
+    the true path over those frames, per-frame ``states``, ``first_tracked`` frame index,
+    ``tracking_ms`` (N,) per frame without the inline mapping, ``stage_ms`` median per stage over
+    the tracked frames, ``mapping_ms`` median per keyframe, ``keyframes`` and ``points`` at the end."""
+
+    name: str
+    ate_m: float
+    length_m: float
+    scored: int
+    states: list[SlamState]
+    first_tracked: int
+    tracking_ms: np.ndarray
+    stage_ms: dict[str, float]
+    mapping_ms: float
+    keyframes: int
+    points: int
+
+    @property
+    def lost(self) -> int:
+        return sum(state is SlamState.LOST for state in self.states)
+
+    @property
+    def untracked_after_start(self) -> int:
+        return sum(state is not SlamState.TRACKING for state in self.states[self.first_tracked:])
+
+    def line(self) -> str:
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
+        share = 100 * self.ate_m / self.length_m
+        return (f"{self.name}: ATE {self.ate_m:.4f} m ({share:.2f} % of {self.length_m:.2f} m) "
+                f"over {self.scored} frames; first tracked frame {self.first_tracked}, lost {self.lost}, "
+                f"untracked after start {self.untracked_after_start}; tracking {1000 / np.mean(self.tracking_ms):.1f} "
+                f"frames/s (median ms: {stages}); mapping {self.mapping_ms:.0f} ms per keyframe; "
+                f"{self.keyframes} keyframes, {self.points} points")
+
+
+def run(sequence: Sequence) -> SlamRun:
+    """``SlamSystem`` (default settings, inline mapping) over every frame of ``sequence``."""
+    system = SlamSystem(sequence.camera, mapping_thread=False)
+    estimated, true, states, tracking, mapping = [], [], [], [], []
+    stages: dict[str, list[float]] = {}
+    try:
+        for stamp_ns, image, gt in sequence.frames:
+            result = system.process(stamp_ns, image)
+            states.append(result.state)
+            timings = result.timings_ms
+            tracking.append(timings["total"] - timings.get("mapping", 0.0))
+            if "mapping" in timings:
+                mapping.append(timings["mapping"])
+            if result.state is SlamState.TRACKING:
+                for stage in ("keypoints", "match", "pose", "local_map", "keyframe"):
+                    stages.setdefault(stage, []).append(timings.get(stage, 0.0) - (
+                        timings.get("mapping", 0.0) if stage == "keyframe" else 0.0))
+            if result.T_world_camera is not None and gt is not None:
+                estimated.append(result.T_world_camera)
+                true.append(gt)
+        _, points = system.map_points()
+        keyframes = len(system.keyframe_poses())
+    finally:
+        system.close()
+    true_poses = np.array(true)
+    ate = absolute_trajectory_error(np.array(estimated), true_poses, "sim3")
+    length = float(np.sum(np.linalg.norm(np.diff(true_poses[:, :3, 3], axis=0), axis=1)))
+    first = next((i for i, state in enumerate(states) if state is SlamState.TRACKING), len(states))
+    return SlamRun(sequence.name, ate.stats.rmse, length, len(estimated), states, first, np.array(tracking),
+                   {k: float(np.median(v)) for k, v in stages.items()}, float(np.median(mapping)) if mapping else 0.0,
+                   keyframes, len(points))
+
+
+def sequence(name: str) -> Sequence:
+    if name == "room":
+        return room()
+    return kitti(data_root() / KITTI) if name == "kitti" else tum(data_root() / TUM)
+
+
+if __name__ == "__main__":
+    for name in sys.argv[1:] or ["room", "kitti", "tum"]:
+        print(run(sequence(name)).line(), flush=True)
