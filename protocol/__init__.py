@@ -7,7 +7,7 @@ Importing it registers every message type with the codec.
 from protocol.codec import DecodeError, Peeked, decode, encode, peek, to_json
 from protocol.detections import Blobs, Keypoints, MarkerDetections
 from protocol.keys import Keys
-from protocol.maps import PointCloud
+from protocol.maps import Keyframes, PointCloud
 from protocol.message import Header, Message, message_type, message_types
 from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
@@ -23,6 +23,7 @@ from protocol.system import (
     ReplayCommand,
     ReplayControl,
     ReplayStatus,
+    StageTimings,
     StreamStats,
     Subscription,
     SupervisedNode,
@@ -32,9 +33,10 @@ from protocol.system import (
 
 __all__ = [
     "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
-    "ErrorReport", "FrameTransform", "GroundTruth", "Header", "Image", "Keypoints", "Keys", "MarkerDetections",
+    "ErrorReport", "FrameTransform", "GroundTruth", "Header", "Image", "Keyframes", "Keypoints", "Keys",
+    "MarkerDetections",
     "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
     "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",
-    "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",
+    "StageTimings", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",
     "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "peek", "to_json"
 ]

@@ -9,7 +9,11 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/<camera>/{markers,blobs,keypoints}         detections in that camera's images
     ar/rig0/<camera>/echo             Image            frames relayed by the echo node
     ar/rig0/<camera>/overlay          Image            frames with the tracked targets drawn (AR overlay)
+    ar/rig0/<camera>/keyframes        Keyframes        the keyframe poses of the camera's SLAM map
+    ar/rig0/<camera>/map              PointCloud       the points of the camera's SLAM map
+    ar/rig0/<camera>/timings          StageTimings     how long each stage of a frame took (SLAM)
     ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
+    ar/rig0/pose/slam/<camera>        Pose             SLAM: the camera in its map, ``T_map_camera``
     ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
     ar/rig0/map                       PointCloud       SLAM / triangulated points
     ar/rig0/points                    Points3D         a rig's triangulated sphere centres, with their bodies
@@ -133,6 +137,22 @@ class Keys:
     def overlay(self, camera: str) -> str:
         """The camera's frames with a cube and axes drawn on each tracked target (marker_pose ``overlay``)."""
         return self.camera(camera, "overlay")
+
+    def keyframes(self, camera: str) -> str:
+        """The keyframe poses of the map a SLAM node builds from the camera's frames."""
+        return self.camera(camera, "keyframes")
+
+    def camera_map(self, camera: str) -> str:
+        """The points of the map a SLAM node builds from the camera's frames (``map`` is the rig's)."""
+        return self.camera(camera, "map")
+
+    def timings(self, camera: str) -> str:
+        """How long each stage of the processing of the camera's frames took (a SLAM node's StageTimings)."""
+        return self.camera(camera, "timings")
+
+    def slam_pose(self, camera: str) -> str:
+        """The camera's pose in the map a SLAM node builds from its frames."""
+        return self.pose(f"slam/{check_name(camera, 'camera')}")
 
     def pose(self, target: str) -> str:
         return f"{self.prefix}/pose/{check_name(target, 'target', segments=True)}"

@@ -1,4 +1,4 @@
-"""3D points: triangulated markers, SLAM map points."""
+"""Maps: 3D points (triangulated markers, SLAM map points) and the keyframes of a SLAM map."""
 
 from __future__ import annotations
 
@@ -32,4 +32,32 @@ class PointCloud(Message):
                 f"{len(self.points)} points need as many ids (got {len(self.ids)}) "
                 f"and as many colours or none (got {len(self.colors)})"
             )
+        return self
+
+
+class Keyframes(Message):
+    """The keyframes of a SLAM map: ``T_<header.frame_id>_<child_frame_id>`` of each, the map frame to the camera.
+
+    ``ids``: (K,) int64 keyframe ids; ``stamps_ns``: (K,) int64 capture stamps of the frames they were made
+    from; ``poses``: (K, 4, 4) float64 rigid transforms (last row 0 0 0 1), metres of the map's scale. Rows are
+    aligned. The header is that of the frame after which the keyframes last changed (one was added, or the
+    map's optimisation moved them); every message holds the whole set.
+    """
+
+    SCHEMA = "artrack.Keyframes"
+    VERSION = 1
+
+    child_frame_id: str
+    ids: Annotated[np.ndarray, array_field("int64", (None,))]
+    stamps_ns: Annotated[np.ndarray, array_field("int64", (None,))]
+    poses: Annotated[np.ndarray, array_field("float64", (None, 4, 4))]
+
+    @model_validator(mode="after")
+    def _aligned(self) -> Keyframes:
+        if not len(self.ids) == len(self.stamps_ns) == len(self.poses):
+            raise ValueError(f"{len(self.ids)} keyframe ids need as many stamps (got {len(self.stamps_ns)}) and "
+                             f"poses (got {len(self.poses)})")
+        if len(self.poses) and not np.array_equal(self.poses[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0],
+                                                                                   (len(self.poses), 4))):
+            raise ValueError("keyframe poses must be rigid transforms: last row 0 0 0 1")
         return self

@@ -1,7 +1,8 @@
-"""Messages about the service itself: node statistics, error reports, client apps, replay control.
+"""Messages about the service itself: node statistics, error reports, stage timings, client apps, replay control.
 
 Their header's ``stamp_ns`` is the wall-clock time they were made and ``seq`` counts
-them per node; ``frame_id`` is empty.
+them per node; ``frame_id`` is empty. ``StageTimings`` is the exception: it carries the
+header of the frame it times.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 from enum import StrEnum
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from protocol.message import Message, Struct
 
@@ -123,6 +124,24 @@ class ErrorReport(Message):
     detail: str
     key: str = ""
     count: int = Field(default=1, ge=1)
+
+
+class StageTimings(Message):
+    """How long each stage of one frame's processing took in a node, milliseconds by stage name
+    (``{"keypoints": 4.1, "match": 2.0, "pose": 1.2, "total": 8.0}``); the header is the frame's."""
+
+    SCHEMA = "artrack.StageTimings"
+    VERSION = 1
+
+    stages_ms: dict[str, float] = Field(default_factory=dict)
+
+    @field_validator("stages_ms")
+    @classmethod
+    def _durations(cls, value: dict[str, float]) -> dict[str, float]:
+        negative = [stage for stage, ms in value.items() if ms < 0]
+        if negative:
+            raise ValueError(f"stage {negative[0]!r} took a negative time")
+        return value
 
 
 class Subscription(Struct):

@@ -8,7 +8,9 @@
                             names that are numbers (TUM's ``<timestamp>.png``). A DIR with no
                             images but sub-folders of them (``cam0/``, ``cam1/``, ...) is a rig:
                             one camera per sub-folder, named after it, frames paired by time
-                            (or by file name when the folders have no times)
+                            (or by file name when the folders have no times). A KITTI folder
+                            ``image_<i>`` is calibrated by the ``P<i>`` line of the ``calib.txt``
+                            beside it (``services.calibration.kitti``)
 ``synthetic:SCENE``         a rendered scene with exact ground truth (services.capture.scenes)
 ==========================  ==============================================================
 
@@ -30,6 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from services.calibration.kitti import folder_camera
 from services.capture.scenes import make_scene
 from services.capture.scenes.base import Truth
 from services.geometry.camera import CameraModel
@@ -104,6 +107,7 @@ class ImageFolderSource(Source):
 
     def __init__(self, uri: str, folder: Path):
         self.uri = uri
+        self.folder = folder
         if not folder.is_dir():
             raise SourceError(f"{uri}: no such folder")
         self.entries = _folder_entries(folder)
@@ -117,6 +121,13 @@ class ImageFolderSource(Source):
                 yield FrameFault(index, f"cannot read {path}")
                 continue
             yield SourceFrame(index, time_ns, {self.camera_names[0]: image})
+
+    @property
+    def calibration(self) -> dict[str, CameraModel]:
+        """A KITTI folder's camera, from its ``calib.txt`` (CalibrationError for a damaged one); else none."""
+        size = self.first_image_size()
+        camera = folder_camera(self.folder, self.camera_names[0], *size) if size is not None else None
+        return {} if camera is None else {camera.name: camera}
 
     def first_image_size(self) -> tuple[int, int] | None:
         """``(width, height)`` of the first image that reads, None when none does."""
@@ -150,6 +161,7 @@ class CameraFoldersSource(Source):
 
     def __init__(self, uri: str, folders: list[Path]):
         self.uri = uri
+        self.folders = folders
         self.camera_names = tuple(folder.name for folder in folders)
         entries = {folder.name: _folder_entries(folder) for folder in folders}
         timed = {name: all(t is not None for _, t in rows) for name, rows in entries.items()}
@@ -184,6 +196,14 @@ class CameraFoldersSource(Source):
                 yield FrameFault(index, f"cannot read {', '.join(unread)}")
                 continue
             yield SourceFrame(index, time_ns, {name: image for name, image in images.items() if image is not None})
+
+    @property
+    def calibration(self) -> dict[str, CameraModel]:
+        """The cameras of KITTI folders (``image_<i>``, from the ``calib.txt`` beside them), in the frame of the
+        file's camera 0; none for other folders."""
+        cameras = [folder_camera(folder, folder.name, *size) for folder, size
+                   in zip(self.folders, self.first_image_sizes(), strict=True) if size is not None]
+        return {camera.name: camera for camera in cameras if camera is not None}
 
     def first_image_sizes(self) -> list[tuple[int, int] | None]:
         """``(width, height)`` of each camera's first image, None where it does not read."""

@@ -2,7 +2,7 @@
 
 Inputs: the camera's ``image`` key and its ``camera_info`` key (the newest CameraInfo, taken in
 between frames; a ``calib`` file given here wins, scaled to the frames when only their size
-differs and refused when their aspect ratio does too: the marker node's ``FrameCalibration``).
+differs and refused when their aspect ratio does too: ``services.calibration.camera_info_node``).
 
 Targets: ``target`` names them, each a target of the library in ``targets`` (default
 ``$XDG_DATA_HOME/artrack/targets``, see ``services.estimation.target_library``) or a synthetic
@@ -65,11 +65,12 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
-from protocol.sensors import CameraInfo, Image
+from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
+from services.calibration.camera_info_node import FrameCalibration
 from services.convert import transform_from_matrix
-from services.estimation.node import INFO_DEPTH, FrameCalibration, PosePublishers
+from services.estimation.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroPoseFilter
 from services.estimation.scene_targets import is_scene_target, scene_target, scene_target_name
@@ -222,8 +223,7 @@ def run(node: Node, params: Params) -> None:
         raise NodeError(str(exc)) from exc
     node.log.info("tracking %s on %s", ", ".join(t.name for t in targets), params.camera)
     keys = node.keys
-    infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
-    calibration = FrameCalibration(infos, fixed, str(params.calib))
+    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, targets) if params.overlay else None
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)

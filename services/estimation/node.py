@@ -46,10 +46,11 @@ from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
-from protocol.sensors import CameraInfo, Image
+from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
-from services.convert import camera_model, transform_from_matrix
+from services.calibration.camera_info import read_camera_info
+from services.calibration.camera_info_node import FrameCalibration
+from services.convert import transform_from_matrix
 from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
 from services.detection.settings import DetectorSettings
@@ -60,11 +61,6 @@ from services.estimation.overlay import OverlayTarget, board_cube_size, draw_ove
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
-
-FIRST_INFO_WAIT_S = 0.05
-"""The longest the first frame's markers wait for the camera's first CameraInfo."""
-INFO_DEPTH = 100
-"""CameraInfo messages kept until the next frame takes the newest (one a frame: none is ever dropped)."""
 
 
 class Params(DetectorSettings):
@@ -92,65 +88,6 @@ class Params(DetectorSettings):
             raise ValueError(f"overlay draws on the camera's frames: it needs input 'images' (with input "
                              f"{self.input!r} this node never sees a frame)")
         return self
-
-
-class FrameCalibration:
-    """The camera model in use: a fixed file, or the newest CameraInfo of the camera.
-
-    A capture node publishes a frame's CameraInfo just after the frame. The node takes in the
-    CameraInfo that came meanwhile once a frame's poses are out (``refresh``), so decoding it
-    is off the frame's path; a change of calibration applies from the
-    next frame on. Until a first CameraInfo is known, a frame waits for it, once, at most
-    ``FIRST_INFO_WAIT_S``.
-    """
-
-    def __init__(self, infos: Inbox[CameraInfo], fixed: CameraModel | None, where: str = ""):
-        self._infos = infos
-        self.model = fixed
-        self._fixed = fixed is not None
-        self._where = where
-        self._fitted = False
-        self._waited = False
-
-    def fit(self, width: int, height: int) -> str | None:
-        """Hold a fixed file's model against the first frame's size: scaled to it when only the size
-        differs (the note saying so is returned, once); CalibrationError naming the file and both sizes
-        when the aspect ratio does too. A CameraInfo from the bus is its capture node's to fit."""
-        if not self._fixed or self._fitted or self.model is None:
-            return None
-        self._fitted = True
-        self.model, note = fit_to_image(self.model, width, height, self._where)
-        return note
-
-    def fit_frame(self, node: Node, image: Image) -> None:
-        """``fit`` to ``image``'s size, the note said in ``node``'s log; NodeError when the file cannot fit."""
-        try:
-            note = self.fit(image.data.shape[1], image.data.shape[0])
-        except CalibrationError as exc:
-            raise NodeError(str(exc)) from exc
-        if note is not None:
-            node.log.warning("%s", note)
-
-    def current(self) -> CameraModel | None:
-        """The model for the frame at hand."""
-        if self.model is None and not self._fixed:
-            self.refresh()
-            if self.model is None and not self._waited:
-                self._waited = True
-                received = self._infos.recv(FIRST_INFO_WAIT_S)
-                if received is not None:
-                    self.model = camera_model(received.message)
-        return self.model
-
-    def refresh(self) -> None:
-        """Take in the newest CameraInfo that arrived (a fixed file stays)."""
-        if self._fixed:
-            return
-        newest = None
-        while (received := self._infos.take()) is not None:
-            newest = received.message
-        if newest is not None:
-            self.model = camera_model(newest)
 
 
 class PosePublishers:
@@ -245,8 +182,7 @@ def run(node: Node, params: Params) -> None:
 
     node.configurable(params, apply)
     keys = node.keys
-    infos = node.inbox(keys.camera_info(params.camera), CameraInfo, Role.RESULT, depth=INFO_DEPTH)
-    calibration = FrameCalibration(infos, fixed, str(params.calib))
+    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]

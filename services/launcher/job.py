@@ -7,9 +7,9 @@ the cameras' images, calibration and ground truth, restamped with the time they 
 the recording's own rig). A job differs from a daemon only in its order and its end: the
 nodes that read the bus start first; once every one of them is live (plus a moment for their
 subscriptions to reach the bus), the sources (the nodes that read nothing). When the sources
-end, the job waits for the pipeline to go quiet (no node received anything for ``QUIET_S``),
-then stops every node, so the recorder closes its file with everything in it. A live source
-runs until SIGINT/SIGTERM.
+end, the job waits for the pipeline to go quiet (no node received or finished processing anything
+for ``QUIET_S``: a node working through frames it queued is not quiet), then stops every node, so
+the recorder closes its file with everything in it. A live source runs until SIGINT/SIGTERM.
 
 A node that exits before it is live ends the job at once, with the last line it wrote
 (``JobExit.CANNOT_START``); once up, a node that dies is restarted within the pipeline's
@@ -296,14 +296,15 @@ def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None)
 
 
 def _drain(session, bus: BusConfig, names: set[str]) -> None:
-    """Wait until no node of ``names`` has received anything for QUIET_S (at most DRAIN_LIMIT_S)."""
+    """Wait until no node of ``names`` has received or processed anything for QUIET_S (at most DRAIN_LIMIT_S)."""
     deadline = time.monotonic() + DRAIN_LIMIT_S
     last, quiet_since = None, time.monotonic()
     while time.monotonic() < deadline:
         states = node_states(session, bus.keys, 0.5)
-        received = {name: s.received for (rig, name), s in states.items() if rig == bus.rig and name in names}
-        if received != last:
-            last, quiet_since = received, time.monotonic()
+        counts = {name: (s.received, s.processed) for (rig, name), s in states.items()
+                  if rig == bus.rig and name in names}
+        if counts != last:
+            last, quiet_since = counts, time.monotonic()
         elif time.monotonic() - quiet_since >= QUIET_S:
             return
         time.sleep(0.1)

@@ -102,6 +102,8 @@ class SlamMap:
         self.revision = 0
         self._next_keyframe = 0
         self._next_point = 0
+        self._covisibility: dict[int, Counter[int]] = {}
+        self._covisibility_revision = -1
 
     def clear(self) -> None:
         """Forget every keyframe and point."""
@@ -200,8 +202,10 @@ class SlamMap:
             keyframes = [self.keyframes[k] for k in point.observations]
             descriptors = np.array([k.features.descriptors[i] for k, i in zip(keyframes, point.observations.values(),
                                                                               strict=True)])
-            distances = hamming_matrix(descriptors, descriptors)
-            point.descriptor = descriptors[int(np.argmin(np.median(distances, axis=1)))].copy()
+            if len(descriptors) > 2:
+                distances = np.sort(hamming_matrix(descriptors, descriptors), axis=1)
+                descriptors = descriptors[[int(np.argmin(distances[:, (len(descriptors) - 1) // 2]))]]
+            point.descriptor = descriptors[0].copy()
             rays = point.position - np.array([k.centre for k in keyframes])
             lengths = np.linalg.norm(rays, axis=1)
             mean = np.sum(rays / np.maximum(lengths, 1e-12)[:, None], axis=0)
@@ -234,7 +238,17 @@ class SlamMap:
                     point.found += int(found is not None and found[k])
 
     def covisibility(self, keyframe_id: int) -> Counter[int]:
-        """Other keyframe id -> how many of ``keyframe_id``'s points it observes too."""
+        """Other keyframe id -> how many of ``keyframe_id``'s points it observes too (remembered until
+        the map's next change)."""
+        with self.lock:
+            if self._covisibility_revision != self.revision:
+                self._covisibility.clear()
+                self._covisibility_revision = self.revision
+            if keyframe_id not in self._covisibility:
+                self._covisibility[keyframe_id] = self._count_covisible(keyframe_id)
+            return Counter(self._covisibility[keyframe_id])
+
+    def _count_covisible(self, keyframe_id: int) -> Counter[int]:
         with self.lock:
             counts: Counter[int] = Counter()
             for point_id in self.keyframes[keyframe_id].point_ids[self.keyframes[keyframe_id].point_ids >= 0]:

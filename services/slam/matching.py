@@ -16,6 +16,8 @@ differ, 0..256). Pixels are undistorted px (``features``); ``levels`` are pyrami
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
@@ -99,7 +101,7 @@ def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.nd
     if counts.sum() == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     rows = np.repeat(np.arange(len(predicted)), counts)
-    columns = free[np.concatenate([np.asarray(n, np.int64) for n in neighbours if len(n)])]
+    columns = free[np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(counts.sum()))]
     near_level = np.abs(frame_levels[columns] - levels[rows]) <= level_slack
     rows, columns = rows[near_level], columns[near_level]
     distances = hamming(descriptors[rows], frame_descriptors[columns])

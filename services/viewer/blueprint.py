@@ -2,7 +2,7 @@
 
 Left: a 3D view of the world frame (cameras as frusta with their images, poses, truth,
 trajectories, points) above tabs of node health (stream rates, processing p50/p99, dropped
-frames, decode errors, error reports). Right: one 2D view per camera (its image with the
+frames, decode errors, stage times, error reports). Right: one 2D view per camera (its image with the
 detection overlays), in order of appearance; a marker node's AR overlay of camera ``cam0``
 is the camera ``cam0/overlay`` here, with a view of its own. The time panel starts on the
 ``stamp`` timeline. The blueprint is sent again whenever a camera appears.
@@ -17,7 +17,8 @@ import rerun.blueprint as rrb
 from services.viewer import layout
 
 HEALTH = ((layout.RATE_HZ, "rates (Hz)"), (layout.PROCESSING_MS, "processing (ms)"),
-          (layout.LATENCY_MS, "latency (ms)"), (layout.DROPPED, "dropped"), (layout.DECODE_ERRORS, "decode errors"))
+          (layout.LATENCY_MS, "latency (ms)"), (layout.DROPPED, "dropped"), (layout.DECODE_ERRORS, "decode errors"),
+          (layout.STAGE_MS, "stages (ms)"))
 
 
 def blueprint(cameras: Sequence[str]) -> rrb.Blueprint:

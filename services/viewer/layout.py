@@ -20,6 +20,8 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
     <F>/truth/<child>                     the same for GroundTruth, beside the estimate
     <F>/trajectory/pose/<child>           LineStrips3D: the child's last positions in F
     <F>/trajectory/truth/<child>          the same for ground truth
+    <F>/keyframes/<child>                 Arrows3D: the x, y, z axes (red, green, blue) of each keyframe of a
+                                          SLAM map in F (Keyframes), the child its camera
     <F>/points                            Points3D of a PointCloud expressed in F
     <F>/points/{labelled,unlabelled}      Points3D of a Points3D message: matched to a body (its name
                                           as label) or not, in two colours
@@ -27,6 +29,7 @@ entity, exactly as ``T_parent_child`` maps child coordinates into the parent fra
     stats/processing_ms/<node>/<p50|p99>  Scalars: processing time percentiles
     stats/dropped/<node>                  Scalars: frames dropped (latest-wins) so far
     stats/decode_errors/<node>            Scalars: payloads that failed to decode so far
+    stats/stage_ms/<cam>/<stage>          Scalars: how long each stage of a frame of <cam> took (StageTimings)
     logs/<node>                           TextLog: the node's ErrorReports
 
 ``<F>`` is the entity of the message's parent frame, so a marker pose in camera ``cam0`` is
@@ -64,6 +67,7 @@ PROCESSING_MS = "processing_ms"
 LATENCY_MS = "latency_ms"
 DROPPED = "dropped"
 DECODE_ERRORS = "decode_errors"
+STAGE_MS = "stage_ms"
 CLEAN_BLOBS = "clean_blobs"
 FLAGGED_BLOBS = "flagged_blobs"
 LABELLED = "labelled"
@@ -105,6 +109,11 @@ def pose(parent_entity: str, child: str, source: str) -> str:
 def trajectory(parent_entity: str, child: str, source: str) -> str:
     """The line of the child's past positions, in the parent frame."""
     return f"{parent_entity}/trajectory/{source}/{_escaped(child)}"
+
+
+def keyframes(parent_entity: str, child: str) -> str:
+    """The keyframes of a map in the parent frame, ``child`` the camera they were taken by."""
+    return f"{parent_entity}/keyframes/{_escaped(child)}"
 
 
 def points(frame_entity: str) -> str:

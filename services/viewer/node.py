@@ -12,8 +12,9 @@ inboxes), so a slow viewer never holds up the pipeline:
   camera frames out. Their frame id is ``<camera>/overlay``: each is drawn as the image of a
   camera of that name (``world/<camera>/overlay/image``, a 2D view of its own; no
   calibration, so not in the 3D view).
-* ``*/camera_info``, ``*/markers``, ``*/blobs``, ``*/keypoints``, ``*/truth``, ``pose/**``,
-  ``bodies``, ``map``: role RESULT, in order, never dropped silently.
+* ``*/camera_info``, ``*/markers``, ``*/blobs``, ``*/keypoints``, ``*/truth``, a SLAM node's
+  ``*/keyframes``, ``*/map`` and ``*/timings``, ``pose/**``, ``bodies``, ``map``: role RESULT, in
+  order, never dropped silently.
 * ``node/*/stats``, ``node/*/errors``: role STATUS (node health, this node's included).
 
 Images are further limited to ``image_hz`` per camera (10 by default; 0 = every frame that
@@ -38,7 +39,8 @@ from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
 
 CAMERA_STREAMS = {"image": Role.FRAME, "overlay": Role.FRAME, "camera_info": Role.RESULT, "markers": Role.RESULT,
-                  "blobs": Role.RESULT, "keypoints": Role.RESULT, "truth": Role.RESULT}
+                  "blobs": Role.RESULT, "keypoints": Role.RESULT, "truth": Role.RESULT, "keyframes": Role.RESULT,
+                  "map": Role.RESULT, "timings": Role.RESULT}
 """The per-camera streams of ``protocol.keys`` that the viewer draws, with their roles."""
 
 

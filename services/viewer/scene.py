@@ -29,13 +29,13 @@ import rerun as rr
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from protocol.detections import Blobs, Keypoints, MarkerDetections
-from protocol.maps import PointCloud
+from protocol.maps import Keyframes, PointCloud
 from protocol.message import Message
 from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, RigidBodies, TrackingState
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import Transform
-from protocol.system import ErrorReport, NodeStats
+from protocol.system import ErrorReport, NodeStats, StageTimings
 from services.viewer import layout
 from services.viewer.images import RateGate, image_archetype
 
@@ -51,6 +51,8 @@ STYLES = {
     layout.TRUTH: rr.LineStrips3D.from_fields(colors=0x3CC83CFF),
 }
 """Colours (RGBA) and sizes, logged once per entity as static rows: per-row colours cost more than the data."""
+AXIS_COLOURS = np.array([[255, 0, 0], [0, 200, 0], [0, 80, 255]], np.uint8)
+"""RGB of a frame's x, y and z axes, as Rerun draws a transform's."""
 
 
 class ViewOptions(BaseModel):
@@ -105,7 +107,7 @@ class Scene:
             Image: self._image, CameraInfo: self._camera_info, MarkerDetections: self._markers,
             Blobs: self._blobs, Keypoints: self._keypoints, Pose: self._pose, RigidBodies: self._bodies,
             GroundTruth: self._truth, PointCloud: self._cloud, NodeStats: self._stats, ErrorReport: self._error,
-            Points3D: self._points,
+            Points3D: self._points, Keyframes: self._keyframes, StageTimings: self._stages,
         }
 
     def setup(self) -> list[Row]:
@@ -213,6 +215,19 @@ class Scene:
     def _cloud(self, cloud: PointCloud) -> list[Row]:
         colors = cloud.colors[:, ::-1] if len(cloud.colors) else None  # BGR -> RGB
         return [Row(layout.points(layout.frame(cloud.header.frame_id)), (rr.Points3D(cloud.points, colors=colors),))]
+
+    def _keyframes(self, keyframes: Keyframes) -> list[Row]:
+        """Each keyframe's axes: three arrows from its centre, ``axis_length_m`` long, red x, green y, blue z."""
+        entity = layout.keyframes(layout.frame(keyframes.header.frame_id), keyframes.child_frame_id)
+        axes = keyframes.poses[:, :3, :3].transpose(0, 2, 1) * self.options.axis_length_m  # (K, 3 axes, 3)
+        origins = np.repeat(keyframes.poses[:, :3, 3], 3, axis=0)
+        colours = np.tile(AXIS_COLOURS, (len(keyframes.poses), 1))
+        return [Row(entity, (rr.Arrows3D(origins=origins, vectors=axes.reshape(-1, 3), colors=colours),))]
+
+    def _stages(self, timings: StageTimings) -> list[Row]:
+        camera = self._camera(timings)
+        return [Row(layout.stats(layout.STAGE_MS, camera, stage), (rr.Scalars(ms),))
+                for stage, ms in timings.stages_ms.items()]
 
     def _stats(self, stats: NodeStats) -> list[Row]:
         node = stats.node

@@ -63,7 +63,7 @@ def test_a_saved_job_runs_under_up(procs, session, bus, tmp_path):
 def test_without_the_plugin_the_tracker_is_unknown_in_one_line(procs):
     job = procs.run("run", "stride", "--source", "synthetic:pattern")
     assert job.poll() == 2
-    assert "unknown tracker 'stride' (known: capture, echo, features, marker, stereo)" in job.stderr
+    assert "unknown tracker 'stride' (known: capture, echo, features, marker, slam, stereo)" in job.stderr
     assert "Traceback" not in job.stderr
 
 

@@ -39,7 +39,7 @@ def test_run_records_a_finite_job_and_exits_cleanly(procs, tmp_path):
 def test_run_refuses_an_unknown_pipeline_before_starting(procs):
     job = procs.artrack("run", "teleport", "--source", "synthetic:pattern", name="job")
     assert job.wait(START_S) == 2
-    assert "unknown tracker 'teleport' (known: capture, echo, features, marker, stereo)" in job.stderr
+    assert "unknown tracker 'teleport' (known: capture, echo, features, marker, slam, stereo)" in job.stderr
 
 
 

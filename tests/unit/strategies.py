@@ -23,6 +23,7 @@ from protocol import (
     GroundTruth,
     Header,
     Image,
+    Keyframes,
     Keypoints,
     MarkerDetections,
     NodeStats,
@@ -37,6 +38,7 @@ from protocol import (
     ReplayStatus,
     RigidBodies,
     RigidBody,
+    StageTimings,
     StaticTransforms,
     StreamStats,
     Subscription,
@@ -149,6 +151,15 @@ def point_clouds(draw: st.DrawFn) -> PointCloud:
 
 
 @st.composite
+def keyframe_sets(draw: st.DrawFn) -> Keyframes:
+    n = draw(rows)
+    poses = draw(arrays("float64", (n, 4, 4)))
+    poses[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return Keyframes(header=draw(headers), child_frame_id=draw(texts), ids=draw(arrays("int64", (n,))),
+                     stamps_ns=draw(arrays("int64", (n,))), poses=poses)
+
+
+@st.composite
 def blobs(draw: st.DrawFn) -> Blobs:
     n = draw(rows)
     return Blobs(header=draw(headers), method=draw(st.sampled_from(["ir", "log", "colour"])),
@@ -185,6 +196,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.MarkerDetections": marker_detections(),
     "artrack.Keypoints": keypoints(),
     "artrack.PointCloud": point_clouds(),
+    "artrack.Keyframes": keyframe_sets(),
     "artrack.Blobs": blobs(),
     "artrack.Points3D": points_3d(),
     "artrack.Pose": st.builds(Pose, header=headers, child_frame_id=texts, transform=transforms, state=states,
@@ -223,6 +235,8 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         refused=st.dictionaries(texts, texts, max_size=3), params=st.dictionaries(texts, texts, max_size=3)),
     "artrack.ErrorReport": st.builds(ErrorReport, header=headers, node=texts, kind=texts, detail=texts,
                                      key=texts, count=st.integers(1, 2**80)),
+    "artrack.StageTimings": st.builds(StageTimings, header=headers,
+                                      stages_ms=st.dictionaries(texts, non_negative, max_size=4)),
     "artrack.ReplayControl": st.builds(ReplayControl, header=headers, command=st.sampled_from(ReplayCommand)),
     "artrack.ReplayStatus": st.builds(
         ReplayStatus, header=headers, node=texts, path=texts, state=st.sampled_from(["playing", "paused", "stopped"]),

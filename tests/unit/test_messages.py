@@ -16,6 +16,7 @@ from protocol import (
     DecodeError,
     Header,
     Image,
+    Keyframes,
     Keypoints,
     MarkerDetections,
     Message,
@@ -23,6 +24,7 @@ from protocol import (
     PointCloud,
     Pose,
     PoseQuality,
+    StageTimings,
     Transform,
     decode,
     encode,
@@ -330,6 +332,33 @@ def test_point_cloud_needs_an_id_per_point_and_a_colour_per_point_or_none(ids: i
     else:
         with pytest.raises(ValidationError, match="4 points need as many ids"):
             build()
+
+
+def test_keyframes_need_a_stamp_and_a_pose_per_id_and_rigid_poses():
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, 3] = np.arange(9.0).reshape(3, 3)
+    keyframes = Keyframes(header=HEADER.model_copy(update={"frame_id": "map"}), child_frame_id="cam0",
+                          ids=np.array([0, 4, 9]), stamps_ns=np.array([1, 5, 10]), poses=poses)
+    again = decode(encode(keyframes))
+    assert again == keyframes and again.poses.shape == (3, 4, 4) and again.ids.dtype == np.int64
+    with pytest.raises(ValidationError, match="3 keyframe ids need as many stamps .got 2. and poses .got 3."):
+        Keyframes(header=HEADER, child_frame_id="cam0", ids=np.arange(3), stamps_ns=np.arange(2), poses=poses)
+    skewed = poses.copy()
+    skewed[1, 3, 0] = 0.5
+    with pytest.raises(ValidationError, match="last row 0 0 0 1"):
+        Keyframes(header=HEADER, child_frame_id="cam0", ids=np.arange(3), stamps_ns=np.arange(3), poses=skewed)
+    with pytest.raises(ValidationError, match="dtype float32"):
+        Keyframes(header=HEADER, child_frame_id="cam0", ids=np.arange(3), stamps_ns=np.arange(3),
+                  poses=poses.astype(np.float32))
+
+
+def test_stage_timings_travel_as_json_and_refuse_a_negative_or_infinite_time():
+    timings = StageTimings(header=HEADER, stages_ms={"keypoints": 4.5, "total": 9.0})
+    assert decode(encode(timings)) == timings and encode(timings).startswith(b"{")
+    with pytest.raises(ValidationError, match="stage 'match' took a negative time"):
+        StageTimings(header=HEADER, stages_ms={"match": -1.0})
+    with pytest.raises(ValidationError, match="finite"):
+        StageTimings(header=HEADER, stages_ms={"match": math.inf})
 
 
 # --- JSON views ---

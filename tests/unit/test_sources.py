@@ -8,7 +8,9 @@ import pytest
 
 from services.calibration.camera_info import CalibrationError, read_camera_info, write_camera_info
 from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source, seconds_to_ns
-from services.geometry.camera import CameraModel
+from services.geometry.camera import CameraModel, project_points
+from services.geometry.se3 import invert, transform_points
+from tests.data import data_dir
 
 
 def frames_of(uri: str, **kwargs) -> list:
@@ -162,3 +164,69 @@ def test_bad_camera_info_names_the_field(tmp_path: Path, text: str, expected: st
     path.write_text(text)
     with pytest.raises(CalibrationError, match=expected):
         read_camera_info(path)
+
+
+KITTI_P = (np.array([[707.0912, 0, 601.8873, 0], [0, 707.0912, 183.1104, 0], [0, 0, 1, 0]]),
+           np.array([[707.0912, 0, 601.8873, -379.8145], [0, 707.0912, 183.1104, 0], [0, 0, 1, 0]]))
+"""KITTI odometry sequence 06's P0 and P1 (left and right grey cameras, 0.537 m apart)."""
+
+
+def kitti_sequence(root: Path, named: bool = True, frames: int = 2) -> Path:
+    for i in range(len(KITTI_P)):
+        (root / f"image_{i}").mkdir(parents=True)
+        for j in range(frames):
+            cv2.imwrite(str(root / f"image_{i}" / f"{j:06d}.png"), gradient(j, (37, 122)))
+    lines = [(f"P{i}: " if named else "") + " ".join(f"{v:.12e}" for v in P.ravel()) for i, P in enumerate(KITTI_P)]
+    (root / "calib.txt").write_text("\n".join([*lines, "Tr: " + " ".join(["0"] * 12)] if named else lines) + "\n")
+    return root
+
+
+@pytest.mark.parametrize("named", [True, False])
+def test_a_kitti_folder_is_calibrated_by_the_calib_file_beside_it(tmp_path, named):
+    root = kitti_sequence(tmp_path, named)
+    alone = open_source(f"images:{root / 'image_0'}").calibration
+    assert list(alone) == ["cam0"] and np.allclose(alone["cam0"].K, KITTI_P[0][:, :3])
+    assert (alone["cam0"].width, alone["cam0"].height) == (122, 37) and not alone["cam0"].dist.any()
+    rig = open_source(f"images:{root}").calibration
+    assert sorted(rig) == ["image_0", "image_1"] and np.allclose(rig["image_1"].K, KITTI_P[1][:, :3])
+    assert np.allclose(rig["image_0"].T_rig_camera, np.eye(4))
+    assert np.allclose(rig["image_1"].T_rig_camera[:3, 3], [379.8145 / 707.0912, 0, 0])  # the baseline, 0.537 m
+    points = np.random.default_rng(6).uniform([-5, -2, 4], [5, 2, 40], (20, 3))  # in camera 0's frame
+    for name, P in zip(("image_0", "image_1"), KITTI_P, strict=True):
+        camera = rig[name]
+        in_camera = transform_points(invert(camera.T_rig_camera), points)
+        projected = (P @ np.c_[points, np.ones(len(points))].T).T
+        assert np.allclose(project_points(in_camera, camera.K), projected[:, :2] / projected[:, 2:], atol=1e-6)
+
+
+def test_a_damaged_kitti_calib_line_is_refused_naming_the_file_and_line(tmp_path):
+    root = kitti_sequence(tmp_path)
+    (root / "calib.txt").write_text("P0: 1 2 3\n")
+    with pytest.raises(CalibrationError, match=r"calib.txt:1: P0 needs 12 finite numbers"):
+        _ = open_source(f"images:{root / 'image_0'}").calibration
+
+
+def test_a_folder_not_named_as_kittis_is_not_calibrated_by_a_calib_file(tmp_path):
+    root = kitti_sequence(tmp_path)
+    (root / "image_0").rename(root / "left")
+    assert open_source(f"images:{root / 'left'}").calibration == {}
+
+
+def test_the_real_kitti_sequence_gives_its_frames_and_p0_calibration():
+    folder = data_dir("vo_kitti_odometry_seq06_frames000-050") / "image_0"
+    source = open_source(f"images:{folder}")
+    camera = source.calibration["cam0"]
+    assert np.allclose(camera.K, [[707.0912, 0, 601.8873], [0, 707.0912, 183.1104], [0, 0, 1]])
+    assert (camera.width, camera.height) == (1226, 370)
+    frames = list(source.frames())
+    assert len(frames) == 51 and all(f.images["cam0"].shape == (370, 1226) for f in frames)
+    assert all(f.time_ns is None for f in frames)  # no times.txt in this copy: paced by --fps, or 30 fps
+
+
+def test_the_real_tum_folder_gives_its_frames_stamped_by_their_names():
+    folder = data_dir("tum_rgbd_fr3_long_office_household_1hz") / "rgb"
+    frames = list(open_source(f"images:{folder}").frames())
+    stamps = [f.time_ns for f in frames]
+    assert len(frames) == 20 and stamps == sorted(stamps) and stamps[0] == 1_341_847_980_722_988_000
+    assert all(f.images["cam0"].shape == (480, 640, 3) for f in frames)
+    assert open_source(f"images:{folder}").calibration == {}  # TUM ships no calibration file: give --calib

@@ -17,6 +17,7 @@ from protocol import (
     GroundTruth,
     Header,
     Image,
+    Keyframes,
     Keypoints,
     MarkerDetections,
     NodeStats,
@@ -25,6 +26,7 @@ from protocol import (
     Pose,
     RigidBodies,
     RigidBody,
+    StageTimings,
     StreamStats,
     TrackingState,
     Transform,
@@ -200,6 +202,29 @@ def test_point_clouds_are_points_in_their_frame_with_rgb_colours(view):
     assert contents.rows("world/points", "Points3D:positions")[0].values.to_pylist() == [[1, 2, 3], [4, 5, 6]]
     colours = contents.rows("world/points", "Points3D:colors")[0].values.to_pylist()
     assert colours == [0x0000FFFF, 0x090000FF]  # RGBA: blue from BGR (255, 0, 0), red 9 from BGR (0, 0, 9)
+
+
+def test_slam_keyframes_are_axes_in_the_map_frame_and_stage_times_are_scalars_per_camera(view):
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[1, :3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, np.pi / 2]))[0]  # turned 90 deg about z
+    poses[1, :3, 3] = (1.0, 2.0, 3.0)
+    keyframes = Keyframes(header=header(5, "map"), child_frame_id="cam0", ids=np.array([0, 3]),
+                          stamps_ns=np.array([BASE_NS, BASE_NS + 3 * PERIOD_NS]), poses=poses)
+    timings = StageTimings(header=header(5), stages_ms={"match": 2.5, "total": 7.0})
+    slam = Pose(header=header(5, "map"), child_frame_id="cam0", transform=Transform(translation=(1.0, 2.0, 3.0)))
+    contents = view([keyframes, timings, slam], axis_length_m=0.5)
+    arrows = "world/map/keyframes/cam0"
+    (origins,) = contents.rows(arrows, "Arrows3D:origins")
+    assert origins.values.to_pylist() == [[0, 0, 0]] * 3 + [[1, 2, 3]] * 3 and origins.times["seq"] == 5
+    vectors = np.reshape(contents.rows(arrows, "Arrows3D:vectors")[0].numbers(), (6, 3))
+    np.testing.assert_allclose(vectors[:3], 0.5 * np.eye(3))
+    np.testing.assert_allclose(vectors[3:], 0.5 * np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1]]), atol=1e-7)
+    assert len(contents.rows(arrows, "Arrows3D:colors")[0].values) == 6
+    value = lambda entity: contents.rows(entity, "Scalars:scalars")[0].numbers().tolist()  # noqa: E731
+    assert value("stats/stage_ms/cam0/match") == [2.5] and value("stats/stage_ms/cam0/total") == [7.0]
+    assert contents.rows("world/map/pose/cam0", "Transform3D:translation")[0].numbers().tolist() == [1, 2, 3]
+    assert "world/map/trajectory/pose/cam0" in contents.entities
+    assert ("TimeSeries", "stats/stage_ms") in contents.views()
 
 
 def test_node_health_is_scalars_and_text_on_the_stamp_timeline_only(view):

@@ -1,0 +1,240 @@
+"""SLAM node: one camera's frames -> the camera's pose in a map built as it goes (``services.slam.system``).
+
+Inputs: the camera's ``image`` key (latest-wins, ``depth`` frames waiting while one is processed) and its
+``camera_info`` key (the newest CameraInfo, taken in between frames; a ``calib`` file given here wins,
+scaled to the frames when only their size differs: ``services.calibration.camera_info_node``). Frames may
+be ``mono8``, ``mono16``, ``bgr8`` or ``bgra8``; SLAM is given their grey levels.
+
+Outputs, each with the header of the frame it came from (``frame_id`` the map frame, ``map_frame``):
+
+* ``pose/slam/<camera>``, every frame: a ``Pose`` ``T_<map_frame>_<camera>`` (child frame the frame's
+  ``frame_id``, else the camera's name), state ``initializing`` (no map yet), ``tracking`` or ``lost``,
+  ``reason`` when not tracking (the system's: ``low_parallax``, ``too_few_matches``, ...; the node's own:
+  ``no_calibration``, ``unusable_frame``), quality ``inliers`` (map points tracked in the frame) and
+  ``reprojection_rms_px``. The map frame is the first keyframe's camera frame, and its scale is arbitrary
+  (monocular): compare with ground truth after a similarity alignment (``artrack eval --align sim3``).
+* ``<camera>/keyframes``: a ``Keyframes`` message (ids, stamps, (K, 4, 4) ``T_map_camera``), whenever the
+  map changed and the keyframes with it (one added, or moved by the map's optimisation).
+* ``<camera>/map``: the map points as a ``PointCloud`` (ids the map's point ids, no colours), at most
+  ``map_points`` of them (evenly spread over the ids when the map holds more), sent when the map changed
+  and at most every ``map_every`` frames, and once more when the node stops.
+* ``<camera>/timings``: a ``StageTimings`` per frame, the system's time per stage in milliseconds (the
+  node's own processing p50/p99 stays in its stats).
+
+Frames the node cannot use are counted among its skipped inputs and reported on its errors key, and get a
+``lost`` pose: ``no_calibration`` before the camera has one, ``unusable_frame`` for a frame whose size is
+not the calibration's or that the system refuses. Payloads that do not decode are counted by the inbox.
+A frame whose stamp is not after the previous one (a source started over), or a new calibration, starts a
+new map; the system is closed when the node stops.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.keys import KeyName
+from protocol.maps import Keyframes, PointCloud
+from protocol.message import Header
+from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.sensors import Image
+from protocol.spatial import Transform
+from protocol.system import StageTimings
+from services.bus.pubsub import Role
+from services.calibration.camera_info import read_camera_info
+from services.calibration.camera_info_node import FrameCalibration
+from services.convert import transform_from_matrix
+from services.detection.grey import as_grey
+from services.geometry.camera import CameraModel
+from services.runtime.kind import NodeKind
+from services.runtime.node import Node, NodeError
+from services.slam.system import FrameResult, SlamState, SlamSystem
+
+STATES = {SlamState.INITIALISING: TrackingState.INITIALIZING, SlamState.TRACKING: TrackingState.TRACKING,
+          SlamState.LOST: TrackingState.LOST}
+
+
+class Params(BaseModel):
+    """Which camera, where its calibration comes from, and what of the map is published how often."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera: KeyName = "cam0"
+    calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
+    map_frame: KeyName = Field(default="map", description="frame id of the map (the first keyframe's camera "
+                                                          "frame, arbitrary scale)")
+    map_points: int = Field(default=20_000, ge=1, description="most map points in one published map (evenly "
+                                                              "spread over the map's when it holds more)")
+    map_every: int = Field(default=10, ge=1, description="publish the map at most every this many frames (when "
+                                                         "it changed)")
+    mapping_thread: bool = Field(default=True, description="map on a thread of its own (off: in the frame loop, "
+                                                           "each frame waits for the mapping it starts)")
+    depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (one waits, more are "
+                                                             "dropped)")
+
+
+def _check(params: Params) -> None:
+    if params.calib is not None:
+        read_camera_info(params.calib)
+
+
+def decimated(ids: np.ndarray, points: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(ids, points)`` ((N,) and (N, 3)) cut to at most ``most`` rows, evenly spaced over the rows."""
+    if len(ids) <= most:
+        return ids, points
+    keep = np.linspace(0, len(ids) - 1, most).round().astype(np.int64)
+    return ids[keep], points[keep]
+
+
+def as_pose(header: Header, child: str, result: FrameResult) -> Pose:
+    """The frame's ``Pose`` message from the system's ``result``."""
+    quality = PoseQuality(inliers=max(result.tracked, 0), reprojection_rms_px=(
+        float(result.reprojection_rms_px) if np.isfinite(result.reprojection_rms_px) else None))
+    T = result.T_world_camera
+    return Pose(header=header, child_frame_id=child, state=STATES[result.state], reason=result.reason,
+                quality=quality, transform=Transform() if T is None else transform_from_matrix(T))
+
+
+def _same_camera(a: CameraModel, b: CameraModel) -> bool:
+    return (a.width, a.height) == (b.width, b.height) and np.array_equal(a.K, b.K) and np.array_equal(a.dist, b.dist)
+
+
+class _CameraSlam:
+    """One camera's SLAM system and what of its map was published last."""
+
+    def __init__(self, node: Node, params: Params):
+        self._node = node
+        self._params = params
+        keys = node.keys
+        self._poses = node.publisher(keys.slam_pose(params.camera), Pose, Role.RESULT)
+        self._timings = node.publisher(keys.timings(params.camera), StageTimings, Role.RESULT)
+        self._keyframes = node.publisher(keys.keyframes(params.camera), Keyframes, Role.RESULT)
+        self._cloud = node.publisher(keys.camera_map(params.camera), PointCloud, Role.RESULT)
+        self.system: SlamSystem | None = None
+        self._camera: CameraModel | None = None
+        self._last_stamp: int | None = None
+        self._start_over()
+
+    def _start_over(self) -> None:
+        self._keyframe_revision: int | None = None
+        self._sent_keyframes: tuple[np.ndarray, np.ndarray] | None = None
+        self._map_revision: int | None = None
+        self._since_map = self._params.map_every
+
+    def system_for(self, camera: CameraModel, stamp_ns: int) -> SlamSystem:
+        """The system for a frame of ``camera`` stamped ``stamp_ns``: a new one (a new map) at the first
+        frame, after a new calibration and when the stamps start over."""
+        restarted = self._last_stamp is not None and stamp_ns <= self._last_stamp
+        recalibrated = self._camera is not None and not _same_camera(camera, self._camera)
+        self._last_stamp = stamp_ns
+        if self.system is None or restarted or recalibrated:
+            if self.system is not None:
+                self._node.log.warning("a new map for %s: %s", self._params.camera,
+                                       "the frames started over" if restarted else "the calibration changed")
+                self.close()
+            self.system = SlamSystem(camera, mapping_thread=self._params.mapping_thread)
+            self._camera = camera
+            self._start_over()
+        return self.system
+
+    def put_pose(self, pose: Pose) -> None:
+        self._poses.put(pose)
+
+    def publish(self, header: Header, child: str, result: FrameResult) -> None:
+        """The frame's pose, stage times, and what of the map changed (see the module docstring)."""
+        map_header = header.model_copy(update={"frame_id": self._params.map_frame})
+        self._poses.put(as_pose(map_header, child, result))
+        stages = {stage: float(ms) for stage, ms in result.timings_ms.items() if np.isfinite(ms) and ms >= 0}
+        self._timings.put(StageTimings(header=header, stages_ms=stages))
+        self._since_map += 1
+        self.publish_map(map_header, child, final=False)
+
+    def publish_map(self, header: Header, child: str, *, final: bool) -> None:
+        """Keyframes when they changed; points when the map changed and ``map_every`` frames went by (or
+        ``final``)."""
+        system = self.system
+        if system is None:
+            return
+        revision = system.map_revision
+        if revision != self._keyframe_revision:
+            self._keyframe_revision = revision
+            self._put_keyframes(header, child, system.keyframe_poses())
+        if revision != self._map_revision and (final or self._since_map >= self._params.map_every):
+            self._map_revision = revision
+            self._since_map = 0
+            ids, points = system.map_points()
+            ids, points = decimated(ids, points, self._params.map_points)
+            self._cloud.put(PointCloud(header=header, points=np.asarray(points, np.float32),
+                                       ids=np.asarray(ids, np.int64), colors=np.zeros((0, 3), np.uint8)))
+
+    def _put_keyframes(self, header: Header, child: str, keyframes: list[tuple[int, int, np.ndarray]]) -> None:
+        ids = np.array([k for k, _, _ in keyframes], np.int64)
+        poses = np.array([T for _, _, T in keyframes], np.float64).reshape(-1, 4, 4)
+        sent = self._sent_keyframes
+        if sent is not None and np.array_equal(sent[0], ids) and np.array_equal(sent[1], poses):
+            return
+        self._sent_keyframes = (ids, poses)
+        stamps = np.array([stamp for _, stamp, _ in keyframes], np.int64)
+        self._keyframes.put(Keyframes(header=header, child_frame_id=child, ids=ids, stamps_ns=stamps, poses=poses))
+
+    def close(self) -> None:
+        if self.system is not None:
+            self.system.close()
+            self.system = None
+
+
+def run(node: Node, params: Params) -> None:
+    try:
+        fixed = read_camera_info(params.calib) if params.calib else None
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    keys = node.keys
+    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
+    slam = _CameraSlam(node, params)
+    frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
+    header, child = None, params.camera
+    try:
+        for image in node.inputs(frames):
+            calibration.fit_frame(node, image)
+            header, child = image.header, image.header.frame_id or params.camera
+            _track(node, params, slam, calibration.current(), image, child)
+            calibration.refresh()
+        if header is not None:
+            slam.publish_map(header.model_copy(update={"frame_id": params.map_frame}), child, final=True)
+    finally:
+        slam.close()
+
+
+def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | None, image: Image, child: str) -> None:
+    """One frame through the system, or the ``lost`` pose that says why it could not be."""
+    header = image.header
+    lost = header.model_copy(update={"frame_id": params.map_frame})
+    where = node.keys.image(params.camera)
+    if camera is None:
+        slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="no_calibration"))
+        node.report("no_calibration", f"no CameraInfo for {params.camera} and no calib file: no poses",
+                    node.keys.camera_info(params.camera))
+        return
+    height, width = image.data.shape[:2]
+    try:
+        if (width, height) != (camera.width, camera.height):
+            raise ValueError(f"a {width}x{height} frame, calibrated for {camera.width}x{camera.height}")
+        result = slam.system_for(camera, header.stamp_ns).process(header.stamp_ns, as_grey(image.data))
+    except (ValueError, cv2.error) as exc:
+        slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="unusable_frame"))
+        node.report("unusable_frame", f"frame {header.seq}: {exc}", where)
+        return
+    slam.publish(header, child, result)
+
+
+def _outputs(params: Params) -> tuple[str, ...]:
+    return (f"pose/slam/{params.camera}", *(f"{params.camera}/{stream}" for stream in ("keyframes", "map",
+                                                                                          "timings")))
+
+
+KIND = NodeKind(name="slam", summary="monocular SLAM: the camera's pose in a map of keyframes and points built "
+                "from its frames", params=Params, run=run, inputs=("{camera}/image", "{camera}/camera_info"),
+                outputs=_outputs, check=_check)
