@@ -38,8 +38,13 @@ Two fits (``method``):
   between the camera centres in the map and in the marker frame (``-R_camera_marker^T t_camera_marker``).
   Simple and standard, but each metric centre carries the marker's orientation error times the
   distance, and the rotation comes from the shape of the path alone (it needs a path that is not
-  a straight line: ``min_breadth_m``). ``tests/unit/test_slam_anchor.py`` compares the two on the same noisy
-  sightings: ``rays`` is the more accurate in scale, position and rotation.
+  a straight line: ``min_breadth_m``).
+
+``tests/unit/test_slam_anchor.py`` compares the two on the same noisy sightings of an exact path:
+``rays`` is the more accurate in scale (8 times), rotation (20 times) and position. With a real SLAM
+trajectory (``tests/accuracy/test_slam_anchor.py``, docs/slam.md) ``centres`` lands its camera centres
+a little closer (it minimises just that) but its rotation is three times further off, and for AR
+the rotation is what tilts everything drawn away from the marker: ``rays`` is the default.
 
 Refitting: the fit is redone after every accepted pair, over the last ``max_frames`` accepted
 pairs; it is never frozen. Monocular scale drifts along a sequence, so the newest sightings say
