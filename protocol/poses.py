@@ -1,8 +1,8 @@
 """Pose estimates: one target's pose, rigid bodies of a rig, ground truth.
 
 A ``Pose`` is ``T_parent_child`` where the parent is ``header.frame_id`` (a camera's
-optical frame for marker poses, ``world`` for rigid bodies and SLAM) and the child is
-``child_frame_id`` (``marker/7``, ``body/wand``, the camera for SLAM). Its header is the
+optical frame for marker poses, ``world`` for rigid bodies, the map frame for SLAM) and the
+child is ``child_frame_id`` (``marker/7``, ``body/wand``, the camera for SLAM). Its header is the
 header of the frame it was estimated from.
 """
 

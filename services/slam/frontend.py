@@ -128,7 +128,7 @@ class Tracker:
             return Tracked(SlamState.INITIALISING, found.state.value)
         if int(found.inliers.sum()) < s.init_min_points:
             return Tracked(SlamState.INITIALISING, "too_few_points")
-        with stage_timer(timings, "mapping"):
+        with stage_timer(timings, "initial_map"):
             keyframe_id = self._start_map(reference, frame, a[found.inliers], b[found.inliers],
                                           found.points[found.inliers], found.T_second_first)
         if keyframe_id is None:

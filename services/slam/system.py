@@ -36,7 +36,8 @@ class FrameResult:
     ``bad_image``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
     ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
     keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``,
-    ``keyframe``, ``mapping`` when mapping ran inline, ``total``)."""
+    ``keyframe``, ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was
+    mapped inline (included in ``keyframe``), ``total``)."""
 
     state: SlamState
     reason: str
@@ -72,7 +73,7 @@ class SlamSystem:
                 with stage_timer(timings, "keypoints"):
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
-            if tracked.keyframe_id is not None and not self._threaded:
+            if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
         return FrameResult(tracked.state, tracked.reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
