@@ -254,3 +254,19 @@ def test_refits_over_the_newest_pairs():
 def test_bad_settings_are_refused(settings, message):
     with pytest.raises(ValueError, match=message):
         AnchorSettings(**settings)
+
+
+def test_slam_poses_gone_astray_are_left_out():
+    """A tenth of the SLAM poses 0.1 map units (25 cm) off, as a tracking failure would put them."""
+    found = sightings(VISIBLE, seed=3)
+    anchor = MarkerAnchor()
+    for n, (T_map_camera, sighting) in enumerate(zip(map_poses(VISIBLE), found, strict=True)):
+        if sighting is None:
+            continue
+        if n % 10 == 7:
+            T_map_camera = T_map_camera.copy()
+            T_map_camera[:3, 3] += [0.1, 0.0, 0.0]
+        anchor.add(T_map_camera, sighting)
+    scale, rotation, rmse, rotation_rms, _ = errors(anchor)
+    assert anchor.anchor is not None and anchor.anchor.outliers >= 12
+    assert abs(scale) < 0.5 and rotation < 0.3 and rmse < 0.015 and rotation_rms < 0.3
