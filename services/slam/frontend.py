@@ -32,11 +32,11 @@ from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
-from services.slam.initialisation import initialise
+from services.slam.initialisation import InitialisationState, initialise
 from services.slam.map import PointArrays, SlamMap
 from services.slam.mapping import LocalMapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
-from services.slam.optimisation import refine_pose
+from services.slam.optimisation import refine_pose, reprojection_errors
 from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
@@ -122,7 +122,7 @@ class Tracker:
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
             found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
-        if found.state == "too_few_matches":
+        if found.state is InitialisationState.TOO_FEW_MATCHES:
             self._reference = frame
         if not found.initialised or found.T_second_first is None:
             return Tracked(SlamState.INITIALISING, found.state.value)
@@ -136,8 +136,12 @@ class Tracker:
             return Tracked(SlamState.INITIALISING, "too_few_points")
         last = self._last
         assert last is not None
-        tracked = int(np.count_nonzero(last.point_ids >= 0))
-        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), tracked, 0.0, keyframe_id)
+        seen = np.flatnonzero(last.point_ids >= 0)
+        points = self.map.arrays(last.point_ids[seen])
+        seen = seen[np.isin(last.point_ids[seen], points.ids)]
+        errors = reprojection_errors(self.K, last.T_camera_world, points.positions, features.pixels[seen])
+        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), len(seen),
+                       float(np.sqrt(np.mean(errors**2))), keyframe_id)
 
     def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
                    T_second_first: np.ndarray) -> int | None:
@@ -242,7 +246,7 @@ class Tracker:
         s = self.settings
         with stage_timer(timings, "match"):
             if self._lost:
-                candidates = np.array(sorted(self.map.points), np.int64)
+                candidates = self.map.point_ids()
             else:
                 keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
                 candidates = self.map.points_of(keyframes)

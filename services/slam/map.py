@@ -282,6 +282,11 @@ class SlamMap:
                 chosen.extend(k for k in self.covisible(keyframe_id, 10) if k not in chosen)
             return chosen[:count]
 
+    def point_ids(self) -> np.ndarray:
+        """(P,) int64 sorted ids of every point."""
+        with self.lock:
+            return np.array(sorted(self.points), np.int64)
+
     def points_of(self, keyframe_ids: list[int]) -> np.ndarray:
         """(P,) int64 sorted ids of the points the keyframes observe."""
         with self.lock:

@@ -4,7 +4,8 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
 
 1. Cull recent points that failed (``SlamMap.cull_points``).
 2. Triangulate new points between the keyframe's unmatched keypoints and those of its best
-   covisible keyframes: descriptor matches within a chi-square bound of the epipolar line,
+   covisible keyframes: descriptor matches within a chi-square bound of the epipolar line, on the
+   half of it where the rays meet in front of both cameras,
    triangulated (``services.geometry.triangulation.triangulate_many``), kept when in front of both
    cameras, seen under enough parallax, within a chi-square bound of both observations and at
    distances that agree with their pyramid levels.
@@ -15,7 +16,8 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
    observations it finds to be outliers are removed.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
-waits for it, or inline in ``enqueue`` (deterministic, for tests).
+waits for it, or inline in ``enqueue`` (deterministic, for tests). A keyframe processed while
+others wait gets only steps 1 and 2.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "need_keyframe", "triangulation_checks"]
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "need_keyframe", "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
 
@@ -138,19 +140,22 @@ class LocalMapper:
                     self._busy.clear()
 
     def process(self, keyframe_id: int) -> None:
-        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``."""
+        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``.
+        When more keyframes wait in the queue, fusion and bundle adjustment are left to the last of
+        them (as ORB-SLAM does): new points for the tracker come first."""
         s = self.settings
         timings: dict[str, float] = {}
         with stage_timer(timings, "cull"):
             self.map.cull_points(keyframe_id, s.cull_found_ratio, s.cull_min_observations, probation=3)
         with stage_timer(timings, "triangulate"):
             self.triangulate(keyframe_id)
-        with stage_timer(timings, "fuse"):
-            self.fuse(keyframe_id)
-        with stage_timer(timings, "bundle_adjustment"):
-            with self.map.lock:
-                window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
-            self.adjust(window)
+        if self._queue.empty():
+            with stage_timer(timings, "fuse"):
+                self.fuse(keyframe_id)
+            with stage_timer(timings, "bundle_adjustment"):
+                with self.map.lock:
+                    window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
+                self.adjust(window)
         self.timings_ms = timings
 
     def adjust_initial_map(self, first: int, second: int) -> None:
@@ -241,7 +246,8 @@ class LocalMapper:
         """``(keypoints of the keyframe, keypoints of the neighbour)``: unmatched keypoint pairs whose
         descriptors match (distance, ratio, one per keypoint, consistent orientation), the neighbour's
         keypoint within the one-degree-of-freedom chi-square bound (its level's sigma) of the epipolar
-        line of the keyframe's."""
+        line of the keyframe's, and the two rays meeting in front of both cameras: candidates behind a
+        camera are left out before the ratio test, where they would only crowd it."""
         s = self.settings
         first, second = pair.keyframe.features, pair.neighbour.features
         free_a = np.flatnonzero(pair.keyframe.point_ids < 0)
@@ -252,6 +258,10 @@ class LocalMapper:
         epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
         bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
         allowed = (epipolar < bounds[None]).view(np.uint8)
+        rows, columns = np.nonzero(allowed)
+        behind = ~meet_in_front(self.K, pair.keyframe.T_camera_world, pair.neighbour.T_camera_world,
+                                    first.pixels[free_a[rows]], second.pixels[free_b[columns]])
+        allowed[rows[behind], columns[behind]] = 0
         a, b = match_descriptors(first.descriptors[free_a], second.descriptors[free_b],
                                  s.triangulation_max_distance, s.triangulation_ratio, allowed)
         a, b = free_a[a], free_b[b]
@@ -289,6 +299,20 @@ class LocalMapper:
                         self.map.merge_points(kept, merged)
                     changed += 1
         return changed
+
+
+def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.ndarray,
+                      pixels_b: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether the rays through (P, 2) ``pixels_a`` of camera ``T_a`` and ``pixels_b`` of
+    ``T_b`` (``T_camera_world``, both (4, 4), intrinsics ``K``) come closest in front of both cameras."""
+    K_inv = np.linalg.inv(K)
+    rays_a = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ K_inv.T) @ T_a[:3, :3]
+    rays_b = (np.hstack([pixels_b, np.ones((len(pixels_b), 1))]) @ K_inv.T) @ T_b[:3, :3]
+    baseline = -T_b[:3, :3].T @ T_b[:3, 3] + T_a[:3, :3].T @ T_a[:3, 3]
+    normal = np.cross(rays_a, rays_b)
+    depth_a = np.sum(np.cross(baseline, rays_b) * normal, axis=1)
+    depth_b = np.sum(np.cross(baseline, rays_a) * normal, axis=1)
+    return (depth_a > 0) & (depth_b > 0)
 
 
 def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:

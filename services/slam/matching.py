@@ -22,10 +22,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["HAMMING_BITS", "hamming", "hamming_matrix", "match_descriptors", "search_by_projection",
+__all__ = ["hamming", "hamming_matrix", "match_descriptors", "search_by_projection",
            "rotation_consistent", "best_two"]
 
-HAMMING_BITS = 256
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int32)
 ROTATION_BINS = 30
 

@@ -99,7 +99,7 @@ class SlamSystem:
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, positions (N, 3) world)`` of every map point."""
         with self.map.lock:
-            ids = np.array(sorted(self.map.points), np.int64)
+            ids = self.map.point_ids()
             positions = np.array([self.map.points[i].position for i in ids.tolist()], np.float64).reshape(-1, 3)
         return ids, positions
 
