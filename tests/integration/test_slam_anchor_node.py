@@ -18,8 +18,11 @@ from tests.integration.test_marker_pipeline import recorded
 pytestmark = pytest.mark.integration
 
 FRAMES = 150
-"""The marker is first seen whole at frame 45; the anchor needs 0.3 m of baseline after that."""
+"""The marker is seen whole in frames 45-121; the anchor needs 0.3 m of baseline after the first, and the last
+frames look away from it."""
 KEY = "pose/slam/cam0/anchored"
+SEEN = range(45, 122)
+"""Frames that see the marker whole."""
 
 
 def test_slam_run_with_an_anchor_marker_gives_metric_poses_in_the_marker_frame(procs, tmp_path):
@@ -39,5 +42,11 @@ def test_slam_run_with_an_anchor_marker_gives_metric_poses_in_the_marker_frame(p
     assert isinstance(scene, RoomScene) and scene.T_world_marker is not None
     truth = np.array([invert(scene.T_world_marker) @ scene.camera_pose(p.header.seq) for p in tracking])
     estimate = np.array([matrix_from_transform(p.transform) for p in tracking])
-    error = absolute_trajectory_error(estimate, truth, align="none")
-    assert error.stats.rmse <= 0.05, error.stats  # metres in the marker's frame, no alignment
+    in_view = np.array([p.header.seq in SEEN for p in tracking])
+    error = absolute_trajectory_error(estimate, truth, align="none")  # metres in the marker's frame, no alignment
+    seen = absolute_trajectory_error(estimate[in_view], truth[in_view], align="none")
+    origins = [invert(a)[:3, 3] - invert(b)[:3, 3] for a, b in zip(estimate, truth, strict=True)]
+    in_camera = float(np.sqrt(np.mean(np.sum(np.square(origins), axis=1))))
+    assert in_view.sum() >= 30 and seen.stats.rmse <= 0.03, seen.stats  # while the marker is in view
+    assert error.stats.rmse <= 0.1, error.stats  # and after, as the map drifts away from it
+    assert in_camera <= 0.02, in_camera  # where the marker's origin lands in the camera frame
