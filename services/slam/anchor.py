@@ -47,7 +47,7 @@ Two fits (``method``):
 ``rays`` is the more accurate in scale (8 times), rotation (18 times) and position. With a real SLAM
 trajectory (``tests/accuracy/test_slam_anchor.py``, docs/slam.md) ``centres`` lands its camera centres
 a little closer (it minimises just that) but its rotation is three times further off, so the marker's
-origin, seen from the camera, lands centimetres away (7 cm against 9 mm RMS): where an AR app draws.
+origin, seen from the camera, lands centimetres away (6 cm against 9 mm RMS): where an AR app draws.
 ``rays`` is the default.
 
 Refitting: the fit is redone after every accepted pair, over the last ``max_frames`` accepted
