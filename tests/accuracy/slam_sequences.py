@@ -6,7 +6,8 @@
 
 The system runs with ``mapping_thread=False`` (deterministic). Scoring: ATE RMSE after a Sim(3)
 alignment (``services.geometry.evaluation``) of every frame given a pose, against the ground truth
-of the same frame. ``python -m tests.accuracy.slam_sequences [room|kitti|tum ...]`` prints the figures.
+of the same frame. ``python -m tests.accuracy.slam_sequences [room|room@<seed>|kitti|tum ...]`` prints
+the figures.
 """
 
 from __future__ import annotations
@@ -44,15 +45,15 @@ class Sequence:
     frames: Frames
 
 
-def room() -> Sequence:
-    scene = make_scene("room")
+def room(seed: int = 0) -> Sequence:
+    scene = make_scene("room", seed=seed)
 
     def frames() -> Frames:
         for index in range(ROOM_FRAMES):
             frame = scene.render(index)
             yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
 
-    return Sequence("room", scene.cameras[0], frames())
+    return Sequence("room" if seed == 0 else f"room@{seed}", scene.cameras[0], frames())
 
 
 def kitti(folder: Path) -> Sequence:
@@ -164,8 +165,9 @@ def run(sequence: Sequence) -> SlamRun:
 
 
 def sequence(name: str) -> Sequence:
-    if name == "room":
-        return room()
+    """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``kitti`` or ``tum``."""
+    if name.startswith("room"):
+        return room(int(name.partition("@")[2] or 0))
     return kitti(data_root() / KITTI) if name == "kitti" else tum(data_root() / TUM)
 
 
