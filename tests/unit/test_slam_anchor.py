@@ -208,6 +208,10 @@ def test_bad_sightings_are_refused():
     nan[0, 3] = np.nan
     assert anchor.add(nan, good) == Refusal.NOT_FINITE
     assert len(anchor) == 0
+    with pytest.raises(ValueError, match=r"T_map_camera must be \(4, 4\), got shape \(3, 4\)"):
+        anchor.add(T_map_camera[:3], good)
+    with pytest.raises(ValueError, match=r"covariance must be \(6, 6\)"):
+        anchor.add(T_map_camera, MarkerSighting(good.T_camera_marker, good.rms_px, False, np.eye(3)))
     assert anchor.add(T_map_camera, good) is None and len(anchor) == 1
 
 
