@@ -128,7 +128,8 @@ class MarkerSighting:
 class Refusal(StrEnum):
     """Why ``MarkerAnchor.add`` did not keep a pair."""
 
-    NOT_FINITE = "not_finite"
+    INVALID = "invalid"
+    """A value not finite, or a position covariance that is not symmetric positive semi-definite."""
     AMBIGUOUS = "ambiguous"
     HIGH_RMS = "high_rms"
     UNCERTAIN = "uncertain"
@@ -230,8 +231,9 @@ class MarkerAnchor:
                 raise ValueError(f"{name} must be {shape}, got shape {array.shape}")
         covariance = covariance[:3, :3]
         if not (np.all(np.isfinite(T_map_camera)) and np.all(np.isfinite(T_camera_marker))
-                and np.all(np.isfinite(covariance)) and np.isfinite(sighting.rms_px)):
-            return Refusal.NOT_FINITE
+                and np.all(np.isfinite(covariance)) and np.isfinite(sighting.rms_px)
+                and np.allclose(covariance, covariance.T) and np.linalg.eigvalsh(covariance)[0] >= 0):
+            return Refusal.INVALID
         if sighting.ambiguous:
             return Refusal.AMBIGUOUS
         if sighting.rms_px > self.settings.max_rms_px:

@@ -206,7 +206,9 @@ def test_bad_sightings_are_refused():
         Refusal.UNCERTAIN
     nan = T_map_camera.copy()
     nan[0, 3] = np.nan
-    assert anchor.add(nan, good) == Refusal.NOT_FINITE
+    assert anchor.add(nan, good) == Refusal.INVALID
+    assert anchor.add(T_map_camera, MarkerSighting(good.T_camera_marker, good.rms_px, False,
+                                                   -good.covariance)) == Refusal.INVALID
     assert len(anchor) == 0
     with pytest.raises(ValueError, match=r"T_map_camera must be \(4, 4\), got shape \(3, 4\)"):
         anchor.add(T_map_camera[:3], good)
