@@ -6,5 +6,6 @@ how, a map can be started (``initialisation``); ORB features (``features``), des
 (``matching``) and search by projection (``projection``); the map of keyframes and points
 (``map``); tracking of each frame (``frontend``); local mapping of each keyframe (``mapping``); the
 optimisation both need (``optimisation``: local bundle adjustment by Ceres through pycolmap, robust
-pose-only refinement); the tuning numbers (``settings``).
+pose-only refinement); the tuning numbers (``settings``); relocalisation in the whole map after a
+lost frame (``relocalisation``); map files, to localise later runs in a saved map (``map_file``).
 """

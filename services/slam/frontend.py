@@ -12,10 +12,13 @@ Then, for each frame (as ORB-SLAM does):
    projection around it (``projection``), with a wider window when too few are found; refine the
    pose on those matches (robust, pose only).
 2. When that fails (too few matches or inliers: after a gap, a jerk, or frames ~1 s apart), match
-   the frame's descriptors with the points of the local map (all the map's points when the last
-   frame was lost) and solve PnP with RANSAC (``cv2.solvePnPRansac``, SQPNP), then refine.
+   the frame's descriptors with the points of the local map and solve PnP with RANSAC
+   (``relocalisation.solve_pnp``), then refine. After a lost frame, or on a map given at the start
+   (loaded from a file: the tracker starts lost), ``relocalisation.Relocaliser`` searches the whole map.
 3. Search the local map (the points of the keyframes observing the matched points and of their
    best covisible keyframes) by projection with the refined pose, and refine again on all matches.
+
+With ``localisation_only`` the map stays as it is: frames are tracked, no keyframe is made.
 
 Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
 """
@@ -25,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
-import cv2
 import numpy as np
 
 from services.geometry.camera import CameraModel
@@ -38,6 +40,7 @@ from services.slam.mapping import LocalMapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
 from services.slam.optimisation import refine_pose, reprojection_errors
 from services.slam.projection import project_points, search_projected
+from services.slam.relocalisation import Relocaliser, solve_pnp
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
@@ -78,9 +81,11 @@ class _Frame:
 
 
 class Tracker:
-    """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper``."""
+    """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper`` (none with
+    ``localisation_only``)."""
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: LocalMapper):
+    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: LocalMapper,
+                 localisation_only: bool = False):
         self.K = np.asarray(camera.K, np.float64)
         self.size = (camera.width, camera.height)
         self.settings = settings
@@ -91,14 +96,22 @@ class Tracker:
         self._last: _Frame | None = None
         self._velocity: tuple[np.ndarray, float] | None = None
         """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
-        self._lost = 0
+        self._lost = int(bool(slam_map.keyframes))
+        self._relocaliser = Relocaliser(slam_map, self.K, self.size, settings)
+        self.localisation_only = localisation_only
         self._reference_keyframe = -1
         self._last_keyframe_stamp = 0
+
+    @property
+    def reference_keyframe(self) -> int:
+        """The id of the keyframe sharing most points with the last tracked frame (the frame itself when
+        it became a keyframe); -1 before the map exists."""
+        return self._reference_keyframe
 
     def track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
         """The outcome of one frame's ``features``; adds the stages' milliseconds to ``timings``."""
         self._index += 1
-        started = self.map.keyframes and self._last is not None
+        started = bool(self.map.keyframes) and (self._last is not None or self._lost > 0)
         if len(features) < self.settings.min_tracked:
             self._lost += int(bool(started))
             return Tracked(SlamState.LOST if started else SlamState.INITIALISING, "no_texture")
@@ -168,33 +181,34 @@ class Tracker:
 
     def _track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
         last = self._last
-        assert last is not None
         point_ids = np.full(len(features), -1, np.int64)
         found = None
-        if self._lost == 0:
+        reason = "too_few_matches"
+        if self._lost == 0 and last is not None:
             T = self._follow_motion(last, stamp_ns, features, point_ids, timings)
             if T is not None:
                 with stage_timer(timings, "local_map"):
                     found = self._track_local_map(T, features, point_ids)
         if found is None:
             point_ids[:] = -1
-            T = self._relocate(last, features, point_ids, timings)
+            T, reason = self._relocate(last, features, point_ids, timings)
             if T is not None:
                 with stage_timer(timings, "local_map"):
                     found = self._track_local_map(T, features, point_ids)
         if found is None:
             self._lost += 1
-            return Tracked(SlamState.LOST, "too_few_matches")
+            return Tracked(SlamState.LOST, reason or "too_few_matches")
         T, rms = found
         tracked = int(np.count_nonzero(point_ids >= 0))
-        dt = (stamp_ns - last.stamp_ns) * 1e-9
-        self._velocity = (T @ np.linalg.inv(last.T_camera_world), dt) if self._lost == 0 and dt > 0 else None
+        self._velocity = None
+        if self._lost == 0 and last is not None and stamp_ns > last.stamp_ns:
+            self._velocity = (T @ np.linalg.inv(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
         self._lost = 0
         frame = _Frame(self._index, stamp_ns, features, T, point_ids)
         self._last = frame
         keyframe_id = None
         with stage_timer(timings, "keyframe"):
-            if self._wants_keyframe(frame, tracked):
+            if not self.localisation_only and self._wants_keyframe(frame, tracked):
                 keyframe_id = self._insert_keyframe(frame)
         return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
@@ -239,39 +253,28 @@ class Tracker:
                 break
         return points, rows, keypoints
 
-    def _relocate(self, last: _Frame, features: FrameFeatures, point_ids: np.ndarray,
-                  timings: dict[str, float]) -> np.ndarray | None:
-        """A pose from descriptor matches with the local map of the last tracked frame (the whole map
-        after a lost frame) by PnP RANSAC then refinement; None when too few inliers. Fills ``point_ids``."""
+    def _relocate(self, last: _Frame | None, features: FrameFeatures, point_ids: np.ndarray,
+                  timings: dict[str, float]) -> tuple[np.ndarray | None, str]:
+        """A pose from descriptor matches with the local map of the last tracked frame by PnP RANSAC
+        then refinement, or from the whole map after a lost frame (``relocalisation.Relocaliser``);
+        None and why not when too few inliers. Fills ``point_ids``."""
+        if self._lost or last is None:
+            relocalised = self._relocaliser.relocalise(features, timings)
+            point_ids[:] = relocalised.point_ids
+            return relocalised.T_camera_world, relocalised.reason
         s = self.settings
         with stage_timer(timings, "match"):
-            if self._lost:
-                candidates = self.map.point_ids()
-            else:
-                keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
-                candidates = self.map.points_of(keyframes)
-            points = self.map.arrays(candidates)
+            keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
+            points = self.map.arrays(self.map.points_of(keyframes))
             rows, keypoints = match_descriptors(points.descriptors, features.descriptors, s.match_max_distance,
                                                 s.match_ratio)
-        if len(rows) < s.pnp_min_inliers:
-            return None
         with stage_timer(timings, "pose"):
-            ok, rvec, tvec, inliers = cv2.solvePnPRansac(points.positions[rows], features.pixels[keypoints], self.K,
-                                                         None, reprojectionError=s.pnp_threshold_px,
-                                                         iterationsCount=300, confidence=0.999,
-                                                         flags=cv2.SOLVEPNP_SQPNP)
-            if not ok or inliers is None or len(inliers) < s.pnp_min_inliers:
-                return None
-            inliers = inliers.ravel()
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-            rows, keypoints = rows[inliers], keypoints[inliers]
-            refined = refine_pose(self.K, T, points.positions[rows], features.pixels[keypoints],
-                                  features.sigmas[keypoints])
-        if np.count_nonzero(refined.inliers) < s.pnp_min_inliers:
-            return None
-        point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
-        return refined.T_camera_world
+            solved = solve_pnp(self.K, s, points.positions[rows], features, keypoints)
+        if solved is None:
+            return None, "too_few_matches"
+        refined, used = solved
+        point_ids[keypoints[used][refined.inliers]] = points.ids[rows[used][refined.inliers]]
+        return refined.T_camera_world, ""
 
     def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
                          point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:

@@ -28,11 +28,19 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   that ``initializing`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
   ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
 
+Map files (``services.slam.map_file``): with ``map`` every new system starts from that file's map
+(relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last
+system's map is written when the node stops (not when it holds no keyframe; a file that cannot be written is
+one error line). A map file that is missing, not a map file or of another version is refused before the node
+starts (``check``); one made for another camera shows only once the calibration is known: one error line,
+then every frame of that calibration gets a ``lost`` pose ``map_refused`` (counted and reported like the
+frames below) while the node goes on.
+
 Frames the node cannot use are counted among its skipped inputs and reported on its errors key, and get a
 ``lost`` pose: ``no_calibration`` before the camera has one, ``unusable_frame`` for a frame whose size is
 not the calibration's or that the system refuses. Payloads that do not decode are counted by the inbox.
 A frame whose stamp is not after the previous one (a source started over), or a new calibration, starts a
-new map; the system is closed when the node stops.
+new map (from ``map`` again when given); the system is closed when the node stops.
 """
 
 from __future__ import annotations
@@ -61,6 +69,7 @@ from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.slam.anchor import MarkerAnchor, MarkerSighting
+from services.slam.map_file import MapFileError, read_header
 from services.slam.system import FrameResult, SlamState, SlamSystem
 
 STATES = {SlamState.INITIALISING: TrackingState.INITIALIZING, SlamState.TRACKING: TrackingState.TRACKING,
@@ -84,6 +93,11 @@ class Params(BaseModel):
                                                            "each frame waits for the mapping it starts)")
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (one waits, more are "
                                                              "dropped)")
+    map: Path | None = Field(default=None, description="map file of an earlier run (--save-map) to start from: "
+                                                       "relocalise in it, then track it")
+    localisation_only: bool = Field(default=False, description="keep the loaded map fixed: no new keyframes or "
+                                                               "points (needs --map)")
+    save_map: Path | None = Field(default=None, description="write the map to this file when the node stops")
     anchor_marker: int | None = Field(default=None, ge=0, description="id of a marker of known side whose "
                                       "sightings give the map metres and the marker's frame "
                                       "(pose/slam/<camera>/anchored); default: off")
@@ -93,8 +107,19 @@ class Params(BaseModel):
 
 
 def _check(params: Params) -> None:
+    """What the node would refuse at its start (ValueError, one line): a calibration file that does not read,
+    a map file that is missing, not a map file or of another version, localisation without a map, a map
+    to save into a folder that does not exist, an anchor marker without its side or of an unknown dictionary."""
     if params.calib is not None:
         read_camera_info(params.calib)
+    if params.localisation_only and params.map is None:
+        raise ValueError("localisation_only needs a map to localise in (map, --map)")
+    if params.map is not None:
+        read_header(params.map)
+    if params.save_map is not None and params.save_map.is_dir():
+        raise ValueError(f"cannot save the map to {params.save_map}: a folder")
+    if params.save_map is not None and not params.save_map.parent.is_dir():
+        raise ValueError(f"cannot save the map to {params.save_map}: no folder {params.save_map.parent}")
     if params.anchor_marker is not None:
         _Anchoring(params)
 
@@ -157,6 +182,7 @@ class _CameraSlam:
         self.system: SlamSystem | None = None
         self._camera: CameraModel | None = None
         self._last_stamp: int | None = None
+        self._refused: tuple[CameraModel, MapFileError] | None = None
         self._start_over()
 
     def _start_over(self) -> None:
@@ -167,8 +193,11 @@ class _CameraSlam:
         self._anchoring = None if self._params.anchor_marker is None else _Anchoring(self._params)
 
     def system_for(self, camera: CameraModel, stamp_ns: int) -> SlamSystem:
-        """The system for a frame of ``camera`` stamped ``stamp_ns``: a new one (a new map) at the first
-        frame, after a new calibration and when the stamps start over."""
+        """The system for a frame of ``camera`` stamped ``stamp_ns``: a new one (a new map, or ``map``'s) at
+        the first frame, after a new calibration and when the stamps start over. ``MapFileError`` when
+        ``map`` does not fit ``camera`` (once logged as an error; raised again for every frame of it)."""
+        if self._refused is not None and _same_camera(camera, self._refused[0]):
+            raise self._refused[1]
         restarted = self._last_stamp is not None and stamp_ns <= self._last_stamp
         recalibrated = self._camera is not None and not _same_camera(camera, self._camera)
         self._last_stamp = stamp_ns
@@ -177,10 +206,25 @@ class _CameraSlam:
                 self._node.log.warning("a new map for %s: %s", self._params.camera,
                                        "the frames started over" if restarted else "the calibration changed")
                 self.close()
-            self.system = SlamSystem(camera, mapping_thread=self._params.mapping_thread)
             self._camera = camera
             self._start_over()
+            self.system = self._new_system(camera)
         return self.system
+
+    def _new_system(self, camera: CameraModel) -> SlamSystem:
+        params = self._params
+        try:
+            system = SlamSystem(camera, mapping_thread=params.mapping_thread, map_path=params.map,
+                                localisation_only=params.localisation_only)
+        except MapFileError as error:
+            self._node.log.error("%s: no poses for %s with this calibration", error, params.camera)
+            self._refused = (camera, error)
+            raise
+        self._refused = None
+        if params.map is not None:
+            self._node.log.info("%s: %d keyframes loaded from %s%s", params.camera, len(system.map.keyframes),
+                                params.map, " (localisation only)" if params.localisation_only else "")
+        return system
 
     def put_pose(self, pose: Pose) -> None:
         self._poses.put(pose)
@@ -243,9 +287,28 @@ class _CameraSlam:
             self.system.close()
             self.system = None
 
+    def stop(self) -> None:
+        """Close the system, then save its map to ``save_map`` when given: a map without keyframes is not
+        saved (a warning), a file that cannot be written is one error line."""
+        system, path = self.system, self._params.save_map
+        self.close()
+        if path is None:
+            return
+        if system is None or not system.map.keyframes:
+            self._node.log.warning("no map saved to %s: no map of %s with keyframes", path, self._params.camera)
+            return
+        try:
+            system.save_map(path)
+        except MapFileError as error:
+            self._node.log.error("%s", error)
+            return
+        self._node.log.info("map of %s saved to %s: %d keyframes, %d points", self._params.camera, path,
+                            len(system.map.keyframes), len(system.map.points))
+
 
 def run(node: Node, params: Params) -> None:
     try:
+        _check(params)
         fixed = read_camera_info(params.calib) if params.calib else None
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
@@ -263,7 +326,7 @@ def run(node: Node, params: Params) -> None:
         if header is not None:
             slam.publish_map(header.model_copy(update={"frame_id": params.map_frame}), child, final=True)
     finally:
-        slam.close()
+        slam.stop()
 
 
 def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | None, image: Image, child: str) -> None:
@@ -282,6 +345,10 @@ def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | 
             raise ValueError(f"a {width}x{height} frame, calibrated for {camera.width}x{camera.height}")
         grey = as_grey(image.data)
         result = slam.system_for(camera, header.stamp_ns).process(header.stamp_ns, grey)
+    except MapFileError as exc:
+        slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="map_refused"))
+        node.report("map_refused", f"frame {header.seq}: {exc}", node.keys.camera_info(params.camera))
+        return
     except (ValueError, cv2.error) as exc:
         slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="unusable_frame"))
         node.report("unusable_frame", f"frame {header.seq}: {exc}", where)

@@ -38,6 +38,10 @@ class SlamSettings:
     ``cull_found_ratio`` of the frames they were visible in or observed by fewer than
     ``cull_min_observations`` keyframes. Local bundle adjustment over the keyframe and its
     ``ba_window - 1`` best covisible keyframes, ``ba_iterations`` iterations.
+
+    Relocalisation (``relocalisation``): up to ``reloc_candidates`` keyframes ranked by descriptor
+    votes; a pose is accepted with ``reloc_min_inliers`` inliers after a projection search within
+    ``reloc_window_px`` (per level scale).
     """
 
     max_keypoints: int = 1500
@@ -71,3 +75,6 @@ class SlamSettings:
     cull_min_observations: int = 3
     ba_window: int = 10
     ba_iterations: int = 10
+    reloc_candidates: int = 5
+    reloc_min_inliers: int = 50
+    reloc_window_px: float = 10.0

@@ -2,6 +2,9 @@
 
 It ties together the feature extraction (``features``), the tracker (``frontend``), the map
 (``map``) and the local mapper (``mapping``, on its own thread unless ``mapping_thread=False``).
+A map saved by an earlier run (``map_file``) can be given at the start: the system relocalises
+in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
+keyframes, points or bundle adjustment), otherwise mapping carries on from it.
 Frames: the world is the first keyframe's camera frame (OpenCV camera frame), in the map's
 arbitrary monocular units; ``T_world_camera`` (4, 4) maps the frame's camera frame into it.
 """
@@ -9,6 +12,7 @@ arbitrary monocular units; ``T_world_camera`` (4, 4) maps the frame's camera fra
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,11 +22,12 @@ from services.geometry.se3 import invert
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
 from services.slam.map import SlamMap
+from services.slam.map_file import MapFileError, load_map, save_map
 from services.slam.mapping import LocalMapper
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["FrameResult", "SlamSettings", "SlamState", "SlamSystem"]
+__all__ = ["FrameResult", "MapFileError", "SlamSettings", "SlamState", "SlamSystem"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,11 +38,12 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
-    ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
-    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``,
-    ``keyframe``, ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was
-    mapped inline (included in ``keyframe``), ``total``)."""
+    ``bad_image``, and while relocalising ``no_candidates``, ``not_confirmed``); ``T_world_camera``
+    (4, 4) or None; ``tracked`` map points matched and kept; ``reprojection_rms_px`` of those (NaN
+    without a pose); ``keyframe_id`` when this frame became a keyframe; ``timings_ms`` per stage
+    (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame
+    that starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
+    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``total``)."""
 
     state: SlamState
     reason: str
@@ -48,19 +54,43 @@ class FrameResult:
     timings_ms: dict[str, float]
 
 
+def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: SlamSettings) -> SlamMap:
+    """The map file's map, refused (``MapFileError``) without keyframes or made with another ORB pyramid."""
+    slam_map = load_map(path, camera)
+    if (slam_map.levels, slam_map.scale_factor) != (settings.levels, settings.scale_factor):
+        raise MapFileError(path, f"made with a pyramid of {slam_map.levels} levels x {slam_map.scale_factor}, "
+                                 f"these settings use {settings.levels} x {settings.scale_factor}")
+    if not slam_map.keyframes:
+        raise MapFileError(path, "holds no keyframes")
+    return slam_map
+
+
 class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
-    (each keyframe is processed before ``process`` returns: deterministic)."""
+    (each keyframe is processed before ``process`` returns: deterministic).
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True):
+    ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
+    fit this camera or these settings' pyramid). ``localisation_only``: never change the map.
+    ``save_path``: where ``close`` saves the map (None: not saved)."""
+
+    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True,
+                 map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
+                 save_path: str | os.PathLike[str] | None = None):
         self.camera = camera
         self.settings = settings or SlamSettings()
         s = self.settings
-        self.map = SlamMap(s.scale_factor, s.levels)
+        if localisation_only and map_path is None:
+            raise ValueError("localisation_only needs a map to localise in (map_path)")
+        self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
+        self.localisation_only = localisation_only
+        self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
-        self._mapper = LocalMapper(self.map, camera.K, (camera.width, camera.height), s, threaded=mapping_thread)
-        self._tracker = Tracker(camera, s, self.map, self._mapper)
+        self._mapper = LocalMapper(self.map, camera.K, (camera.width, camera.height), s,
+                                   threaded=mapping_thread and not localisation_only)
+        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
         self._threaded = mapping_thread
+        self._tracked: list[tuple[int, int, np.ndarray]] = []
+        """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
 
     def process(self, stamp_ns: int, image: np.ndarray) -> FrameResult:
         """Track one frame: grey (H, W) or BGR(A) (H, W, 3|4), uint8 or uint16, of the camera's size.
@@ -75,9 +105,21 @@ class SlamSystem:
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
+        if tracked.T_camera_world is not None:
+            self._remember(stamp_ns, tracked.T_camera_world, tracked.keyframe_id)
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
         return FrameResult(tracked.state, tracked.reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
+
+    def _remember(self, stamp_ns: int, T_camera_world: np.ndarray, keyframe_id: int | None) -> None:
+        """Keep a tracked frame's pose relative to its reference keyframe (itself when it became one)."""
+        if keyframe_id is not None:
+            self._tracked.append((stamp_ns, keyframe_id, np.eye(4)))
+            return
+        with self.map.lock:
+            keyframe = self.map.keyframes.get(self._tracker.reference_keyframe)
+            if keyframe is not None:
+                self._tracked.append((stamp_ns, keyframe.id, T_camera_world @ invert(keyframe.T_camera_world)))
 
     def _fits(self, image: np.ndarray) -> bool:
         size = (self.camera.height, self.camera.width)
@@ -96,6 +138,17 @@ class SlamSystem:
         with self.map.lock:
             return [(k.id, k.stamp_ns, invert(k.T_camera_world)) for k in self.map.keyframes.values()]
 
+    def trajectory(self) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, (4, 4) T_world_camera)`` of every frame tracked so far, oldest first: each frame's
+        pose relative to its reference keyframe (as tracked) composed with that keyframe's current,
+        bundle-adjusted pose. Frames never tracked are left out. Keyframes are never removed from a
+        map, so every tracked frame keeps its reference."""
+        tracked = list(self._tracked)
+        with self.map.lock:
+            keyframes = {k.id: k.T_camera_world.copy() for k in self.map.keyframes.values()}
+        return [(stamp_ns, invert(T_camera_keyframe @ keyframes[keyframe_id]))
+                for stamp_ns, keyframe_id, T_camera_keyframe in tracked if keyframe_id in keyframes]
+
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, positions (N, 3) world)`` of every map point."""
         with self.map.lock:
@@ -108,6 +161,13 @@ class SlamSystem:
         """Grows whenever keyframes or points change."""
         return self.map.revision
 
+    def save_map(self, path: str | os.PathLike[str]) -> None:
+        """Write the map to ``path`` (``map_file`` format): a snapshot taken under the map's lock."""
+        save_map(self.map, self.camera, path)
+
     def close(self) -> None:
-        """Stop the mapping thread (after the keyframes it was given)."""
+        """Stop the mapping thread (after the keyframes it was given), then save the map to
+        ``save_path`` when one was given."""
         self._mapper.close()
+        if self.save_path is not None:
+            save_map(self.map, self.camera, self.save_path)

@@ -121,6 +121,7 @@ def test_room_tracked_with_the_mapping_thread(room_camera):
     states = [r.state for r in results]
     first = states.index(SlamState.TRACKING)
     assert first < 30 and all(state is SlamState.TRACKING for state in states[first:])
+    assert [stamp for stamp, _ in system.trajectory()] == [round(f.time_s * 1e9) for f in frames[first:]]
     assert results[first].keyframe_id is not None and revision > 0
     keyframes = system.keyframe_poses()
     ids, positions = system.map_points()
