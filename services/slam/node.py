@@ -21,6 +21,13 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   and at most every ``map_every`` frames, and once more when the node stops.
 * ``<camera>/timings``: a ``StageTimings`` per frame, the system's time per stage in milliseconds (the
   node's own processing p50/p99 stays in its stats).
+* ``pose/slam/<camera>/anchored``, with ``anchor_marker`` set (off by default): every frame the system
+  processed, the camera in the anchor marker's frame, in metres: ``T_marker/<id>_<camera>`` (header
+  ``frame_id`` ``marker/<id>``). The node detects and poses that marker in each tracked frame itself
+  (``dictionary``, ``marker_length``; the marker tracker's detector and estimator) and fits the map's
+  scale and pose to its sightings (``services.slam.anchor``); state ``tracking`` once anchored, before
+  that ``initializing`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
+  ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
 
 Map files (``services.slam.map_file``): with ``map`` every new system starts from that file's map
 (relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last
@@ -59,9 +66,12 @@ from services.calibration.camera_info import read_camera_info
 from services.calibration.camera_info_node import FrameCalibration
 from services.convert import transform_from_matrix
 from services.detection.grey import as_grey
+from services.detection.settings import DEFAULT_DICTIONARY, DetectorSettings
+from services.estimation.marker_pose import MarkerPoseEstimator
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+from services.slam.anchor import MarkerAnchor, MarkerSighting
 from services.slam.map_file import MapFileError, read_header
 from services.slam.system import STEP_BACK_S, FrameResult, SlamState, SlamSystem
 
@@ -91,12 +101,18 @@ class Params(BaseModel):
     localisation_only: bool = Field(default=False, description="keep the loaded map fixed: no new keyframes or "
                                                                "points (needs --map)")
     save_map: Path | None = Field(default=None, description="write the map to this file when the node stops")
+    anchor_marker: int | None = Field(default=None, ge=0, description="id of a marker of known side whose "
+                                      "sightings give the map metres and the marker's frame "
+                                      "(pose/slam/<camera>/anchored); default: off")
+    marker_length: float | None = Field(default=None, gt=0.0, allow_inf_nan=False,
+                                        description="the anchor marker's side, metres (> 0)")
+    dictionary: str = Field(default=DEFAULT_DICTIONARY, description="the anchor marker's cv2.aruco dictionary")
 
 
 def _check(params: Params) -> None:
     """What the node would refuse at its start (ValueError, one line): a calibration file that does not read,
     a map file that is missing, not a map file or of another version, localisation without a map, a map
-    to save into a folder that does not exist."""
+    to save into a folder that does not exist, an anchor marker without its side or of an unknown dictionary."""
     if params.calib is not None:
         read_camera_info(params.calib)
     if params.localisation_only and params.map is None:
@@ -107,6 +123,29 @@ def _check(params: Params) -> None:
         raise ValueError(f"cannot save the map to {params.save_map}: a folder")
     if params.save_map is not None and not params.save_map.parent.is_dir():
         raise ValueError(f"cannot save the map to {params.save_map}: no folder {params.save_map.parent}")
+    if params.anchor_marker is not None:
+        _Anchoring(params)
+
+
+class _Anchoring:
+    """The anchor marker posed in each tracked frame, and the map -> marker anchor its sightings give."""
+
+    def __init__(self, params: Params):
+        if params.marker_length is None:
+            raise ValueError("anchor_marker needs the marker's side: marker_length (metres) is not set")
+        self.target = f"marker/{params.anchor_marker}"
+        self.detector = DetectorSettings(dictionary=params.dictionary, marker_length=params.marker_length).detector()
+        self.estimator = MarkerPoseEstimator()
+        self.anchor = MarkerAnchor()
+
+    def to_marker(self, camera: CameraModel, grey: np.ndarray, T_map_camera: np.ndarray) -> np.ndarray | None:
+        """The frame's ``T_marker_camera`` (4, 4), metres, once anchored (after adding this frame's sighting)."""
+        found = self.detector.detect(grey, camera.K, camera.dist)
+        estimate = self.estimator.estimate(found.ids, found.corners, found.side_m, camera.K, camera.dist)
+        for pose in estimate.poses:
+            if pose.target == self.target:
+                self.anchor.add(T_map_camera, MarkerSighting(pose.T, pose.rms_px, pose.ambiguous, pose.covariance))
+        return None if self.anchor.anchor is None else self.anchor.anchor.to_marker(T_map_camera)
 
 
 def decimated(ids: np.ndarray, points: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
@@ -141,6 +180,8 @@ class _CameraSlam:
         self._timings = node.publisher(keys.timings(params.camera), StageTimings, Role.RESULT)
         self._keyframes = node.publisher(keys.keyframes(params.camera), Keyframes, Role.RESULT)
         self._cloud = node.publisher(keys.camera_map(params.camera), PointCloud, Role.RESULT)
+        self._anchored = (None if params.anchor_marker is None else
+                          node.publisher(keys.pose(f"slam/{params.camera}/anchored"), Pose, Role.RESULT))
         self.system: SlamSystem | None = None
         self._camera: CameraModel | None = None
         self._last_stamp: int | None = None
@@ -152,6 +193,7 @@ class _CameraSlam:
         self._sent_keyframes: tuple[np.ndarray, np.ndarray] | None = None
         self._map_revision: int | None = None
         self._since_map = self._params.map_every
+        self._anchoring = None if self._params.anchor_marker is None else _Anchoring(self._params)
 
     def system_for(self, camera: CameraModel, stamp_ns: int) -> SlamSystem:
         """The system for a frame of ``camera`` stamped ``stamp_ns``: a new one (a new map, or ``map``'s) at
@@ -200,6 +242,22 @@ class _CameraSlam:
         self._timings.put(StageTimings(header=header, stages_ms=stages))
         self._since_map += 1
         self.publish_map(map_header, child, final=False)
+
+    def publish_anchored(self, header: Header, child: str, camera: CameraModel, grey: np.ndarray,
+                         result: FrameResult) -> None:
+        """With an anchor marker: the frame's pose in the marker's frame, or why there is none."""
+        if self._anchoring is None or self._anchored is None:
+            return
+        marker_header = header.model_copy(update={"frame_id": self._anchoring.target})
+        T = None if result.T_world_camera is None else self._anchoring.to_marker(camera, grey, result.T_world_camera)
+        if T is None:
+            waiting = result.state is SlamState.TRACKING
+            self._anchored.put(Pose(header=marker_header, child_frame_id=child,
+                                    state=TrackingState.INITIALIZING if waiting else STATES[result.state],
+                                    reason=self._anchoring.anchor.status.value if waiting else result.reason))
+            return
+        pose = as_pose(marker_header, child, result)
+        self._anchored.put(pose.model_copy(update={"transform": transform_from_matrix(T)}))
 
     def publish_map(self, header: Header, child: str, *, final: bool) -> None:
         """Keyframes when they changed; points when the map changed and ``map_every`` frames went by (or
@@ -290,7 +348,8 @@ def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | 
     try:
         if (width, height) != (camera.width, camera.height):
             raise ValueError(f"a {width}x{height} frame, calibrated for {camera.width}x{camera.height}")
-        result = slam.system_for(camera, header.stamp_ns).process(header.stamp_ns, as_grey(image.data))
+        grey = as_grey(image.data)
+        result = slam.system_for(camera, header.stamp_ns).process(header.stamp_ns, grey)
     except MapFileError as exc:
         slam.put_pose(Pose(header=lost, child_frame_id=child, state=TrackingState.LOST, reason="map_refused"))
         node.report("map_refused", f"frame {header.seq}: {exc}", node.keys.camera_info(params.camera))
@@ -303,11 +362,13 @@ def _track(node: Node, params: Params, slam: _CameraSlam, camera: CameraModel | 
         node.report("out_of_order", f"frame {header.seq}: stamped {header.stamp_ns} ns, not after an earlier frame",
                     where)
     slam.publish(header, child, result)
+    slam.publish_anchored(header, child, camera, grey, result)
 
 
 def _outputs(params: Params) -> tuple[str, ...]:
+    anchored = () if params.anchor_marker is None else (f"pose/slam/{params.camera}/anchored",)
     return (f"pose/slam/{params.camera}", *(f"{params.camera}/{stream}" for stream in ("keyframes", "map",
-                                                                                          "timings")))
+                                                                                          "timings")), *anchored)
 
 
 KIND = NodeKind(name="slam", summary="monocular SLAM: the camera's pose in a map of keyframes and points built "

@@ -7,6 +7,7 @@ import pytest
 from services.capture.scenes import make_scene
 from services.capture.scenes.compositing import render_faces
 from services.capture.scenes.room import BOXES, CHECKER_INNER, HEIGHT_M, LENGTH_M, WIDTH_M
+from services.detection.markers import MarkerDetector
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 
@@ -98,3 +99,43 @@ def test_faces_cover_the_view_with_at_most_a_few_seam_pixels(scene):
         T_cam_world = invert(scene.camera_pose(index))
         black, white = (render_faces(scene.faces, camera.K, T_cam_world, size, background) for background in (0, 255))
         assert np.count_nonzero(black != white) < 0.001 * black.size
+
+
+def test_default_room_has_no_marker(scene):
+    assert scene.T_world_marker is None and scene.known_settings() == {}
+    assert "marker" not in [face.name for face in scene.faces]
+    assert [child for _, child, _ in scene.render(90).truth["cam0"]] == ["cam0"]
+
+
+def test_marker_corners_match_ground_truth():
+    scene = make_scene("room", marker=True, marker_id=7, marker_length=0.3)
+    camera = scene.cameras[0]
+    detector = MarkerDetector("DICT_4X4_50")
+    seen = errors = 0
+    for index in range(0, 300, 6):
+        frame = scene.render(index)
+        truths = {child: T for _, child, T in frame.truth["cam0"]}
+        detections = detector.detect(frame.images["cam0"], camera.K)
+        found = dict(zip(detections.ids.tolist(), detections.corners, strict=True))
+        assert set(found) <= {7}, index
+        if "marker/7" not in truths:
+            continue
+        assert 7 in found, index
+        expected = project_points(transform_points(truths["marker/7"], scene.marker_corners), camera.K)
+        errors = max(errors, float(np.max(np.linalg.norm(found[7].reshape(4, 2) - expected, axis=1))))
+        seen += 1
+    assert seen >= 20 and errors < 0.15
+    T_cam_marker = invert(scene.camera_pose(90)) @ scene.T_world_marker
+    assert np.allclose(dict((c, T) for _, c, T in scene.render(90).truth["cam0"])["marker/7"], T_cam_marker)
+    assert scene.known_settings() == {"marker_length": 0.3, "dictionary": "DICT_4X4_50"}
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"marker": 1}, "marker=1"),
+    ({"marker_id": 50}, r"marker_id=50: .*\[0, 49\]"),
+    ({"marker_dictionary": "DICT_5X5_2"}, "marker_dictionary='DICT_5X5_2'"),
+    ({"marker_length": 0.0}, "marker_length=0.0"),
+])
+def test_invalid_marker_options_are_rejected(options, message):
+    with pytest.raises(ValueError, match=f"option {message}"):
+        make_scene("room", **options)

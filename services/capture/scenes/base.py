@@ -95,6 +95,12 @@ class SceneOptions:
             raise ValueError(f"option {name}={value!r}: must be a number in {interval}")
         object.__setattr__(self, name, float(value))
 
+    def check_choice(self, name: str, choices: tuple[str, ...]) -> None:
+        """Require option ``name`` to be one of the strings ``choices``."""
+        value = getattr(self, name)
+        if not (isinstance(value, str) and value in choices):
+            raise ValueError(f"option {name}={value!r}: must be one of {', '.join(choices)}")
+
     def check_bool(self, name: str) -> None:
         """Require option ``name`` to be True or False."""
         value = getattr(self, name)

@@ -49,8 +49,7 @@ class MarkersOptions(SceneOptions):
     def __post_init__(self) -> None:
         super().__post_init__()
         self.check_float("marker_length", 0.0, 10.0, low_open=True)
-        if not (isinstance(self.dictionary, str) and self.dictionary in DICTIONARY_NAMES):
-            raise ValueError(f"option dictionary={self.dictionary!r}: must be one of {', '.join(DICTIONARY_NAMES)}")
+        self.check_choice("dictionary", DICTIONARY_NAMES)
         size = len(aruco_dictionary(self.dictionary).bytesList)
         ids = tuple(self.ids) if isinstance(self.ids, list | tuple) else ()
         integers = all(isinstance(i, numbers.Integral) and not isinstance(i, bool) and 0 <= i < size for i in ids)

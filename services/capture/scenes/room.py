@@ -6,23 +6,34 @@ face (floor, ceiling, four walls, the visible sides and top of each box) carries
 procedural texture; the north wall (y = +width/2) also carries a chessboard poster
 (``CHECKER_INNER`` inner corners, ``CHECKER_SQUARE_M`` squares, see ``checker_corners``).
 
+With the ``marker`` option an ArUco marker hangs on the north wall beside the poster (``MARKER_CENTRE_M``),
+on a white sheet a quarter of its side wider on every side, ``MARKER_OFFSET_M`` in front of the wall; its
+frame is ArUco's (origin at its centre, x right, y up, z out of the wall into the room). With seed 0
+the camera sees it whole in frames 45-121 and 191-264 (from two sides of the room), 616-701 and 739-826.
+
 The camera (cam0; the rig is the camera, ``T_rig_camera`` = identity, no distortion) walks
 over the free middle of the room at eye height 1.35 to 1.65 m (above every box), looking
 around with a slowly swinging heading and pitch: translation and rotation together, as a
-SLAM sequence needs. Ground truth: ``("world", "cam0", T_world_cam0)`` in every frame.
+SLAM sequence needs. Ground truth: ``("world", "cam0", T_world_cam0)`` in every frame and, with the
+marker, ``("cam0", "marker/<id>", T_cam0_marker)`` in the frames where its four corners are in front of
+the camera and inside the image (as the ``markers`` scene gives it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+import cv2
 import numpy as np
 
 from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
 from services.capture.scenes.compositing import Face, render_faces
-from services.capture.scenes.plane import PlaneTexture, texel_from_plane
+from services.capture.scenes.markers import inside_image
+from services.capture.scenes.plane import PlaneTexture, rectangle_corners, texel_from_plane
 from services.capture.scenes.texture import procedural_texture
-from services.geometry.camera import CameraModel, intrinsics, look_at
+from services.detection.markers import DICTIONARY_NAMES, aruco_dictionary
+from services.geometry.camera import CameraModel, intrinsics, look_at, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.geometry.trajectory import SinePath
 
@@ -40,6 +51,14 @@ CHECKER_INNER = (9, 6)
 CHECKER_SQUARE_M = 0.1
 CHECKER_CENTRE_M = (0.0, 1.5)
 """Where the poster's centre is on the north wall: (x, z)."""
+MARKER_CENTRE_M = (0.9, 1.0)
+"""Where the marker's centre is on the north wall: (x, z), right of the poster."""
+MARKER_QUIET_ZONE = 0.25
+"""White margin around the marker, in marker sides, on every side."""
+MARKER_OFFSET_M = 0.002
+"""How far the marker's sheet stands in front of the wall."""
+MARKER_CELL_TEXELS = 32
+"""Texels per marker bit of the sheet's texture."""
 BACKGROUND = 0
 UP = np.array([0.0, 0.0, 1.0])
 SIDE_NORMALS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
@@ -48,13 +67,23 @@ TEXTURE_PURPOSE, PATH_PURPOSE = 100, 101
 
 @dataclass(frozen=True)
 class RoomOptions(SceneOptions):
-    """``boxes``: how many of the room's boxes to place (0 to 4)."""
+    """``boxes``: how many of the room's boxes to place (0 to 4); ``marker``: hang an ArUco marker on the
+    north wall (off by default); ``marker_dictionary``: its cv2.aruco predefined dictionary;
+    ``marker_id``: its id there; ``marker_length``: side of its black square, metres."""
 
     boxes: int = 4
+    marker: bool = False
+    marker_dictionary: str = "DICT_4X4_50"
+    marker_id: int = 0
+    marker_length: float = 0.3
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self.check_int("boxes", 0, len(BOXES))
+        self.check_bool("marker")
+        self.check_choice("marker_dictionary", DICTIONARY_NAMES)
+        self.check_int("marker_id", 0, len(aruco_dictionary(self.marker_dictionary).bytesList) - 1)
+        self.check_float("marker_length", 0.0, 1.0, low_open=True)
 
 
 def face_pose(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -73,9 +102,10 @@ def face_pose(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
 
 
 class RoomScene(SyntheticScene):
-    """Attributes: ``faces`` (list of ``Face``, world frame) and ``checker_corners`` ((N, 3) world,
-    the poster's inner corners row by row, left to right, from its top-left one);
-    ``camera_pose(index)`` gives ``T_world_cam0``."""
+    """Attributes: ``faces`` (list of ``Face``, world frame), ``checker_corners`` ((N, 3) world,
+    the poster's inner corners row by row, left to right, from its top-left one) and, with the marker,
+    ``T_world_marker`` ((4, 4), None without) and ``marker_corners`` ((4, 3) in the marker frame, ArUco
+    order TL, TR, BR, BL); ``camera_pose(index)`` gives ``T_world_cam0``."""
 
     name = "room"
     Options = RoomOptions
@@ -92,12 +122,23 @@ class RoomScene(SyntheticScene):
             if name == "wall_north":
                 self.checker_corners = transform_points(T_world_face, paint_checker(image, size))
             self.faces.append(Face(name, T_world_face, PlaneTexture(image, *size)))
+        self.T_world_marker: np.ndarray | None = None
+        self.marker_corners = rectangle_corners(o.marker_length, o.marker_length)
+        if o.marker:
+            self.T_world_marker = face_pose(np.array([MARKER_CENTRE_M[0], WIDTH_M / 2 - MARKER_OFFSET_M,
+                                                      MARKER_CENTRE_M[1]]), np.array([0.0, -1.0, 0.0]))
+            self.faces.append(Face("marker", self.T_world_marker, marker_sheet(o)))
         path_rng = scene_rng(o.seed, PATH_PURPOSE)
         self.eye = SinePath.random(path_rng, (0.0, 0.0, 1.5), (1.2, 0.9, 0.15), (8.0, 16.0))
         self.heading = SinePath.random(path_rng, (0.0, -0.25), (2.5, 0.2), (14.0, 30.0))
         """(yaw about world z from +x, pitch) in radians."""
         self.cameras = (CameraModel("cam0", o.width, o.height, intrinsics(o.width, o.height, HFOV_DEG),
                                     np.zeros(5), np.eye(4)),)
+
+    def known_settings(self) -> dict[str, Any]:
+        """With the marker: its side and dictionary, as a marker tracker takes them."""
+        o = self.options
+        return {"marker_length": o.marker_length, "dictionary": o.marker_dictionary} if o.marker else {}
 
     def layout(self) -> list[tuple[str, np.ndarray, np.ndarray, tuple[float, float]]]:
         """(name, centre, normal of the visible side, (width, height)) of every face."""
@@ -131,7 +172,26 @@ class RoomScene(SyntheticScene):
         camera = self.cameras[0]
         T_world_cam = self.camera_pose(index)
         image = render_faces(self.faces, camera.K, invert(T_world_cam), (camera.width, camera.height), BACKGROUND)
-        return {"cam0": image}, {"cam0": [("world", "cam0", T_world_cam)]}
+        truth: Truth = [("world", "cam0", T_world_cam)]
+        if self.T_world_marker is not None:
+            T_cam_marker = invert(T_world_cam) @ self.T_world_marker
+            corners = transform_points(T_cam_marker, self.marker_corners)
+            if np.all(corners[:, 2] > 0) and inside_image(project_points(corners, camera.K), camera):
+                truth.append(("cam0", f"marker/{self.options.marker_id}", T_cam_marker))
+        return {"cam0": image}, {"cam0": truth}
+
+
+def marker_sheet(options: RoomOptions) -> PlaneTexture:
+    """The marker ``options`` name on its white sheet (``MARKER_QUIET_ZONE`` wide), centred in the texture."""
+    dictionary = aruco_dictionary(options.marker_dictionary)
+    cells = dictionary.markerSize + 2
+    marker_texels = cells * MARKER_CELL_TEXELS
+    margin = round(MARKER_QUIET_ZONE * marker_texels)
+    image = np.full((marker_texels + 2 * margin,) * 2, 255, np.uint8)
+    image[margin:margin + marker_texels, margin:margin + marker_texels] = cv2.aruco.generateImageMarker(
+        dictionary, options.marker_id, marker_texels, borderBits=1)
+    side = options.marker_length * image.shape[0] / marker_texels
+    return PlaneTexture(image, side, side)
 
 
 def paint_checker(image: np.ndarray, size: tuple[float, float]) -> np.ndarray:
