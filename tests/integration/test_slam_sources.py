@@ -1,6 +1,6 @@
 """``artrack run slam`` on a recording and on a video file, by real processes over a real bus: the room scene
 recorded (or written to a lossless video beside its calibration file) is tracked and scored against its
-ground truth; a source path that does not exist is refused at once, in one line."""
+ground truth; a source path that does not exist, or a file that is no video, is refused at once, in one line."""
 
 from __future__ import annotations
 
@@ -89,8 +89,12 @@ def test_slam_tracks_a_video_file_with_a_calibration_file_scored_by_frame_index(
 @pytest.mark.parametrize(("source", "expected"), [
     ("video:/nope.mkv", "video:/nope.mkv: no such file"),
     ("recording:/nope.mcap", "recording:/nope.mcap: no such recording"),
-])
-def test_a_source_path_that_does_not_exist_is_refused_at_once_in_one_line(procs, source, expected):
+    ("video:{garbage}", "video:{garbage}: OpenCV cannot read this file"),
+], ids=["missing-video", "missing-recording", "garbage-video"])
+def test_a_source_that_cannot_be_read_is_refused_at_once_in_one_line(procs, tmp_path, source, expected):
+    garbage = tmp_path / "garbage.mkv"
+    garbage.write_bytes(b"not a video, " * 400)
+    source, expected = source.format(garbage=garbage), expected.format(garbage=garbage)
     start = time.monotonic()
     job = procs.run("run", "slam", "--source", source, "--depth", "5")
     seconds = time.monotonic() - start
