@@ -15,12 +15,15 @@
 ==========================  ==============================================================
 
 A source that cannot start (no device, missing or unreadable file, empty folder) raises
-:class:`SourceError` naming it. A frame that cannot be read mid-stream comes out as a
-:class:`FrameFault` so the caller can log, count and skip it. Pure: no bus here.
+:class:`SourceError` naming it; FFmpeg's own messages are silenced (``OPENCV_FFMPEG_LOGLEVEL``,
+read once per process, unless already set: 16 shows its errors), so that is the one line said.
+A frame that cannot be read mid-stream comes out as a :class:`FrameFault` so the caller can log,
+count and skip it. Pure: no bus here.
 """
 
 from __future__ import annotations
 
+import os
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -39,6 +42,8 @@ from services.geometry.camera import CameraModel
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 MAX_CONSECUTIVE_FAULTS = 30
+
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET, before the first cv2.VideoCapture
 
 
 class SourceError(RuntimeError):
@@ -397,9 +402,9 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
 
 
 def check_source(uri: str) -> tuple[str, str]:
-    """``(scheme, rest)`` of ``uri`` once what can be told without opening it is right: the URI's
-    form, a video file that exists, an image folder that exists, camera folders that pair up
-    (SourceError otherwise)."""
+    """``(scheme, rest)`` of ``uri`` once what can be told without capturing is right: the URI's
+    form, a video file that exists and OpenCV opens, an image folder that exists, camera folders
+    that pair up (SourceError otherwise)."""
     try:
         scheme, rest = check_uri(uri)
     except ValueError as exc:
@@ -409,6 +414,8 @@ def check_source(uri: str) -> tuple[str, str]:
         raise SourceError(f"{uri}: a folder, not a video file (a folder of images is images:{rest})")
     if scheme == "video" and not path.is_file():
         raise SourceError(f"{uri}: no such file")
+    if scheme == "video":
+        VideoSource(uri, str(path), live=False).close()
     if scheme == "images" and not path.is_dir():
         raise SourceError(f"{uri}: no such folder")
     if scheme == "images" and camera_folders(path):

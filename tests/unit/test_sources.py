@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from services.calibration.camera_info import CalibrationError, read_camera_info, write_camera_info
-from services.capture.sources import FrameFault, SourceError, SourceFrame, check_uri, open_source, seconds_to_ns
+from services.capture.sources import (
+    FrameFault,
+    SourceError,
+    SourceFrame,
+    check_source,
+    check_uri,
+    open_source,
+    seconds_to_ns,
+)
 from services.geometry.camera import CameraModel, project_points
 from services.geometry.se3 import invert, transform_points
 from tests.data import data_dir
@@ -132,6 +140,8 @@ def test_empty_folder_and_unreadable_video_are_refused(tmp_path):
     bad.write_text("not a video")
     with pytest.raises(SourceError, match="OpenCV cannot read this file"):
         open_source(f"video:{bad}")
+    with pytest.raises(SourceError, match="OpenCV cannot read this file"):
+        check_source(f"video:{bad}")  # before the job starts
 
 
 def test_check_uri_splits_scheme():
