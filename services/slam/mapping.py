@@ -16,7 +16,10 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
    observations it finds to be outliers are removed.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
-waits for it, or inline in ``enqueue`` (deterministic, for tests). A keyframe processed while
+waits for it, or inline in ``enqueue`` (deterministic, for tests). It holds the map's lock only to
+take snapshots and to apply results, each in one short step that checks what changed meanwhile:
+searches, triangulation, points' summaries (``SlamMap.refresh_points``) and the bundle adjustment's
+problem are computed outside it. A keyframe processed while
 others wait gets only steps 1 and 2.
 """
 
@@ -167,8 +170,7 @@ class LocalMapper:
         keyframes observing those points stay fixed (and the map's first keyframe: with fewer than two
         fixed, the scale is held too). Outlier observations are removed afterwards."""
         s = self.settings
-        with self.map.lock:
-            problem = self._problem(window)
+        problem = self._problem(window)
         if problem is None:
             return
         try:
@@ -184,31 +186,36 @@ class LocalMapper:
                 self.map.set_position(point_id, position)
             for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
                                              problem.point_ids[result.outliers].tolist(), strict=True):
-                self.map.remove_observation(point_id, keyframe_id)
+                self.map.remove_observation(point_id, keyframe_id, refresh=False)
+        self.map.refresh_points(np.unique(problem.point_ids[result.outliers]))
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
-        """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
-        frame_ids, point_ids, pixels, sigmas = [], [], [], []
-        poses: dict[int, np.ndarray] = {}
-        points: dict[int, np.ndarray] = {}
-        for point_id in self.map.points_of(window).tolist():
-            point = self.map.points[point_id]
-            points[point_id] = point.position.copy()
-            for keyframe_id, index in point.observations.items():
-                keyframe = self.map.keyframes[keyframe_id]
-                frame_ids.append(keyframe_id)
-                point_ids.append(point_id)
-                pixels.append(keyframe.features.pixels[index])
-                sigmas.append(keyframe.features.sigmas[index])
-                poses.setdefault(keyframe_id, keyframe.T_camera_world.copy())
+        """The bundle adjustment of ``window``: the points and observations read under the map's lock,
+        the arrays built without it; None without any point."""
+        with self.map.lock:
+            points = {p: self.map.points[p] for p in self.map.points_of(window).tolist()}
+            observations = [(p, list(point.observations.items())) for p, point in points.items()]
+            positions = {p: point.position for p, point in points.items()}
+            keyframes = {k: self.map.keyframes[k] for _, seen in observations for k, _ in seen}
+            poses = {k: keyframe.T_camera_world for k, keyframe in keyframes.items()}
+            first = min(self.map.keyframes) if self.map.keyframes else -1
         if not points:
             return None
-        fixed = (set(poses) - set(window)) | ({min(self.map.keyframes)} & set(poses))
+        counts = np.array([len(seen) for _, seen in observations], np.int64)
+        point_ids = np.repeat(np.array([p for p, _ in observations], np.int64), counts)
+        frame_ids = np.array([k for _, seen in observations for k, _ in seen], np.int64)
+        indices = np.array([i for _, seen in observations for _, i in seen], np.int64)
+        pixels, sigmas = np.zeros((len(indices), 2)), np.zeros(len(indices))
+        for keyframe_id, keyframe in keyframes.items():
+            rows = np.flatnonzero(frame_ids == keyframe_id)
+            pixels[rows] = keyframe.features.pixels[indices[rows]]
+            sigmas[rows] = keyframe.features.sigmas[indices[rows]]
+        fixed = (set(poses) - set(window)) | ({first} & set(poses))
         if not fixed:
             fixed = {min(poses)}
-        return BundleProblem(K=self.K, poses=poses, points=points, frame_ids=np.array(frame_ids, np.int64),
-                             point_ids=np.array(point_ids, np.int64), pixels=np.array(pixels, np.float64),
-                             fixed=frozenset(fixed), sigmas=np.array(sigmas, np.float64))
+        return BundleProblem(K=self.K, poses={k: T.copy() for k, T in poses.items()},
+                             points={p: x.copy() for p, x in positions.items()}, frame_ids=frame_ids,
+                             point_ids=point_ids, pixels=pixels, fixed=frozenset(fixed), sigmas=sigmas)
 
     def triangulate(self, keyframe_id: int) -> int:
         """New points between keyframe ``keyframe_id`` and its best covisible keyframes; how many."""
@@ -235,11 +242,8 @@ class LocalMapper:
             with np.errstate(invalid="ignore"):
                 depths = stack.depths(np.nan_to_num(found.points))
             kept = triangulation_checks(found.points, centres, found.residuals, depths, sigmas, s.min_parallax_deg)
-            with self.map.lock:
-                for i, j, point in zip(a[kept], b[kept], found.points[kept], strict=True):
-                    if keyframe.point_ids[i] < 0 and neighbour.point_ids[j] < 0:
-                        self.map.add_point(point, {keyframe.id: int(i), neighbour.id: int(j)})
-                        made += 1
+            made += len(self.map.add_points(found.points[kept], [{keyframe.id: int(i), neighbour.id: int(j)}
+                                                                 for i, j in zip(a[kept], b[kept], strict=True)]))
         return made
 
     def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
@@ -286,18 +290,22 @@ class LocalMapper:
             rows, keypoints = search_projected(points, projected, features, np.ones(len(features), bool),
                                                FUSE_WINDOW_PX, self.map.scale_factor, s.triangulation_max_distance,
                                                1.0)
+            touched: list[int] = []
             with self.map.lock:
                 for point_id, index in zip(points.ids[rows].tolist(), keypoints.tolist(), strict=True):
                     if point_id not in self.map.points or target in self.map.points[point_id].observations:
                         continue
                     owner = int(keyframe.point_ids[index])
                     if owner < 0:
-                        self.map.add_observation(point_id, target, index)
+                        self.map.add_observation(point_id, target, index, refresh=False)
+                        touched.append(point_id)
                     elif owner in self.map.points:
                         kept, merged = sorted((owner, point_id),
                                               key=lambda p: -len(self.map.points[p].observations))
-                        self.map.merge_points(kept, merged)
+                        self.map.merge_points(kept, merged, refresh=False)
+                        touched.append(kept)
                     changed += 1
+            self.map.refresh_points(np.unique(np.array(touched, np.int64)))
         return changed
 
 
@@ -320,7 +328,9 @@ def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.nd
     (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
     lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
-    return np.abs(lines[:, :2] @ pixels_b.T.astype(np.float32) + lines[:, 2:])
+    distances = lines[:, :2] @ pixels_b.T.astype(np.float32)
+    distances += lines[:, 2:]
+    return np.abs(distances, out=distances)
 
 
 class _Pair:
