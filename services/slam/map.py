@@ -411,6 +411,12 @@ class SlamMap:
             everything = np.concatenate(ids) if ids else np.zeros(0, np.int64)
             return np.unique(everything[everything >= 0])
 
+    def positions(self, point_ids: np.ndarray) -> np.ndarray:
+        """(P, 3) world positions of the points ``point_ids`` that still exist (copies)."""
+        with self.lock:
+            positions = [self.points[i].position for i in point_ids.tolist() if i in self.points]
+        return np.array(positions, np.float64).reshape(-1, 3)
+
     def arrays(self, point_ids: np.ndarray) -> PointArrays:
         """Copies of the data of the points ``point_ids`` that still exist."""
         with self.lock:
@@ -427,12 +433,19 @@ class SlamMap:
         """Remove the points made within the last ``probation`` keyframes before ``newest_keyframe`` that
         failed: found in under ``min_found_ratio`` of the frames they were visible in, or, two
         keyframes or more after their making, observed by fewer than ``min_observations`` keyframes.
-        Returns how many were removed."""
+        Returns how many were removed. The points are judged outside the lock (their counters read as
+        they are then) and judged again under it when removed."""
+
+        def failed(p: MapPoint) -> bool:
+            return newest_keyframe - p.first_keyframe <= probation and (
+                p.found < min_found_ratio * p.visible
+                or (newest_keyframe - p.first_keyframe >= 2 and len(p.observations) < min_observations))
+
         with self.lock:
-            doomed = [p.id for p in self.points.values()
-                      if newest_keyframe - p.first_keyframe <= probation
-                      and (p.found < min_found_ratio * p.visible
-                           or (newest_keyframe - p.first_keyframe >= 2 and len(p.observations) < min_observations))]
-            for point_id in doomed:
+            points = list(self.points.values())
+        doomed = [p for p in points if failed(p)]
+        with self.lock:
+            removed = [p.id for p in doomed if self.points.get(p.id) is p and failed(p)]
+            for point_id in removed:
                 self.remove_point(point_id)
-            return len(doomed)
+            return len(removed)

@@ -196,11 +196,12 @@ class LocalMapper:
             points = {p: self.map.points[p] for p in self.map.points_of(window).tolist()}
             observations = [(p, list(point.observations.items())) for p, point in points.items()]
             positions = {p: point.position for p, point in points.items()}
-            keyframes = {k: self.map.keyframes[k] for _, seen in observations for k, _ in seen}
-            poses = {k: keyframe.T_camera_world for k, keyframe in keyframes.items()}
-            first = min(self.map.keyframes) if self.map.keyframes else -1
+            every_keyframe = dict(self.map.keyframes)
         if not points:
             return None
+        keyframes = {k: every_keyframe[k] for _, seen in observations for k, _ in seen}
+        poses = {k: keyframe.T_camera_world for k, keyframe in keyframes.items()}
+        first = min(every_keyframe)
         counts = np.array([len(seen) for _, seen in observations], np.int64)
         point_ids = np.repeat(np.array([p for p, _ in observations], np.int64), counts)
         frame_ids = np.array([k for _, seen in observations for k, _ in seen], np.int64)
@@ -224,9 +225,9 @@ class LocalMapper:
         for neighbour_id in self.map.covisible(keyframe_id, s.triangulation_neighbours):
             with self.map.lock:
                 keyframe, neighbour = self.map.keyframes[keyframe_id], self.map.keyframes.get(neighbour_id)
-                if neighbour is None:
-                    continue
-                pair = _Pair(keyframe, neighbour, self.map)
+            if neighbour is None:
+                continue
+            pair = _Pair(keyframe, neighbour, self.map)
             if not pair.wide_enough():
                 continue
             a, b = self._epipolar_matches(pair)
@@ -340,7 +341,7 @@ class _Pair:
         self.keyframe, self.neighbour = keyframe, neighbour
         self.T_neighbour_keyframe = neighbour.T_camera_world @ invert(keyframe.T_camera_world)
         seen = neighbour.point_ids[neighbour.point_ids >= 0]
-        positions = slam_map.arrays(seen).positions
+        positions = slam_map.positions(seen)
         depths = positions @ neighbour.T_camera_world[2, :3] + neighbour.T_camera_world[2, 3]
         self.median_depth = float(np.median(depths)) if len(depths) else np.inf
 
