@@ -53,6 +53,8 @@ MIN_BASELINE_RATIO = 0.01
 """Keyframes closer than this fraction of the neighbour's median scene depth are not triangulated from."""
 SCALE_SLACK = 1.5
 FUSE_WINDOW_PX = 3.0
+SNAPSHOT_POINTS = 256
+"""The bundle adjustment's problem is read this many points per hold of the map's lock."""
 
 
 def need_keyframe(settings: SlamSettings, seconds_since: float, tracked: int, reference_tracked: int,
@@ -191,13 +193,20 @@ class LocalMapper:
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
         """The bundle adjustment of ``window``: the points and observations read under the map's lock,
-        the arrays built without it; None without any point."""
+        ``SNAPSHOT_POINTS`` points at a time, the arrays built without it; None without any point."""
+        ids = self.map.points_of(window).tolist()
+        observations: list[tuple[int, list[tuple[int, int]]]] = []
+        positions: dict[int, np.ndarray] = {}
+        for start in range(0, len(ids), SNAPSHOT_POINTS):
+            with self.map.lock:
+                for point_id in ids[start:start + SNAPSHOT_POINTS]:
+                    point = self.map.points.get(point_id)
+                    if point is not None:
+                        observations.append((point_id, list(point.observations.items())))
+                        positions[point_id] = point.position
         with self.map.lock:
-            points = {p: self.map.points[p] for p in self.map.points_of(window).tolist()}
-            observations = [(p, list(point.observations.items())) for p, point in points.items()]
-            positions = {p: point.position for p, point in points.items()}
             every_keyframe = dict(self.map.keyframes)
-        if not points:
+        if not positions:
             return None
         keyframes = {k: every_keyframe[k] for _, seen in observations for k, _ in seen}
         poses = {k: keyframe.T_camera_world for k, keyframe in keyframes.items()}
