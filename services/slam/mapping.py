@@ -43,7 +43,8 @@ from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "need_keyframe", "triangulation_checks"]
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "near_lines", "need_keyframe",
+           "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +54,8 @@ MIN_BASELINE_RATIO = 0.01
 """Keyframes closer than this fraction of the neighbour's median scene depth are not triangulated from."""
 SCALE_SLACK = 1.5
 FUSE_WINDOW_PX = 3.0
+LINE_ROWS = 64
+"""Epipolar lines per block of ``near_lines``."""
 SNAPSHOT_POINTS = 256
 """The bundle adjustment's problem is read this many points per hold of the map's lock."""
 
@@ -269,9 +272,8 @@ class LocalMapper:
         if len(free_a) == 0 or len(free_b) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
-        epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
         bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
-        allowed = (epipolar < bounds[None]).view(np.uint8)
+        allowed = near_lines(F, first.pixels[free_a], second.pixels[free_b], bounds).view(np.uint8)
         rows, columns = np.nonzero(allowed)
         behind = ~meet_in_front(self.K, pair.keyframe.T_camera_world, pair.neighbour.T_camera_world,
                                     first.pixels[free_a[rows]], second.pixels[free_b[columns]])
@@ -333,14 +335,26 @@ def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.
     return (depth_a > 0) & (depth_b > 0)
 
 
-def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
-    """(Na, Nb) px distance from each of (Nb, 2) ``pixels_b`` to the epipolar line in image b of each of
-    (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
+def near_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(Na, Nb) bool: whether each of (Nb, 2) ``pixels_b`` lies within its ``bounds`` (Nb,) px of the
+    epipolar line in image b of each of (Na, 2) ``pixels_a`` (one-sided distances in float32, cheaper
+    than ``geometry.epipolar.epipolar_distances``; computed ``LINE_ROWS`` lines at a time, so that the
+    distances stay in cache and are never all in memory at once)."""
     lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
-    distances = lines[:, :2] @ pixels_b.T.astype(np.float32)
-    distances += lines[:, 2:]
-    return np.abs(distances, out=distances)
+    x, y = (np.ascontiguousarray(pixels_b[:, c], np.float32) for c in range(2))
+    bounds = np.asarray(bounds, np.float32)
+    near = np.zeros((len(lines), len(x)), bool)
+    distances = np.empty((min(LINE_ROWS, len(lines)), len(x)), np.float32)
+    for start in range(0, len(lines), LINE_ROWS):
+        chunk = lines[start:start + LINE_ROWS]
+        out = distances[:len(chunk)]
+        np.multiply(chunk[:, :1], x, out=out)
+        out += chunk[:, 1:2] * y
+        out += chunk[:, 2:]
+        np.abs(out, out=out)
+        np.less(out, bounds, out=near[start:start + len(chunk)])
+    return near
 
 
 class _Pair:
