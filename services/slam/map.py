@@ -12,7 +12,10 @@ direction and the range of distances at which ORB's pyramid can find it again, a
 Two keyframes are covisible when they observe common points; the weight is how many.
 
 The map is shared by the tracker (reads) and the mapper (writes): every method takes ``lock``,
-an ``RLock``; readers get copies, never live arrays. ``revision`` grows on every change.
+an ``RLock``; readers get copies, never live arrays. ``revision`` grows on every change. The
+lock is held only while the map's dictionaries are read or changed: a point's summary (descriptor,
+viewing direction, distance range) is computed from a snapshot of its observations outside the lock
+and written back under it unless the point changed meanwhile (``refresh_points``, ``add_points``).
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.slam.features import FrameFeatures
-from services.slam.matching import hamming_matrix
 
 __all__ = ["Keyframe", "MapPoint", "SlamMap", "PointArrays"]
 
@@ -71,6 +73,73 @@ class MapPoint:
     max_distance: float = np.inf
     visible: int = 1
     found: int = 1
+
+
+@dataclass(frozen=True)
+class _Draft:
+    """A point's summary to compute: ``position`` (3,) world, ``observations`` (keyframe, keypoint
+    index) in observation order, ``first`` (keyframe, keypoint index) that sets the distance range."""
+
+    position: np.ndarray
+    observations: list[tuple[Keyframe, int]]
+    first: tuple[Keyframe, int]
+
+
+@dataclass(frozen=True)
+class _Summaries:
+    """P points' ``descriptors`` (P, 32) uint8, ``normals`` (P, 3), ``min_distances``, ``max_distances`` (P,)."""
+
+    descriptors: np.ndarray
+    normals: np.ndarray
+    min_distances: np.ndarray
+    max_distances: np.ndarray
+
+
+def _median_descriptors(descriptors: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(P, 32): each point's descriptor with the least median Hamming distance to its others (the
+    first when it has one or two); ``descriptors`` (O, 32) the points' observations one after the
+    other, ``counts`` (P,) how many each."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    chosen = starts.copy()
+    for count in np.unique(counts[counts > 2]).tolist():
+        rows = np.flatnonzero(counts == count)
+        group = descriptors[starts[rows, None] + np.arange(count)]
+        distances = np.bitwise_count(group[:, :, None, :] ^ group[:, None, :, :]).sum(axis=3, dtype=np.int32)
+        medians = np.sort(distances, axis=2)[:, :, (count - 1) // 2]
+        chosen[rows] = starts[rows] + np.argmin(medians, axis=1)
+    return descriptors[chosen].copy()
+
+
+def _gather(keyframes: list[Keyframe], indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(descriptors (O, 32), levels (O,), centres (O, 3))`` of keypoint ``indices[o]`` of ``keyframes[o]``."""
+    ids = np.array([k.id for k in keyframes], np.int64)
+    descriptors, levels = np.zeros((len(ids), 32), np.uint8), np.zeros(len(ids), np.int64)
+    centres = np.zeros((len(ids), 3))
+    for keyframe in {k.id: k for k in keyframes}.values():
+        rows = np.flatnonzero(ids == keyframe.id)
+        descriptors[rows] = keyframe.features.descriptors[indices[rows]]
+        levels[rows] = keyframe.features.levels[indices[rows]]
+        centres[rows] = keyframe.centre
+    return descriptors, levels, centres
+
+
+def _summarise(drafts: list[_Draft], scale_factor: float, levels: int) -> _Summaries:
+    """The summaries of ``drafts`` (needs no lock: keyframes' features never change, and a pose
+    change replaces a keyframe's ``centre`` rather than writing into it)."""
+    counts = np.array([len(d.observations) for d in drafts], np.int64)
+    observed = [k for d in drafts for k, _ in d.observations]
+    descriptors, _, centres = _gather(observed, np.array([i for d in drafts for _, i in d.observations], np.int64))
+    positions = np.array([d.position for d in drafts], np.float64).reshape(-1, 3)
+    rays = np.repeat(positions, counts, axis=0) - centres
+    rays /= np.maximum(np.linalg.norm(rays, axis=1), 1e-12)[:, None]
+    owner = np.repeat(np.arange(len(drafts)), counts)
+    mean = np.stack([np.bincount(owner, rays[:, c], len(drafts)) for c in range(3)], axis=1)
+    normals = mean / np.maximum(np.linalg.norm(mean, axis=1), 1e-12)[:, None]
+    _, first_levels, first_centres = _gather([d.first[0] for d in drafts],
+                                             np.array([d.first[1] for d in drafts], np.int64))
+    max_distances = np.linalg.norm(positions - first_centres, axis=1) * scale_factor ** first_levels
+    return _Summaries(_median_descriptors(descriptors, counts), normals,
+                      max_distances / scale_factor ** (levels - 1), max_distances)
 
 
 @dataclass(frozen=True)
@@ -125,10 +194,9 @@ class SlamMap:
                 point = self.points.get(int(point_ids[index]))
                 if point is not None and keyframe.id not in point.observations:
                     self._observe(point, keyframe, int(index))
-            for point_id in set(keyframe.point_ids[keyframe.point_ids >= 0].tolist()):
-                self.update_point(point_id)
             self.revision += 1
-            return keyframe
+        self.refresh_points(np.unique(keyframe.point_ids[keyframe.point_ids >= 0]))
+        return keyframe
 
     def add_point(self, position: np.ndarray, observations: dict[int, int]) -> int:
         """A new point at ``position`` (3,) world, seen by keyframe id -> keypoint index (at least one)."""
@@ -142,22 +210,53 @@ class SlamMap:
             self.revision += 1
             return point.id
 
-    def add_observation(self, point_id: int, keyframe_id: int, index: int) -> None:
-        """Keypoint ``index`` of keyframe ``keyframe_id`` observes point ``point_id``."""
+    def add_points(self, positions: np.ndarray, observations: list[dict[int, int]]) -> list[int]:
+        """New points at (N, 3) ``positions`` world, each seen by keyframe id -> keypoint index; a point
+        whose keypoints got another point meanwhile (or whose keyframe is gone) is not added. Their
+        summaries are computed before the lock is taken, which is held once, briefly. Returns the new ids."""
+        with self.lock:
+            keyframes = [{k: self.keyframes[k] for k in seen} if all(k in self.keyframes for k in seen) else None
+                         for seen in observations]
+        candidates = [(row, found) for row, found in enumerate(keyframes) if found is not None]
+        drafts = [_Draft(positions[row], [(found[k], i) for k, i in observations[row].items()],
+                         (found[min(found)], observations[row][min(found)])) for row, found in candidates]
+        summaries = _summarise(drafts, self.scale_factor, self.levels) if drafts else None
+        made: list[int] = []
+        with self.lock:
+            for n, (row, found) in enumerate(candidates):
+                if any(self.keyframes.get(k) is not found[k] or found[k].point_ids[i] >= 0
+                       for k, i in observations[row].items()):
+                    continue
+                point = MapPoint(self._next_point, np.array(positions[row], np.float64), {}, min(found))
+                self._next_point += 1
+                self.points[point.id] = point
+                for keyframe_id, index in observations[row].items():
+                    self._observe(point, found[keyframe_id], index)
+                assert summaries is not None
+                self._set_summary(point, summaries, n)
+                made.append(point.id)
+            self.revision += 1
+        return made
+
+    def add_observation(self, point_id: int, keyframe_id: int, index: int, refresh: bool = True) -> None:
+        """Keypoint ``index`` of keyframe ``keyframe_id`` observes point ``point_id``; ``refresh=False``
+        leaves the point's summary to the caller's ``refresh_points``."""
         with self.lock:
             point, keyframe = self.points[point_id], self.keyframes[keyframe_id]
             if keyframe_id in point.observations or keyframe.point_ids[index] >= 0:
                 return
             self._observe(point, keyframe, index)
-            self.update_point(point_id)
+            if refresh:
+                self.update_point(point_id)
             self.revision += 1
 
     def _observe(self, point: MapPoint, keyframe: Keyframe, index: int) -> None:
         point.observations[keyframe.id] = index
         keyframe.point_ids[index] = point.id
 
-    def remove_observation(self, point_id: int, keyframe_id: int) -> None:
-        """Drop one observation; a point left with fewer than two is removed."""
+    def remove_observation(self, point_id: int, keyframe_id: int, refresh: bool = True) -> None:
+        """Drop one observation; a point left with fewer than two is removed (``refresh`` as in
+        ``add_observation``)."""
         with self.lock:
             point = self.points.get(point_id)
             if point is None or keyframe_id not in point.observations:
@@ -166,7 +265,7 @@ class SlamMap:
             self.keyframes[keyframe_id].point_ids[index] = -1
             if len(point.observations) < 2:
                 self.remove_point(point_id)
-            else:
+            elif refresh:
                 self.update_point(point_id)
             self.revision += 1
 
@@ -180,9 +279,10 @@ class SlamMap:
                 self.keyframes[keyframe_id].point_ids[index] = -1
             self.revision += 1
 
-    def merge_points(self, kept_id: int, merged_id: int) -> None:
+    def merge_points(self, kept_id: int, merged_id: int, refresh: bool = True) -> None:
         """Fuse duplicate ``merged_id`` into ``kept_id``: its observations (in keyframes not already
-        observing ``kept_id``) and counters move over, then it is removed."""
+        observing ``kept_id``) and counters move over, then it is removed (``refresh`` as in
+        ``add_observation``)."""
         with self.lock:
             kept, merged = self.points.get(kept_id), self.points.get(merged_id)
             if kept is None or merged is None or kept_id == merged_id:
@@ -193,29 +293,46 @@ class SlamMap:
                 self._observe(kept, self.keyframes[keyframe_id], index)
             kept.visible += merged.visible
             kept.found += merged.found
-            self.update_point(kept_id)
+            if refresh:
+                self.update_point(kept_id)
 
     def update_point(self, point_id: int) -> None:
-        """Recompute a point's representative descriptor, viewing direction and distance range."""
+        """Recompute a point's representative descriptor, viewing direction and distance range (the
+        lock held throughout: for a single point; ``refresh_points`` for many)."""
         with self.lock:
             point = self.points[point_id]
-            keyframes = [self.keyframes[k] for k in point.observations]
-            descriptors = np.array([k.features.descriptors[i] for k, i in zip(keyframes, point.observations.values(),
-                                                                              strict=True)])
-            if len(descriptors) > 2:
-                distances = np.sort(hamming_matrix(descriptors, descriptors), axis=1)
-                descriptors = descriptors[[int(np.argmin(distances[:, (len(descriptors) - 1) // 2]))]]
-            point.descriptor = descriptors[0].copy()
-            rays = point.position - np.array([k.centre for k in keyframes])
-            lengths = np.linalg.norm(rays, axis=1)
-            mean = np.sum(rays / np.maximum(lengths, 1e-12)[:, None], axis=0)
-            point.normal = mean / max(float(np.linalg.norm(mean)), 1e-12)
-            first = self.keyframes.get(point.first_keyframe, keyframes[0])
-            index = point.observations.get(first.id, point.observations[keyframes[0].id])
-            distance = float(np.linalg.norm(point.position - first.centre))
-            level = int(first.features.levels[index])
-            point.max_distance = distance * self.scale_factor ** level
-            point.min_distance = point.max_distance / self.scale_factor ** (self.levels - 1)
+            self._set_summary(point, _summarise([self._draft(point)], self.scale_factor, self.levels), 0)
+
+    def refresh_points(self, point_ids: np.ndarray) -> None:
+        """``update_point`` of every point of ``point_ids`` (P,) that exists: their observations read
+        under the lock, the summaries computed without it, then written back under it to the points
+        whose position and observations did not change meanwhile (whoever changed them updated them)."""
+        with self.lock:
+            points = [p for p in map(self.points.get, point_ids.tolist()) if p is not None]
+            drafts = [self._draft(p) for p in points]
+            seen = [(p.position, dict(p.observations)) for p in points]
+        if not points:
+            return
+        summaries = _summarise(drafts, self.scale_factor, self.levels)
+        with self.lock:
+            for n, (point, (position, observations)) in enumerate(zip(points, seen, strict=True)):
+                if (self.points.get(point.id) is point and point.position is position
+                        and point.observations == observations):
+                    self._set_summary(point, summaries, n)
+
+    def _draft(self, point: MapPoint) -> _Draft:
+        """What ``_summarise`` needs of ``point`` (call with the map locked)."""
+        observations = [(self.keyframes[k], i) for k, i in point.observations.items()]
+        first = self.keyframes.get(point.first_keyframe, observations[0][0])
+        return _Draft(point.position, observations,
+                      (first, point.observations.get(first.id, observations[0][1])))
+
+    @staticmethod
+    def _set_summary(point: MapPoint, summaries: _Summaries, row: int) -> None:
+        point.descriptor = summaries.descriptors[row]
+        point.normal = summaries.normals[row]
+        point.min_distance = float(summaries.min_distances[row])
+        point.max_distance = float(summaries.max_distances[row])
 
     def set_pose(self, keyframe_id: int, T_camera_world: np.ndarray) -> None:
         with self.lock:
@@ -294,6 +411,12 @@ class SlamMap:
             everything = np.concatenate(ids) if ids else np.zeros(0, np.int64)
             return np.unique(everything[everything >= 0])
 
+    def positions(self, point_ids: np.ndarray) -> np.ndarray:
+        """(P, 3) world positions of the points ``point_ids`` that still exist (copies)."""
+        with self.lock:
+            positions = [self.points[i].position for i in point_ids.tolist() if i in self.points]
+        return np.array(positions, np.float64).reshape(-1, 3)
+
     def arrays(self, point_ids: np.ndarray) -> PointArrays:
         """Copies of the data of the points ``point_ids`` that still exist."""
         with self.lock:
@@ -310,12 +433,19 @@ class SlamMap:
         """Remove the points made within the last ``probation`` keyframes before ``newest_keyframe`` that
         failed: found in under ``min_found_ratio`` of the frames they were visible in, or, two
         keyframes or more after their making, observed by fewer than ``min_observations`` keyframes.
-        Returns how many were removed."""
+        Returns how many were removed. The points are judged outside the lock (their counters read as
+        they are then) and judged again under it when removed."""
+
+        def failed(p: MapPoint) -> bool:
+            return newest_keyframe - p.first_keyframe <= probation and (
+                p.found < min_found_ratio * p.visible
+                or (newest_keyframe - p.first_keyframe >= 2 and len(p.observations) < min_observations))
+
         with self.lock:
-            doomed = [p.id for p in self.points.values()
-                      if newest_keyframe - p.first_keyframe <= probation
-                      and (p.found < min_found_ratio * p.visible
-                           or (newest_keyframe - p.first_keyframe >= 2 and len(p.observations) < min_observations))]
-            for point_id in doomed:
+            points = list(self.points.values())
+        doomed = [p for p in points if failed(p)]
+        with self.lock:
+            removed = [p.id for p in doomed if self.points.get(p.id) is p and failed(p)]
+            for point_id in removed:
                 self.remove_point(point_id)
-            return len(doomed)
+            return len(removed)

@@ -16,7 +16,10 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
    observations it finds to be outliers are removed.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
-waits for it, or inline in ``enqueue`` (deterministic, for tests). A keyframe processed while
+waits for it, or inline in ``enqueue`` (deterministic, for tests). It holds the map's lock only to
+take snapshots and to apply results, each in one short step that checks what changed meanwhile:
+searches, triangulation, points' summaries (``SlamMap.refresh_points``) and the bundle adjustment's
+problem are computed outside it. A keyframe processed while
 others wait gets only steps 1 and 2.
 """
 
@@ -40,7 +43,8 @@ from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "need_keyframe", "triangulation_checks"]
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "near_lines", "need_keyframe",
+           "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +54,10 @@ MIN_BASELINE_RATIO = 0.01
 """Keyframes closer than this fraction of the neighbour's median scene depth are not triangulated from."""
 SCALE_SLACK = 1.5
 FUSE_WINDOW_PX = 3.0
+LINE_ROWS = 64
+"""Epipolar lines per block of ``near_lines``."""
+SNAPSHOT_POINTS = 256
+"""The bundle adjustment's problem is read this many points per hold of the map's lock."""
 
 
 def need_keyframe(settings: SlamSettings, seconds_since: float, tracked: int, reference_tracked: int,
@@ -167,8 +175,7 @@ class LocalMapper:
         keyframes observing those points stay fixed (and the map's first keyframe: with fewer than two
         fixed, the scale is held too). Outlier observations are removed afterwards."""
         s = self.settings
-        with self.map.lock:
-            problem = self._problem(window)
+        problem = self._problem(window)
         if problem is None:
             return
         try:
@@ -184,31 +191,44 @@ class LocalMapper:
                 self.map.set_position(point_id, position)
             for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
                                              problem.point_ids[result.outliers].tolist(), strict=True):
-                self.map.remove_observation(point_id, keyframe_id)
+                self.map.remove_observation(point_id, keyframe_id, refresh=False)
+        self.map.refresh_points(np.unique(problem.point_ids[result.outliers]))
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
-        """The bundle adjustment of ``window`` (call with the map locked); None without any point."""
-        frame_ids, point_ids, pixels, sigmas = [], [], [], []
-        poses: dict[int, np.ndarray] = {}
-        points: dict[int, np.ndarray] = {}
-        for point_id in self.map.points_of(window).tolist():
-            point = self.map.points[point_id]
-            points[point_id] = point.position.copy()
-            for keyframe_id, index in point.observations.items():
-                keyframe = self.map.keyframes[keyframe_id]
-                frame_ids.append(keyframe_id)
-                point_ids.append(point_id)
-                pixels.append(keyframe.features.pixels[index])
-                sigmas.append(keyframe.features.sigmas[index])
-                poses.setdefault(keyframe_id, keyframe.T_camera_world.copy())
-        if not points:
+        """The bundle adjustment of ``window``: the points and observations read under the map's lock,
+        ``SNAPSHOT_POINTS`` points at a time, the arrays built without it; None without any point."""
+        ids = self.map.points_of(window).tolist()
+        observations: list[tuple[int, list[tuple[int, int]]]] = []
+        positions: dict[int, np.ndarray] = {}
+        for start in range(0, len(ids), SNAPSHOT_POINTS):
+            with self.map.lock:
+                for point_id in ids[start:start + SNAPSHOT_POINTS]:
+                    point = self.map.points.get(point_id)
+                    if point is not None:
+                        observations.append((point_id, list(point.observations.items())))
+                        positions[point_id] = point.position
+        with self.map.lock:
+            every_keyframe = dict(self.map.keyframes)
+        if not positions:
             return None
-        fixed = (set(poses) - set(window)) | ({min(self.map.keyframes)} & set(poses))
+        keyframes = {k: every_keyframe[k] for _, seen in observations for k, _ in seen}
+        poses = {k: keyframe.T_camera_world for k, keyframe in keyframes.items()}
+        first = min(every_keyframe)
+        counts = np.array([len(seen) for _, seen in observations], np.int64)
+        point_ids = np.repeat(np.array([p for p, _ in observations], np.int64), counts)
+        frame_ids = np.array([k for _, seen in observations for k, _ in seen], np.int64)
+        indices = np.array([i for _, seen in observations for _, i in seen], np.int64)
+        pixels, sigmas = np.zeros((len(indices), 2)), np.zeros(len(indices))
+        for keyframe_id, keyframe in keyframes.items():
+            rows = np.flatnonzero(frame_ids == keyframe_id)
+            pixels[rows] = keyframe.features.pixels[indices[rows]]
+            sigmas[rows] = keyframe.features.sigmas[indices[rows]]
+        fixed = (set(poses) - set(window)) | ({first} & set(poses))
         if not fixed:
             fixed = {min(poses)}
-        return BundleProblem(K=self.K, poses=poses, points=points, frame_ids=np.array(frame_ids, np.int64),
-                             point_ids=np.array(point_ids, np.int64), pixels=np.array(pixels, np.float64),
-                             fixed=frozenset(fixed), sigmas=np.array(sigmas, np.float64))
+        return BundleProblem(K=self.K, poses={k: T.copy() for k, T in poses.items()},
+                             points={p: x.copy() for p, x in positions.items()}, frame_ids=frame_ids,
+                             point_ids=point_ids, pixels=pixels, fixed=frozenset(fixed), sigmas=sigmas)
 
     def triangulate(self, keyframe_id: int) -> int:
         """New points between keyframe ``keyframe_id`` and its best covisible keyframes; how many."""
@@ -217,9 +237,9 @@ class LocalMapper:
         for neighbour_id in self.map.covisible(keyframe_id, s.triangulation_neighbours):
             with self.map.lock:
                 keyframe, neighbour = self.map.keyframes[keyframe_id], self.map.keyframes.get(neighbour_id)
-                if neighbour is None:
-                    continue
-                pair = _Pair(keyframe, neighbour, self.map)
+            if neighbour is None:
+                continue
+            pair = _Pair(keyframe, neighbour, self.map)
             if not pair.wide_enough():
                 continue
             a, b = self._epipolar_matches(pair)
@@ -235,11 +255,8 @@ class LocalMapper:
             with np.errstate(invalid="ignore"):
                 depths = stack.depths(np.nan_to_num(found.points))
             kept = triangulation_checks(found.points, centres, found.residuals, depths, sigmas, s.min_parallax_deg)
-            with self.map.lock:
-                for i, j, point in zip(a[kept], b[kept], found.points[kept], strict=True):
-                    if keyframe.point_ids[i] < 0 and neighbour.point_ids[j] < 0:
-                        self.map.add_point(point, {keyframe.id: int(i), neighbour.id: int(j)})
-                        made += 1
+            made += len(self.map.add_points(found.points[kept], [{keyframe.id: int(i), neighbour.id: int(j)}
+                                                                 for i, j in zip(a[kept], b[kept], strict=True)]))
         return made
 
     def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
@@ -255,9 +272,8 @@ class LocalMapper:
         if len(free_a) == 0 or len(free_b) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
-        epipolar = _distances_to_lines(F, first.pixels[free_a], second.pixels[free_b])
         bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
-        allowed = (epipolar < bounds[None]).view(np.uint8)
+        allowed = near_lines(F, first.pixels[free_a], second.pixels[free_b], bounds).view(np.uint8)
         rows, columns = np.nonzero(allowed)
         behind = ~meet_in_front(self.K, pair.keyframe.T_camera_world, pair.neighbour.T_camera_world,
                                     first.pixels[free_a[rows]], second.pixels[free_b[columns]])
@@ -286,18 +302,22 @@ class LocalMapper:
             rows, keypoints = search_projected(points, projected, features, np.ones(len(features), bool),
                                                FUSE_WINDOW_PX, self.map.scale_factor, s.triangulation_max_distance,
                                                1.0)
+            touched: list[int] = []
             with self.map.lock:
                 for point_id, index in zip(points.ids[rows].tolist(), keypoints.tolist(), strict=True):
                     if point_id not in self.map.points or target in self.map.points[point_id].observations:
                         continue
                     owner = int(keyframe.point_ids[index])
                     if owner < 0:
-                        self.map.add_observation(point_id, target, index)
+                        self.map.add_observation(point_id, target, index, refresh=False)
+                        touched.append(point_id)
                     elif owner in self.map.points:
                         kept, merged = sorted((owner, point_id),
                                               key=lambda p: -len(self.map.points[p].observations))
-                        self.map.merge_points(kept, merged)
+                        self.map.merge_points(kept, merged, refresh=False)
+                        touched.append(kept)
                     changed += 1
+            self.map.refresh_points(np.unique(np.array(touched, np.int64)))
         return changed
 
 
@@ -315,12 +335,26 @@ def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.
     return (depth_a > 0) & (depth_b > 0)
 
 
-def _distances_to_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
-    """(Na, Nb) px distance from each of (Nb, 2) ``pixels_b`` to the epipolar line in image b of each of
-    (Na, 2) ``pixels_a`` (one-sided, cheaper than ``geometry.epipolar.epipolar_distances``)."""
+def near_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(Na, Nb) bool: whether each of (Nb, 2) ``pixels_b`` lies within its ``bounds`` (Nb,) px of the
+    epipolar line in image b of each of (Na, 2) ``pixels_a`` (one-sided distances in float32, cheaper
+    than ``geometry.epipolar.epipolar_distances``; computed ``LINE_ROWS`` lines at a time, so that the
+    distances stay in cache and are never all in memory at once)."""
     lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
-    return np.abs(lines[:, :2] @ pixels_b.T.astype(np.float32) + lines[:, 2:])
+    x, y = (np.ascontiguousarray(pixels_b[:, c], np.float32) for c in range(2))
+    bounds = np.asarray(bounds, np.float32)
+    near = np.zeros((len(lines), len(x)), bool)
+    distances = np.empty((min(LINE_ROWS, len(lines)), len(x)), np.float32)
+    for start in range(0, len(lines), LINE_ROWS):
+        chunk = lines[start:start + LINE_ROWS]
+        out = distances[:len(chunk)]
+        np.multiply(chunk[:, :1], x, out=out)
+        out += chunk[:, 1:2] * y
+        out += chunk[:, 2:]
+        np.abs(out, out=out)
+        np.less(out, bounds, out=near[start:start + len(chunk)])
+    return near
 
 
 class _Pair:
@@ -330,7 +364,7 @@ class _Pair:
         self.keyframe, self.neighbour = keyframe, neighbour
         self.T_neighbour_keyframe = neighbour.T_camera_world @ invert(keyframe.T_camera_world)
         seen = neighbour.point_ids[neighbour.point_ids >= 0]
-        positions = slam_map.arrays(seen).positions
+        positions = slam_map.positions(seen)
         depths = positions @ neighbour.T_camera_world[2, :3] + neighbour.T_camera_world[2, 3]
         self.median_depth = float(np.median(depths)) if len(depths) else np.inf
 

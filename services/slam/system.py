@@ -204,8 +204,7 @@ class SlamSystem:
         """``(ids (N,) int64, positions (N, 3) world)`` of every map point."""
         with self.map.lock:
             ids = self.map.point_ids()
-            positions = np.array([self.map.points[i].position for i in ids.tolist()], np.float64).reshape(-1, 3)
-        return ids, positions
+            return ids, self.map.positions(ids)
 
     @property
     def map_revision(self) -> int:

@@ -1,8 +1,10 @@
 """The SLAM map: observations, covisibility, local map queries, point culling and fusion."""
 
+import cv2
 import numpy as np
 import pytest
 
+from services.slam import map as map_module
 from services.slam.features import FrameFeatures
 from services.slam.map import SlamMap
 
@@ -97,3 +99,72 @@ def test_revision_grows_on_every_change(chain):
     chain.set_pose(2, pose(0.3))
     assert chain.revision == before + 2
     np.testing.assert_allclose(chain.keyframes[2].centre, [0.3, 0, 0])
+
+
+def test_median_descriptors_agree_with_opencv_hamming():
+    """Each point's descriptor has the least median Hamming distance (OpenCV's) to its others."""
+    rng = np.random.default_rng(3)
+    counts = np.array([1, 2, 3, 4, 5, 3, 6, 2])
+    descriptors = rng.integers(0, 256, (int(counts.sum()), 32), dtype=np.uint8)
+    chosen = map_module._median_descriptors(descriptors, counts)
+    for row, start in enumerate(np.concatenate([[0], np.cumsum(counts)[:-1]])):
+        own = descriptors[start:start + counts[row]]
+        if len(own) <= 2:
+            np.testing.assert_array_equal(chosen[row], own[0])
+            continue
+        distances = np.array([[cv2.norm(a, b, cv2.NORM_HAMMING) for b in own] for a in own])
+        medians = np.sort(distances, axis=1)[:, (len(own) - 1) // 2]
+        np.testing.assert_array_equal(chosen[row], own[int(np.argmin(medians))])
+
+
+def test_refreshing_many_points_equals_updating_each(chain):
+    chain.add_observation(3, 2, 3)
+    chain.set_pose(2, pose(0.4))
+    for point_id in (3, 15):
+        chain.set_position(point_id, chain.points[point_id].position + [0.05, -0.1, 0.3])
+    one_by_one = {}
+    for point_id in sorted(chain.points):
+        chain.update_point(point_id)
+        point = chain.points[point_id]
+        one_by_one[point_id] = (point.descriptor, point.normal, point.min_distance, point.max_distance)
+        point.normal, point.max_distance = np.zeros(3), np.inf
+    chain.refresh_points(np.array(sorted(chain.points) + [99]))
+    for point_id, (descriptor, normal, min_distance, max_distance) in one_by_one.items():
+        point = chain.points[point_id]
+        np.testing.assert_array_equal(point.descriptor, descriptor)
+        np.testing.assert_allclose(point.normal, normal, atol=1e-12)
+        assert (point.min_distance, point.max_distance) == pytest.approx((min_distance, max_distance))
+
+
+def test_refresh_leaves_alone_points_changed_while_it_computed(chain, monkeypatch):
+    """What another thread changes between the snapshot and the write-back is not overwritten."""
+    summarise = map_module._summarise
+
+    def meanwhile(drafts, scale_factor, levels):
+        chain.remove_observation(15, 0, refresh=False)
+        chain.set_position(14, np.array([1.4, 0.0, 3.0]))
+        return summarise(drafts, scale_factor, levels)
+
+    for point_id in (13, 14, 15):
+        chain.points[point_id].max_distance = np.inf
+    monkeypatch.setattr(map_module, "_summarise", meanwhile)
+    chain.refresh_points(np.array([13, 14, 15]))
+    assert np.isfinite(chain.points[13].max_distance)
+    assert chain.points[14].max_distance == np.inf and chain.points[15].max_distance == np.inf
+
+
+def test_adding_points_skips_keypoints_taken_while_it_computed(chain, monkeypatch):
+    summarise = map_module._summarise
+
+    def meanwhile(drafts, scale_factor, levels):
+        chain.add_observation(10, 0, 16, refresh=False)
+        return summarise(drafts, scale_factor, levels)
+
+    monkeypatch.setattr(map_module, "_summarise", meanwhile)
+    made = chain.add_points(np.array([[0.0, 0.1, 2.0], [0.1, 0.1, 2.0], [0.2, 0.1, 2.0]]),
+                            [{0: 16, 2: 16}, {1: 17, 2: 17}, {0: 18, 7: 18}])
+    assert len(made) == 1 and chain.points[made[0]].observations == {1: 17, 2: 17}
+    assert chain.keyframes[2].point_ids[16] == -1 and chain.keyframes[0].point_ids[18] == -1
+    single = chain.add_point(np.array([0.1, 0.1, 2.0]), {1: 19, 2: 19})
+    np.testing.assert_allclose(chain.points[made[0]].normal, chain.points[single].normal)
+    assert chain.points[made[0]].max_distance == pytest.approx(chain.points[single].max_distance)

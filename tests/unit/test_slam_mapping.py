@@ -14,7 +14,7 @@ from services.geometry.se3 import invert
 from services.geometry.triangulation import triangulate_midpoint
 from services.slam.features import FrameFeatures
 from services.slam.map import SlamMap
-from services.slam.mapping import LocalMapper, meet_in_front, need_keyframe, triangulation_checks
+from services.slam.mapping import LocalMapper, meet_in_front, near_lines, need_keyframe, triangulation_checks
 from services.slam.system import SlamSettings, SlamState, SlamSystem
 
 SETTINGS = SlamSettings()
@@ -65,6 +65,20 @@ def test_rays_meet_in_front_as_the_midpoint_says():
         expected.append(all((midpoint - origins[k]) @ directions[k] > 0 for k in range(2)))
     assert 20 < found.sum() < 180
     np.testing.assert_array_equal(found, expected)
+
+
+def test_near_epipolar_lines_as_opencv_draws_them():
+    """Pixels of image b within their bounds of the epipolar lines OpenCV computes for image a's pixels."""
+    rng = np.random.default_rng(5)
+    F = rng.normal(size=(3, 3))
+    pixels_a, pixels_b = rng.uniform(0, 640, (150, 2)), rng.uniform(0, 480, (90, 2))
+    bounds = rng.uniform(0.5, 80, 90)
+    lines = cv2.computeCorrespondEpilines(pixels_a.reshape(-1, 1, 2), 1, F).reshape(-1, 3)
+    distances = np.abs(lines[:, :2] @ pixels_b.T + lines[:, 2:]) / np.linalg.norm(lines[:, :2], axis=1)[:, None]
+    near = near_lines(F, pixels_a, pixels_b, bounds)
+    clear = np.abs(distances - bounds[None]) > 1e-3 * bounds[None]
+    assert near.shape == (150, 90) and 0 < near.sum() < near.size
+    np.testing.assert_array_equal(near[clear], (distances < bounds[None])[clear])
 
 
 def test_new_points_between_two_keyframes_are_where_the_scene_is():
