@@ -13,9 +13,10 @@ threshold instead does not work: a point-to-point transfer error exceeds a point
 for the same noise, and on a plane the homography then won only two matches in three.
 
 The chosen model's pose is used to triangulate the model's inliers. From the essential matrix, it
-is the better supported (``two_view.pose_support``) of ``cv2.recoverPose`` on USAC's matrix and
-pycolmap's refined LO-RANSAC pose (``two_view.fit_relative_pose``): USAC alone settled, in some
-draws facing a wall, on a model 2 to 10 % less supported than the true pose and up to 6.6 deg off.
+is ``cv2.recoverPose`` on USAC's matrix, or pycolmap's refined LO-RANSAC pose
+(``two_view.fit_relative_pose``) when that is clearly better supported (``two_view.support_gain``):
+USAC alone settled, in some draws facing a wall, on a model 2 to 10 % less supported than the true
+pose and up to 6.6 deg off.
 From the homography, it is the decomposition of ``cv2.decomposeHomographyMat`` with the most points
 in front of both cameras. It is accepted only with a median triangulation angle (parallax) large enough
 for depth to be measured, enough points in front of both cameras and, from a homography, a runner-up
@@ -50,8 +51,8 @@ from services.slam.two_view import (
     parallax_deg,
     pose_from_essential,
     pose_std_deg,
-    pose_support,
     poses_from_homography,
+    support_gain,
     triangulate_pair,
 )
 
@@ -97,7 +98,9 @@ class InitialisationSettings:
     ``max_rotation_std_deg``: largest predicted standard deviation of an essential pose's rotation
     (``two_view.pose_std_deg`` with ``sigma_px``), degrees: two of them make the 1 deg an initial
     map may be off. The translation direction's is not bounded: at the shortest baselines that
-    initialise it is 2 to 5 deg, and tracking, not the first pose, settles it."""
+    initialise it is 2 to 5 deg, and tracking, not the first pose, settles it; ``min_support_gain``:
+    pycolmap's pose replaces USAC's when its support is larger by more than this many standard
+    deviations of the per-match differences."""
 
     threshold_px: float = 1.0
     confidence: float = 0.999
@@ -109,6 +112,7 @@ class InitialisationSettings:
     ambiguity_ratio: float = 0.75
     max_rms_px: float = 2.0
     max_rotation_std_deg: float = 0.5
+    min_support_gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -200,18 +204,17 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
 
 def _best_essential_pose(E: np.ndarray | None, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
                          K: np.ndarray, s: InitialisationSettings) -> tuple[np.ndarray, np.ndarray]:
-    """``(T_second_first, its inliers (N,) bool)``: of the pose of USAC's essential matrix ``E`` and
-    pycolmap's refined relative pose (``two_view.fit_relative_pose``), the one with the larger
-    chi-square support over all matches. (No pose and no inliers when neither was found.)"""
-    candidates = []
-    if E is not None:
-        candidates.append((pose_from_essential(E, first, second, K, essential_inliers), essential_inliers))
+    """``(T_second_first, its inliers (N,) bool)``: the pose of USAC's essential matrix ``E``, or
+    pycolmap's refined relative pose (``two_view.fit_relative_pose``) when there is no ``E`` or when
+    its support over all matches is larger by more than ``min_support_gain`` standard deviations
+    (``two_view.support_gain``). (No pose and no inliers when neither was found.)"""
     T, inliers = fit_relative_pose(first, second, K, s.threshold_px, s.confidence)
-    if T is not None:
-        candidates.append((T, inliers))
-    if not candidates:
-        return np.eye(4), np.zeros(len(first), bool)
-    return max(candidates, key=lambda candidate: pose_support(candidate[0], K, first, second, s.sigma_px))
+    if E is None:
+        return (np.eye(4), np.zeros(len(first), bool)) if T is None else (T, inliers)
+    T_usac = pose_from_essential(E, first, second, K, essential_inliers)
+    if T is not None and support_gain(T_usac, T, K, first, second, s.sigma_px) > s.min_support_gain:
+        return T, inliers
+    return T_usac, essential_inliers
 
 
 def _pick_homography_pose(H: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray,

@@ -19,7 +19,8 @@ OpenCV's USAC all the same settles, in some draws, on a model that explains the 
 worse than the true pose does (its chi-square support 2 to 8 % lower; on the room's frames 500 / 545,
 facing a wall, 6.6 deg and 20 deg off): a second hypothesis comes from pycolmap's LO-RANSAC of the
 relative pose with a final Gauss-Newton refinement of the Sampson error over its inliers
-(``fit_relative_pose``), and the caller keeps the better supported of the two. Even the best
+(``fit_relative_pose``), and the caller takes it when it is clearly better supported
+(``support_gain``). Even the best
 supported pose is only as good as the matches determine it: ``pose_std_deg`` is its predicted
 standard deviation from the Sampson error's Jacobian.
 """
@@ -34,14 +35,14 @@ import pycolmap
 
 from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
-from services.geometry.epipolar import fundamental_matrix, matched_epipolar_distances, sampson_distances, skew
+from services.geometry.epipolar import fundamental_matrix, matched_epipolar_distances, sampson_distances
 from services.geometry.homography import transfer_errors
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.geometry.triangulation import triangulate_many
 
 __all__ = ["ESSENTIAL_METHOD", "Triangulated", "fit_essential", "fit_homography", "fit_relative_pose",
-           "essential_support", "homography_support", "pose_support", "pose_std_deg", "pose_from_essential",
+           "essential_support", "homography_support", "support_gain", "pose_std_deg", "pose_from_essential",
            "poses_from_homography", "triangulate_pair", "parallax_deg"]
 
 ESSENTIAL_METHOD = cv2.USAC_ACCURATE
@@ -113,10 +114,18 @@ def fit_relative_pose(pixels_a: np.ndarray, pixels_b: np.ndarray, K: np.ndarray,
     return make_transform(matrix[:, :3], matrix[:, 3] / norm), inliers
 
 
-def pose_support(T_b_a: np.ndarray, K: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
-                 sigma_px: float) -> float:
-    """``essential_support`` of the essential matrix of the (4, 4) pose ``T_b_a``."""
-    return essential_support(skew(T_b_a[:3, 3]) @ T_b_a[:3, :3], K, pixels_a, pixels_b, sigma_px)
+def support_gain(T_base: np.ndarray, T_other: np.ndarray, K: np.ndarray, pixels_a: np.ndarray,
+                 pixels_b: np.ndarray, sigma_px: float) -> float:
+    """How much better the (4, 4) pose ``T_other`` explains the matches than ``T_base``, in standard
+    deviations: the difference of their ``essential_support`` over the root sum of squares of the
+    per-match differences (a paired test on the same matches; 0 when both explain them alike)."""
+    def contributions(T: np.ndarray) -> np.ndarray:
+        errors = matched_epipolar_distances(fundamental_matrix(K, K, T), pixels_a, pixels_b)
+        return _contributions(errors, sigma_px, CHI2_ONE_DOF)
+
+    differences = contributions(T_other) - contributions(T_base)
+    spread = float(np.sqrt(np.sum(differences**2)))
+    return float(differences.sum()) / spread if spread > 0 else 0.0
 
 
 def pose_std_deg(T_b_a: np.ndarray, K: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
@@ -164,9 +173,14 @@ def _support(errors_px: np.ndarray, sigma_px: float, bound: float) -> float:
 
     Both models are scored against the same ``CHI2_TWO_DOF`` so that a match explained equally well
     counts the same whichever model explains it (ORB-SLAM's scoring)."""
+    return float(np.sum(_contributions(errors_px, sigma_px, bound)))
+
+
+def _contributions(errors_px: np.ndarray, sigma_px: float, bound: float) -> np.ndarray:
+    """(N,) each match's term of ``_support``: ``CHI2_TWO_DOF - chi2`` summed over both images when
+    both are within ``bound``, else 0."""
     chi2 = (errors_px / sigma_px) ** 2
-    inside = np.all(chi2 <= bound, axis=1)
-    return float(np.sum(CHI2_TWO_DOF - chi2[inside]))
+    return np.where(np.all(chi2 <= bound, axis=1), np.sum(CHI2_TWO_DOF - chi2, axis=1), 0.0)
 
 
 def pose_from_essential(E: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, K: np.ndarray,
