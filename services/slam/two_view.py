@@ -16,7 +16,7 @@ of eight, settled on a pose 1.3 deg and 11 deg (translation) off where ``USAC_AC
 0.2 deg and 1.5 deg: the steadier of the two is used.
 
 OpenCV's USAC all the same settles, in some draws, on a model that explains the matches clearly
-worse than the true pose does (its chi-square support 2 to 8 % lower; on the room's frames 500 / 545,
+worse than the true pose does (its chi-square support 1.8 to 11 % lower; on the room's frames 500 / 545,
 facing a wall, 6.6 deg and 20 deg off): a second hypothesis comes from pycolmap's LO-RANSAC of the
 relative pose with a final Gauss-Newton refinement of the Sampson error over its inliers
 (``fit_relative_pose``), and the caller takes it when it is clearly better supported
