@@ -44,7 +44,7 @@ class FrameResult:
     """One frame's outcome.
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
-    ``planar_wait``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
+    ``planar_wait``, ``pose_uncertain``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
     ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``; a
     tracked frame's is ``calibration_suspect`` once the camera matrix was found not to fit the map,
     ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;

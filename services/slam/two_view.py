@@ -14,6 +14,15 @@ as fast as ``USAC_MAGSAC`` (7.3 against 6.5 ms; plain RANSAC 71 ms) with a media
 20 % outliers, 0.5 px noise, 0.3 m baseline) MAGSAC++ kept about 7 % fewer inliers and, in one draw
 of eight, settled on a pose 1.3 deg and 11 deg (translation) off where ``USAC_ACCURATE`` stayed under
 0.2 deg and 1.5 deg: the steadier of the two is used.
+
+OpenCV's USAC all the same settles, in some draws, on a model that explains the matches clearly
+worse than the true pose does (its chi-square support 1.8 to 11 % lower; on the room's frames 500 / 545,
+facing a wall, 6.6 deg and 20 deg off): a second hypothesis comes from pycolmap's LO-RANSAC of the
+relative pose with a final Gauss-Newton refinement of the Sampson error over its inliers
+(``fit_relative_pose``), and the caller takes it when it is clearly better supported
+(``support_gain``). Even the best
+supported pose is only as good as the matches determine it: ``pose_std_deg`` is its predicted
+standard deviation from the Sampson error's Jacobian.
 """
 
 from __future__ import annotations
@@ -22,16 +31,19 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import pycolmap
 
 from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
-from services.geometry.epipolar import matched_epipolar_distances
+from services.geometry.epipolar import fundamental_matrix, matched_epipolar_distances, sampson_distances
 from services.geometry.homography import transfer_errors
+from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.geometry.triangulation import triangulate_many
 
-__all__ = ["ESSENTIAL_METHOD", "Triangulated", "fit_essential", "fit_homography", "essential_support",
-           "homography_support", "pose_from_essential", "poses_from_homography", "triangulate_pair", "parallax_deg"]
+__all__ = ["ESSENTIAL_METHOD", "Triangulated", "fit_essential", "fit_homography", "fit_relative_pose",
+           "essential_support", "homography_support", "support_gain", "pose_std_deg", "pose_from_essential",
+           "poses_from_homography", "triangulate_pair", "parallax_deg"]
 
 ESSENTIAL_METHOD = cv2.USAC_ACCURATE
 HOMOGRAPHY_METHOD = cv2.USAC_MAGSAC
@@ -78,6 +90,70 @@ def fit_homography(pixels_a: np.ndarray, pixels_b: np.ndarray, threshold_px: flo
     return H, mask.ravel().astype(bool)
 
 
+def fit_relative_pose(pixels_a: np.ndarray, pixels_b: np.ndarray, K: np.ndarray, threshold_px: float,
+                      confidence: float) -> tuple[np.ndarray | None, np.ndarray]:
+    """``(T_b_a (4, 4) with unit translation, or None; inliers (N,) bool)`` by pycolmap's LO-RANSAC of the
+    relative pose (five-point samples, ``threshold_px`` on the Sampson error, at most ``MAX_ITERATIONS``
+    samples, a fixed random seed) refined over its inliers by ``pycolmap.refine_relative_pose``."""
+    if len(pixels_a) < 5:
+        return None, np.zeros(len(pixels_a), bool)
+    camera = pycolmap.Camera(model="PINHOLE", width=int(2 * K[0, 2]) + 1, height=int(2 * K[1, 2]) + 1,
+                             params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    options = pycolmap.RANSACOptions()
+    options.max_error, options.confidence, options.random_seed = threshold_px, confidence, 0
+    options.min_num_trials, options.max_num_trials = 100, MAX_ITERATIONS
+    found = pycolmap.estimate_relative_pose(camera, pixels_a, camera, pixels_b, options)
+    if found is None:
+        return None, np.zeros(len(pixels_a), bool)
+    inliers = np.asarray(found["inlier_mask"], bool).ravel()
+    refined = pycolmap.refine_relative_pose(found["cam2_from_cam1"], camera, pixels_a, camera, pixels_b, inliers)
+    matrix = (refined or found)["cam2_from_cam1"].matrix()
+    norm = np.linalg.norm(matrix[:, 3])
+    if not norm > 0:
+        return None, np.zeros(len(pixels_a), bool)
+    return make_transform(matrix[:, :3], matrix[:, 3] / norm), inliers
+
+
+def support_gain(T_base: np.ndarray, T_other: np.ndarray, K: np.ndarray, pixels_a: np.ndarray,
+                 pixels_b: np.ndarray, sigma_px: float) -> float:
+    """How much better the (4, 4) pose ``T_other`` explains the matches than ``T_base``, in standard
+    deviations: the difference of their ``essential_support`` over the root sum of squares of the
+    per-match differences (a paired test on the same matches; 0 when both explain them alike)."""
+    def contributions(T: np.ndarray) -> np.ndarray:
+        errors = matched_epipolar_distances(fundamental_matrix(K, K, T), pixels_a, pixels_b)
+        return _contributions(errors, sigma_px, CHI2_ONE_DOF)
+
+    differences = contributions(T_other) - contributions(T_base)
+    spread = float(np.sqrt(np.sum(differences**2)))
+    return float(differences.sum()) / spread if spread > 0 else 0.0
+
+
+def pose_std_deg(T_b_a: np.ndarray, K: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
+                 sigma_px: float) -> tuple[float, float]:
+    """Predicted standard deviation, degrees, of the rotation and of the translation direction of
+    ``T_b_a`` (4, 4) fitted to the inlier matches (N, 2) + (N, 2) with isotropic pixel noise ``sigma_px``:
+    ``sigma^2 (J^T J)^-1`` with ``J`` (N, 5) the Jacobian of the Sampson distances
+    (``epipolar.sampson_distances``, of variance ``sigma^2``) in a left rotation increment (3) and
+    the two directions orthogonal to the translation (2), by central differences; the two figures
+    are the square roots of the traces of the two blocks. Infinite when the Jacobian is singular."""
+    R, t = T_b_a[:3, :3], T_b_a[:3, 3] / np.linalg.norm(T_b_a[:3, 3])
+    tangent = np.linalg.svd(t[None])[2][1:]
+
+    def distances(step: np.ndarray) -> np.ndarray:
+        direction = t + tangent.T @ step[3:]
+        T = make_transform(matrix_from_rotvec(step[:3]) @ R, direction / np.linalg.norm(direction))
+        return sampson_distances(fundamental_matrix(K, K, T), pixels_a, pixels_b)
+
+    h = 1e-6
+    J = np.column_stack([(distances(h * e) - distances(-h * e)) / (2 * h) for e in np.eye(5)])
+    try:
+        covariance = sigma_px**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    return (float(np.degrees(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))),
+            float(np.degrees(np.sqrt(max(np.trace(covariance[3:, 3:]), 0.0)))))
+
+
 def essential_support(E_b_a: np.ndarray, K: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
                       sigma_px: float) -> float:
     """How well ``E_b_a`` explains the matches, on the same scale as ``homography_support``: over the
@@ -97,9 +173,14 @@ def _support(errors_px: np.ndarray, sigma_px: float, bound: float) -> float:
 
     Both models are scored against the same ``CHI2_TWO_DOF`` so that a match explained equally well
     counts the same whichever model explains it (ORB-SLAM's scoring)."""
+    return float(np.sum(_contributions(errors_px, sigma_px, bound)))
+
+
+def _contributions(errors_px: np.ndarray, sigma_px: float, bound: float) -> np.ndarray:
+    """(N,) each match's term of ``_support``: ``CHI2_TWO_DOF - chi2`` summed over both images when
+    both are within ``bound``, else 0."""
     chi2 = (errors_px / sigma_px) ** 2
-    inside = np.all(chi2 <= bound, axis=1)
-    return float(np.sum(CHI2_TWO_DOF - chi2[inside]))
+    return np.where(np.all(chi2 <= bound, axis=1), np.sum(CHI2_TWO_DOF - chi2, axis=1), 0.0)
 
 
 def pose_from_essential(E: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, K: np.ndarray,

@@ -8,7 +8,7 @@ import pytest
 from services.capture.scenes import make_scene
 from services.estimation.correspondence import fundamental_matrices
 from services.geometry.camera import project_points, undistort_pixels
-from services.geometry.epipolar import epipolar_distances, matched_epipolar_distances, skew
+from services.geometry.epipolar import epipolar_distances, matched_epipolar_distances, sampson_distances, skew
 from services.geometry.se3 import invert, transform_points
 
 
@@ -71,3 +71,12 @@ def test_matched_epipolar_distances_are_the_diagonal_of_all_pairs():
     assert np.allclose(matched.max(axis=1), np.diag(epipolar_distances(F, pa, pb)))
     line_b = F @ np.append(pa[0], 1.0)
     assert matched[0, 1] == pytest.approx(abs(line_b @ np.append(pb[0], 1.0)) / np.linalg.norm(line_b[:2]))
+
+
+def test_sampson_distances_square_to_opencvs():
+    rng = np.random.default_rng(4)
+    F = rng.normal(size=(3, 3))
+    pixels_a, pixels_b = rng.uniform(0, 640, (20, 2)), rng.uniform(0, 480, (20, 2))
+    expected = [cv2.sampsonDistance(np.append(a, 1.0).reshape(3, 1), np.append(b, 1.0).reshape(3, 1), F)
+                for a, b in zip(pixels_a, pixels_b, strict=True)]
+    assert sampson_distances(F, pixels_a, pixels_b) ** 2 == pytest.approx(expected, rel=1e-9)
