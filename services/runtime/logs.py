@@ -7,6 +7,11 @@ UTC, milliseconds), ``level``, ``logger``, ``node`` (null outside node processes
 ``message``, ``exception`` when there is one, and every field passed to the logging call
 with ``extra={...}``. Rotation is left to the host (journald, docker, logrotate): artrack
 writes to stderr only and opens no log file.
+
+``ARTRACK_LOG_LEVEL`` (default ``INFO``) sets the level of artrack's own loggers (``artrack``,
+``services``, ``protocol`` and below); other libraries' records under WARNING are left out unless
+the level is DEBUG, so that a library's start-up chatter (numexpr announcing its threads when
+pandas is installed) never lands between artrack's lines, nor in a command's one-line error.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Literal, cast
 FORMAT_ENV = "ARTRACK_LOG_FORMAT"
 LEVEL_ENV = "ARTRACK_LOG_LEVEL"
 FORMATS = ("text", "json")
+OWN_LOGGERS = ("artrack", "services", "protocol")
 
 LogFormat = Literal["text", "json"]
 
@@ -48,6 +54,14 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(entry, default=str)
 
 
+class OthersBelowWarning(logging.Filter):
+    """Lets through every record of artrack's own loggers and other loggers' from WARNING up."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        own = record.name.split(".", 1)[0] in OWN_LOGGERS
+        return own or record.levelno >= logging.WARNING
+
+
 def log_format(given: str | None = None) -> LogFormat:
     """``given``, else ``$ARTRACK_LOG_FORMAT``, else ``text``; ValueError naming a bad value."""
     value = (given or os.environ.get(FORMAT_ENV) or "text").lower()
@@ -68,6 +82,8 @@ def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, n
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
+    if root.level > logging.DEBUG:
+        handler.addFilter(OthersBelowWarning())
 
 
 def native_logs_to_stderr() -> None:
