@@ -21,8 +21,8 @@ from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 
 __all__ = ["TriangulatedPoint", "Triangulation", "projection_matrix", "triangulate_dlt", "triangulate_dlt_many",
-           "triangulate_midpoint", "camera_rays", "reproject", "refine_point", "refine_points", "triangulate",
-           "triangulate_many"]
+           "triangulate_midpoint", "meet_in_front", "camera_rays", "reproject", "refine_point", "refine_points",
+           "triangulate", "triangulate_many"]
 
 STEP_TOLERANCE_M = 1e-10
 """Gauss-Newton stops at a step shorter than this (m): the point is where it would stay."""
@@ -259,3 +259,17 @@ def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: fl
         camera_indices=tuple(int(i) for i in (camera_indices if camera_indices is not None else range(views))),
         blob_indices=tuple(int(i) for i in (blob_indices if blob_indices is not None else [0] * views)),
     )
+
+
+def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.ndarray,
+                      pixels_b: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether the rays through (P, 2) ``pixels_a`` of camera ``T_a`` and ``pixels_b`` of
+    ``T_b`` (``T_camera_world``, both (4, 4), intrinsics ``K``) come closest in front of both cameras."""
+    K_inv = np.linalg.inv(K)
+    rays_a = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ K_inv.T) @ T_a[:3, :3]
+    rays_b = (np.hstack([pixels_b, np.ones((len(pixels_b), 1))]) @ K_inv.T) @ T_b[:3, :3]
+    baseline = -T_b[:3, :3].T @ T_b[:3, 3] + T_a[:3, :3].T @ T_a[:3, 3]
+    normal = np.cross(rays_a, rays_b)
+    depth_a = np.sum(np.cross(baseline, rays_b) * normal, axis=1)
+    depth_b = np.sum(np.cross(baseline, rays_a) * normal, axis=1)
+    return (depth_a > 0) & (depth_b > 0)

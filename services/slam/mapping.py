@@ -33,9 +33,9 @@ import numpy as np
 
 from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
-from services.geometry.epipolar import fundamental_matrix
+from services.geometry.epipolar import fundamental_matrix, near_lines
 from services.geometry.se3 import invert
-from services.geometry.triangulation import triangulate_many
+from services.geometry.triangulation import meet_in_front, triangulate_many
 from services.slam.map import Keyframe, SlamMap
 from services.slam.matching import match_descriptors, rotation_consistent
 from services.slam.optimisation import BundleProblem, bundle_adjust
@@ -43,7 +43,7 @@ from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "meet_in_front", "near_lines", "need_keyframe",
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "need_keyframe",
            "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
@@ -54,8 +54,6 @@ MIN_BASELINE_RATIO = 0.01
 """Keyframes closer than this fraction of the neighbour's median scene depth are not triangulated from."""
 SCALE_SLACK = 1.5
 FUSE_WINDOW_PX = 3.0
-LINE_ROWS = 64
-"""Epipolar lines per block of ``near_lines``."""
 SNAPSHOT_POINTS = 256
 """The bundle adjustment's problem is read this many points per hold of the map's lock."""
 
@@ -319,42 +317,6 @@ class LocalMapper:
                     changed += 1
             self.map.refresh_points(np.unique(np.array(touched, np.int64)))
         return changed
-
-
-def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.ndarray,
-                      pixels_b: np.ndarray) -> np.ndarray:
-    """(P,) bool: whether the rays through (P, 2) ``pixels_a`` of camera ``T_a`` and ``pixels_b`` of
-    ``T_b`` (``T_camera_world``, both (4, 4), intrinsics ``K``) come closest in front of both cameras."""
-    K_inv = np.linalg.inv(K)
-    rays_a = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ K_inv.T) @ T_a[:3, :3]
-    rays_b = (np.hstack([pixels_b, np.ones((len(pixels_b), 1))]) @ K_inv.T) @ T_b[:3, :3]
-    baseline = -T_b[:3, :3].T @ T_b[:3, 3] + T_a[:3, :3].T @ T_a[:3, 3]
-    normal = np.cross(rays_a, rays_b)
-    depth_a = np.sum(np.cross(baseline, rays_b) * normal, axis=1)
-    depth_b = np.sum(np.cross(baseline, rays_a) * normal, axis=1)
-    return (depth_a > 0) & (depth_b > 0)
-
-
-def near_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-    """(Na, Nb) bool: whether each of (Nb, 2) ``pixels_b`` lies within its ``bounds`` (Nb,) px of the
-    epipolar line in image b of each of (Na, 2) ``pixels_a`` (one-sided distances in float32, cheaper
-    than ``geometry.epipolar.epipolar_distances``; computed ``LINE_ROWS`` lines at a time, so that the
-    distances stay in cache and are never all in memory at once)."""
-    lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
-    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
-    x, y = (np.ascontiguousarray(pixels_b[:, c], np.float32) for c in range(2))
-    bounds = np.asarray(bounds, np.float32)
-    near = np.zeros((len(lines), len(x)), bool)
-    distances = np.empty((min(LINE_ROWS, len(lines)), len(x)), np.float32)
-    for start in range(0, len(lines), LINE_ROWS):
-        chunk = lines[start:start + LINE_ROWS]
-        out = distances[:len(chunk)]
-        np.multiply(chunk[:, :1], x, out=out)
-        out += chunk[:, 1:2] * y
-        out += chunk[:, 2:]
-        np.abs(out, out=out)
-        np.less(out, bounds, out=near[start:start + len(chunk)])
-    return near
 
 
 class _Pair:

@@ -9,12 +9,13 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
+from services.geometry.epipolar import near_lines
 from services.geometry.evaluation import umeyama
 from services.geometry.se3 import invert
-from services.geometry.triangulation import triangulate_midpoint
+from services.geometry.triangulation import meet_in_front, triangulate_midpoint
 from services.slam.features import FrameFeatures
 from services.slam.map import SlamMap
-from services.slam.mapping import LocalMapper, meet_in_front, near_lines, need_keyframe, triangulation_checks
+from services.slam.mapping import LocalMapper, need_keyframe, triangulation_checks
 from services.slam.system import SlamSettings, SlamState, SlamSystem
 
 SETTINGS = SlamSettings()
