@@ -65,12 +65,15 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
+    from services.estimation.target_features import CAP_FRAME_PX, has_scale_space
+
     targets = library(args)
     info = targets.info(args.target)
     print(f"target: {info.name} ({info.path})")
     print(f"source: {info.source}")
     print(f"size: {info.image_size[0]}x{info.image_size[1]} px, {info.width_m:.3f} x {info.height_m:.3f} m")
-    print(f"detector: {info.detector.method}, at most {info.detector.max_count} keypoints per level")
+    per = "per {}x{} pixels".format(*CAP_FRAME_PX) if has_scale_space(info.detector) else "per level"
+    print(f"detector: {info.detector.method}, at most {info.detector.max_count} keypoints {per}")
     print(f"descriptors: {info.descriptor}")
     levels = ", ".join(f"{count} at 1/{2**level}" for level, count in enumerate(info.per_level))
     print(f"keypoints: {info.keypoints} ({levels})")

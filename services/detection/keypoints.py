@@ -6,7 +6,11 @@ Methods (``KeypointParams.method``):
 
 * ``orb``: OpenCV's ORB (FAST corners ranked by the Harris score over a pyramid of ``levels``
   levels, each ``scale_factor`` smaller; intensity-centroid orientation; rotated BRIEF, 256 bits).
-* ``sift``: OpenCV's SIFT (difference of Gaussians; 128 floats).
+* ``sift``: OpenCV's SIFT (difference of Gaussians; 128 floats), its doubled first octave upsampled
+  with ``enable_precise_upscale`` (pixel x to 2x): OpenCV's default upsampling places every keypoint
+  about a quarter of a pixel right of and below the feature, at every octave (measured on Gaussian
+  blobs: +0.23 to +0.25 px), which a homography between two images of different scale turns into a
+  shift of the target (docs/accuracy.md).
 * ``akaze``: OpenCV's AKAZE (nonlinear scale space; binary MLDB, 486 bits), from
   ``cv2.xfeatures2d`` in OpenCV 5.
 * ``harris`` and ``shi_tomasi``: corners of the response maps of ``services.detection.harris``
@@ -172,7 +176,7 @@ def _feature2d(params: KeypointParams) -> cv2.Feature2D:
     """OpenCV's detector (and native extractor) of ``params.method``; ORB's for the corner methods."""
     p = params
     if p.method == "sift":
-        return cv2.SIFT.create(nfeatures=p.asked, contrastThreshold=p.contrast_threshold)
+        return cv2.SIFT.create(nfeatures=p.asked, contrastThreshold=p.contrast_threshold, enable_precise_upscale=True)
     if p.method == "akaze":
         if not hasattr(getattr(cv2, "xfeatures2d", None), "AKAZE"):
             raise ValueError("AKAZE needs OpenCV's contrib modules (cv2.xfeatures2d.AKAZE), absent from this build")

@@ -1,6 +1,6 @@
 """How trackable an image is as a target: how many keypoints, how spread out, how repeated.
 
-Measured on the keypoints a target of the image would get (``targets.pyramid_features``):
+Measured on the keypoints a target of the image would get (``targets.target_features``):
 
 * ``keypoints``: their count over the pyramid. Too few and a partly hidden, small or blurred view
   leaves too few matches.
@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 
 from services.detection.keypoints import KeypointParams
-from services.estimation.target_features import DEFAULT_FEATURE, Extractor, is_binary, make_extractor, to_grey
-from services.estimation.targets import MAX_LEVELS, pyramid_features
+from services.estimation.target_features import DEFAULT_FEATURE, Extractor, feature_params, is_binary, to_grey
+from services.estimation.targets import target_features
 
 __all__ = [
     "GRID",
@@ -80,11 +80,13 @@ class Trackability:
 
 
 def check_image(image: np.ndarray, feature: str | KeypointParams = DEFAULT_FEATURE, extract: Extractor | None = None,
-                max_levels: int = MAX_LEVELS) -> Trackability:
+                max_levels: int | None = None) -> Trackability:
     """How trackable ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) is with the keypoints of
-    ``extract`` (default ``make_extractor(feature)``, a feature's name or detector settings) over its pyramid."""
+    ``extract`` (default ``make_extractor(feature)``, a feature's name or detector settings) over its pyramid
+    (at most ``max_levels`` levels, default the target's own: ``targets.target_levels``)."""
     grey = to_grey(image)
-    keypoints, descriptors, levels = pyramid_features(grey, extract or make_extractor(feature), max_levels)
+    detector = feature_params(feature) if isinstance(feature, str) else feature
+    keypoints, descriptors, levels = target_features(grey, detector, extract, max_levels)
     count = len(keypoints)
     coverage, entropy = spread(keypoints, (grey.shape[1], grey.shape[0]))
     repeated = repeated_fraction(keypoints, descriptors, levels)

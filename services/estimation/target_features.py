@@ -12,11 +12,21 @@ Features (``FEATURES``): ``orb`` (the default: fast, binary, 256 bits) and ``sif
 128 dimensions), each at the settings of ``feature_params``: at most ``DEFAULT_MAX_FEATURES``
 keypoints, the strongest kept without spreading (a target's texture decides where they fall), and
 for ORB a FAST threshold of ``ORB_FAST_THRESHOLD``.
+
+Detectors with a scale space of their own (``SCALE_SPACE_METHODS``: SIFT's octaves of blurred images,
+AKAZE's nonlinear one) find a feature at every scale of one image, so their cap counts keypoints per
+``CAP_FRAME_PX`` (640x480) pixels of the image (``keypoint_cap``) rather than per image: a large
+photograph keeps the keypoint density of a 640x480 frame instead of its strongest
+``DEFAULT_MAX_FEATURES`` alone. ORB's pyramid (8 levels, 1.2 apart) spans under two octaves, and the
+corner detectors work on ORB's, so their cap stays per image (and a target of theirs gets a pyramid of
+its own, ``targets``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Literal, get_args
 
 import numpy as np
@@ -25,14 +35,18 @@ from services.detection.grey import as_grey8
 from services.detection.keypoints import KeypointDetector, KeypointParams
 
 __all__ = [
+    "CAP_FRAME_PX",
     "DEFAULT_FEATURE",
     "DEFAULT_MAX_FEATURES",
     "FEATURES",
     "ORB_FAST_THRESHOLD",
+    "SCALE_SPACE_METHODS",
     "Extractor",
     "Feature",
     "feature_params",
+    "has_scale_space",
     "is_binary",
+    "keypoint_cap",
     "make_extractor",
     "to_grey",
 ]
@@ -42,10 +56,15 @@ Feature = Literal["orb", "sift"]
 FEATURES: tuple[Feature, ...] = get_args(Feature)
 DEFAULT_FEATURE: Feature = "orb"
 DEFAULT_MAX_FEATURES = 2000
-"""Keypoints per image (per pyramid level for a target): enough for a 640x480 frame to cover a target
-seen small, few enough that brute-force matching stays a few milliseconds."""
+"""Keypoints per image (per pyramid level for an ORB target; per 640x480 pixels for a scale-space detector,
+``keypoint_cap``): enough for a 640x480 frame to cover a target seen small, few enough that brute-force
+matching stays a few milliseconds."""
 ORB_FAST_THRESHOLD = 12
 """FAST threshold of ORB (OpenCV's default is 20): lower finds corners in soft, defocused views."""
+SCALE_SPACE_METHODS = ("sift", "akaze")
+"""Detector methods (``KeypointParams.method``) that build a scale space of their own from one image."""
+CAP_FRAME_PX = (640, 480)
+"""(width, height) of the image a scale-space detector's ``max_count`` is meant for (``keypoint_cap``)."""
 
 
 def feature_params(feature: str = DEFAULT_FEATURE) -> KeypointParams:
@@ -56,12 +75,31 @@ def feature_params(feature: str = DEFAULT_FEATURE) -> KeypointParams:
                           fast_threshold=ORB_FAST_THRESHOLD)
 
 
+def has_scale_space(detector: KeypointParams) -> bool:
+    """Whether ``detector``'s method finds keypoints over a scale space of its own (``SCALE_SPACE_METHODS``)."""
+    return detector.method in SCALE_SPACE_METHODS
+
+
+def keypoint_cap(detector: KeypointParams, shape: tuple[int, ...]) -> int:
+    """Keypoints kept at most in an image of ``shape`` (H, W, ...): for a scale-space detector ``max_count``
+    per area of ``CAP_FRAME_PX`` and never fewer than ``max_count``; ``max_count`` for any other."""
+    if not has_scale_space(detector):
+        return detector.max_count
+    frame_area = CAP_FRAME_PX[0] * CAP_FRAME_PX[1]
+    return max(detector.max_count, math.ceil(detector.max_count * shape[0] * shape[1] / frame_area))
+
+
 def make_extractor(feature: str | KeypointParams = DEFAULT_FEATURE) -> Extractor:
-    """The extractor of ``feature``: a name (``feature_params``) or a target's own detector settings."""
-    detector = KeypointDetector(feature_params(feature) if isinstance(feature, str) else feature)
+    """The extractor of ``feature``: a name (``feature_params``) or a target's own detector settings, keeping
+    at most ``keypoint_cap`` keypoints of each image."""
+    params = feature_params(feature) if isinstance(feature, str) else feature
+    detectors = {params.max_count: KeypointDetector(params)}
 
     def extract(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        found = detector.detect(grey)
+        cap = keypoint_cap(params, grey.shape)
+        if cap not in detectors:
+            detectors[cap] = KeypointDetector(replace(params, max_count=cap))
+        found = detectors[cap].detect(grey)
         return found.points, found.descriptors
 
     return extract

@@ -169,10 +169,10 @@ class Recognition:
 
 
 def make_matcher(binary: bool, exact: bool = False) -> cv2.DescriptorMatcher:
-    """For binary descriptors a FLANN hashing index, or with ``exact`` Hamming brute force; for float ones a
-    FLANN k-d forest."""
-    if binary and exact:
-        return cv2.BFMatcher(cv2.NORM_HAMMING)
+    """With ``exact`` a brute-force search (Hamming distance for binary descriptors, L2 for float ones); else a
+    FLANN hashing index for binary descriptors, a FLANN k-d forest for float ones."""
+    if exact:
+        return cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
     if binary:
         return cv2.FlannBasedMatcher({"algorithm": FLANN_LSH, "table_number": LSH_TABLES, "key_size": LSH_KEY_BITS,
                                       "multi_probe_level": LSH_PROBE_LEVEL}, {"checks": FLANN_CHECKS})
@@ -206,7 +206,8 @@ class TargetRecognizer:
         self.target = target
         self.options = options or RecognitionOptions()
         self.binary = is_binary(target.descriptors)
-        self.matcher = make_matcher(self.binary, exact=len(target.descriptors) <= self.options.index_above)
+        small = len(target.descriptors) <= self.options.index_above
+        self.matcher = make_matcher(self.binary, exact=self.binary and small)
         self.matcher.add([target.descriptors])
         self.matcher.train()
         self.target_pixels = target.keypoints.astype(np.float64)

@@ -10,7 +10,11 @@ and the image's outer edges at x = +-width_m / 2, y = +-height_m / 2 with ``heig
 
 Keypoints are found over a scale pyramid of the image (each level half the previous one's size, down
 to ``MIN_LEVEL_SIDE`` pixels), so a frame that sees the target small still finds features of its
-own scale; every keypoint is stored in level-0 pixels with the level it came from.
+own scale; every keypoint is stored in level-0 pixels with the level it came from. A detector with a
+scale space of its own (SIFT, AKAZE: ``target_features.has_scale_space``) already finds those features
+in the full image, so its target is that image alone (``target_levels``): a pyramid over it would only
+repeat its keypoints at every level, and the copies of one feature would make each other's matches
+fail the ratio test.
 """
 
 from __future__ import annotations
@@ -22,7 +26,14 @@ import cv2
 import numpy as np
 
 from services.detection.keypoints import KeypointParams
-from services.estimation.target_features import DEFAULT_FEATURE, Extractor, feature_params, make_extractor, to_grey
+from services.estimation.target_features import (
+    DEFAULT_FEATURE,
+    Extractor,
+    feature_params,
+    has_scale_space,
+    make_extractor,
+    to_grey,
+)
 
 __all__ = [
     "MAX_LEVELS",
@@ -32,13 +43,16 @@ __all__ = [
     "build_target",
     "check_width",
     "pyramid_features",
+    "target_features",
+    "target_levels",
     "target_points",
 ]
 
 MIN_LEVEL_SIDE = 160
 """A pyramid level whose shorter side would fall below this many pixels is not made (too few features)."""
 MAX_LEVELS = 4
-"""Pyramid levels at most: level k is the image scaled by 2^-k (with ORB's own finer pyramid inside each)."""
+"""Pyramid levels at most: level k is the image scaled by 2^-k (with ORB's own finer pyramid inside each);
+one for a scale-space detector (``target_levels``)."""
 MIN_TARGET_SIDE = 32
 """Images with a shorter side below this many pixels are refused as targets."""
 
@@ -130,12 +144,27 @@ def pyramid_features(grey: np.ndarray, extract: Extractor,
             np.concatenate(levels))
 
 
+def target_levels(detector: KeypointParams) -> int:
+    """Pyramid levels at most of a target found by ``detector``: 1 (the image alone) for a detector with its
+    own scale space, ``MAX_LEVELS`` for any other."""
+    return 1 if has_scale_space(detector) else MAX_LEVELS
+
+
+def target_features(grey: np.ndarray, detector: KeypointParams, extract: Extractor | None = None,
+                    max_levels: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``pyramid_features`` of an (H, W) uint8 image as a target of ``detector`` gets them: found by ``extract``
+    (default the detector's own) over at most ``max_levels`` levels (default ``target_levels(detector)``)."""
+    return pyramid_features(grey, extract or make_extractor(detector),
+                            target_levels(detector) if max_levels is None else max_levels)
+
+
 def build_target(name: str, image: np.ndarray, width_m: float, feature: str | KeypointParams = DEFAULT_FEATURE,
-                 extract: Extractor | None = None, max_levels: int = MAX_LEVELS) -> Target:
+                 extract: Extractor | None = None, max_levels: int | None = None) -> Target:
     """The target ``name`` of ``image`` ((H, W) or (H, W, 3) BGR, uint8 or uint16) printed ``width_m`` wide.
 
     ``feature``: a feature's name (``feature_params``) or detector settings, recorded in the target for
-    frames to be described alike; ``extract``: the keypoint extractor (default: those settings'). Raises
+    frames to be described alike; ``extract``: the keypoint extractor (default: those settings');
+    ``max_levels``: of its pyramid (default ``target_levels`` of the settings). Raises
     ValueError for a width that is not a positive finite number, an image smaller than ``MIN_TARGET_SIDE``
     or one without any keypoint.
     """
@@ -145,7 +174,7 @@ def build_target(name: str, image: np.ndarray, width_m: float, feature: str | Ke
         raise ValueError(f"target image is {grey.shape[1]}x{grey.shape[0]} px; it needs at least "
                          f"{MIN_TARGET_SIDE} px on each side")
     detector = feature_params(feature) if isinstance(feature, str) else feature
-    keypoints, descriptors, levels = pyramid_features(grey, extract or make_extractor(detector), max_levels)
+    keypoints, descriptors, levels = target_features(grey, detector, extract, max_levels)
     if len(keypoints) == 0:
         raise ValueError("target image has no keypoints (no texture to recognise it by)")
     size_px = (grey.shape[1], grey.shape[0])

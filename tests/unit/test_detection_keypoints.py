@@ -167,6 +167,18 @@ def test_spreading_takes_keypoints_out_of_the_richest_part(texture, method):
     assert counts["grid"][1].max() < cells.max() / 2
 
 
+@pytest.mark.parametrize("sigma", [2.0, 4.0, 8.0])
+def test_sift_places_a_blob_at_its_centre_at_every_octave(sigma):
+    centre = np.array([100.3, 120.7])
+    y, x = np.mgrid[0:256, 0:256]
+    blob = 40 + 180 * np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2 * sigma**2))
+    image = blob.round().astype(np.uint8)
+    found = detect_keypoints(image, KeypointParams(method="sift", spread="none", max_count=10))
+    assert np.abs(found.points[0] - centre).max() < 0.06
+    default = max(cv2.SIFT.create().detect(image, None), key=lambda k: k.response)
+    assert np.all(np.array(default.pt) - centre > 0.15)  # OpenCV's default upsampling: down and right
+
+
 @pytest.mark.parametrize("method", METHODS)
 def test_keypoints_repeat_under_a_homography_and_their_descriptors_match(texture, method):
     warped = cv2.warpPerspective(texture, HOMOGRAPHY, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR, borderValue=128)

@@ -15,6 +15,7 @@ from services.estimation.target_recognition import (
     RecognitionOptions,
     RecognitionState,
     TargetRecognizer,
+    make_matcher,
     match_descriptors,
 )
 from services.estimation.targets import build_target
@@ -139,6 +140,15 @@ def test_cross_check_keeps_mutual_best_matches_only():
     np.testing.assert_array_equal(plain, [[i, i] for i in range(10)] + [[10, 0]])
     crossed = match_descriptors(matcher, query, train, 0.8, cross_check=True)
     assert len(crossed) == 10 and set(map(tuple, crossed)) <= set(map(tuple, plain))
+
+
+def test_an_exact_float_matcher_finds_the_true_nearest_neighbours():
+    rng = np.random.default_rng(3)
+    train = rng.random((300, 128), np.float32)
+    query = train[:40] + rng.normal(0, 0.05, (40, 128)).astype(np.float32)
+    distances = np.linalg.norm(query[:, None] - train[None], axis=2)
+    found = make_matcher(False, exact=True).match(query, train)
+    assert [m.trainIdx for m in found] == distances.argmin(axis=1).tolist()
 
 
 def test_cross_checked_recognition_still_finds_the_target(scene, frames):

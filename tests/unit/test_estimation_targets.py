@@ -1,13 +1,21 @@
 """Image targets: the pixel-to-plane mapping, the pyramid's keypoints and the refusals of ``build_target``."""
 
+import cv2
 import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.plane import texel_from_plane
 from services.detection.keypoints import KeypointDetector
-from services.estimation.target_features import feature_params, make_extractor, to_grey
-from services.estimation.targets import MIN_LEVEL_SIDE, build_target, pyramid_features, target_points
+from services.estimation.target_features import feature_params, keypoint_cap, make_extractor, to_grey
+from services.estimation.targets import (
+    MAX_LEVELS,
+    MIN_LEVEL_SIDE,
+    build_target,
+    pyramid_features,
+    target_levels,
+    target_points,
+)
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +54,26 @@ def test_sift_targets_carry_float_descriptors(scene):
     target = build_target("poster", scene.texture[:400, :600], 0.2, "sift")
     assert target.feature == "sift" and target.descriptors.dtype == np.float32
     assert target.descriptors.shape[1] == 128
+
+
+def test_a_sift_target_is_every_keypoint_of_its_full_image_alone(scene):
+    target = build_target("poster", scene.texture, 0.297, "sift")
+    assert target_levels(target.detector) == 1 and not target.levels.any()
+    found = cv2.SIFT.create(enable_precise_upscale=True).detect(scene.texture, None)
+    assert len(found) < keypoint_cap(target.detector, scene.texture.shape)
+    assert sorted(map(tuple, target.keypoints.tolist())) == sorted(k.pt for k in found)
+
+
+def test_an_orb_target_keeps_its_pyramid_and_its_cap_per_level(scene):
+    orb = feature_params("orb")
+    assert target_levels(orb) == MAX_LEVELS
+    assert keypoint_cap(orb, (2160, 3840)) == orb.max_count
+
+
+@pytest.mark.parametrize(("shape", "cap"), [((480, 640), 2000), ((1024, 768), 5120), ((100, 100), 2000),
+                                            ((2160, 3840, 3), 54000)])
+def test_a_scale_space_cap_grows_with_the_image_area(shape, cap):
+    assert keypoint_cap(feature_params("sift"), shape) == cap
 
 
 def test_each_level_maps_its_pixels_back_to_the_full_image():
