@@ -44,8 +44,13 @@ def test_add_list_show_remove_round_trip(procs, tmp_path, poster):
     assert shown.poll() == 0, shown.describe()
     fields = dict(line.split(": ", 1) for line in shown.stdout.splitlines())
     assert fields["size"] == "480x360 px, 0.100 x 0.075 m" and fields["descriptors"] == "SIFT, 128 floats, l2"
-    assert fields["detector"].startswith("sift") and " at 1/1, " in fields["keypoints"]
+    count = fields["keypoints"].split()[0]
+    assert fields["detector"] == "sift, at most 2000 keypoints per 640x480 pixels"
+    assert fields["keypoints"] == f"{count} ({count} at 1/1)"  # SIFT's own scale space, no pyramid of the image
     assert fields["check"].split(":")[0] in ("good", "fair")
+    orb = dict(line.split(": ", 1) for line in procs.run("target", "show", "poster", "--targets", library)
+               .stdout.splitlines())
+    assert orb["detector"] == "orb, at most 2000 keypoints per level" and " at 1/2" in orb["keypoints"]
     removed = procs.run("target", "remove", "poster", "--targets", library)
     assert removed.poll() == 0 and "poster: removed" in removed.stdout, removed.describe()
     assert [line.split(":")[0] for line in procs.run("target", "list", "--targets", library).stdout.splitlines()] \
