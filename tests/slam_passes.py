@@ -124,7 +124,7 @@ def orientation_fix(run: SlamPass, alignment: Similarity) -> np.ndarray:
 def main(argv: list[str]) -> int:
     name, map_path, count, out = argv[0], argv[1], int(argv[2]), argv[3]
     camera, frames = first_frames(name, count)
-    system = SlamSystem(camera, mapping_thread=False, map_path=map_path, localisation_only=True)
+    system = SlamSystem(camera, mapping="inline", map_path=map_path, localisation_only=True)
     revision = system.map_revision
     run = run_frames(system, frames)
     system.close()

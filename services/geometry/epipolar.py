@@ -72,23 +72,24 @@ def sampson_distances(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndar
     return np.sum(xb * lines_b, axis=1) / np.maximum(norm, 1e-300)
 
 
-def near_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-    """(Na, Nb) bool: whether each of (Nb, 2) ``pixels_b`` lies within its ``bounds`` (Nb,) px of the
-    epipolar line in image b of each of (Na, 2) ``pixels_a`` (one-sided distances in float32, cheaper
-    than ``epipolar_distances``; computed ``LINE_ROWS`` lines at a time, so that the
-    distances stay in cache and are never all in memory at once)."""
+def near_lines(F_b_a: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
+               bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, columns)`` (P,) int64, in row-major order: the pairs of (Na, 2) ``pixels_a[rows]`` and
+    (Nb, 2) ``pixels_b[columns]`` where the pixel of image b lies within its ``bounds`` (Nb,) px of the
+    epipolar line of the pixel of image a (one-sided distances in float32, cheaper than
+    ``epipolar_distances``; computed ``LINE_ROWS`` lines at a time, so that the distances stay in
+    cache and are never all in memory at once)."""
     lines = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ F_b_a.T).astype(np.float32)
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-30)[:, None]
-    x, y = (np.ascontiguousarray(pixels_b[:, c], np.float32) for c in range(2))
+    points = np.vstack([np.asarray(pixels_b, np.float64).T, np.ones(len(pixels_b))]).astype(np.float32)
     bounds = np.asarray(bounds, np.float32)
-    near = np.zeros((len(lines), len(x)), bool)
-    distances = np.empty((min(LINE_ROWS, len(lines)), len(x)), np.float32)
+    near = np.zeros((len(lines), len(pixels_b)), bool)
+    distances = np.empty((min(LINE_ROWS, len(lines)), len(pixels_b)), np.float32)
     for start in range(0, len(lines), LINE_ROWS):
         chunk = lines[start:start + LINE_ROWS]
         out = distances[:len(chunk)]
-        np.multiply(chunk[:, :1], x, out=out)
-        out += chunk[:, 1:2] * y
-        out += chunk[:, 2:]
+        np.matmul(chunk, points, out=out)
         np.abs(out, out=out)
         np.less(out, bounds, out=near[start:start + len(chunk)])
-    return near
+    rows, columns = np.divmod(np.flatnonzero(near), max(len(pixels_b), 1))
+    return rows, columns

@@ -261,15 +261,23 @@ def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: fl
     )
 
 
-def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.ndarray,
-                      pixels_b: np.ndarray) -> np.ndarray:
-    """(P,) bool: whether the rays through (P, 2) ``pixels_a`` of camera ``T_a`` and ``pixels_b`` of
-    ``T_b`` (``T_camera_world``, both (4, 4), intrinsics ``K``) come closest in front of both cameras."""
+def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray,
+                  rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether the rays through ``pixels_a[rows]`` ((Na, 2) px) of camera ``T_a`` and
+    ``pixels_b[columns]`` ((Nb, 2) px) of ``T_b`` (``T_camera_world``, both (4, 4), intrinsics ``K``)
+    come closest in front of both cameras.
+
+    With ``c`` the baseline from a's centre to b's and the world rays ``u``, ``v``, the distances along
+    each ray to the closest points have the signs of ``(c x v).(u x v) = (c.u)(v.v) - (c.v)(u.v)``
+    and ``(c x u).(u x v) = (c.u)(u.v) - (c.v)(u.u)`` (the Binet-Cauchy identity): per pair only
+    ``u.v`` is computed, the rest once per pixel."""
     K_inv = np.linalg.inv(K)
     rays_a = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ K_inv.T) @ T_a[:3, :3]
     rays_b = (np.hstack([pixels_b, np.ones((len(pixels_b), 1))]) @ K_inv.T) @ T_b[:3, :3]
     baseline = -T_b[:3, :3].T @ T_b[:3, 3] + T_a[:3, :3].T @ T_a[:3, 3]
-    normal = np.cross(rays_a, rays_b)
-    depth_a = np.sum(np.cross(baseline, rays_b) * normal, axis=1)
-    depth_b = np.sum(np.cross(baseline, rays_a) * normal, axis=1)
+    cu, cv = (rays_a @ baseline)[rows], (rays_b @ baseline)[columns]
+    uu, vv = np.sum(rays_a**2, axis=1)[rows], np.sum(rays_b**2, axis=1)[columns]
+    uv = np.einsum("ij,ij->i", rays_a[rows], rays_b[columns])
+    depth_a = cu * vv - cv * uv
+    depth_b = cu * uv - cv * uu
     return (depth_a > 0) & (depth_b > 0)

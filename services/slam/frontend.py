@@ -36,7 +36,7 @@ from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationState, initialise
 from services.slam.map import PointArrays, SlamMap
-from services.slam.mapping import LocalMapper, need_keyframe
+from services.slam.mapping import Mapper, need_keyframe
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
 from services.slam.optimisation import refine_pose, reprojection_errors
 from services.slam.projection import project_points, search_projected
@@ -84,7 +84,7 @@ class Tracker:
     """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper`` (none with
     ``localisation_only``)."""
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: LocalMapper,
+    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: Mapper,
                  localisation_only: bool = False):
         self.K = np.asarray(camera.K, np.float64)
         self.size = (camera.width, camera.height)
@@ -182,19 +182,25 @@ class Tracker:
     def _track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
         last = self._last
         point_ids = np.full(len(features), -1, np.int64)
-        found = None
+        found = weak = None
         reason = "too_few_matches"
         if self._lost == 0 and last is not None:
-            T = self._follow_motion(last, stamp_ns, features, point_ids, timings)
-            if T is not None:
+            T, inliers = self._follow_motion(last, stamp_ns, features, point_ids, timings)
+            if T is not None and inliers >= self.settings.min_motion_matches:
                 with stage_timer(timings, "local_map"):
                     found = self._track_local_map(T, features, point_ids)
+            elif T is not None:
+                weak = T, point_ids.copy()
         if found is None:
             point_ids[:] = -1
             T, reason = self._relocate(last, features, point_ids, timings)
             if T is not None:
                 with stage_timer(timings, "local_map"):
                     found = self._track_local_map(T, features, point_ids)
+        if found is None and weak is not None:
+            T, point_ids[:] = weak
+            with stage_timer(timings, "local_map"):
+                found = self._track_local_map(T, features, point_ids)
         if found is None:
             self._lost += 1
             return Tracked(SlamState.LOST, reason or "too_few_matches")
@@ -213,9 +219,10 @@ class Tracker:
         return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
     def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
-                       timings: dict[str, float]) -> np.ndarray | None:
+                       timings: dict[str, float]) -> tuple[np.ndarray | None, int]:
         """The pose refined from the last frame's points found around the constant-velocity prediction
-        (the last motion scaled to this frame's time step); None with too few. Fills ``point_ids``."""
+        (the last motion scaled to this frame's time step) and its inliers; None under
+        ``min_motion_matches`` found or ``min_motion_inliers`` inliers. Fills ``point_ids``."""
         s = self.settings
         with stage_timer(timings, "match"):
             predicted = last.T_camera_world
@@ -226,14 +233,24 @@ class Tracker:
                 predicted = make_transform(rotation, delta[:3, 3] * ratio) @ last.T_camera_world
             points, rows, keypoints = self._search_last(last, features, predicted)
         if len(rows) < s.min_motion_matches:
-            return None
+            return None, 0
         with stage_timer(timings, "pose"):
             refined = refine_pose(self.K, predicted, points.positions[rows], features.pixels[keypoints],
                                   features.sigmas[keypoints])
-        if np.count_nonzero(refined.inliers) < s.min_motion_matches:
-            return None
+        inliers = int(np.count_nonzero(refined.inliers))
+        if inliers < s.min_motion_inliers:
+            return None, inliers
         point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
-        return refined.T_camera_world
+        return refined.T_camera_world, inliers
+
+    def _follow_merges(self, point_ids: np.ndarray) -> None:
+        """Replace in ``point_ids`` (N,) the ids of points merged since with the points they live on in
+        (``SlamMap.resolve``); of keypoints that come to share a point, the first keeps it."""
+        matched = np.flatnonzero(point_ids >= 0)
+        resolved = self.map.resolve(point_ids[matched])
+        _, first = np.unique(resolved, return_index=True)
+        point_ids[matched] = -1
+        point_ids[matched[first]] = resolved[first]
 
     def _search_last(self, last: _Frame, features: FrameFeatures,
                      T: np.ndarray) -> tuple[PointArrays, np.ndarray, np.ndarray]:
@@ -279,8 +296,12 @@ class Tracker:
     def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
                          point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Search the local map's points around pose ``T`` and refine on every match; ``point_ids``
-        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers."""
+        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers.
+        The mapper's latest changes are brought in first (the points it made while this frame was
+        matched), and matches to points merged since follow them (``SlamMap.resolve``)."""
         s = self.settings
+        self.mapper.sync()
+        self._follow_merges(point_ids)
         keyframes = self.map.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
         if keyframes:
             self._reference_keyframe = keyframes[0]

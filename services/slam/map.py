@@ -16,6 +16,12 @@ an ``RLock``; readers get copies, never live arrays. ``revision`` grows on every
 lock is held only while the map's dictionaries are read or changed: a point's summary (descriptor,
 viewing direction, distance range) is computed from a snapshot of its observations outside the lock
 and written back under it unless the point changed meanwhile (``refresh_points``, ``add_points``).
+
+A map can also be kept in step with a copy in another process (``mapping_process``): ``record_changes``
+makes it note which keyframes and points change, ``take_changes`` hands them over as ``MapChanges``
+(copies) and ``apply_changes`` brings them into the copy; ``record_counts`` notes the tracking
+counters added to the copy, for the other side's ``add_counts``; ``snapshot`` and ``restore`` copy a
+whole map.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import numpy as np
 
 from services.slam.features import FrameFeatures
 
-__all__ = ["Keyframe", "MapPoint", "SlamMap", "PointArrays"]
+__all__ = ["Keyframe", "MapPoint", "SlamMap", "PointArrays", "MapChanges", "MapSnapshot"]
 
 NEIGHBOURS_OF = 5
 """A local map adds the covisible neighbours of this many of its keyframes (those sharing most points)."""
@@ -73,6 +79,58 @@ class MapPoint:
     max_distance: float = np.inf
     visible: int = 1
     found: int = 1
+
+
+@dataclass(frozen=True)
+class MapChanges:
+    """What changed in a map since the last ``SlamMap.take_changes``, as copies: ``keyframes`` id ->
+    ``(T_camera_world (4, 4), point_ids (N,))`` of the keyframes whose pose or points changed (new ones
+    included), ``points`` every added or changed point, ``removed`` the ids of removed points,
+    ``replaced`` merged point id -> the id of the point it was merged into."""
+
+    keyframes: dict[int, tuple[np.ndarray, np.ndarray]]
+    points: list[MapPoint]
+    removed: list[int]
+    replaced: dict[int, int]
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """A whole map as copies: its ``keyframes`` and ``points``, and the ids the next ones get."""
+
+    keyframes: list[Keyframe]
+    points: list[MapPoint]
+    next_keyframe: int
+    next_point: int
+
+
+@dataclass
+class _Changed:
+    """The ids noted for the next ``MapChanges``."""
+
+    keyframes: set[int] = field(default_factory=set)
+    points: set[int] = field(default_factory=set)
+    removed: set[int] = field(default_factory=set)
+    replaced: dict[int, int] = field(default_factory=dict)
+
+    def point(self, point_id: int) -> None:
+        self.points.add(point_id)
+        self.removed.discard(point_id)
+
+    def gone(self, point_id: int) -> None:
+        self.points.discard(point_id)
+        self.removed.add(point_id)
+
+
+def _copy_point(point: MapPoint) -> MapPoint:
+    return MapPoint(point.id, point.position.copy(), dict(point.observations), point.first_keyframe,
+                    point.descriptor.copy(), point.normal.copy(), point.min_distance, point.max_distance,
+                    point.visible, point.found)
+
+
+def _copy_keyframe(keyframe: Keyframe) -> Keyframe:
+    return Keyframe(keyframe.id, keyframe.stamp_ns, keyframe.T_camera_world.copy(), keyframe.features,
+                    keyframe.point_ids.copy())
 
 
 @dataclass(frozen=True)
@@ -173,27 +231,138 @@ class SlamMap:
         self._next_point = 0
         self._covisibility: dict[int, Counter[int]] = {}
         self._covisibility_revision = -1
+        self._changed: _Changed | None = None
+        self._counts: dict[int, list[int]] | None = None
+        self.replaced: dict[int, int] = {}
+        """Merged point id -> the id of the point it was merged into (``resolve``)."""
+
+    def record_changes(self) -> None:
+        """From now on, note every keyframe and point that changes (for ``take_changes``)."""
+        with self.lock:
+            self._changed = _Changed()
+
+    def record_counts(self) -> None:
+        """From now on, note the counters ``count_visible`` adds (for ``take_counts``)."""
+        with self.lock:
+            self._counts = {}
+
+    def take_changes(self) -> MapChanges:
+        """Copies of what changed since the last call (``record_changes`` first), and a fresh start."""
+        with self.lock:
+            changed, self._changed = self._changed or _Changed(), _Changed()
+            keyframes = {k: (self.keyframes[k].T_camera_world.copy(), self.keyframes[k].point_ids.copy())
+                         for k in sorted(changed.keyframes) if k in self.keyframes}
+            points = [_copy_point(self.points[p]) for p in sorted(changed.points) if p in self.points]
+            return MapChanges(keyframes, points, sorted(changed.removed), dict(changed.replaced))
+
+    def take_counts(self) -> dict[int, tuple[int, int]]:
+        """Point id -> ``(visible, found)`` added by ``count_visible`` since the last call (``record_counts`` first)."""
+        with self.lock:
+            counts, self._counts = self._counts or {}, {}
+            return {p: (v, f) for p, (v, f) in counts.items()}
+
+    def add_counts(self, counts: dict[int, tuple[int, int]]) -> None:
+        """Add counters taken from a copy of this map (``take_counts``) to the points that still exist."""
+        with self.lock:
+            for point_id, (visible, found) in counts.items():
+                point = self.points.get(point_id)
+                if point is not None:
+                    point.visible += visible
+                    point.found += found
+
+    def resolve(self, point_ids: np.ndarray) -> np.ndarray:
+        """(P,) int64: ``point_ids`` with each merged point's id replaced by the id of the point it lives
+        on in (-1 stays -1), so that a frame's matches survive the mapper's fusing of duplicates."""
+        with self.lock:
+            if not self.replaced:
+                return np.asarray(point_ids, np.int64).copy()
+            resolved = []
+            for point_id in np.asarray(point_ids, np.int64).tolist():
+                for _ in range(len(self.replaced)):
+                    if point_id not in self.replaced:
+                        break
+                    point_id = self.replaced[point_id]
+                resolved.append(point_id)
+            return np.array(resolved, np.int64)
+
+    def snapshot(self) -> MapSnapshot:
+        """Copies of every keyframe and point (keypoint features are shared: they never change)."""
+        with self.lock:
+            return MapSnapshot([_copy_keyframe(k) for k in self.keyframes.values()],
+                               [_copy_point(p) for p in self.points.values()], self._next_keyframe, self._next_point)
+
+    def restore(self, snapshot: MapSnapshot) -> None:
+        """Become the map of ``snapshot`` (copied); changes noted so far are dropped."""
+        with self.lock:
+            self.keyframes = {k.id: _copy_keyframe(k) for k in snapshot.keyframes}
+            self.points = {p.id: _copy_point(p) for p in snapshot.points}
+            self._next_keyframe, self._next_point = snapshot.next_keyframe, snapshot.next_point
+            self.replaced = {}
+            if self._changed is not None:
+                self._changed = _Changed()
+            self.revision += 1
+
+    def apply_changes(self, changes: MapChanges, pending: list[int]) -> None:
+        """Bring in ``changes`` made to a copy of this map that knows every keyframe of this one but those
+        of ``pending``: their keyframes and points replace these (``changes`` is taken over, not copied),
+        removed points go; then the observations of the ``pending`` keyframes are linked again (to points
+        that still exist) in the points that came without them."""
+        with self.lock:
+            for point_id in changes.removed:
+                self.points.pop(point_id, None)
+            for keyframe_id, (T, point_ids) in changes.keyframes.items():
+                keyframe = self.keyframes.get(keyframe_id)
+                if keyframe is not None:
+                    keyframe.set_pose(T)
+                    keyframe.point_ids = point_ids
+            for point in changes.points:
+                self.points[point.id] = point
+                self._next_point = max(self._next_point, point.id + 1)
+            self.replaced.update(changes.replaced)
+            touched_ids = np.array([p.id for p in changes.points] + list(changes.removed), np.int64)
+            for pending_id in pending:
+                newer = self.keyframes.get(pending_id)
+                if newer is None:
+                    continue
+                indices = np.flatnonzero(np.isin(newer.point_ids, touched_ids))
+                for index, point_id in zip(indices.tolist(), self.resolve(newer.point_ids[indices]).tolist(),
+                                           strict=True):
+                    seen = self.points.get(point_id)
+                    if seen is None or seen.observations.get(pending_id, index) != index:
+                        newer.point_ids[index] = -1
+                    else:
+                        newer.point_ids[index] = point_id
+                        seen.observations[pending_id] = index
+            self.revision += 1
 
     def clear(self) -> None:
         """Forget every keyframe and point."""
         with self.lock:
             self.keyframes.clear()
             self.points.clear()
+            self.replaced.clear()
+            if self._changed is not None:
+                self._changed = _Changed()
             self.revision += 1
 
     def add_keyframe(self, stamp_ns: int, T_camera_world: np.ndarray, features: FrameFeatures,
-                     point_ids: np.ndarray) -> Keyframe:
-        """A new keyframe; each keypoint ``i`` with ``point_ids[i] >= 0`` (an existing point) becomes an
-        observation of that point (ids of points since removed are dropped)."""
+                     point_ids: np.ndarray, keyframe_id: int | None = None) -> Keyframe:
+        """A new keyframe (its id ``keyframe_id``, as a copy of this map named it, or the next); each
+        keypoint ``i`` with ``point_ids[i] >= 0`` (an existing point, or one merged into it since:
+        ``resolve``) becomes an observation of that point (ids of points since removed are dropped)."""
         with self.lock:
-            keyframe = Keyframe(self._next_keyframe, stamp_ns, np.array(T_camera_world, np.float64), features,
+            new_id = self._next_keyframe if keyframe_id is None else keyframe_id
+            keyframe = Keyframe(new_id, stamp_ns, np.array(T_camera_world, np.float64), features,
                                 np.full(len(features), -1, np.int64))
-            self._next_keyframe += 1
+            self._next_keyframe = max(self._next_keyframe, new_id + 1)
             self.keyframes[keyframe.id] = keyframe
-            for index in np.flatnonzero(point_ids >= 0):
-                point = self.points.get(int(point_ids[index]))
+            if self._changed is not None:
+                self._changed.keyframes.add(keyframe.id)
+            indices = np.flatnonzero(point_ids >= 0)
+            for index, point_id in zip(indices.tolist(), self.resolve(point_ids[indices]).tolist(), strict=True):
+                point = self.points.get(point_id)
                 if point is not None and keyframe.id not in point.observations:
-                    self._observe(point, keyframe, int(index))
+                    self._observe(point, keyframe, index)
             self.revision += 1
         self.refresh_points(np.unique(keyframe.point_ids[keyframe.point_ids >= 0]))
         return keyframe
@@ -253,6 +422,9 @@ class SlamMap:
     def _observe(self, point: MapPoint, keyframe: Keyframe, index: int) -> None:
         point.observations[keyframe.id] = index
         keyframe.point_ids[index] = point.id
+        if self._changed is not None:
+            self._changed.point(point.id)
+            self._changed.keyframes.add(keyframe.id)
 
     def remove_observation(self, point_id: int, keyframe_id: int, refresh: bool = True) -> None:
         """Drop one observation; a point left with fewer than two is removed (``refresh`` as in
@@ -263,6 +435,9 @@ class SlamMap:
                 return
             index = point.observations.pop(keyframe_id)
             self.keyframes[keyframe_id].point_ids[index] = -1
+            if self._changed is not None:
+                self._changed.point(point_id)
+                self._changed.keyframes.add(keyframe_id)
             if len(point.observations) < 2:
                 self.remove_point(point_id)
             elif refresh:
@@ -277,6 +452,9 @@ class SlamMap:
                 return
             for keyframe_id, index in point.observations.items():
                 self.keyframes[keyframe_id].point_ids[index] = -1
+            if self._changed is not None:
+                self._changed.gone(point_id)
+                self._changed.keyframes.update(point.observations)
             self.revision += 1
 
     def merge_points(self, kept_id: int, merged_id: int, refresh: bool = True) -> None:
@@ -293,6 +471,10 @@ class SlamMap:
                 self._observe(kept, self.keyframes[keyframe_id], index)
             kept.visible += merged.visible
             kept.found += merged.found
+            self.replaced[merged_id] = kept_id
+            if self._changed is not None:
+                self._changed.point(kept_id)
+                self._changed.replaced[merged_id] = kept_id
             if refresh:
                 self.update_point(kept_id)
 
@@ -327,8 +509,9 @@ class SlamMap:
         return _Draft(point.position, observations,
                       (first, point.observations.get(first.id, observations[0][1])))
 
-    @staticmethod
-    def _set_summary(point: MapPoint, summaries: _Summaries, row: int) -> None:
+    def _set_summary(self, point: MapPoint, summaries: _Summaries, row: int) -> None:
+        if self._changed is not None:
+            self._changed.point(point.id)
         point.descriptor = summaries.descriptors[row]
         point.normal = summaries.normals[row]
         point.min_distance = float(summaries.min_distances[row])
@@ -337,12 +520,16 @@ class SlamMap:
     def set_pose(self, keyframe_id: int, T_camera_world: np.ndarray) -> None:
         with self.lock:
             self.keyframes[keyframe_id].set_pose(T_camera_world)
+            if self._changed is not None:
+                self._changed.keyframes.add(keyframe_id)
             self.revision += 1
 
     def set_position(self, point_id: int, position: np.ndarray) -> None:
         with self.lock:
             if point_id in self.points:
                 self.points[point_id].position = np.array(position, np.float64)
+                if self._changed is not None:
+                    self._changed.point(point_id)
                 self.revision += 1
 
     def count_visible(self, point_ids: np.ndarray, found: np.ndarray | None = None) -> None:
@@ -353,6 +540,10 @@ class SlamMap:
                 if point is not None:
                     point.visible += 1
                     point.found += int(found is not None and found[k])
+                    if self._counts is not None:
+                        counted = self._counts.setdefault(point_id, [0, 0])
+                        counted[0] += 1
+                        counted[1] += int(found is not None and found[k])
 
     def covisibility(self, keyframe_id: int) -> Counter[int]:
         """Other keyframe id -> how many of ``keyframe_id``'s points it observes too (remembered until

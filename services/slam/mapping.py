@@ -17,10 +17,11 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
 waits for it, or inline in ``enqueue`` (deterministic, for tests). It holds the map's lock only to
-take snapshots and to apply results, each in one short step that checks what changed meanwhile:
-searches, triangulation, points' summaries (``SlamMap.refresh_points``) and the bundle adjustment's
-problem are computed outside it. A keyframe processed while
-others wait gets only steps 1 and 2.
+take snapshots and to apply results, in short steps of at most ``SNAPSHOT_POINTS`` points that check
+what changed meanwhile: searches, triangulation, points' summaries (``SlamMap.refresh_points``) and the
+bundle adjustment's problem are computed outside it. (A frame tracked between two steps of one
+result sees part of it applied, as a frame tracked between two keyframes' results sees one.) A
+keyframe processed while others wait gets only steps 1 and 2.
 """
 
 from __future__ import annotations
@@ -28,6 +29,10 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -37,16 +42,17 @@ from services.geometry.epipolar import fundamental_matrix, near_lines
 from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_many
 from services.slam.map import Keyframe, SlamMap
-from services.slam.matching import match_descriptors, rotation_consistent
+from services.slam.matching import match_candidates, rotation_consistent
 from services.slam.optimisation import BundleProblem, bundle_adjust
 from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "need_keyframe",
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "MappedKeyframe", "Mapper", "need_keyframe",
            "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
+_Item = TypeVar("_Item")
 
 CHI2_ONE_DOF, CHI2_TWO_DOF = 3.841, 5.991
 """95 % chi-square bounds: an epipolar distance has one degree of freedom, a reprojection error two."""
@@ -55,7 +61,40 @@ MIN_BASELINE_RATIO = 0.01
 SCALE_SLACK = 1.5
 FUSE_WINDOW_PX = 3.0
 SNAPSHOT_POINTS = 256
-"""The bundle adjustment's problem is read this many points per hold of the map's lock."""
+"""The mapper reads or writes this many points per hold of the map's lock (the bundle adjustment's
+problem and results, fusion's merges)."""
+
+
+@dataclass(frozen=True)
+class MappedKeyframe:
+    """One keyframe's local mapping: ``stages`` ms (``LocalMapper.timings_ms``), ``wall_ms`` and ``cpu_ms``
+    (the mapping thread's or process's CPU time), ``waiting`` other keyframes queued behind it then."""
+
+    keyframe_id: int
+    stages: dict[str, float]
+    wall_ms: float
+    cpu_ms: float
+    waiting: int
+
+
+class Mapper(Protocol):
+    """What the tracker needs of a local mapper: ``LocalMapper`` (thread or inline) or
+    ``mapping_process.MappingProcess``. ``timings_ms``: the last keyframe's stage times; ``history``:
+    every keyframe mapped, oldest first."""
+
+    timings_ms: dict[str, float]
+    history: list[MappedKeyframe]
+
+    @property
+    def idle(self) -> bool: ...
+
+    def enqueue(self, keyframe_id: int) -> None: ...
+
+    def adjust_initial_map(self, first: int, second: int) -> None: ...
+
+    def sync(self) -> None: ...
+
+    def close(self) -> None: ...
 
 
 def need_keyframe(settings: SlamSettings, seconds_since: float, tracked: int, reference_tracked: int,
@@ -107,6 +146,7 @@ class LocalMapper:
         self.size = size
         self.settings = settings
         self.timings_ms: dict[str, float] = {}
+        self.history: list[MappedKeyframe] = []
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._busy = threading.Event()
         self._thread: threading.Thread | None = None
@@ -134,35 +174,45 @@ class LocalMapper:
             self._thread.join()
             self._thread = None
 
+    def sync(self) -> None:
+        """Nothing to bring in: this mapper works on the tracker's own map."""
+
     def _run(self) -> None:
         while (keyframe_id := self._queue.get()) is not None:
             self._busy.set()
             try:
-                self.process(keyframe_id)
+                self.process(keyframe_id, others_waiting=not self._queue.empty())
             except Exception:
                 logger.exception("local mapping failed on keyframe %d; the map stays as it was", keyframe_id)
             finally:
                 if self._queue.empty():
                     self._busy.clear()
 
-    def process(self, keyframe_id: int) -> None:
+    def process(self, keyframe_id: int, others_waiting: bool = False,
+                stepped: Callable[[], None] | None = None) -> None:
         """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``.
-        When more keyframes wait in the queue, fusion and bundle adjustment are left to the last of
-        them (as ORB-SLAM does): new points for the tracker come first."""
+        When more keyframes wait (``others_waiting``), fusion and bundle adjustment are left to the last
+        of them (as ORB-SLAM does): new points for the tracker come first. ``stepped`` is called after
+        each step the tracker should see at once: each neighbour's new points, and the fusion."""
         s = self.settings
+        wall, cpu = time.perf_counter(), time.thread_time()
         timings: dict[str, float] = {}
         with stage_timer(timings, "cull"):
             self.map.cull_points(keyframe_id, s.cull_found_ratio, s.cull_min_observations, probation=3)
         with stage_timer(timings, "triangulate"):
-            self.triangulate(keyframe_id)
-        if self._queue.empty():
+            self.triangulate(keyframe_id, stepped)
+        if not others_waiting:
             with stage_timer(timings, "fuse"):
                 self.fuse(keyframe_id)
+            if stepped is not None:
+                stepped()
             with stage_timer(timings, "bundle_adjustment"):
                 with self.map.lock:
                     window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
                 self.adjust(window)
         self.timings_ms = timings
+        self.history.append(MappedKeyframe(keyframe_id, timings, (time.perf_counter() - wall) * 1e3,
+                                           (time.thread_time() - cpu) * 1e3, self._queue.qsize()))
 
     def adjust_initial_map(self, first: int, second: int) -> None:
         """Bundle adjust the map's first two keyframes and points (the first fixed, and the scale)."""
@@ -185,22 +235,26 @@ class LocalMapper:
             for keyframe_id, T in result.poses.items():
                 if keyframe_id not in problem.fixed and keyframe_id in self.map.keyframes:
                     self.map.set_pose(keyframe_id, T)
-            for point_id, position in result.points.items():
-                self.map.set_position(point_id, position)
-            for keyframe_id, point_id in zip(problem.frame_ids[result.outliers].tolist(),
-                                             problem.point_ids[result.outliers].tolist(), strict=True):
-                self.map.remove_observation(point_id, keyframe_id, refresh=False)
+        for moved in _chunks(list(result.points.items())):
+            with self.map.lock:
+                for point_id, position in moved:
+                    self.map.set_position(point_id, position)
+        outliers = list(zip(problem.frame_ids[result.outliers].tolist(), problem.point_ids[result.outliers].tolist(),
+                            strict=True))
+        for dropped in _chunks(outliers):
+            with self.map.lock:
+                for keyframe_id, point_id in dropped:
+                    self.map.remove_observation(point_id, keyframe_id, refresh=False)
         self.map.refresh_points(np.unique(problem.point_ids[result.outliers]))
 
     def _problem(self, window: list[int]) -> BundleProblem | None:
         """The bundle adjustment of ``window``: the points and observations read under the map's lock,
         ``SNAPSHOT_POINTS`` points at a time, the arrays built without it; None without any point."""
-        ids = self.map.points_of(window).tolist()
         observations: list[tuple[int, list[tuple[int, int]]]] = []
         positions: dict[int, np.ndarray] = {}
-        for start in range(0, len(ids), SNAPSHOT_POINTS):
+        for chunk in _chunks(self.map.points_of(window).tolist()):
             with self.map.lock:
-                for point_id in ids[start:start + SNAPSHOT_POINTS]:
+                for point_id in chunk:
                     point = self.map.points.get(point_id)
                     if point is not None:
                         observations.append((point_id, list(point.observations.items())))
@@ -228,8 +282,9 @@ class LocalMapper:
                              points={p: x.copy() for p, x in positions.items()}, frame_ids=frame_ids,
                              point_ids=point_ids, pixels=pixels, fixed=frozenset(fixed), sigmas=sigmas)
 
-    def triangulate(self, keyframe_id: int) -> int:
-        """New points between keyframe ``keyframe_id`` and its best covisible keyframes; how many."""
+    def triangulate(self, keyframe_id: int, stepped: Callable[[], None] | None = None) -> int:
+        """New points between keyframe ``keyframe_id`` and its best covisible keyframes, best first; how
+        many. ``stepped`` is called after each neighbour that gave new points."""
         s = self.settings
         made = 0
         for neighbour_id in self.map.covisible(keyframe_id, s.triangulation_neighbours):
@@ -253,8 +308,11 @@ class LocalMapper:
             with np.errstate(invalid="ignore"):
                 depths = stack.depths(np.nan_to_num(found.points))
             kept = triangulation_checks(found.points, centres, found.residuals, depths, sigmas, s.min_parallax_deg)
-            made += len(self.map.add_points(found.points[kept], [{keyframe.id: int(i), neighbour.id: int(j)}
-                                                                 for i, j in zip(a[kept], b[kept], strict=True)]))
+            added = self.map.add_points(found.points[kept], [{keyframe.id: int(i), neighbour.id: int(j)}
+                                                             for i, j in zip(a[kept], b[kept], strict=True)])
+            made += len(added)
+            if added and stepped is not None:
+                stepped()
         return made
 
     def _epipolar_matches(self, pair: _Pair) -> tuple[np.ndarray, np.ndarray]:
@@ -271,13 +329,11 @@ class LocalMapper:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         F = fundamental_matrix(self.K, self.K, pair.T_neighbour_keyframe)
         bounds = (np.sqrt(CHI2_ONE_DOF) * second.sigmas[free_b]).astype(np.float32)
-        allowed = near_lines(F, first.pixels[free_a], second.pixels[free_b], bounds).view(np.uint8)
-        rows, columns = np.nonzero(allowed)
-        behind = ~meet_in_front(self.K, pair.keyframe.T_camera_world, pair.neighbour.T_camera_world,
-                                    first.pixels[free_a[rows]], second.pixels[free_b[columns]])
-        allowed[rows[behind], columns[behind]] = 0
-        a, b = match_descriptors(first.descriptors[free_a], second.descriptors[free_b],
-                                 s.triangulation_max_distance, s.triangulation_ratio, allowed)
+        rows, columns = near_lines(F, first.pixels[free_a], second.pixels[free_b], bounds)
+        front = meet_in_front(self.K, pair.keyframe.T_camera_world, pair.neighbour.T_camera_world,
+                              first.pixels[free_a], second.pixels[free_b], rows, columns)
+        a, b = match_candidates(first.descriptors[free_a], second.descriptors[free_b], rows[front], columns[front],
+                                s.triangulation_max_distance, s.triangulation_ratio)
         a, b = free_a[a], free_b[b]
         consistent = rotation_consistent(first.angles[a], second.angles[b])
         return a[consistent], b[consistent]
@@ -301,22 +357,29 @@ class LocalMapper:
                                                FUSE_WINDOW_PX, self.map.scale_factor, s.triangulation_max_distance,
                                                1.0)
             touched: list[int] = []
-            with self.map.lock:
-                for point_id, index in zip(points.ids[rows].tolist(), keypoints.tolist(), strict=True):
-                    if point_id not in self.map.points or target in self.map.points[point_id].observations:
-                        continue
-                    owner = int(keyframe.point_ids[index])
-                    if owner < 0:
-                        self.map.add_observation(point_id, target, index, refresh=False)
-                        touched.append(point_id)
-                    elif owner in self.map.points:
-                        kept, merged = sorted((owner, point_id),
-                                              key=lambda p: -len(self.map.points[p].observations))
-                        self.map.merge_points(kept, merged, refresh=False)
-                        touched.append(kept)
-                    changed += 1
+            for chunk in _chunks(list(zip(points.ids[rows].tolist(), keypoints.tolist(), strict=True))):
+                with self.map.lock:
+                    for point_id, index in chunk:
+                        if point_id not in self.map.points or target in self.map.points[point_id].observations:
+                            continue
+                        owner = int(keyframe.point_ids[index])
+                        if owner < 0:
+                            self.map.add_observation(point_id, target, index, refresh=False)
+                            touched.append(point_id)
+                        elif owner in self.map.points:
+                            kept, merged = sorted((owner, point_id),
+                                                  key=lambda p: -len(self.map.points[p].observations))
+                            self.map.merge_points(kept, merged, refresh=False)
+                            touched.append(kept)
+                        changed += 1
             self.map.refresh_points(np.unique(np.array(touched, np.int64)))
         return changed
+
+
+def _chunks(items: list[_Item]) -> Iterator[list[_Item]]:
+    """``items`` in runs of ``SNAPSHOT_POINTS``: one hold of the map's lock each."""
+    for start in range(0, len(items), SNAPSHOT_POINTS):
+        yield items[start:start + SNAPSHOT_POINTS]
 
 
 class _Pair:

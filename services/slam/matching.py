@@ -6,6 +6,8 @@ differ, 0..256). Pixels are undistorted px (``features``); ``levels`` are pyrami
 * ``match_descriptors``: every descriptor of one set against every one of another (brute force,
   OpenCV's ``BFMatcher``), kept when its best distance is small enough and clearly better than its
   second best (Lowe's ratio test) and no other row claims the same column.
+* ``match_candidates``: the same two tests over given candidate pairs only (an epipolar band,
+  a window around a prediction).
 * ``search_by_projection``: map points already projected into a frame, each compared only with
   the frame's keypoints within a window around its predicted pixel (a radius growing with the
   predicted pyramid level) and on a neighbouring level; the same two tests.
@@ -22,10 +24,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["hamming", "hamming_matrix", "match_descriptors", "search_by_projection",
+__all__ = ["hamming", "hamming_matrix", "match_descriptors", "match_candidates", "search_by_projection",
            "rotation_consistent", "best_two"]
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int32)
 ROTATION_BINS = 30
 
 
@@ -33,12 +34,14 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N,) int Hamming distances between rows ``a[i]`` and ``b[i]``, both (N, 32) uint8."""
     if len(a) == 0:
         return np.zeros(0, np.int32)
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1)
+    words = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
+    return np.bitwise_count(words).sum(axis=1, dtype=np.int32)
 
 
 def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(Na, Nb) int Hamming distances between every row of (Na, 32) ``a`` and every row of (Nb, 32) ``b``."""
-    return _POPCOUNT[np.bitwise_xor(a[:, None], b[None])].sum(axis=2)
+    words_a, words_b = np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64)
+    return np.bitwise_count(np.bitwise_xor(words_a[:, None], words_b[None])).sum(axis=2, dtype=np.int32)
 
 
 def best_two(groups: np.ndarray, costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -61,21 +64,34 @@ def _unique_columns(rows: np.ndarray, columns: np.ndarray, costs: np.ndarray) ->
     return np.sort(keep)
 
 
-def match_descriptors(a: np.ndarray, b: np.ndarray, max_distance: int, ratio: float,
-                      allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def match_descriptors(a: np.ndarray, b: np.ndarray, max_distance: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """``(rows of a, rows of b)`` (M,) int64 each: descriptor matches between (Na, 32) ``a`` and
     (Nb, 32) ``b`` whose distance is at most ``max_distance`` and below ``ratio`` times the row's
-    second best (among the pairs ``allowed`` (Na, Nb) uint8 non-zero, when given); one match per
-    row of b (the closest)."""
+    second best; one match per row of b (the closest)."""
     if len(a) == 0 or len(b) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, b, k=2, mask=allowed)
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, b, k=2)
     found = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance if len(m) == 2 else np.inf)
                       for m in pairs if len(m)], np.float64).reshape(-1, 4)
     good = (found[:, 2] <= max_distance) & (found[:, 2] < ratio * found[:, 3])
     found = found[good]
     kept = _unique_columns(found[:, 0].astype(np.int64), found[:, 1].astype(np.int64), found[:, 2])
     return found[kept, 0].astype(np.int64), found[kept, 1].astype(np.int64)
+
+
+def match_candidates(a: np.ndarray, b: np.ndarray, rows: np.ndarray, columns: np.ndarray, max_distance: int,
+                     ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows of a, rows of b)`` (M,) int64: descriptor matches between (Na, 32) ``a`` and (Nb, 32)
+    ``b`` among the (P,) candidate pairs ``(a[rows], b[columns])`` only; each row's best candidate is
+    kept when at most ``max_distance`` and under ``ratio`` times the row's second best candidate, and a
+    column claimed by several rows goes to the closest."""
+    if len(rows) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    distances = hamming(a[rows], b[columns])
+    best, best_distance, second = best_two(rows, distances)
+    best = best[(best_distance <= max_distance) & (best_distance < ratio * second)]
+    kept = best[_unique_columns(rows[best], columns[best], distances[best])]
+    return rows[kept], columns[kept]
 
 
 def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.ndarray, descriptors: np.ndarray,
@@ -102,13 +118,8 @@ def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.nd
     rows = np.repeat(np.arange(len(predicted)), counts)
     columns = free[np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(counts.sum()))]
     near_level = np.abs(frame_levels[columns] - levels[rows]) <= level_slack
-    rows, columns = rows[near_level], columns[near_level]
-    distances = hamming(descriptors[rows], frame_descriptors[columns])
-    best, best_distance, second = best_two(rows, distances)
-    good = (best_distance <= max_distance) & (best_distance < ratio * second)
-    best = best[good]
-    kept = best[_unique_columns(rows[best], columns[best], distances[best])]
-    return rows[kept], columns[kept]
+    return match_candidates(descriptors, frame_descriptors, rows[near_level], columns[near_level], max_distance,
+                            ratio)
 
 
 def rotation_consistent(angles_a: np.ndarray, angles_b: np.ndarray) -> np.ndarray:

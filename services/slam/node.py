@@ -49,6 +49,7 @@ the frames above. A frame stamped further back (a source started over), or a new
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -92,8 +93,9 @@ class Params(BaseModel):
                                                               "spread over the map's when it holds more)")
     map_every: int = Field(default=10, ge=1, description="publish the map at most every this many frames (when "
                                                          "it changed)")
-    mapping_thread: bool = Field(default=True, description="map on a thread of its own (off: in the frame loop, "
-                                                           "each frame waits for the mapping it starts)")
+    mapping: Literal["process", "thread", "inline"] = Field(
+        default="process", description="where local mapping runs: a process of its own, a thread, or inline (in "
+                                       "the frame loop: each frame waits for the mapping it starts)")
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (one waits, more are "
                                                              "dropped)")
     map: Path | None = Field(default=None, description="map file of an earlier run (--save-map) to start from: "
@@ -219,7 +221,7 @@ class _CameraSlam:
     def _new_system(self, camera: CameraModel) -> SlamSystem:
         params = self._params
         try:
-            system = SlamSystem(camera, mapping_thread=params.mapping_thread, map_path=params.map,
+            system = SlamSystem(camera, mapping=params.mapping, map_path=params.map,
                                 localisation_only=params.localisation_only)
         except MapFileError as error:
             self._node.log.error("%s: no poses for %s with this calibration", error, params.camera)

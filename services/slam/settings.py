@@ -21,10 +21,11 @@ class SlamSettings:
     Tracking: search by projection of the last frame's points around the constant-velocity
     prediction within ``motion_window_px`` (per level scale; doubled when under ``min_motion_matches``
     are found), descriptor distance at most ``projection_max_distance`` and ratio
-    ``motion_ratio``; else PnP (``cv2.solvePnPRansac``, SQPNP, ``pnp_threshold_px``) on descriptor
-    matches with the local map, kept with at least ``pnp_min_inliers`` inliers. Then the local map
-    (``local_keyframes`` keyframes) is searched within ``local_window_px`` (ratio ``local_ratio``).
-    A frame with fewer than ``min_tracked`` inliers is lost.
+    ``motion_ratio``, the pose refined on them kept with ``min_motion_matches`` inliers; else PnP
+    (``cv2.solvePnPRansac``, SQPNP, ``pnp_threshold_px``) on descriptor matches with the local map,
+    kept with at least ``pnp_min_inliers`` inliers; else the motion's pose with ``min_motion_inliers``
+    inliers. Then the local map (``local_keyframes`` keyframes) is searched within ``local_window_px``
+    (ratio ``local_ratio``) around the pose. A frame with fewer than ``min_tracked`` inliers is lost.
 
     Keyframes: a frame becomes one when it tracks under ``keyframe_ratio`` of the points its
     reference keyframe tracks well (seen by three keyframes or more) and at least
@@ -58,6 +59,7 @@ class SlamSettings:
     motion_window_px: float = 15.0
     motion_ratio: float = 0.9
     min_motion_matches: int = 20
+    min_motion_inliers: int = 10
     pnp_threshold_px: float = 4.0
     pnp_min_inliers: int = 20
     local_keyframes: int = 20

@@ -1,7 +1,9 @@
 """Monocular SLAM in one process: ``SlamSystem.process`` takes frames, returns each one's pose.
 
 It ties together the feature extraction (``features``), the tracker (``frontend``), the map
-(``map``) and the local mapper (``mapping``, on its own thread unless ``mapping_thread=False``).
+(``map``) and the local mapper (``mapping``): in a process of its own (``mapping="process"``, the
+default, ``mapping_process``), on a thread (``"thread"``) or inline (``"inline"``: each keyframe
+mapped before ``process`` returns; deterministic).
 A map saved by an earlier run (``map_file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.
@@ -24,17 +26,20 @@ from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
 from services.slam.map import SlamMap
 from services.slam.map_file import MapFileError, load_map, save_map
-from services.slam.mapping import LocalMapper
+from services.slam.mapping import LocalMapper, Mapper
+from services.slam.mapping_process import MappingProcess
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["FrameResult", "MapFileError", "SlamSettings", "SlamState", "SlamSystem"]
+__all__ = ["FrameResult", "MAPPING_MODES", "MapFileError", "SlamSettings", "SlamState", "SlamSystem"]
 
 logger = logging.getLogger(__name__)
 
 STEP_BACK_S = 1.0
 """A frame stamped no later than the previous one, and at most this many seconds before it, is out of
 order (skipped); one stamped further back is a jump in the sequence, tracked (or relocalised) as usual."""
+MAPPING_MODES = ("process", "thread", "inline")
+"""Where local mapping runs (``SlamSystem``'s ``mapping``)."""
 CHECK_KEYFRAMES = 5
 """The camera matrix is checked against the map (``calibration_check``) once, when it holds this many keyframes."""
 
@@ -49,10 +54,11 @@ class FrameResult:
     tracked frame's is ``calibration_suspect`` once the camera matrix was found not to fit the map,
     ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
     ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
-    keyframe; ``timings_ms`` per stage (``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``,
-    ``initial_map`` on the frame that starts the map, ``mapping`` when a keyframe was mapped inline
-    (included in ``keyframe``), ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost
-    one, ``calibration_check`` on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
+    keyframe; ``timings_ms`` per stage (``map_sync``: bringing in the mapping process's changes,
+    ``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame that
+    starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
+    ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``calibration_check``
+    on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
 
     state: SlamState
     reason: str
@@ -85,17 +91,19 @@ def _check_camera(camera: CameraModel) -> None:
 
 
 class SlamSystem:
-    """Tracks one calibrated ``camera``'s frames while mapping; ``mapping_thread=False`` maps inline
-    (each keyframe is processed before ``process`` returns: deterministic).
+    """Tracks one calibrated ``camera``'s frames while mapping; ``mapping``: one of ``MAPPING_MODES``
+    (ValueError for another).
 
     ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
     fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
     lengths or with its principal point outside the image). ``localisation_only``: never change the map.
     ``save_path``: where ``close`` saves the map (None: not saved)."""
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping_thread: bool = True,
+    def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping: str = "process",
                  map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
                  save_path: str | os.PathLike[str] | None = None):
+        if mapping not in MAPPING_MODES:
+            raise ValueError(f"mapping {mapping!r}: one of {', '.join(MAPPING_MODES)}")
         _check_camera(camera)
         self.camera = camera
         self.settings = settings or SlamSettings()
@@ -106,10 +114,15 @@ class SlamSystem:
         self.localisation_only = localisation_only
         self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
-        self._mapper = LocalMapper(self.map, camera.K, (camera.width, camera.height), s,
-                                   threaded=mapping_thread and not localisation_only)
+        size = (camera.width, camera.height)
+        self._mapper: Mapper
+        if mapping == "process" and not localisation_only:
+            self._mapper = MappingProcess(self.map, camera.K, size, s)
+        else:
+            self._mapper = LocalMapper(self.map, camera.K, size, s,
+                                       threaded=mapping == "thread" and not localisation_only)
         self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
-        self._threaded = mapping_thread
+        self.mapping = mapping
         self._tracked: list[tuple[int, int, np.ndarray]] = []
         """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
         self._last_stamp: int | None = None
@@ -123,6 +136,8 @@ class SlamSystem:
         skipped: the tracker does not see it, the next frame goes on from the last one."""
         timings: dict[str, float] = {}
         with stage_timer(timings, "total"):
+            with stage_timer(timings, "map_sync"):
+                self._mapper.sync()
             if not self._fits(image):
                 tracked = Tracked(self._tracker_state(), "bad_image")
             elif self._out_of_order(stamp_ns):
@@ -132,7 +147,7 @@ class SlamSystem:
                 with stage_timer(timings, "keypoints"):
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
-            if tracked.keyframe_id is not None and not self._threaded and "initial_map" not in timings:
+            if tracked.keyframe_id is not None and self.mapping == "inline" and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.timings_ms.values())
             if tracked.keyframe_id is not None and self._calibration is None and len(self.map.keyframes) >= \
                     CHECK_KEYFRAMES:
@@ -216,8 +231,8 @@ class SlamSystem:
         save_map(self.map, self.camera, path)
 
     def close(self) -> None:
-        """Stop the mapping thread (after the keyframes it was given), then save the map to
-        ``save_path`` when one was given."""
+        """Stop the mapping thread or process (after the keyframes it was given, their changes brought
+        in), then save the map to ``save_path`` when one was given."""
         self._mapper.close()
         if self.save_path is not None:
             save_map(self.map, self.camera, self.save_path)

@@ -4,7 +4,7 @@
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
-The system runs with ``mapping_thread=False`` (deterministic). Scoring: ATE RMSE after a Sim(3)
+The system runs with ``mapping="inline"`` (deterministic). Scoring: ATE RMSE after a Sim(3)
 alignment (``services.geometry.evaluation``) of every frame given a pose, against the ground truth
 of the same frame. ``python -m tests.accuracy.slam_sequences [room|room@<seed>|kitti|tum ...]`` prints
 the figures.
@@ -130,9 +130,10 @@ class SlamRun:
                 f"{self.keyframes} keyframes, {self.points} points")
 
 
-def run(sequence: Sequence) -> SlamRun:
-    """``SlamSystem`` (default settings, inline mapping) over every frame of ``sequence``."""
-    system = SlamSystem(sequence.camera, mapping_thread=False)
+def run(sequence: Sequence, mapping: str = "inline") -> SlamRun:
+    """``SlamSystem`` (default settings, ``mapping`` inline unless told) over every frame of ``sequence``,
+    back to back."""
+    system = SlamSystem(sequence.camera, mapping=mapping)
     estimated, true, states, tracking, mapping = [], [], [], [], []
     truth_at: dict[int, np.ndarray] = {}
     stages: dict[str, list[float]] = {}
@@ -180,5 +181,7 @@ def sequence(name: str) -> Sequence:
 
 
 if __name__ == "__main__":
-    for name in sys.argv[1:] or ["room", "kitti", "tum"]:
-        print(run(sequence(name)).line(), flush=True)
+    names = [a for a in sys.argv[1:] if not a.startswith("--mapping=")]
+    chosen = next((a.partition("=")[2] for a in sys.argv[1:] if a.startswith("--mapping=")), "inline")
+    for name in names or ["room", "kitti", "tum"]:
+        print(run(sequence(name), chosen).line(), flush=True)

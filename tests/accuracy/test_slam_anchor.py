@@ -69,7 +69,7 @@ def anchored_run() -> AnchoredRun:
     frames = [scene.render(i) for i in range(FRAMES)]
     markers = track_images((frame.images["cam0"] for frame in frames), camera,
                            dictionary=scene.options.marker_dictionary, marker_length=scene.options.marker_length)
-    slam = SlamSystem(camera, mapping_thread=False)
+    slam = SlamSystem(camera, mapping="inline")
     anchor = MarkerAnchor()
     truth = np.array([invert(scene.T_world_marker) @ scene.camera_pose(i) for i in range(FRAMES)])
     poses, live = np.full((FRAMES, 4, 4), np.nan), np.full((FRAMES, 4, 4), np.nan)

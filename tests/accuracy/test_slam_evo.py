@@ -18,7 +18,7 @@ def test_a_slam_run_gets_the_same_ate_from_artrack_eval_and_evo(tmp_path):
     ape = eval_cli.evo_command("evo_ape")
     folder = data_dir(TUM)
     sequence = tum(folder)
-    system = SlamSystem(sequence.camera, mapping_thread=False)
+    system = SlamSystem(sequence.camera, mapping="inline")
     try:
         for stamp_ns, image, _ in sequence.frames:
             system.process(stamp_ns, image)

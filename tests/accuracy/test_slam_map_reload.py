@@ -46,7 +46,7 @@ def first_passes(tmp_path_factory):
                 data_dir(data)
             camera, frames = first_frames(name, count)
             map_path = tmp_path_factory.mktemp(name) / f"{name}.map.npz"
-            system = SlamSystem(camera, mapping_thread=False, save_path=map_path)
+            system = SlamSystem(camera, mapping="inline", save_path=map_path)
             run = run_frames(system, frames)
             keyframes = len(system.keyframe_poses())
             system.close()
@@ -87,7 +87,7 @@ def test_a_loaded_map_grows_when_mapping(first_passes):
     first, map_path, keyframes = first_passes("room")
     count = SEQUENCES["room"][0]
     scene = room_scene()
-    system = SlamSystem(scene.cameras[0], mapping_thread=False, map_path=map_path)
+    system = SlamSystem(scene.cameras[0], mapping="inline", map_path=map_path)
     later = run_pass(system, scene, range(count, count + 60))
     system.close()
     assert np.all(later.states == "tracking")
@@ -101,7 +101,7 @@ def test_a_loaded_map_grows_when_mapping(first_passes):
 
 def test_maps_saved_while_the_mapping_thread_works_load_whole(tmp_path):
     scene = room_scene()
-    system = SlamSystem(scene.cameras[0], mapping_thread=True)
+    system = SlamSystem(scene.cameras[0], mapping="thread")
     saved = []
     try:
         for index in range(90):

@@ -31,7 +31,7 @@ def test_slam_run_with_an_anchor_marker_gives_metric_poses_in_the_marker_frame(p
     out = tmp_path / "anchored.mcap"
     job = procs.artrack("run", "slam", "--source", "synthetic:room", "--scene-option", "marker=true",
                         "--anchor-marker", "0", "--frames", str(FRAMES), "--depth", str(FRAMES),
-                        "--no-mapping-thread", "--stamps", "source", "--record", str(out), name="job")
+                        "--mapping", "inline", "--stamps", "source", "--record", str(out), name="job")
     assert job.wait(8 * START_S) == 0, job.describe()
     messages = recorded(out)
     prefix = next(key for key in messages if key.endswith("/cam0/image")).removesuffix("/cam0/image")

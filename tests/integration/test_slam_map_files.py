@@ -57,7 +57,7 @@ def _ate_m(procs, out) -> tuple[int, float]:
 
 def test_a_saved_map_localises_a_second_run_of_the_same_frames(procs, tmp_path):
     map_path, first_out, second_out = tmp_path / "room.map.npz", tmp_path / "first.mcap", tmp_path / "second.mcap"
-    first = _run(procs, "--no-mapping-thread", "--save-map", str(map_path), "--record", str(first_out))
+    first = _run(procs, "--mapping", "inline", "--save-map", str(map_path), "--record", str(first_out))
     assert f"saved to {map_path}" in first.stderr, first.describe()
     header = read_header(map_path)
     first_poses, first_keyframes = _poses_and_keyframes(first_out)
@@ -106,7 +106,7 @@ def test_the_node_goes_on_past_a_map_of_another_camera_and_says_once_when_its_ma
     scene = room_scene()
     map_path, gone = tmp_path / "room.map.npz", tmp_path / "gone"
     gone.mkdir()
-    system = SlamSystem(scene.cameras[0], mapping_thread=False, save_path=map_path)
+    system = SlamSystem(scene.cameras[0], mapping="inline", save_path=map_path)
     for stamp_ns, image, _ in room_frames(scene, range(20)):
         system.process(stamp_ns, image)
     system.close()
@@ -131,7 +131,7 @@ def test_the_node_goes_on_past_a_map_of_another_camera_and_says_once_when_its_ma
 
     try:
         node = start_node(procs, "slam", "slam", depth=10, map=str(map_path), localisation_only=True,
-                          mapping_thread=False, save_map=str(gone / "saved.map.npz"))
+                          mapping="inline", save_map=str(gone / "saved.map.npz"))
         wait_live(session, keys, {"slam"}, [node])
         wait_until(lambda: frames.matched() and infos.matched(), START_S, "the node to subscribe")
         camera = scene.cameras[0]

@@ -39,7 +39,7 @@ def test_late_and_repeated_frames_are_skipped_and_a_step_far_back_starts_a_new_m
                     if p.header.seq == seq)
 
     try:
-        node = start_node(procs, "slam", "slam", calib=str(calib), depth=10, mapping_thread=False)
+        node = start_node(procs, "slam", "slam", calib=str(calib), depth=10, mapping="inline")
         wait_live(session, keys, {"slam"}, [node])
         wait_until(frames.matched, START_S, "the node to subscribe")
         index = 0

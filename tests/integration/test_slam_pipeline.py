@@ -93,7 +93,7 @@ def test_slam_on_the_real_tum_folder_with_a_calibration_file_scores_against_its_
     write_camera_info(calib, CameraModel("cam0", 640, 480, np.array([[535.4, 0, 320.1], [0, 539.2, 247.6], [0, 0, 1]]),
                                          np.zeros(5), np.eye(4)))  # TUM's freiburg3 colour camera
     job = procs.artrack("run", "slam", "--source", f"images:{folder / 'rgb'}", "--calib", str(calib), "--stamps",
-                        "source", "--fps", "5", "--depth", "20", "--no-mapping-thread", "--record", str(out),
+                        "source", "--fps", "5", "--depth", "20", "--mapping", "inline", "--record", str(out),
                         name="job")  # sent at 5 fps, stamped with the sequence's own times
     assert job.wait(8 * START_S) == 0, job.describe()
     scored = procs.run("eval", str(out), str(folder / "groundtruth.txt"), "--est-key", KEY, "--align", "sim3", "--json")
@@ -106,7 +106,7 @@ def test_slam_on_the_real_kitti_folder_is_calibrated_by_its_calib_file(procs, tm
     folder = data_dir("vo_kitti_odometry_seq06_frames000-050")
     out = tmp_path / "kitti.mcap"
     job = procs.artrack("run", "slam", "--source", f"images:{folder / 'image_0'}", "--fps", "10", "--frames", "20",
-                        "--depth", "20", "--no-mapping-thread", "--record", str(out), name="job")
+                        "--depth", "20", "--mapping", "inline", "--record", str(out), name="job")
     assert job.wait(8 * START_S) == 0, job.describe()
     messages = recorded(out)
     prefix = next(key for key in messages if key.endswith("/cam0/image")).removesuffix("/cam0/image")

@@ -31,7 +31,7 @@ REFUSED_S = 3.0
 
 def _slam(procs, *options: str) -> list[Pose]:
     """Run ``artrack run slam`` with ``options`` (recording to the last one) and return its poses."""
-    job = procs.artrack("run", "slam", "--depth", str(FRAMES), "--no-mapping-thread", *options, name="job")
+    job = procs.artrack("run", "slam", "--depth", str(FRAMES), "--mapping", "inline", *options, name="job")
     assert job.wait(8 * START_S) == 0, job.describe()
     messages = recorded(options[-1])
     prefix = next(key for key in messages if key.endswith("/cam0/image")).removesuffix("/cam0/image")

@@ -62,7 +62,7 @@ def feed(system: SlamSystem, run: Run, scene, index: int, image: np.ndarray | No
 
 def mapped(scene, frames: int = MAPPED) -> tuple[SlamSystem, Run]:
     """A system (inline mapping) that tracked the room's first ``frames`` frames."""
-    system = SlamSystem(scene.cameras[0], mapping_thread=False)
+    system = SlamSystem(scene.cameras[0], mapping="inline")
     run = Run([], [])
     for index in range(frames):
         feed(system, run, scene, index)
@@ -81,7 +81,7 @@ def assert_tracked_well(run: Run, first: int) -> None:
 
 
 def test_textureless_frames_before_the_map_wait_then_the_map_starts(scene):
-    system = SlamSystem(scene.cameras[0], mapping_thread=False)
+    system = SlamSystem(scene.cameras[0], mapping="inline")
     run = Run([], [])
     for image in BLANKS.values():
         result = feed(system, run, scene, 0, image, stamp_ns=len(run.results))
@@ -167,7 +167,7 @@ def formats(grey: np.ndarray) -> list[np.ndarray]:
 
 
 def test_grey_colour_and_16_bit_frames_track_alike_and_unusable_ones_are_skipped(scene, caplog):
-    system = SlamSystem(scene.cameras[0], mapping_thread=False)
+    system = SlamSystem(scene.cameras[0], mapping="inline")
     run = Run([], [])
     for index in range(MAPPED):
         grey = next(room_frames(scene, [index]))[1]
@@ -193,7 +193,7 @@ def test_a_camera_matrix_slam_cannot_use_is_refused_in_one_line(scene, entry, va
     K = scene.cameras[0].K.copy()
     K[entry] = value
     with pytest.raises(ValueError, match=r"^camera cam0: fx .* principal point .* 640x480 image$"):
-        SlamSystem(dataclasses.replace(scene.cameras[0], K=K), mapping_thread=False)
+        SlamSystem(dataclasses.replace(scene.cameras[0], K=K), mapping="inline")
 
 
 @pytest.mark.parametrize("fx_scale, principal_shift", [(1.3, (0, 0)), (0.7, (0, 0)), (1.0, (60, -45))])
@@ -206,7 +206,7 @@ def test_a_wrong_camera_matrix_is_reported_on_every_tracked_frame_after_the_chec
     K = camera.K.copy()
     K[[0, 1], [0, 1]] *= fx_scale
     K[:2, 2] += principal_shift
-    system = SlamSystem(dataclasses.replace(camera, K=K), mapping_thread=False)
+    system = SlamSystem(dataclasses.replace(camera, K=K), mapping="inline")
     run = Run([], [])
     with caplog.at_level(logging.WARNING, logger="services.slam.system"):
         for index in range(MAPPED):

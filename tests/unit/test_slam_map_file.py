@@ -153,9 +153,9 @@ def test_inconsistent_arrays_are_refused(saved, tmp_path):
 
 def test_the_system_refuses_a_map_of_another_camera_or_pyramid(saved):
     with pytest.raises(MapFileError, match="1280x480"):
-        SlamSystem(camera(width=1280), mapping_thread=False, map_path=saved)
+        SlamSystem(camera(width=1280), mapping="inline", map_path=saved)
     with pytest.raises(MapFileError, match="pyramid"):
-        SlamSystem(camera(), SlamSettings(levels=4), mapping_thread=False, map_path=saved)
+        SlamSystem(camera(), SlamSettings(levels=4), mapping="inline", map_path=saved)
 
 
 def test_an_empty_map_or_no_map_is_refused_for_localisation(tmp_path):
@@ -164,6 +164,6 @@ def test_an_empty_map_or_no_map_is_refused_for_localisation(tmp_path):
     save_map(SlamMap(s.scale_factor, s.levels), camera(), empty)
     assert load_map(empty, camera()).keyframes == {}
     with pytest.raises(MapFileError, match="no keyframes"):
-        SlamSystem(camera(), mapping_thread=False, map_path=empty, localisation_only=True)
+        SlamSystem(camera(), mapping="inline", map_path=empty, localisation_only=True)
     with pytest.raises(ValueError, match="map_path"):
-        SlamSystem(camera(), mapping_thread=False, localisation_only=True)
+        SlamSystem(camera(), mapping="inline", localisation_only=True)

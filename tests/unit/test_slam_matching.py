@@ -7,6 +7,7 @@ from services.slam.map import PointArrays
 from services.slam.matching import (
     hamming,
     hamming_matrix,
+    match_candidates,
     match_descriptors,
     rotation_consistent,
     search_by_projection,
@@ -44,6 +45,25 @@ def test_descriptor_matches_pass_distance_and_ratio_tests():
     ambiguous = np.vstack([b, b[np.flatnonzero(order == 0)]])
     rows, _ = match_descriptors(a, ambiguous, max_distance=64, ratio=0.8)
     assert 0 not in rows and len(rows) == 199
+
+
+def test_candidate_matches_agree_with_opencvs_masked_matcher():
+    """Among candidate pairs only, the same matches as OpenCV's brute force with a mask, then the same tests."""
+    a = RNG.integers(0, 256, (300, 32), dtype=np.uint8)
+    order = RNG.permutation(300)
+    b = flip_bits(a[order], 30, RNG)
+    mask = (RNG.random((300, 300)) < 0.1).astype(np.uint8)
+    mask[order, np.arange(300)] = RNG.random(300) < 0.7
+    rows, columns = np.nonzero(mask)
+    found = match_candidates(a, b, rows, columns, max_distance=64, ratio=0.8)
+    expected = []
+    for m in cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, b, k=2, mask=mask):
+        second = m[1].distance if len(m) == 2 else np.inf
+        if len(m) and m[0].distance <= 64 and m[0].distance < 0.8 * second:
+            expected.append((m[0].queryIdx, m[0].trainIdx))
+    assert 150 < len(expected) < 300
+    assert sorted(zip(*(f.tolist() for f in found), strict=True)) == sorted(expected)
+    assert np.all(order[found[1]] == found[0])
 
 
 def test_search_by_projection_keeps_window_level_and_uniqueness():

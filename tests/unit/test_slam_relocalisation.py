@@ -34,7 +34,7 @@ def mapped():
     """A system that mapped the room's first frames, the scene, and that first pass (the last test of
     the module feeds it more frames)."""
     scene = room_scene()
-    system = SlamSystem(scene.cameras[0], mapping_thread=False)
+    system = SlamSystem(scene.cameras[0], mapping="inline")
     first = run_pass(system, scene, range(MAPPED_FRAMES))
     yield system, scene, first
     system.close()

@@ -10,7 +10,7 @@ from services.slam.system import SlamState, SlamSystem
 
 def test_trajectory_follows_the_keyframes():
     scene = make_scene("room")
-    system = SlamSystem(scene.cameras[0], mapping_thread=False)
+    system = SlamSystem(scene.cameras[0], mapping="inline")
     online: dict[int, np.ndarray] = {}
     keyframe_stamps = set()
     for index in range(90):

@@ -1,0 +1,243 @@
+"""Local mapping in a process of its own: the tracker never shares an interpreter lock with it.
+
+The tracker keeps its map (``SlamMap``); the mapping process keeps a copy and is the only one to
+change points and keyframe poses. They talk through a queue (to the mapper) and a pipe (back):
+
+* to the mapper: ``reset`` (a whole map, ``SlamMap.snapshot``: after the map is started or loaded),
+  ``keyframe`` (a new keyframe as the tracker made it, with the tracking counters added since the last
+  message, ``SlamMap.take_counts``) and ``stop``;
+* to the tracker: ``ready`` once, then for each keyframe ``points`` after each of its neighbours gave
+  new points and after their fusion (what changed so far, ``SlamMap.take_changes``: the tracker needs
+  new points first, as it gets them from a mapping thread) and ``mapped`` once its mapping is done
+  (what changed since, and the mapper's stage times, wall and CPU milliseconds); ``stopped`` at the end.
+
+A thread of the tracker's process receives the messages as they come; the tracker brings the
+changes in at chosen points of a frame (``sync``, ``SlamMap.apply_changes``); keyframes it made that
+the mapper has not processed yet keep their observations. ``idle`` (no keyframe waiting) feeds the
+keyframe decision as the thread's does.
+
+Costs (``tests/bench/slam_tracking.py``): the process starts in about 1-2 s (``MappingProcess`` waits
+for it: Python, NumPy, OpenCV and pycolmap are imported again); a keyframe travels as about 100 kB, a
+keyframe's changes as a few hundred kB, unpacked in the tracker's thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import pickle
+import queue
+import signal
+import threading
+from typing import Any
+
+import numpy as np
+
+from services.slam.map import SlamMap
+from services.slam.mapping import LocalMapper, MappedKeyframe
+from services.slam.settings import SlamSettings
+
+__all__ = ["MappingProcess", "MappingProcessError"]
+
+logger = logging.getLogger(__name__)
+
+START_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 60.0
+PARENT_CHECK_S = 0.5
+"""The mapping process looks this often whether the process that started it still runs (it ends if not)."""
+
+
+class MappingProcessError(RuntimeError):
+    """The mapping process did not start."""
+
+
+class MappingProcess:
+    """``LocalMapper`` of ``slam_map``'s copy in a spawned process; camera intrinsics ``K`` (3, 3),
+    image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not come up."""
+
+    def __init__(self, slam_map: SlamMap, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
+        self.map = slam_map
+        self._local = LocalMapper(slam_map, K, size, settings, threaded=False)
+        context = multiprocessing.get_context("spawn")
+        self._inbox: Any = context.Queue()
+        self._outbox, writer = context.Pipe(duplex=False)
+        self._process = context.Process(target=_serve, name="slam-mapping", daemon=True,
+                                        args=(self._inbox, writer, np.asarray(K, np.float64), size, settings,
+                                              slam_map.scale_factor, slam_map.levels))
+        self._process.start()
+        writer.close()  # the process holds the only writing end: its end is the pipe's
+        self._pending: list[int] = []
+        self._alive = True
+        self.timings_ms: dict[str, float] = {}
+        self.history: list[MappedKeyframe] = []
+        """Every keyframe mapped so far, oldest first."""
+        self._received: queue.Queue[bytes] = queue.Queue()
+        self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
+        self._receiver.start()
+        slam_map.record_counts()
+        self._wait_ready()
+        if slam_map.keyframes:
+            self._reset()
+
+    def _drain(self) -> None:
+        """Read the mapping process's messages as they come, unpickled later by ``sync`` (a full pipe
+        would hold the process up, and a message read only while it is being written would come a
+        frame late), until the pipe ends with the process."""
+        while True:
+            try:
+                self._received.put(self._outbox.recv_bytes())
+            except (EOFError, OSError):
+                self._received.put(pickle.dumps(("ended", f"it ended (exit code {self._process.exitcode})")))
+                return
+
+    def _wait_ready(self) -> None:
+        try:
+            message = pickle.loads(self._received.get(timeout=START_TIMEOUT_S))
+        except queue.Empty:
+            self._process.kill()
+            raise MappingProcessError(f"the mapping process did not start within {START_TIMEOUT_S:.0f} s") from None
+        if message == ("ready",):
+            return
+        self._process.kill()
+        if message[0] == "ended":
+            raise MappingProcessError(
+                f"the mapping process ended at its start (exit code {self._process.exitcode}): a script that makes "
+                "a SlamSystem must keep its top level under `if __name__ == \"__main__\":` (the process imports it "
+                "again), or map on a thread (mapping=\"thread\")")
+        raise MappingProcessError(f"the mapping process said {message!r} instead of being ready")
+
+    @property
+    def idle(self) -> bool:
+        """No keyframe sent and not mapped yet (after bringing in what has come back)."""
+        self.sync()
+        return not self._pending
+
+    def enqueue(self, keyframe_id: int) -> None:
+        """Send the tracker's new keyframe ``keyframe_id`` (and the counters since the last message)."""
+        if not self._alive:
+            return
+        with self.map.lock:
+            keyframe = self.map.keyframes[keyframe_id]
+            message = ("keyframe", keyframe.id, keyframe.stamp_ns, keyframe.T_camera_world.copy(), keyframe.features,
+                       keyframe.point_ids.copy(), self.map.take_counts())
+        self._pending.append(keyframe_id)
+        self._inbox.put(message)
+
+    def adjust_initial_map(self, first: int, second: int) -> None:
+        """Bundle adjust a new map's first two keyframes here (the tracker waits for it, as it must),
+        then send the map over."""
+        self._local.adjust_initial_map(first, second)
+        self._reset()
+
+    def sync(self) -> None:
+        """Bring in every mapped keyframe's changes that came back (never waits)."""
+        while self._alive:
+            try:
+                message = self._received.get_nowait()
+            except queue.Empty:
+                return
+            self._receive(pickle.loads(message))
+
+    def close(self) -> None:
+        """Let the process map the keyframes it was given, bring their changes in, and end it."""
+        if self._alive:
+            self._inbox.put(("stop", self.map.take_counts()))
+        while self._alive:
+            try:
+                self._receive(pickle.loads(self._received.get(timeout=STOP_TIMEOUT_S)))
+            except queue.Empty:
+                self._gone(f"it did not stop within {STOP_TIMEOUT_S:.0f} s")
+        self._process.join(timeout=STOP_TIMEOUT_S)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+
+    def _gone(self, why: str) -> None:
+        logger.error("local mapping stopped: %s; tracking goes on with the map as it is", why)
+        self._pending.clear()
+        self._alive = False
+
+    def _reset(self) -> None:
+        with self.map.lock:
+            snapshot = self.map.snapshot()
+            self.map.take_counts()
+        self._pending.clear()
+        self._inbox.put(("reset", snapshot))
+
+    def _receive(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "points":
+            self.map.apply_changes(message[1], self._pending)
+        elif kind == "mapped":
+            _, keyframe_id, changes, record = message
+            if keyframe_id in self._pending:
+                self._pending.remove(keyframe_id)
+            self.map.apply_changes(changes, self._pending)
+            self.timings_ms = dict(record.stages)
+            self.history.append(record)
+        elif kind == "stopped":
+            self.map.apply_changes(message[1], [])
+            self._pending.clear()
+            self._alive = False
+        elif kind in ("failed", "ended"):
+            self._gone(message[1])
+
+
+def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
+           scale_factor: float, levels: int) -> None:
+    """The mapping process: keyframes in, changes out, until ``stop`` or the parent's end."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def send(*message: Any) -> None:
+        writer.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))
+
+    parent = multiprocessing.parent_process()
+    slam_map = SlamMap(scale_factor, levels)
+    slam_map.record_changes()
+    mapper = LocalMapper(slam_map, K, size, settings, threaded=False)
+    waiting: list[int] = []
+    stopping = False
+    send("ready")
+    try:
+        while True:
+            try:
+                message = inbox.get(timeout=PARENT_CHECK_S) if not waiting and not stopping else inbox.get_nowait()
+            except queue.Empty:
+                message = None
+            if message is not None:
+                stopping |= _take(message, slam_map, waiting)
+                continue
+            if waiting:
+                keyframe_id = waiting.pop(0)
+                mapper.process(keyframe_id, others_waiting=bool(waiting),
+                               stepped=lambda: send("points", slam_map.take_changes()))
+                record = mapper.history.pop()
+                send("mapped", keyframe_id, slam_map.take_changes(),
+                     MappedKeyframe(keyframe_id, record.stages, record.wall_ms, record.cpu_ms, len(waiting)))
+            elif stopping:
+                send("stopped", slam_map.take_changes())
+                return
+            elif parent is not None and not parent.is_alive():
+                return
+    except (BrokenPipeError, EOFError):
+        return  # the tracker is gone
+    except Exception as error:
+        logger.exception("local mapping failed")
+        send("failed", f"{type(error).__name__}: {error}")
+
+
+def _take(message: tuple[Any, ...], slam_map: SlamMap, waiting: list[int]) -> bool:
+    """Apply one message from the tracker; True for ``stop``."""
+    kind = message[0]
+    if kind == "reset":
+        slam_map.restore(message[1])
+        waiting.clear()
+    elif kind == "keyframe":
+        _, keyframe_id, stamp_ns, T, features, point_ids, counts = message
+        slam_map.add_counts(counts)
+        slam_map.add_keyframe(stamp_ns, T, features, point_ids, keyframe_id=keyframe_id)
+        waiting.append(keyframe_id)
+    elif kind == "stop":
+        slam_map.add_counts(message[1])
+        return True
+    return False
