@@ -243,15 +243,6 @@ class Tracker:
         point_ids[keypoints[refined.inliers]] = points.ids[rows[refined.inliers]]
         return refined.T_camera_world, inliers
 
-    def _follow_merges(self, point_ids: np.ndarray) -> None:
-        """Replace in ``point_ids`` (N,) the ids of points merged since with the points they live on in
-        (``SlamMap.resolve``); of keypoints that come to share a point, the first keeps it."""
-        matched = np.flatnonzero(point_ids >= 0)
-        resolved = self.map.resolve(point_ids[matched])
-        _, first = np.unique(resolved, return_index=True)
-        point_ids[matched] = -1
-        point_ids[matched[first]] = resolved[first]
-
     def _search_last(self, last: _Frame, features: FrameFeatures,
                      T: np.ndarray) -> tuple[PointArrays, np.ndarray, np.ndarray]:
         """The last frame's points, and ``(rows, keypoints)`` of those found around the predicted pose."""
@@ -296,12 +287,8 @@ class Tracker:
     def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
                          point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Search the local map's points around pose ``T`` and refine on every match; ``point_ids``
-        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers.
-        The mapper's latest changes are brought in first (the points it made while this frame was
-        matched), and matches to points merged since follow them (``SlamMap.resolve``)."""
+        keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers."""
         s = self.settings
-        self.mapper.sync()
-        self._follow_merges(point_ids)
         keyframes = self.map.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
         if keyframes:
             self._reference_keyframe = keyframes[0]

@@ -272,7 +272,8 @@ class SlamMap:
 
     def resolve(self, point_ids: np.ndarray) -> np.ndarray:
         """(P,) int64: ``point_ids`` with each merged point's id replaced by the id of the point it lives
-        on in (-1 stays -1), so that a frame's matches survive the mapper's fusing of duplicates."""
+        on in (-1 stays -1), so that a keyframe made on a copy of the map before a merge keeps its
+        observations."""
         with self.lock:
             if not self.replaced:
                 return np.asarray(point_ids, np.int64).copy()

@@ -19,7 +19,7 @@ per-frame recipe (``features``), the same frames' poses over the bus against in 
 (``features_bus``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``), SLAM's bundle
 adjustment and pose refinement on synthetic problems (``slam``), SLAM's tracking per frame and local
-mapping per keyframe on one core, with the mapping thread and inline (``slam_tracking``), and the SLAM
+mapping per keyframe on one core, mapping in a process, on a thread and inline (``slam_tracking``), and the SLAM
 node's poses over the bus against in process (``slam_bus``) (each module's docstring says what it
 measures).
 Progress goes to stderr.

@@ -2,10 +2,10 @@
 
 The synthetic ``room`` at 640x480, its first ``FRAMES`` frames rendered beforehand, published at ``FPS``
 (a rate the node keeps up with on this machine; stamps are the wall clock as the frames go out, so
-the map's keyframes come ``FPS``-paced in both variants). The node's default options (mapping thread,
+the map's keyframes come ``FPS``-paced in both variants). The node's default options (mapping process,
 ``depth`` 2), OpenCV's default threads (as the node runs).
 
-* ``in_process_paced``: each frame through ``SlamSystem`` (mapping thread) and its pose message built as
+* ``in_process_paced``: each frame through ``SlamSystem`` (mapping process) and its pose message built as
   the node does (``slam.node.as_pose``), one every 1/``FPS`` s and stamped then (``tests.bench.markers``
   says why paced). p50 / p99 ms after ``WARMUP`` frames, frames tracked.
 * ``pipeline``: ``tests.bench.frame_source`` publishes the frames (mono8 ``Image`` + ``CameraInfo``), an
@@ -46,7 +46,7 @@ def _p50_p99(values_ms: list[float]) -> dict[str, float]:
 
 
 def in_process() -> dict[str, Any]:
-    """The frames through a system with its mapping thread, one every 1/``FPS`` s, as the node gets them."""
+    """The frames through a system with its mapping process, one every 1/``FPS`` s, as the node gets them."""
     scene = make_scene(SCENE, width=WIDTH, height=HEIGHT)
     camera = scene.cameras[0]
     frames = [scene.render(i).images[camera.name] for i in range(FRAMES)]
