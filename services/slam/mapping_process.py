@@ -11,14 +11,15 @@ change points and keyframe poses. They talk through a queue (to the mapper) and 
   new points first, as it gets them from a mapping thread) and ``mapped`` once its mapping is done
   (what changed since, and the mapper's stage times, wall and CPU milliseconds); ``stopped`` at the end.
 
-A thread of the tracker's process receives the messages as they come; the tracker brings the
-changes in at chosen points of a frame (``sync``, ``SlamMap.apply_changes``); keyframes it made that
-the mapper has not processed yet keep their observations. ``idle`` (no keyframe waiting) feeds the
+A thread of the tracker's process reads the messages off the pipe as they come; the tracker brings
+the changes in before each frame and when it asks whether the mapper is idle (``sync``,
+``SlamMap.apply_changes``); keyframes it made that the
+mapper has not processed yet keep their observations. ``idle`` (no keyframe waiting) feeds the
 keyframe decision as the thread's does.
 
-Costs (``tests/bench/slam_tracking.py``): the process starts in about 1-2 s (``MappingProcess`` waits
-for it: Python, NumPy, OpenCV and pycolmap are imported again); a keyframe travels as about 100 kB, a
-keyframe's changes as a few hundred kB, unpacked in the tracker's thread.
+Costs (``tests/bench/slam_tracking.py``): the process starts in about 0.6 s (``MappingProcess`` waits
+for it: NumPy, OpenCV and pycolmap are imported again); a keyframe travels as about 100 kB; its
+changes are unpickled in the tracker's thread (1-2 ms a KITTI frame at the median).
 """
 
 from __future__ import annotations
