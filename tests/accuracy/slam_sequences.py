@@ -4,10 +4,10 @@
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
-The system runs with ``mapping="inline"`` (deterministic). Scoring: ATE RMSE after a Sim(3)
-alignment (``services.geometry.evaluation``) of every frame given a pose, against the ground truth
-of the same frame. ``python -m tests.accuracy.slam_sequences [room|room@<seed>|kitti|tum ...]`` prints
-the figures.
+The system runs with ``mapping="inline"`` (deterministic) unless told otherwise, the frames back to
+back. Scoring: ATE RMSE after a Sim(3) alignment (``services.geometry.evaluation``) of every frame
+given a pose, against the ground truth of the same frame. ``python -m tests.accuracy.slam_sequences
+[room|room@<seed>|kitti|tum ...] [--mapping=process|thread]`` prints the figures.
 """
 
 from __future__ import annotations
