@@ -79,10 +79,8 @@ class MappedKeyframe:
 
 class Mapper(Protocol):
     """What the tracker needs of a local mapper: ``LocalMapper`` (thread or inline) or
-    ``mapping_process.MappingProcess``. ``timings_ms``: the last keyframe's stage times; ``history``:
-    every keyframe mapped, oldest first."""
+    ``mapping_process.MappingProcess``. ``history``: every keyframe mapped, oldest first."""
 
-    timings_ms: dict[str, float]
     history: list[MappedKeyframe]
 
     @property
@@ -145,7 +143,6 @@ class LocalMapper:
         self.K = np.asarray(K, np.float64)
         self.size = size
         self.settings = settings
-        self.timings_ms: dict[str, float] = {}
         self.history: list[MappedKeyframe] = []
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._busy = threading.Event()
@@ -190,7 +187,7 @@ class LocalMapper:
 
     def process(self, keyframe_id: int, others_waiting: bool = False,
                 stepped: Callable[[], None] | None = None) -> None:
-        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; stage times in ``timings_ms``.
+        """Cull, triangulate, fuse and adjust around keyframe ``keyframe_id``; its record (stage times) in ``history``.
         When more keyframes wait (``others_waiting``), fusion and bundle adjustment are left to the last
         of them (as ORB-SLAM does): new points for the tracker come first. ``stepped`` is called after
         each step the tracker should see at once: each neighbour's new points, and the fusion."""
@@ -210,7 +207,6 @@ class LocalMapper:
                 with self.map.lock:
                     window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
                 self.adjust(window)
-        self.timings_ms = timings
         self.history.append(MappedKeyframe(keyframe_id, timings, (time.perf_counter() - wall) * 1e3,
                                            (time.thread_time() - cpu) * 1e3, self._queue.qsize()))
 

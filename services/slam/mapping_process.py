@@ -24,6 +24,7 @@ changes are unpickled in the tracker's thread (1-2 ms a KITTI frame at the media
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import pickle
@@ -69,7 +70,6 @@ class MappingProcess:
         writer.close()  # the process holds the only writing end: its end is the pipe's
         self._pending: list[int] = []
         self._alive = True
-        self.timings_ms: dict[str, float] = {}
         self.history: list[MappedKeyframe] = []
         """Every keyframe mapped so far, oldest first."""
         self._received: queue.Queue[bytes] = queue.Queue()
@@ -174,7 +174,6 @@ class MappingProcess:
             if keyframe_id in self._pending:
                 self._pending.remove(keyframe_id)
             self.map.apply_changes(changes, self._pending)
-            self.timings_ms = dict(record.stages)
             self.history.append(record)
         elif kind == "stopped":
             self.map.apply_changes(message[1], [])
@@ -212,9 +211,8 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
                 keyframe_id = waiting.pop(0)
                 mapper.process(keyframe_id, others_waiting=bool(waiting),
                                stepped=lambda: send("points", slam_map.take_changes()))
-                record = mapper.history.pop()
                 send("mapped", keyframe_id, slam_map.take_changes(),
-                     MappedKeyframe(keyframe_id, record.stages, record.wall_ms, record.cpu_ms, len(waiting)))
+                     dataclasses.replace(mapper.history.pop(), waiting=len(waiting)))
             elif stopping:
                 send("stopped", slam_map.take_changes())
                 return

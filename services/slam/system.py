@@ -148,7 +148,7 @@ class SlamSystem:
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and self.mapping == "inline" and "initial_map" not in timings:
-                timings["mapping"] = sum(self._mapper.timings_ms.values())
+                timings["mapping"] = sum(self._mapper.history[-1].stages.values())
             if tracked.keyframe_id is not None and self._calibration is None and len(self.map.keyframes) >= \
                     CHECK_KEYFRAMES:
                 with stage_timer(timings, "calibration_check"):
