@@ -6,6 +6,7 @@ Importing it registers every message type with the codec.
 
 from protocol.codec import DecodeError, Peeked, decode, encode, peek, to_json
 from protocol.detections import Blobs, Keypoints, MarkerDetections
+from protocol.flow import FlowAck, FlowEnd
 from protocol.keys import Keys
 from protocol.maps import Keyframes, PointCloud
 from protocol.message import Header, Message, message_type, message_types
@@ -33,8 +34,8 @@ from protocol.system import (
 
 __all__ = [
     "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
-    "ErrorReport", "FrameTransform", "GroundTruth", "Header", "Image", "Keyframes", "Keypoints", "Keys",
-    "MarkerDetections",
+    "ErrorReport", "FlowAck", "FlowEnd", "FrameTransform", "GroundTruth", "Header", "Image", "Keyframes", "Keypoints",
+    "Keys", "MarkerDetections",
     "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
     "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",
     "StageTimings", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",

@@ -207,6 +207,14 @@ class Keys:
     def errors(self, name: str) -> str:
         return f"{self.node(name)}/errors"
 
+    def ack(self, name: str) -> str:
+        """The frames ``name`` has dealt with (``FlowAck``): the credits a lossless source waits for."""
+        return f"{self.node(name)}/ack"
+
+    def end(self, name: str) -> str:
+        """``name``'s end of stream (``FlowEnd``), published and answered (queryable) once it is done."""
+        return f"{self.node(name)}/end"
+
     def client(self, client_id: str) -> str:
         """A client app's liveliness token."""
         return f"{self.prefix}/client/{check_name(client_id, 'client id')}"

@@ -19,12 +19,18 @@ LATENCY_AGE_MAX_S = 10.0
 
 
 class StreamStats(Struct):
-    """Counters of one subscribed (``in``) or published (``out``) key."""
+    """Counters of one subscribed (``in``) or published (``out``) key.
+
+    ``dropped``: messages the node replaced or could not queue before it took them; ``missing``
+    (frame inputs only): frames that never arrived, told by gaps in the ``header.seq`` of
+    what did arrive and, once the source has ended, by the frames after the last one received.
+    """
 
     key: str
     direction: Literal["in", "out"]
     messages: int = Field(default=0, ge=0)
     dropped: int = Field(default=0, ge=0)
+    missing: int = Field(default=0, ge=0)
     decode_errors: int = Field(default=0, ge=0)
     rate_hz: float = Field(default=0.0, ge=0)
 
@@ -81,12 +87,17 @@ class NodeStats(Message):
     ``synced`` holds one entry per group of inputs the node joins; ``unjoined`` sums the
     messages of all groups that went into no set.
 
-    Version 2 added ``synced``; version 1 payloads (older recordings) still decode, with none.
+    ``missing`` sums the frames its inputs never received (``StreamStats.missing``): lost on
+    the way, not dropped by the node. ``ended`` is true once the node has published its
+    ``FlowEnd``: its sources ended and it has dealt with every frame they sent.
+
+    Version 2 added ``synced``, version 3 ``missing`` and ``ended``; older payloads (older
+    recordings) still decode, with none.
     """
 
     SCHEMA = "artrack.NodeStats"
-    VERSION = 2
-    READS_OLDER = (1,)
+    VERSION = 3
+    READS_OLDER = (1, 2)
 
     node: str
     kind: str
@@ -98,7 +109,9 @@ class NodeStats(Message):
     published: int = Field(default=0, ge=0)
     processed: int = Field(default=0, ge=0)
     dropped: int = Field(default=0, ge=0)
+    missing: int = Field(default=0, ge=0)
     decode_errors: int = Field(default=0, ge=0)
+    ended: bool = False
     processing_ms_p50: float | None = None
     processing_ms_p99: float | None = None
     latency_ms_p50: float | None = None

@@ -14,6 +14,11 @@ Streams have a role that sets their Zenoh quality of service and their queueing:
   figures in docs/benchmarks.md).
 * ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
 
+A lossless run (a finite source under flow control, ``services.runtime.flow``) publishes frames
+with congestion BLOCK instead, and its subscribers queue every frame: the source's credits bound
+how many can be waiting. A frame inbox counts the frames that never reached it by the gaps in
+their ``header.seq`` (``SeqGaps``), as ``missing``.
+
 Payloads are decoded on the consumer's thread, not in Zenoh's callback, so the callback
 only copies bytes into a bounded queue. A payload that fails to decode is counted, handed
 to ``on_decode_error`` and skipped.
@@ -32,9 +37,9 @@ from typing import Generic, TypedDict, TypeVar, cast
 
 import zenoh
 
-from protocol.codec import DecodeError, decode, encode, media_type
+from protocol.codec import DecodeError, decode, encode, media_type, peek
 from protocol.message import Message
-from services.bus.stats import StreamCounter
+from services.bus.stats import SeqGaps, StreamCounter
 
 log = logging.getLogger(__name__)
 
@@ -64,15 +69,19 @@ DEFAULT_DEPTH = {Role.FRAME: 1, Role.RESULT: 10_000, Role.STATUS: 100}
 class RawPublisher:
     """Publishes payloads that are already encoded (a recording's bytes, untouched) on one key.
 
-    ``role`` sets the QoS; ``encoding`` is the Zenoh encoding to announce.
+    ``role`` sets the QoS (with ``lossless``, frames block rather than drop); ``encoding`` is the
+    Zenoh encoding to announce.
     """
 
     def __init__(self, session: zenoh.Session, key: str, role: Role, encoding: zenoh.Encoding,
-                 counter: StreamCounter | None = None):
+                 counter: StreamCounter | None = None, lossless: bool = False):
         self.key = key
         self.role = role
         self.counter = counter or StreamCounter(key, "out")
-        self._publisher = session.declare_publisher(key, encoding=encoding, **_QOS[role])
+        qos = _QOS[role]
+        if lossless and role is Role.FRAME:
+            qos = {**qos, "congestion_control": zenoh.CongestionControl.BLOCK}
+        self._publisher = session.declare_publisher(key, encoding=encoding, **qos)
 
     def put(self, payload: bytes) -> None:
         self._publisher.put(payload)
@@ -90,11 +99,12 @@ class Publisher(Generic[M]):
     """Publishes messages of one type on one key (encoded here, then sent raw)."""
 
     def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
-                 counter: StreamCounter | None = None):
+                 counter: StreamCounter | None = None, lossless: bool = False):
         self.key = key
         self.cls = cls
         self.role = role
-        self.raw = RawPublisher(session, key, role, zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA), counter)
+        self.raw = RawPublisher(session, key, role, zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA), counter,
+                                lossless)
         self.counter = self.raw.counter
 
     def put(self, message: M) -> None:
@@ -150,17 +160,22 @@ class Inbox(Generic[M]):
         self._queue: deque[tuple[str, bytes, int]] = deque()
         self._latest: Received[M] | None = None
         self._warned_at = -1.0
+        self._gaps = SeqGaps() if role is Role.FRAME else None
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        key = str(sample.key_expr)
+        item = (key, sample.payload.to_bytes(), time.time_ns())
+        missing = 0
         with self.wake:
+            if self._gaps is not None and (seq := _seq(item[1])) >= 0:
+                missing = self._gaps.note(key, seq)
             dropped = len(self._queue) >= self.depth
             if dropped:
                 self._queue.popleft()
             self._queue.append(item)
             self.wake.notify_all()
-        self.counter.count(messages=1, dropped=int(dropped))
+        self.counter.count(messages=1, dropped=int(dropped), missing=missing, key=key)
         if self._notify is not None:
             self._notify()
         if dropped and self.role is not Role.FRAME and time.monotonic() - self._warned_at > 1.0:
@@ -171,6 +186,16 @@ class Inbox(Generic[M]):
     def pending(self) -> int:
         """Payloads waiting to be taken."""
         return len(self._queue)
+
+    def count_tail(self, last_seq: int) -> int:
+        """Count as missing the frames after the last one received, up to the source's ``last_seq``
+        (frame inboxes only); the number counted."""
+        if self._gaps is None:
+            return 0
+        with self.wake:
+            missing = self._gaps.tail(last_seq)
+        self.counter.count(missing=missing)
+        return missing
 
     def take(self) -> Received[M] | None:
         """The oldest queued message, decoded; None when the queue is empty.
@@ -215,6 +240,14 @@ class Inbox(Generic[M]):
 
     def close(self) -> None:
         self._subscriber.undeclare()
+
+
+def _seq(payload: bytes) -> int:
+    """The ``header.seq`` of a payload, -1 when it does not peek (its decode error is counted when taken)."""
+    try:
+        return peek(payload).seq
+    except DecodeError:
+        return -1
 
 
 class Listener(Generic[M]):

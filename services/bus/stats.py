@@ -14,29 +14,65 @@ from protocol.system import LATENCY_AGE_MAX_S, StreamStats
 
 @dataclass
 class StreamCounter:
-    """Thread-safe counts for one subscribed or published key."""
+    """Thread-safe counts for one subscribed or published key expression.
+
+    ``by_key`` counts the messages of each concrete key it matched (given to ``count``);
+    ``missing`` the frames that never arrived (see ``SeqGaps``).
+    """
 
     key: str
     direction: str
     messages: int = 0
     dropped: int = 0
+    missing: int = 0
     decode_errors: int = 0
+    by_key: dict[str, int] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _rate: RateMeter = field(default_factory=lambda: RateMeter(), repr=False)
 
-    def count(self, *, messages: int = 0, dropped: int = 0, decode_errors: int = 0) -> None:
+    def count(self, *, messages: int = 0, dropped: int = 0, decode_errors: int = 0, missing: int = 0,
+              key: str | None = None) -> None:
         with self._lock:
             self.messages += messages
             self.dropped += dropped
+            self.missing += missing
             self.decode_errors += decode_errors
             if messages:
                 self._rate.tick(messages)
+                if key is not None:
+                    self.by_key[key] = self.by_key.get(key, 0) + messages
+
+    def counts_by_key(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.by_key)
 
     def snapshot(self) -> StreamStats:
         with self._lock:
             return StreamStats(key=self.key, direction=self.direction, messages=self.messages,
-                               dropped=self.dropped, decode_errors=self.decode_errors,
+                               dropped=self.dropped, missing=self.missing, decode_errors=self.decode_errors,
                                rate_hz=self._rate.rate())
+
+
+class SeqGaps:
+    """Frames missing from streams of frames, told by their ``header.seq`` (not thread-safe).
+
+    Frames of one key carry increasing seqs; ``note`` returns how many were skipped before the
+    one just seen. A seq at or below the last one seen is a source that started over (a loop,
+    a restart): counting begins again from it. ``tail(last_seq)`` counts those never seen after
+    the last one received, once the source has said its last seq.
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, int] = {}
+
+    def note(self, key: str, seq: int) -> int:
+        last = self._last.get(key)
+        self._last[key] = seq
+        return seq - last - 1 if last is not None and seq > last + 1 else 0
+
+    def tail(self, last_seq: int) -> int:
+        """Frames after the last one received, up to ``last_seq``, summed over the keys seen."""
+        return sum(max(0, last_seq - last) for last in self._last.values())
 
 
 class RateMeter:

@@ -6,7 +6,11 @@ from. Several URIs make a rig: their frames are taken in step, one from each.
 
 Timing: with ``fps`` the node paces frames at that rate; without, it follows the source's
 own timing (a video's timestamps, a TUM list, a scene's clock), devices pace themselves,
-and image folders without times go at 30 fps. A source slower than its pace (a scene that
+and image folders without times go at 30 fps; ``fps`` 0 sends frames as fast as they can be
+taken. In a lossless run (``services.runtime.flow``) the pace is a ceiling: each frame waits
+for the credits of the nodes that take the frames, then for at least a frame period after the
+one before, and is never late. A finite source ends with an end of stream carrying the last
+frame's ``seq``; one that sent no frame at all fails (``NodeError``). A source slower than its pace (a scene that
 cannot render 1000 frames a second) sends each frame as soon as it has it: frames that go out
 more than a frame period after their time (at least ``LATE_MIN_S``; ``LATE_S`` when paced by
 the source's own timing) are counted as ``late`` (in the node's ``skipped`` statistics and on
@@ -52,12 +56,13 @@ from services.capture.sources import (
     camera_names,
     check_source,
     check_uri,
+    frame_count,
     frame_sizes,
     open_source,
     rig_camera_names,
 )
 from services.convert import camera_info, frame_transforms, rig_static_transforms
-from services.runtime.kind import NodeKind
+from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import REPORT_EVERY_S, Node, NodeError
 
 SETTLE_S = 0.3
@@ -88,7 +93,8 @@ class Params(BaseModel):
         description="camera:N, video:PATH, images:DIR or synthetic:SCENE; several make a rig")
     cameras: Annotated[tuple[KeyName, ...], BeforeValidator(_as_tuple)] = Field(
         default=(), description="camera names; default: the scene's own, else cam0, cam1, ...")
-    fps: float | None = Field(default=None, gt=0, le=1000, description="pace; default: the source's own timing")
+    fps: float | None = Field(default=None, ge=0, le=1000, description="pace (a ceiling in a lossless run); "
+                              "0: as fast as frames are taken; default: the source's own timing")
     frames: int = Field(default=0, ge=0, description="stop after this many frames; 0 = until the source ends")
     loop: bool = Field(default=False, description="start finite sources over when they end")
     calib: Annotated[tuple[Path, ...], BeforeValidator(_as_tuple)] = Field(
@@ -204,8 +210,9 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
         _publish_static_transforms(node, rig)
     seq = 0
     late = _Lateness(node, keys.image(rig.names[0]))
+    credits = node.credits()
     while node.running and (params.frames == 0 or seq < params.frames):
-        clock = _Pacer(lambda: live.value.fps)
+        clock = _Pacer(lambda: live.value.fps, ceiling=credits is not None)
         for instant in rig.instants():
             if not node.running or (params.frames and seq >= params.frames):
                 break
@@ -215,6 +222,8 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
                     node.report("frame_fault", f"frame {fault.index}: {fault.reason}", source.uri)
             if faults:
                 continue
+            if credits is not None and not credits.wait_for(seq, lambda: node.running):
+                break
             late.count(clock.wait_for(node, instant[0].time_s, untimed=not _live(rig)), live.value.fps)
             started = time.perf_counter()
             try:
@@ -227,10 +236,16 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
             for frame, rename in zip(instant, rig.renames, strict=True):
                 _publish_frame(frame, rename, header_stamp, seq, images, infos, truths, rig)
             node.processed(time.perf_counter() - started, header_stamp)
+            if credits is not None:
+                credits.sent(seq)
             seq += 1
         if not params.loop:
             break
-    late.end(seq, live.value.fps)
+    late.end(seq, live.value.fps, None if credits is None else credits.waited_s)
+    if node.running and not params.loop:
+        if seq == 0:
+            raise NodeError(f"{', '.join(params.source)}: no frame could be read, none was sent")
+        node.end_of_stream(seq - 1, seq)
 
 
 def _publish_static_transforms(node: Node, rig: Rig) -> None:
@@ -270,13 +285,17 @@ def _publish_frame(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: 
 
 
 class _Pacer:
-    """Sleeps so frames leave at ``fps()``, or at the source's own pace (its frame times).
+    """Sleeps so frames leave at ``fps()``, or at the source's own pace (its frame times); ``fps()`` 0:
+    no pacing at all.
 
     ``fps()`` is asked before every frame: when it changes, pacing starts over from that frame.
+    With ``ceiling`` (a lossless run) the pace starts over whenever a frame went out late: frames
+    never go out faster than the pace to catch up, and none is late.
     """
 
-    def __init__(self, fps: Callable[[], float | None]):
+    def __init__(self, fps: Callable[[], float | None], ceiling: bool = False):
         self.fps = fps
+        self.ceiling = ceiling
         self.period: float | None = None
         self.start_wall: float | None = None
         self.start_source: float | None = None
@@ -286,6 +305,8 @@ class _Pacer:
         """Sleep until the next frame is due; return how late it is already (seconds, 0 when on time)."""
         now = time.monotonic()
         fps = self.fps()
+        if fps == 0:
+            return 0.0
         period = None if fps is None else 1.0 / fps
         if self.start_wall is None or period != self.period:
             self.start_wall, self.start_source, self.count, self.period = now, time_s, 0, period
@@ -298,6 +319,9 @@ class _Pacer:
         else:
             due = now
         self.count += 1
+        if self.ceiling and due < now and self.count > 1:
+            self.start_wall, self.start_source, self.count = now, time_s, 1
+            return 0.0
         node.wait(due - now)
         return max(0.0, now - due)
 
@@ -319,24 +343,26 @@ class _Lateness:
         now = time.monotonic()
         self.first = now if self.first is None else self.first
         self.last = now
-        if behind_s <= max(LATE_MIN_S, LATE_S if fps is None else 1.0 / fps):
+        if behind_s <= max(LATE_MIN_S, LATE_S if not fps else 1.0 / fps):
             return
         self.late += 1
         self.unreported += 1
         if self.reported_at is None or now - self.reported_at >= LATE_REPORT_S:
-            asked = f"the {fps:g} fps asked" if fps is not None else "its own timing"
+            asked = f"the {fps:g} fps asked" if fps else "its own timing"
             self._report(f"the source cannot keep up with {asked}: frames go out late ({behind_s:.2f} s behind)")
 
-    def end(self, frames: int, fps: float | None) -> None:
-        """Report what is left, with the rate the ``frames`` sent went out at against the one asked."""
+    def end(self, frames: int, fps: float | None, held_s: float | None = None) -> None:
+        """Report what is left, with the rate the ``frames`` sent went out at against the one asked, and
+        how long the nodes taking them held them back (``held_s``, a lossless run)."""
         if self.first is None:
             return
         span = self.last - self.first
         rate = (frames - 1) / span if frames > 1 and span > 0 else None
         delivered = f"{rate:.1f} fps" if rate is not None else "?"
-        asked = f" of the {fps:g} asked" if fps is not None else ""
+        asked = f" of the {fps:g} asked" if fps else ""
+        held = f", lossless: held back {held_s:.1f} s in all by the nodes taking them" if held_s is not None else ""
         if not self.late:
-            self.node.log.info("%d frames sent at %s%s", frames, delivered, asked)
+            self.node.log.info("%d frames sent at %s%s%s", frames, delivered, asked, held)
             return
         detail = f"{self.late} of {frames} frames late: the source delivered {delivered}{asked}"
         if not self._report(detail):  # too soon after the last report for the node to log this one
@@ -371,5 +397,23 @@ def _check(params: Params) -> None:
             fit_to_image(camera, *size, str(path))
 
 
+def _finite(params: Params) -> bool:
+    """Whether the capture ends by itself: no loop, no camera device, and a frame count for a scene."""
+    schemes = [check_uri(uri)[0] for uri in params.source]
+    return not params.loop and "camera" not in schemes and (bool(params.frames) or "synthetic" not in schemes)
+
+
+def _frames(params: Params) -> int | None:
+    """Frames per camera the capture will send: the fewest its sources hold, bounded by ``frames``."""
+    if not _finite(params):
+        return None
+    counts = [frame_count(uri) for uri in params.source if check_uri(uri)[0] != "synthetic"]
+    known = [n for n in counts if n is not None]
+    if len(known) < len(counts):
+        return params.frames or None
+    return min([*known, params.frames] if params.frames else known)
+
+
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
-                params=Params, run=run, inputs=(), outputs=_outputs, check=_check)
+                params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
+                source=SourceRole(finite=_finite, frames=_frames))

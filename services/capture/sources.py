@@ -401,6 +401,30 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
     return sizes
 
 
+def frame_count(uri: str) -> int | None:
+    """Frames a file or folder source holds, told without capturing; None for devices, scenes (their
+    count is a parameter) and what cannot be read."""
+    try:
+        scheme, rest = check_source(uri)
+    except SourceError:
+        return None
+    path = Path(rest).expanduser()
+    if scheme == "images":
+        listing = path / "rgb.txt"
+        if listing.is_file():
+            return sum(1 for line in listing.read_text().splitlines()
+                       if len(line.split()) >= 2 and not line.lstrip().startswith("#"))
+        return sum(1 for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if scheme == "video":
+        capture = cv2.VideoCapture(str(path))
+        try:
+            count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        finally:
+            capture.release()
+        return count if count > 0 else None
+    return None
+
+
 def check_source(uri: str) -> tuple[str, str]:
     """``(scheme, rest)`` of ``uri`` once what can be told without capturing is right: the URI's
     form, a video file that exists and OpenCV opens, an image folder that exists, camera folders

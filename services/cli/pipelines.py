@@ -20,6 +20,7 @@ from services.launcher.pipeline import PipelineError, describe
 from services.runtime.logs import log_format, setup_logging
 
 if TYPE_CHECKING:
+    from services.runtime.flow import FlowPlan
     from services.runtime.node import Node
 
 
@@ -60,6 +61,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_node(args: argparse.Namespace) -> int:
     from services.launcher.kinds import kind
+    from services.runtime.flow import FlowPlan
 
     node_kind = kind(args.kind)
     try:
@@ -68,16 +70,22 @@ def cmd_node(args: argparse.Namespace) -> int:
         raise PipelineError(f"--params is not JSON: {exc}") from exc
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): {describe(exc)}") from exc
+    try:
+        flow = FlowPlan.model_validate_json(args.flow)
+    except ValidationError as exc:
+        raise PipelineError(f"node {args.name} ({args.kind}): --flow: {describe(exc)}") from exc
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return node_exit(args.name, args.kind, bus_config(args, daemon=True), lambda node: node_kind.run(node, params))
+    return node_exit(args.name, args.kind, bus_config(args, daemon=True), lambda node: node_kind.run(node, params),
+                     flow)
 
 
-def node_exit(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object]) -> int:
+def node_exit(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object],
+              flow: FlowPlan | None = None) -> int:
     """``run_node``'s exit code, or the one ``body`` returned (a replay's 3 for a damaged file) when it is 0."""
     from services.runtime.node import run_node
 
     returned: list[object] = []
-    failed = run_node(name, kind, bus, lambda node: returned.append(body(node)))
+    failed = run_node(name, kind, bus, lambda node: returned.append(body(node)), flow)
     code = returned[0] if returned else 0
     return failed or (code if isinstance(code, int) else 0)
 
@@ -146,5 +154,7 @@ def add_node(sub: argparse._SubParsersAction) -> None:
     p.add_argument("kind", help="a node kind (`artrack kinds` lists them)")
     p.add_argument("--name", help="node name (default: the kind)")
     p.add_argument("--params", default="{}", metavar="JSON", help="the kind's parameters as a JSON object")
+    p.add_argument("--flow", default="{}", metavar="JSON", help="the node's part in its pipeline's flow control "
+                   "(a FlowPlan as JSON, set by `run` and `up`); default: real-time, none")
     add_bus_options(p)
     p.set_defaults(func=cmd_node)

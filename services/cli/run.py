@@ -14,13 +14,15 @@ from services.cli.bus_options import add_bus_options, bus_config
 
 if TYPE_CHECKING:
     from services.launcher.flags import Flag
+    from services.launcher.pipeline import PipelineSpec
 
 log = logging.getLogger("artrack")
 
 
 RUN_EXITS = ("exit codes: 0 done (or a live source stopped), 1 a node failed while running, 2 a bad option or "
              "a node that could not start, 3 the source is a damaged recording (played up to the damage), "
-             "130 interrupted before a finite source ended (docs/configuration.md)")
+             "4 --strict and a frame was dropped or missing, 130 interrupted before a finite source ended "
+             "(docs/configuration.md)")
 
 SOURCE_SKIP = {"scene", "wait_for_subscriber"}
 """Capture fields ``artrack run`` does not make flags of: scene options have ``--scene-option``."""
@@ -54,9 +56,31 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
 
 
 def _display_options(group: argparse._ArgumentGroup) -> None:
+    group.add_argument("--flow", choices=("auto", "lossless", "realtime"),
+                       help="lossless: every node takes every frame, the source waiting for the slowest (--fps is "
+                       "then a ceiling; --fps 0: as fast as the slowest node); realtime: slow nodes drop frames "
+                       "(latest-wins); auto (default): lossless when the source is finite (files, a recording, "
+                       "a scene with --frames)")
+    group.add_argument("--window", type=int, metavar="N", help="frames a lossless source may send ahead of its "
+                       "slowest node (default 4)")
+    group.add_argument("--strict", action="store_true", help="exit 4 when any frame was dropped or went missing")
     group.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
                        help="a progress line redrawn on standard error (auto: when it is a terminal)")
     group.add_argument("--quiet", action="store_true", help="no progress and no summary at the end")
+
+
+def _with_flow(spec: PipelineSpec, args: argparse.Namespace) -> PipelineSpec:
+    """``spec`` with the flow asked by ``--flow`` and ``--window`` (what is not given stays as it was)."""
+    from services.launcher.flow import FlowSettings
+
+    given = {field: value for field, value in (("mode", args.flow), ("window", args.window)) if value is not None}
+    if not given:
+        return spec
+    try:
+        flow = FlowSettings.model_validate({**spec.flow.model_dump(), **given})
+    except ValidationError as exc:
+        raise ValueError(f"--window: {exc.errors()[0]['msg']}") from exc
+    return spec.model_copy(update={"flow": flow})
 
 
 def _display(args: argparse.Namespace):
@@ -93,9 +117,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 0 if asked else 2
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
-        spec = read_pipeline(Path(args.tracker))
+        spec = _with_flow(read_pipeline(Path(args.tracker)), run_args)
         bus = bus_config(run_args, defaults=spec.bus, source=args.tracker)
-        return run_job(bus, spec, args.tracker, _display(run_args))
+        return run_job(bus, spec, args.tracker, _display(run_args), run_args.strict)
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
@@ -116,7 +140,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             raise ValueError(explain(exc, source_flags, "source")) from exc
         source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
         options = _with_known_settings(options, own_flags, captured)
-    spec = build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record, run_args.rerun)
+    spec = _with_flow(build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record,
+                                run_args.rerun), run_args)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
         save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "
@@ -127,7 +152,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus = bus_config(run_args, defaults=spec.bus)
     if isinstance(source, Recording):
         bus = source.on_bus(bus)
-    return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args))
+    return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args), run_args.strict)
 
 
 def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:

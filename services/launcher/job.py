@@ -6,10 +6,12 @@ The source is a capture node (any capture URI) or a replay node (``recording:PAT
 the cameras' images, calibration and ground truth, restamped with the time they go out, on
 the recording's own rig). A job differs from a daemon only in its order and its end: the
 nodes that read the bus start first; once every one of them is live (plus a moment for their
-subscriptions to reach the bus), the sources (the nodes that read nothing). When the sources
-end, the job waits for the pipeline to go quiet (no node received or finished processing anything
-for ``QUIET_S``: a node working through frames it queued is not quiet), then stops every node, so
-the recorder closes its file with everything in it. A live source runs until SIGINT/SIGTERM.
+subscriptions to reach the bus), the sources (the nodes that read nothing). A finite source ends
+with an end of stream naming its last frame, and each node publishes its own end once it has
+dealt with every frame up to it (``services.runtime.flow``): the job waits for the end of every
+node, however long one frame takes, then stops them all, so the recorder closes its file with
+everything in it. A node that fails meanwhile ends the wait with its reason. A live source runs
+until SIGINT/SIGTERM. How frames flow (lossless or real-time) is the pipeline's ``[flow]``.
 
 A node that exits before it is live ends the job at once, with the last line it wrote
 (``JobExit.CANNOT_START``); once up, a node that dies is restarted within the pipeline's
@@ -32,10 +34,12 @@ from typing import Any
 
 import zenoh
 
-from protocol.codec import encode
-from services.bus.discovery import node_reports, node_states
+from protocol.codec import DecodeError, decode, encode
+from protocol.flow import FlowEnd
+from services.bus.discovery import every_answer, node_reports
 from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
+from services.launcher.flow import finite
 from services.launcher.health import pipeline_health
 from services.launcher.pipeline import NodeSpec, PipelineSpec, preflight, processes, resolved
 from services.launcher.progress import Display, JobWatch
@@ -48,11 +52,8 @@ from services.runtime.memory import settle_heap
 log = logging.getLogger(__name__)
 
 SETTLE_S = 0.5
-QUIET_S = 1.0
-SINKS = ("recorder", "viewer")
-"""Nodes that take in everything, stats included, so never go quiet: left out of the drain."""
-DRAIN_LIMIT_S = 10.0
 START_LIMIT_S = 30.0
+END_QUERY_S = 0.5
 RECORDING_SCHEME = "recording:"
 REPLAYED_STREAMS = ("image", "camera_info", "truth")
 
@@ -112,6 +113,8 @@ class JobExit(IntEnum):
     """a bad option, or a node or source that could not start"""
     DAMAGED_SOURCE = EXIT_DAMAGED
     """the source is a damaged recording: played up to the damage"""
+    FRAMES_LOST = 4
+    """with ``--strict``: the run ended, but some node dropped or never received a frame"""
     INTERRUPTED = 130
     """SIGINT or SIGTERM before a finite source ended"""
 
@@ -149,17 +152,22 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
     return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 
 
-def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Display | None = None) -> int:
+def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Display | None = None,
+            strict: bool = False) -> int:
     """Run the job to the end of its sources (or a signal); the exit code is a ``JobExit``.
 
     ``title`` names the job in its ``PipelineHealth`` (``artrack status``). With ``display``, progress
-    and a summary go where it says (``services.launcher.progress``), once every node has come up."""
+    and a summary go where it says (``services.launcher.progress``), once every node has come up.
+    With ``strict``, a run in which any frame was dropped or went missing exits ``FRAMES_LOST``."""
     sources = spec.sources()
     if not sources:
         raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
     preflight(spec, "job")
     downstream = [name for name in spec.nodes if name not in sources]
-    interrupted = JobExit.DONE if any(_endless(spec.nodes[name]) for name in sources) else JobExit.INTERRUPTED
+    plans = spec.flow_plans()
+    ending = {name for name in downstream if plans[name].upstream}
+    interrupted = JobExit.DONE if not all(finite(spec.nodes[n].kind, spec.nodes[n].params) for n in sources) \
+        else JobExit.INTERRUPTED
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -170,6 +178,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
                                    spec.supervisor)
     supervising = [supervisor]
     health = _answer_health(session, bus, title, spec, supervising)
+    ends = _Ends(session, bus, ending)
     why: str | None = None  # said last, once every node has stopped
     watch: JobWatch | None = None
     try:
@@ -185,7 +194,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
         for process in restarting:  # up: from now on a node that dies is restarted, within the budget
             supervisor.update(process)
         settle_heap()  # this process may be a client too (the demo's): no full collection of its start-up mid-run
-        watch = _watch(session, bus, spec, display)
+        watch = _watch(session, bus, spec, display, strict)
         source_supervisor.start()
         supervising.append(source_supervisor)
         log.info("job on %s: %s", bus.keys.prefix, ", ".join(f"{n} ({spec.nodes[n].kind})" for n in spec.nodes))
@@ -198,9 +207,19 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
             return interrupted
         ended, why = _sources_ended(source_supervisor.health())
         if ended == JobExit.DONE:
-            _drain(session, bus, {n for n in downstream if spec.nodes[n].kind not in SINKS})
+            why = _await_ends(ends, supervisor, stop)
+            if why is not None:
+                return JobExit.NODE_FAILED
+            if stop.is_set():
+                return interrupted
+        if strict and ended == JobExit.DONE and watch is not None:
+            watch.gather()
+            if (lost := watch.losses()) is not None:
+                why = f"--strict: {lost}"
+                return JobExit.FRAMES_LOST
         return ended
     finally:
+        ends.close()
         source_supervisor.stop()
         if watch is not None:
             watch.gather()
@@ -211,17 +230,6 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
         session.close()
         if why is not None:
             log.error("%s", why)
-
-
-def _endless(node: NodeSpec) -> bool:
-    """Whether a source node runs until it is stopped: it loops, or captures a camera or an unbounded scene."""
-    params = node.params
-    if params.get("loop"):
-        return True
-    uris = params.get("source") or ()
-    uris = [uris] if isinstance(uris, str) else uris
-    return node.kind == "capture" and not params.get("frames") and any(
-        uri.startswith(("camera:", "synthetic:")) for uri in uris)
 
 
 def _answer_health(session: zenoh.Session, bus: BusConfig, title: str, spec: PipelineSpec,
@@ -288,23 +296,66 @@ def _sources_ended(children: list[ChildHealth]) -> tuple[JobExit, str | None]:
     return (JobExit.DAMAGED_SOURCE, why) if damaged else (JobExit.NODE_FAILED, why)
 
 
-def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None) -> JobWatch | None:
-    """Progress and summary of the job, when a display is given and it shows either."""
-    if display is None or not (display.progress or display.summary):
+def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None, strict: bool) -> JobWatch | None:
+    """Progress and summary of the job, when a display is given and it shows either; figures alone for
+    ``strict`` (it judges the run by them)."""
+    shows = display is not None and (display.progress or display.summary)
+    if not shows and not strict:
         return None
-    return JobWatch(session, bus, spec, display)
+    return JobWatch(session, bus, spec, display if shows and display is not None else Display(summary=False))
 
 
-def _drain(session, bus: BusConfig, names: set[str]) -> None:
-    """Wait until no node of ``names`` has received or processed anything for QUIET_S (at most DRAIN_LIMIT_S)."""
-    deadline = time.monotonic() + DRAIN_LIMIT_S
-    last, quiet_since = None, time.monotonic()
-    while time.monotonic() < deadline:
-        states = node_states(session, bus.keys, 0.5)
-        counts = {name: (s.received, s.processed) for (rig, name), s in states.items()
-                  if rig == bus.rig and name in names}
-        if counts != last:
-            last, quiet_since = counts, time.monotonic()
-        elif time.monotonic() - quiet_since >= QUIET_S:
+class _Ends:
+    """The nodes of ``names`` that have published their end of stream, heard as they end (subscribed
+    before any source starts) or, for one that ended earlier, answered on its end queryable."""
+
+    def __init__(self, session: zenoh.Session, bus: BusConfig, names: set[str]):
+        self.names = names
+        self._session = session
+        self._keys = bus.keys
+        self._ended: set[str] = set()
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(bus.keys.every_node("end"), self._on_end)
+
+    def _on_end(self, sample: zenoh.Sample) -> None:
+        try:
+            end = decode(sample.payload.to_bytes())
+        except DecodeError:
             return
-        time.sleep(0.1)
+        if isinstance(end, FlowEnd):
+            self._take(end)
+
+    def _take(self, end: FlowEnd) -> None:
+        with self._lock:
+            if end.node in self.names:
+                self._ended.add(end.node)
+
+    def waiting(self) -> set[str]:
+        with self._lock:
+            return self.names - self._ended
+
+    def ask(self) -> None:
+        """Ask every node still waited for whether it has ended (a reply lost on the way is asked again)."""
+        for _, end in every_answer(self._session, self._keys.every_node("end"), FlowEnd, END_QUERY_S):
+            self._take(end)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+def _await_ends(ends: _Ends, supervisor: Supervisor, stop: threading.Event) -> str | None:
+    """Wait until every node ``ends`` waits for has ended, or ``stop``: None; else why a node failed first.
+    A node that finished (exited 0) without an end is not waited for."""
+    asked = time.monotonic()
+    while not stop.is_set():
+        supervisor.step()
+        if (why := _failed(supervisor)) is not None:
+            return why
+        finished = {child.name for child in supervisor.health() if child.state == "finished"}
+        if not ends.waiting() - finished:
+            return None
+        if time.monotonic() - asked >= 2.0:
+            ends.ask()
+            asked = time.monotonic()
+        stop.wait(0.05)
+    return None

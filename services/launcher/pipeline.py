@@ -11,6 +11,10 @@ a tracker template and flags (``--save-pipeline FILE.toml`` writes it out); both
     max_restarts = 5    # restarts allowed within window_s; past that the node is failed, left down
     window_s = 60
 
+    [flow]              # optional (services.launcher.flow): lossless, realtime or auto (the default:
+    mode = "auto"       # lossless when every source is finite), and how far a lossless source may
+    window = 4          # send ahead of its slowest node
+
     [nodes.cam]         # one table per node; the table name is the node's name
     kind = "capture"    # a node kind (``artrack kinds`` lists them)
     restart = true      # restart it when it dies (default)
@@ -41,8 +45,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from protocol.keys import check_name
 from services.bus.session import BusConfig
+from services.launcher.flow import FlowSettings, plans
 from services.launcher.kinds import kind
 from services.launcher.supervisor import ProcessSpec, SupervisorSettings
+from services.runtime.flow import FlowPlan
 
 RESERVED = ("kind", "restart", "inputs", "outputs")
 """Keys of a node table that are not parameters of its kind."""
@@ -72,6 +78,7 @@ class PipelineSpec(BaseModel):
 
     bus: dict[str, Any] = Field(default_factory=dict)
     supervisor: SupervisorSettings = Field(default_factory=SupervisorSettings)
+    flow: FlowSettings = Field(default_factory=FlowSettings)
     nodes: dict[str, NodeSpec] = Field(min_length=1)
 
     @field_validator("nodes")
@@ -84,6 +91,15 @@ class PipelineSpec(BaseModel):
     def sources(self) -> list[str]:
         """The nodes that read nothing from the bus (captures, replays): where data enters."""
         return [name for name, node in self.nodes.items() if not node.inputs]
+
+    def flow_plans(self) -> dict[str, FlowPlan]:
+        """Each node's part in the pipeline's flow (a resolved pipeline: its nodes' keys are filled in)."""
+        return plans(self.flow, {name: (node.kind, node.params, node.inputs or (), node.outputs or ())
+                                 for name, node in self.nodes.items()})
+
+    def lossless(self) -> bool:
+        """Whether the pipeline's frames flow lossless (its flow mode, or auto and every source finite)."""
+        return any(plan.lossless for plan in self.flow_plans().values())
 
 
 def describe(error: ValidationError, prefix: str = "") -> str:
@@ -160,6 +176,9 @@ def to_toml(spec: PipelineSpec, header: str = "") -> str:
     supervisor = spec.supervisor.model_dump(mode="json", exclude_defaults=True)
     if supervisor:
         document["supervisor"] = supervisor
+    flow = spec.flow.model_dump(mode="json", exclude_defaults=True)
+    if flow:
+        document["flow"] = flow
     document["nodes"] = {}
     for name, node in spec.nodes.items():
         params = kind(node.kind).validate(node.params).model_dump(mode="json", exclude_unset=True, exclude_none=True)
@@ -180,10 +199,12 @@ def save_pipeline(spec: PipelineSpec, path: Path, header: str = "") -> None:
         raise PipelineError(f"cannot write {path}: {exc.strerror}") from exc
 
 
-def node_command(kind_name: str, name: str, params: dict[str, Any]) -> tuple[str, ...]:
-    """The command that runs one node in its own process."""
+def node_command(kind_name: str, name: str, params: dict[str, Any], flow: FlowPlan | None = None
+                 ) -> tuple[str, ...]:
+    """The command that runs one node in its own process (with its part in the flow, when given)."""
     return (sys.executable, "-m", "services.cli", "node", kind_name, "--name", name,
-            "--params", json.dumps(params, default=str))
+            "--params", json.dumps(params, default=str),
+            *(() if flow is None else ("--flow", flow.model_dump_json(exclude_defaults=True))))
 
 
 def params_model(kind_name: str) -> type[BaseModel]:
@@ -192,9 +213,11 @@ def params_model(kind_name: str) -> type[BaseModel]:
 
 
 def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None) -> list[ProcessSpec]:
-    """One ProcessSpec per pipeline node (or per node of ``names``), sharing ``bus``."""
+    """One ProcessSpec per pipeline node (or per node of ``names``), sharing ``bus``, each with its flow plan
+    (``spec`` is resolved)."""
     env = bus.to_env()
-    return [ProcessSpec(name, node_command(node.kind, name, node.params), env, node.restart)
+    flow = spec.flow_plans()
+    return [ProcessSpec(name, node_command(node.kind, name, node.params, flow[name]), env, node.restart)
             for name, node in spec.nodes.items() if names is None or name in names]
 
 

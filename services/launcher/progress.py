@@ -6,13 +6,15 @@ the nodes dropped and the poses received. Not on a terminal, the same line goes 
 every ``LOG_EVERY_S`` instead. A source with no end (a camera, a synthetic scene without
 ``--frames``, a looped file) is announced in one line when the job starts.
 
-At the end: per node, the messages in and out, dropped, unjoined, decode errors and skipped
-inputs by reason; per pose target, how many poses came in each tracking state; the rate the
-source delivered against the one asked (and how many frames it sent late); which nodes
-dropped frames (latest-wins inputs) and how to avoid it; where the recording and the Rerun
-file went. The figures come from the nodes' own statistics, asked on their state queryables
-twice a second and once more before the job stops them, and from the final statistics a
-node publishes as it closes (a finite source has gone by the end); poses are counted as
+At the end: per node, the messages in, processed and out, dropped by the node, missing (frames
+that never reached it: gaps in their sequence numbers, or after the last one received once the
+source ended), unjoined, decode errors and skipped inputs by reason; per pose target, how many
+poses came in each tracking state; the rate the source delivered against the one asked (and how
+many frames it sent late); which nodes dropped frames (latest-wins inputs) and how to avoid it;
+where the sinks' files went; and, last, whether every frame was accounted for (``losses``).
+The figures come from the nodes' own statistics, asked on their state queryables twice a
+second and once more before the job stops them, and from the final statistics a node
+publishes as it closes (a finite source has gone by the end); poses are counted as
 they arrive on the rig's pose keys. Standard output stays free for data.
 """
 
@@ -24,10 +26,8 @@ import threading
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TextIO
 
-import cv2
 import zenoh
 
 from protocol.codec import DecodeError, decode
@@ -35,12 +35,9 @@ from protocol.poses import Pose, TrackingState
 from protocol.system import NodeStats
 from services.bus.discovery import node_states
 from services.bus.session import BusConfig
-from services.capture.sources import IMAGE_SUFFIXES, SourceError, check_source
 from services.launcher.kinds import kind
 from services.launcher.observe import format_table
 from services.launcher.pipeline import NodeSpec, PipelineSpec
-from services.recorder.info import summarise
-from services.recorder.reading import NotMcap
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +46,6 @@ LOG_EVERY_S = 10.0
 QUERY_S = 0.4
 SLOW_SOURCE = 0.9
 """A source delivering less than this share of the rate asked is called out in the summary."""
-SINKS = ("recorder", "viewer")
 
 
 @dataclass(frozen=True)
@@ -71,50 +67,15 @@ class Display:
 
 def frames_expected(node: NodeSpec) -> int | None:
     """How many frames per camera a source node will send; None when it has no end (or it cannot be told)."""
-    params = node.params
-    if node.kind == "replay":
-        return _recorded_frames(Path(params["path"]), [k for k in params.get("keys", ()) if k.endswith("/image")])
-    if node.kind != "capture" or params.get("loop"):
-        return None
-    uris = params.get("source") or ()
-    counts = [_source_frames(uri) for uri in ([uris] if isinstance(uris, str) else uris)]
-    bound = int(params.get("frames") or 0)
-    known = [n for n in counts if n is not None]
-    if len(known) == len(counts) and known:
-        return min([*known, bound] if bound else known)
-    return bound or None
+    declared = kind(node.kind)
+    return None if declared.source is None else declared.source.frames(declared.validate(node.params))
 
 
-def _source_frames(uri: str) -> int | None:
-    """Frames in a file or folder source; None for devices and scenes (endless)."""
+def _is_sink(kind_name: str) -> bool:
     try:
-        scheme, rest = check_source(uri)
-    except SourceError:
-        return None
-    path = Path(rest).expanduser()
-    if scheme == "images":
-        listing = path / "rgb.txt"
-        if listing.is_file():
-            return sum(1 for line in listing.read_text().splitlines()
-                       if len(line.split()) >= 2 and not line.lstrip().startswith("#"))
-        return sum(1 for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    if scheme == "video":
-        capture = cv2.VideoCapture(str(path))
-        try:
-            count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        finally:
-            capture.release()
-        return count if count > 0 else None
-    return None
-
-
-def _recorded_frames(path: Path, image_keys: list[str]) -> int | None:
-    try:
-        channels = summarise(path).channels
-    except (NotMcap, OSError):
-        return None
-    counts = [c.messages for c in channels if any(c.key.endswith("/" + k) for k in image_keys)]
-    return min(counts) if counts else None
+        return kind(kind_name).sink is not None
+    except ValueError:
+        return False
 
 
 @dataclass
@@ -265,7 +226,7 @@ class JobWatch:
         parts = [f"frames {sent}/{self.total}" if self.total else f"frames {sent}"]
         if len(samples) >= 2 and samples[-1][0] > samples[0][0] and sent != self.total:
             parts.append(f"{(samples[-1][1] - samples[0][1]) / ((samples[-1][0] - samples[0][0]) / 1e9):.0f} fps")
-        dropping = {name: s.dropped for name, s in stats.items() if s.dropped and s.kind not in SINKS}
+        dropping = {name: s.dropped for name, s in stats.items() if s.dropped and not _is_sink(s.kind)}
         parts.append(f"dropped {sum(dropping.values())}")
         parts.append(f"poses {poses}")
         if dropping:
@@ -294,15 +255,31 @@ class JobWatch:
         lines += ["  nodes:", *("    " + row for row in _node_table(self.spec, stats).splitlines())]
         lines += ["  poses by target:", *("    " + row for row in _pose_table(poses, pose_errors).splitlines())]
         for name, s in sorted(stats.items()):
-            if s.dropped and s.kind not in SINKS:
+            if s.dropped and not _is_sink(s.kind):
                 lines.append(f"  {name} dropped {_drop_detail(s)}: it could not keep up, and frames are "
                              f"latest-wins (only the newest wait); {_drop_advice(s.kind)}")
         for name, node in self.spec.nodes.items():
-            where = node.params.get("out") if node.kind == "recorder" else node.params.get("rrd")
-            if node.kind in SINKS and where:
-                what = "recording" if node.kind == "recorder" else "rerun file"
+            declared = kind(node.kind)
+            if declared.sink is None:
+                continue
+            for what, where in declared.sink.files(declared.validate(node.params)):
                 lines.append(f"  {what}: {where}" + ("" if name in stats else " (no statistics from its node)"))
+        lines.append("  " + (self.losses(stats) or "every frame accounted for: no node dropped a frame or missed one"))
         return "\n".join(lines)
+
+    def losses(self, stats: dict[str, NodeStats] | None = None) -> str | None:
+        """One line saying which nodes dropped frames, missed frames on the bus or could not join them;
+        None when none did."""
+        if stats is None:
+            with self._lock:
+                stats = {name: s for name, s in self.figures.stats.items() if name in self.spec.nodes}
+        parts = []
+        for what, count in (("dropped", lambda s: s.dropped), ("missing (never arrived)", lambda s: s.missing),
+                            ("unjoined", lambda s: s.unjoined)):
+            counts = {name: count(s) for name, s in sorted(stats.items()) if count(s)}
+            if counts:
+                parts.append(f"{what} {sum(counts.values())} ({', '.join(f'{n} {c}' for n, c in counts.items())})")
+        return None if not parts else "frames lost: " + "; ".join(parts)
 
     def _source_line(self, stats: dict[str, NodeStats], rate: float | None) -> str:
         source = stats.get(self.source)
@@ -321,15 +298,16 @@ class JobWatch:
 
 
 def _node_table(spec: PipelineSpec, stats: dict[str, NodeStats]) -> str:
-    rows: list[tuple[str, ...]] = [("NODE", "KIND", "IN", "OUT", "DROPPED", "UNJOINED", "DECODE_ERR", "SKIPPED")]
+    rows: list[tuple[str, ...]] = [("NODE", "KIND", "IN", "DONE", "OUT", "DROPPED", "MISSING", "UNJOINED",
+                                    "DECODE_ERR", "SKIPPED")]
     for name, node in spec.nodes.items():
         s = stats.get(name)
         if s is None:
-            rows.append((name, node.kind, *("?",) * 5, ""))
+            rows.append((name, node.kind, *("?",) * 7, ""))
             continue
         skipped = ", ".join(f"{reason} {n}" for reason, n in sorted(s.skipped.items()))
-        rows.append((name, s.kind, str(s.received), str(s.published), str(s.dropped), str(s.unjoined),
-                     str(s.decode_errors), skipped or "-"))
+        rows.append((name, s.kind, str(s.received), str(s.processed), str(s.published), str(s.dropped),
+                     str(s.missing), str(s.unjoined), str(s.decode_errors), skipped or "-"))
     return format_table(rows)
 
 

@@ -90,8 +90,11 @@ def _stats_json(stats: NodeStats | None) -> dict | None:
         return None
     return {"node": stats.node, "kind": stats.kind, "pid": stats.pid, "state": stats.state,
             "uptime_s": stats.uptime_s, "in_hz": _rate(stats, "in"), "out_hz": _rate(stats, "out"),
-            "received": stats.received, "published": stats.published, "dropped": stats.dropped,
+            "received": stats.received, "processed": stats.processed, "published": stats.published,
+            "dropped": stats.dropped, "missing": stats.missing, "ended": stats.ended,
             "unjoined": stats.unjoined, "decode_errors": stats.decode_errors,
+            "inputs": [{"key": s.key, "received": s.messages, "dropped": s.dropped, "missing": s.missing}
+                       for s in stats.streams if s.direction == "in"],
             "processing_ms_p50": stats.processing_ms_p50, "processing_ms_p99": stats.processing_ms_p99,
             "latency_ms_p50": stats.latency_ms_p50, "latency_ms_p99": stats.latency_ms_p99}
 
@@ -113,10 +116,11 @@ def _cell(value: float | None, digits: int = 1) -> str:
 
 
 def format_status(status: Status) -> str:
-    """Tables of the nodes (supervised first; IN/s and OUT/s summed over each node's keys) and
-    client apps, then warnings and problems."""
-    header = ("PIPELINE", "NODE", "KIND", "STATE", "PID", "UP(s)", "RESTARTS", "IN/s", "OUT/s", "DROPPED",
-              "UNJOINED", "DECODE_ERR", "P50(ms)", "P99(ms)", "LAT50(ms)", "LAT99(ms)")
+    """Tables of the nodes (supervised first; IN/s and OUT/s summed over each node's keys; IN, DONE,
+    DROPPED and MISSING: frames received, processed, dropped by the node and never received), of each
+    node's inputs (received, dropped, missing), and of client apps, then warnings and problems."""
+    header = ("PIPELINE", "NODE", "KIND", "STATE", "PID", "UP(s)", "RESTARTS", "IN/s", "OUT/s", "IN", "DONE",
+              "DROPPED", "MISSING", "UNJOINED", "DECODE_ERR", "P50(ms)", "P99(ms)", "LAT50(ms)", "LAT99(ms)")
     rows: list[tuple[str, ...]] = [header]
     for health in status.pipelines.values():
         for node in health.nodes:
@@ -127,6 +131,12 @@ def format_status(status: Status) -> str:
             rows.append(("-", name, stats.kind, stats.state, str(stats.pid), f"{stats.uptime_s:.0f}", "-",
                          *_figures(stats)))
     lines = [format_table(rows)]
+    inputs: list[tuple[str, ...]] = [("NODE", "INPUT", "RECEIVED", "DROPPED", "MISSING")]
+    for name, stats in sorted(status.nodes.items()):
+        inputs += [(name, s.key, str(s.messages), str(s.dropped), str(s.missing))
+                   for s in stats.streams if s.direction == "in"]
+    if len(inputs) > 1:
+        lines += ["", format_table(inputs)]
     if status.clients:
         clients: list[tuple[str, ...]] = [("APP", "CLIENT", "HOST", "PID", "SUBSCRIPTION", "RECEIVED")]
         for c in status.clients.values():
@@ -142,8 +152,8 @@ def format_status(status: Status) -> str:
 
 def _figures(stats: NodeStats | None) -> tuple[str, ...]:
     if stats is None:
-        return ("-",) * 9
-    return (_cell(_rate(stats, "in")), _cell(_rate(stats, "out")), str(stats.dropped), str(stats.unjoined),
-            str(stats.decode_errors),
+        return ("-",) * 12
+    return (_cell(_rate(stats, "in")), _cell(_rate(stats, "out")), str(stats.received), str(stats.processed),
+            str(stats.dropped), str(stats.missing), str(stats.unjoined), str(stats.decode_errors),
             _cell(stats.processing_ms_p50, 2), _cell(stats.processing_ms_p99, 2),
             _cell(stats.latency_ms_p50, 2), _cell(stats.latency_ms_p99, 2))

@@ -20,6 +20,11 @@ whose ``artrack.recording`` metadata names ``OUT`` under ``continues``.
 On SIGINT/SIGTERM the subscribers are undeclared, whatever Zenoh still had in flight is
 delivered, the queue is drained and the file finished (summary and index): nothing that
 arrived is lost.
+
+Flow (``services.runtime.flow``): images are counted by their ``header.seq``, so frames that
+never arrived show as ``missing``; when the flow plan asks, each image written is acknowledged
+(a lossless source waits for it), and once every upstream node has ended and all it published
+is written, the recorder publishes its own end.
 """
 
 from __future__ import annotations
@@ -29,13 +34,15 @@ import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, TypeGuard
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from protocol.codec import Peeked
 from protocol.keys import Keys
-from services.bus.stats import StreamCounter
+from protocol.sensors import Image
+from services.bus.stats import SeqGaps, StreamCounter
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.writing import (
     Identity,
@@ -46,7 +53,7 @@ from services.recorder.writing import (
     message_class,
     restart_target,
 )
-from services.runtime.kind import NodeKind
+from services.runtime.kind import NodeKind, SinkRole
 from services.runtime.node import POLL_S, Node, NodeError
 from services.runtime.restarts import restart_count
 
@@ -100,6 +107,8 @@ class Tap:
         self.counter = node.track(StreamCounter(key, "in"))
         self._node = node
         self._queue = queue
+        self._gaps = SeqGaps()
+        self._lock = threading.Lock()
         self._delivered = threading.Event()  # Zenoh calls the drop callback after the last sample
         self._subscriber = node.session.declare_subscriber(
             key, zenoh.handlers.Callback(self._on_sample, self._delivered.set))
@@ -109,14 +118,25 @@ class Tap:
             return
         key, payload, arrived = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
         identity = identify(payload)
+        missing = 0
+        if _is_image(identity):
+            with self._lock:
+                missing = self._gaps.note(key, identity.seq)
         queued = self._queue.put((key, payload, arrived, identity), len(payload))
         unknown = message_class(identity) is None
-        self.counter.count(messages=1, dropped=int(not queued), decode_errors=int(unknown))
+        self.counter.count(messages=1, dropped=int(not queued), decode_errors=int(unknown), missing=missing, key=key)
         if not queued:
             self._node.report("queue_full", f"recorder queue full ({self._queue.nbytes / MB:.0f} MiB held), "
                                             f"a {len(payload)}-byte message was dropped", key)
         if unknown:
             self._node.report("unrecognised", f"recorded raw: {identity}", key)
+
+    def count_tail(self, last_seq: int) -> int:
+        """Count as missing the images after the last one received, up to the source's ``last_seq``."""
+        with self._lock:
+            missing = self._gaps.tail(last_seq)
+        self.counter.count(missing=missing)
+        return missing
 
     def close(self) -> bool:
         """Undeclare; True once Zenoh has delivered everything it had for this subscriber."""
@@ -171,11 +191,14 @@ def run(node: Node, params: Params) -> None:
         try:
             taps += [Tap(node, key, queue) for key in keys]
             node.log.info("recording %s to %s", ", ".join(keys), writer.files[0])
+            node.ready()
             flush_at = time.monotonic() + params.flush_s
             while node.running:
                 arrival = queue.get(POLL_S)
                 if arrival is not None:
                     _write(node, writer, arrival)
+                elif not node.ended and node.end_when_done(taps):
+                    writer.flush()
                 if time.monotonic() >= flush_at:
                     writer.flush()
                     flush_at = time.monotonic() + params.flush_s
@@ -197,6 +220,13 @@ def _write(node: Node, writer: RecordingWriter, arrival: Arrival) -> None:
     started = time.perf_counter()
     writer.write(*arrival)
     node.processed(time.perf_counter() - started)
+    identity = arrival[3]
+    if _is_image(identity):
+        node.ack(identity.seq)
+
+
+def _is_image(identity: Identity) -> TypeGuard[Peeked]:
+    return isinstance(identity, Peeked) and identity.cls is Image
 
 
 def _inputs(params: Params) -> tuple[str, ...]:
@@ -208,4 +238,5 @@ def _check(params: Params) -> None:
 
 
 KIND = NodeKind(name="recorder", summary="records the rig's keys to MCAP files",
-                params=Params, run=run, inputs=_inputs, outputs=(), check=_check)
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check,
+                sink=SinkRole(files=lambda params: (("recording", params.out),)))

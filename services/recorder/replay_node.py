@@ -25,6 +25,11 @@ on the node's errors key. ``artrack control NAME CMD`` sends them (``send_contro
 
 A damaged file is played up to its damage; one line then says where and why it stopped,
 and ``run`` returns ``EXIT_DAMAGED`` (3).
+
+Flow (``services.runtime.flow``): in a lossless run each image of a new frame waits for the
+credits of the nodes taking the images before it goes out, and frames block rather than drop on
+a congested bus. A replay that is not looping ends with an end of stream carrying the ``seq`` of
+the last image it sent.
 """
 
 from __future__ import annotations
@@ -41,16 +46,17 @@ import zenoh
 from mcap.records import Channel, Message, Metadata
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode
+from protocol.codec import MEDIA_FRAME, MEDIA_JSON, DecodeError, decode, encode, peek
 from protocol.keys import Keys
 from protocol.message import Header
 from protocol.sensors import Image
 from protocol.system import ErrorReport, NodeStats, ReplayCommand, ReplayControl, ReplayStatus
 from services.bus.pubsub import RawPublisher, Role
+from services.recorder.info import summarise
 from services.recorder.playback import LATENESS_KEPT, Pacer, Window, play_pass
-from services.recorder.reading import EXIT_DAMAGED, Damage, Recorded, Scan
+from services.recorder.reading import EXIT_DAMAGED, Damage, NotMcap, Recorded, Scan
 from services.recorder.writing import RECORDING_METADATA
-from services.runtime.kind import NodeKind
+from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import Node, NodeError
 
 SETTLE_S = 0.2
@@ -170,7 +176,10 @@ class _Outputs:
         self._topic = topic
         self._publishers: dict[int, RawPublisher] = {}
         self._restamp = _Restamper() if restamp else None
+        self._credits = node.credits()
         self.published = 0
+        self.frames = 0
+        self.last_seq = -1
 
     def declare(self, recorded: Recorded) -> None:
         """Declare the publisher of ``recorded``'s channel unless it exists."""
@@ -187,11 +196,31 @@ class _Outputs:
                                                                          encoding)
 
     def publish(self, recorded: Recorded) -> None:
-        started = time.perf_counter()
+        publisher = self._publishers[recorded.channel.id]
         data = recorded.message.data
-        self._publishers[recorded.channel.id].put(self._restamp(data) if self._restamp else data)
+        seq = _frame_seq(data) if publisher.role is Role.FRAME else None
+        if seq is not None and self.frames and seq == self.last_seq:
+            seq = None  # another camera's image of the frame already sent
+        credits = self._credits
+        if seq is not None and credits is not None and not credits.wait_for(seq, lambda: self._node.running):
+            return
+        started = time.perf_counter()
+        publisher.put(self._restamp(data) if self._restamp else data)
         self._node.processed(time.perf_counter() - started)
         self.published += 1
+        if seq is not None:
+            if self._credits is not None:
+                self._credits.sent(seq)
+            self.frames += 1
+            self.last_seq = seq
+
+
+def _frame_seq(payload: bytes) -> int | None:
+    """The ``header.seq`` of a recorded frame; None when it does not peek (it goes out all the same)."""
+    try:
+        return peek(payload).seq
+    except DecodeError:
+        return None
 
 
 @dataclass
@@ -250,6 +279,8 @@ def replay(node: Node, params: Params) -> Replayed:
                                  result.last_ns / 1e9)
             if result.stopped or not params.loop or result.played == 0:
                 break
+        if node.running and not params.loop:
+            node.end_of_stream(outputs.last_seq, outputs.frames)
     finally:
         queryable.undeclare()
     return done
@@ -338,5 +369,22 @@ def _check(params: Params) -> None:
         recorded_prefix(params.path)
 
 
+def _frames(params: Params) -> int | None:
+    """Frames per camera the replay will send (the fewest images on an image channel it selects, by the
+    image keys in ``keys``, or on any when none are named); None when looping or when the file cannot be
+    summed up."""
+    if params.loop:
+        return None
+    try:
+        channels = summarise(params.path).channels
+    except (NotMcap, OSError):
+        return None
+    named = [key for key in params.keys if key.endswith("/image")]
+    counts = [c.messages for c in channels if c.schema == Image.SCHEMA
+              and (not named or any(c.key.endswith("/" + key) for key in named))]
+    return min(counts) if counts else None
+
+
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
-                params=Params, run=run, inputs=(), outputs=_outputs, check=_check)
+                params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
+                source=SourceRole(finite=lambda params: not params.loop, frames=_frames))

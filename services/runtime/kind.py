@@ -20,12 +20,18 @@ launcher finds ``KIND`` by walking the packages it searches (no table lists the 
 ``check`` (optional) looks at what the parameters name outside the process, files, folders,
 dictionaries, so a launcher can refuse a pipeline before any process starts; it raises
 ValueError with one line saying what and why.
+
+A kind's role tells the launcher what it is for a job, so no launcher code names a kind:
+``source`` (a ``SourceRole``) for a kind that brings frames onto the bus (whether it ends by
+itself, how many frames it will send), ``sink`` (a ``SinkRole``) for one that takes in
+everything to write it somewhere (the files it writes).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
@@ -37,8 +43,29 @@ Keys = tuple[str, ...] | Callable[[Any], tuple[str, ...]]
 
 
 @dataclass(frozen=True)
+class SourceRole:
+    """A kind that brings frames onto the bus, as the launcher sees it (functions of validated params).
+
+    ``finite``: whether the node ends by itself (files, a recording, a scene with a frame count;
+    not a camera, an endless scene or a loop). ``frames``: how many frames per camera it will
+    send; None when it has no end or that cannot be told before it starts.
+    """
+
+    finite: Callable[[Any], bool]
+    frames: Callable[[Any], int | None]
+
+
+@dataclass(frozen=True)
+class SinkRole:
+    """A kind that takes in everything on its keys to write it somewhere; ``files(params)``: what it
+    writes, as ``(what, path)`` pairs (``("recording", Path("run.mcap"))``)."""
+
+    files: Callable[[Any], tuple[tuple[str, Path], ...]]
+
+
+@dataclass(frozen=True)
 class NodeKind:
-    """A kind of node: its name, one-line summary, parameter model, body and declared keys."""
+    """A kind of node: its name, one-line summary, parameter model, body, declared keys and role."""
 
     name: str
     summary: str
@@ -47,6 +74,8 @@ class NodeKind:
     inputs: Keys = ()
     outputs: Keys = ()
     check: Callable[[Any], None] | None = None
+    source: SourceRole | None = None
+    sink: SinkRole | None = None
 
     def validate(self, values: dict[str, Any]) -> BaseModel:
         """Validated parameters (pydantic's ValidationError names the field otherwise)."""

@@ -23,6 +23,12 @@ inputs it had to skip (``report``) on ``keys.errors(name)``. A body that calls
 ``configurable`` also answers live parameter changes on ``keys.config(name)``
 (``services.runtime.reconfig``). ``run_node`` adds SIGINT/SIGTERM handling: the loop ends
 within a poll period (0.1 s) and everything is undeclared and closed.
+
+Flow (``services.runtime.flow``): with a lossless ``FlowPlan`` frame inputs queue every frame
+and frame outputs block rather than drop; a node that ``acks`` acknowledges each frame it has
+dealt with once its body asks for the next input; a source calls ``end_of_stream`` after its
+last frame, and any other node publishes its own end, while it waits for input, once every
+node of its ``upstream`` has ended and everything they published has arrived and been dealt with.
 """
 
 from __future__ import annotations
@@ -35,12 +41,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict
-from typing import Generic, Literal, TypeVar
+from typing import Generic, Literal, Protocol, TypeVar
 
 import zenoh
 from pydantic import BaseModel
 
 from protocol.codec import DecodeError, decode, encode
+from protocol.flow import FlowAck, FlowEnd
 from protocol.keys import Keys
 from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats, SyncInputStats, SyncStats
@@ -48,6 +55,7 @@ from services.bus.discovery import every_answer, token_held
 from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
 from services.bus.session import BusConfig, BusError, open_session
 from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
+from services.runtime.flow import Credits, Ends, FlowPlan, end_message
 from services.runtime.memory import settle_heap
 from services.runtime.reconfig import LiveParams
 from services.runtime.sync import JoinBy, Joiner, join_key, key_tolerance
@@ -70,6 +78,20 @@ GONE_S = 0.5
 NAME_QUERY_S = 0.5
 POLL_NAME_S = 0.05
 DEFAULT_SYNC_DEPTH = 8
+LOSSLESS_DEPTH = 100_000
+"""Frames a lossless input may hold: in practice the source's credits bound it to its window."""
+END_GRACE_S = 2.0
+"""How long a node whose upstream nodes have all ended waits for messages they published that have
+not arrived, once nothing arrives any more, before it ends with them counted as missing."""
+
+
+class Tapped(Protocol):
+    """An input as the end of stream sees it: its key expression, its counts and its frame gaps."""
+
+    key: str
+    counter: StreamCounter
+
+    def count_tail(self, last_seq: int) -> int: ...
 
 
 class NodeError(RuntimeError):
@@ -126,8 +148,10 @@ def _taken_message(name: str, keys: Keys, holders: list[NodeStats], doing: str =
 class Node:
     """A named participant on the bus (see the module docstring)."""
 
-    def __init__(self, name: str, kind: str, bus: BusConfig, *, stats_period_s: float = 1.0):
+    def __init__(self, name: str, kind: str, bus: BusConfig, *, stats_period_s: float = 1.0,
+                 flow: FlowPlan | None = None):
         self.name = name
+        self.flow = flow or FlowPlan()
         self.kind = kind
         self.bus = bus
         self.keys = bus.keys
@@ -150,6 +174,13 @@ class Node:
         self._stats_period_s = stats_period_s
         self.taken: str | None = None
         """Why the node stopped itself: another process holds its name (see ``_yield_to_an_elder``)."""
+        self._started_ns = time.time_ns()
+        self._ready = False
+        self._ended: FlowEnd | None = None
+        self._acked: FlowAck | None = None
+        self._short_since: float | None = None
+        self._short_total = -1
+        self._credits: list[Credits] = []
         self.session = open_session(bus)
         try:
             _refuse_taken_name(self.session, self.keys, name)
@@ -157,6 +188,11 @@ class Node:
             self._stats_pub = Publisher(self.session, self.keys.stats(name), NodeStats, Role.STATUS)
             self._errors_pub = Publisher(self.session, self.keys.errors(name), ErrorReport, Role.STATUS)
             self._queryable = self.session.declare_queryable(self.keys.state(name), self._on_state_query)
+            self._ack_pub = Publisher(self.session, self.keys.ack(name), FlowAck, Role.RESULT)
+            self._end_pub = Publisher(self.session, self.keys.end(name), FlowEnd, Role.RESULT)
+            self._end_answer = self.session.declare_queryable(self.keys.end(name), self._on_end_query)
+            self._ack_answer = self.session.declare_queryable(self.keys.ack(name), self._on_ack_query)
+            self._ends = Ends(self.session, self.keys, self.flow.upstream, self._poke) if self.flow.upstream else None
         except Exception:
             self.session.close()
             raise
@@ -173,9 +209,20 @@ class Node:
     def running(self) -> bool:
         return not self._stop.is_set()
 
+    @property
+    def ended(self) -> bool:
+        """Whether the node has published its end of stream."""
+        return self._ended is not None
+
+    def _poke(self) -> None:
+        with self._wake:
+            self._wake.notify_all()
+
     def stop(self) -> None:
         """Ask the node's loops to end (safe from signal handlers and other threads)."""
         self._stop.set()
+        for credits in self._credits:
+            credits.stop()
         with self._wake:
             self._wake.notify_all()
 
@@ -186,13 +233,13 @@ class Node:
         return self.running
 
     def publisher(self, key: str, cls: type[M], role: Role = Role.RESULT) -> Publisher[M]:
-        publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"))
+        publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"), self.flow.lossless)
         self._publishers.append(publisher)
         return publisher
 
     def raw_publisher(self, key: str, role: Role, encoding: zenoh.Encoding) -> RawPublisher:
         """A publisher of already encoded payloads (replay), counted in the node's stats."""
-        publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"))
+        publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"), self.flow.lossless)
         self._publishers.append(publisher)
         return publisher
 
@@ -242,6 +289,9 @@ class Node:
         return counter
 
     def inbox(self, key: str, cls: type[M] | None, role: Role = Role.FRAME, depth: int | None = None) -> Inbox[M]:
+        """Messages on ``key``; frames keep the newest ``depth`` (every one in a lossless run)."""
+        if self.flow.lossless and role is Role.FRAME:
+            depth = LOSSLESS_DEPTH
         inbox = Inbox(self.session, key, cls, role, depth=depth, counter=StreamCounter(key, "in"),
                       on_decode_error=self._on_decode_error, wake=self._wake)
         self._inboxes.append(inbox)
@@ -254,17 +304,21 @@ class Node:
         node's processing time for it.
         """
         turn = 0
+        frame = False
 
         def take() -> M | None:
-            nonlocal turn
+            nonlocal turn, frame
             for i in range(len(inboxes)):
-                received = inboxes[(turn + i) % len(inboxes)].take()
+                inbox = inboxes[(turn + i) % len(inboxes)]
+                received = inbox.take()
                 if received is not None:
                     turn = (turn + i + 1) % len(inboxes)
+                    frame = inbox.role is Role.FRAME
                     return received.message
             return None
 
-        return self._serve(take, inboxes, lambda message: message.header.stamp_ns)
+        return self._serve(take, inboxes, lambda message: message.header.stamp_ns,
+                           lambda message: message.header.seq if frame else None)
 
     def synced(self, inputs: Mapping[str, str], cls: type[M] | Mapping[str, type[Message] | None] | None,
                role: Role = Role.FRAME, *, by: JoinBy = "seq", tolerance_s: float = 0.0,
@@ -285,20 +339,27 @@ class Node:
         types = cls if isinstance(cls, Mapping) else dict.fromkeys(inputs, cls)
         if set(types) != set(inputs):
             raise ValueError(f"cls names {sorted(types)}, but the inputs are {sorted(inputs)}")
-        latest = role is Role.FRAME
+        latest = role is Role.FRAME and not self.flow.lossless
+        if role is Role.FRAME and self.flow.lossless:
+            depth = LOSSLESS_DEPTH
         joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth, ready=1 if latest else depth)
         inboxes = {name: self.inbox(key, types[name], role, depth if latest else None) for name, key in inputs.items()}
         synced = Synced(self, inboxes, joiner, by, latest)
         self._syncs.append(synced)
         return synced
 
-    def _serve(self, take: Callable[[], T | None], inboxes: Sequence[Inbox], stamp: Callable[[T], int]) -> Iterator[T]:
+    def _serve(self, take: Callable[[], T | None], inboxes: Sequence[Inbox], stamp: Callable[[T], int],
+               seq: Callable[[T], int | None]) -> Iterator[T]:
         """What ``take()`` hands out until the node stops, waiting on ``inboxes`` while it has nothing;
-        ``stamp(item)`` is the stamp whose age counts as the node's latency."""
+        ``stamp(item)`` is the stamp whose age counts as the node's latency, ``seq(item)`` the frame it
+        acknowledges once done with it (None: not a frame)."""
         self._state = "running"
+        self.ready()
         while self.running:
             item = take()
             if item is None:
+                if self._ends is not None and self._ended is None:
+                    self.end_when_done(inboxes)
                 with self._wake:
                     if self.running and not any(inbox.pending() for inbox in inboxes):
                         self._wake.wait(POLL_S)
@@ -306,6 +367,83 @@ class Node:
             started = time.perf_counter()
             yield item
             self.processed(time.perf_counter() - started, stamp(item))
+            if (frame := seq(item)) is not None:
+                self.ack(frame)
+
+    def credits(self) -> Credits | None:
+        """The credits of a lossless source (None: it sends at its own pace); closed with the node."""
+        if not (self.flow.lossless and self.flow.credits_from):
+            return None
+        credits = Credits(self.session, self.keys, self.flow.credits_from, self.flow.window,
+                          lambda note: self.log.info("%s", note))
+        self._credits.append(credits)
+        return credits
+
+    def ready(self) -> None:
+        """Say, once, that the node's inputs are subscribed (an ack of -1), when it acknowledges frames."""
+        if self.flow.acks and not self._ready:
+            self._ready = True
+            self.ack(-1)
+
+    def ack(self, seq: int) -> None:
+        """Acknowledge every frame up to ``seq`` as dealt with (only when the flow plan asks for acks)."""
+        if self.flow.acks:
+            self._acked = FlowAck(header=Header(stamp_ns=time.time_ns()), node=self.name, seq=seq,
+                                  started_ns=self._started_ns)
+            self._ack_pub.put(self._acked)
+
+    def published_counts(self) -> dict[str, int]:
+        """Messages put so far on each output key."""
+        return {publisher.key: publisher.counter.messages for publisher in self._publishers}
+
+    def end_of_stream(self, last_seq: int, frames: int) -> None:
+        """A source's end: it sent ``frames`` frames, the last numbered ``last_seq`` (-1: none)."""
+        self._publish_end(end_message(self.name, last_seq, self.published_counts(), frames))
+
+    def end_when_done(self, inputs: Sequence[Tapped] = ()) -> bool:
+        """Publish the node's end if every upstream node has ended and what they published on keys that
+        ``inputs`` (its inboxes, or subscriptions it serves itself) take in has arrived; messages still
+        missing after ``END_GRACE_S`` without any arrival are given up on, frames counted as missing.
+        The caller has dealt with everything that arrived. True once the node has ended."""
+        if self._ended is not None:
+            return True
+        if self._ends is None or not self._ends.all_ended():
+            return False
+        received: dict[str, int] = {}
+        for tapped in inputs:
+            for key, count in tapped.counter.counts_by_key().items():
+                received[key] = received.get(key, 0) + count
+        expressions = [zenoh.KeyExpr(tapped.key) for tapped in inputs]
+        short = {key: count - received.get(key, 0) for key, count in self._ends.published().items()
+                 if count > received.get(key, 0) and any(e.includes(zenoh.KeyExpr(key)) for e in expressions)}
+        if short:
+            now, total = time.monotonic(), sum(received.values())
+            if self._short_since is None or total != self._short_total:
+                self._short_since, self._short_total = now, total
+                return False
+            if now - self._short_since < END_GRACE_S:
+                return False
+            self.log.warning("ending without %d message(s) upstream published: %s", sum(short.values()),
+                             ", ".join(f"{key} ({count})" for key, count in sorted(short.items())))
+        last = self._ends.last_seq()
+        for tapped in inputs:
+            tapped.count_tail(last)
+        self._publish_end(end_message(self.name, last, self.published_counts()))
+        return True
+
+    def _publish_end(self, end: FlowEnd) -> None:
+        self._ended = end
+        self._end_pub.put(end)
+        self.log.info("end of stream: last frame %d%s", end.last_seq,
+                      f", {end.frames} frames sent" if end.frames else "")
+
+    def _on_ack_query(self, query: zenoh.Query) -> None:
+        if self._acked is not None:
+            query.reply(self.keys.ack(self.name), encode(self._acked))
+
+    def _on_end_query(self, query: zenoh.Query) -> None:
+        if self._ended is not None:
+            query.reply(self.keys.end(self.name), encode(self._ended))
 
     def linger(self, seconds: float = LINGER_S) -> None:
         """Stay up a moment after a job's last message while anyone subscribes to an output.
@@ -363,7 +501,8 @@ class Node:
             uptime_s=time.monotonic() - self._started,
             received=sum(s.messages for s in inputs), published=sum(s.messages for s in outputs),
             processed=self._processed, dropped=sum(s.dropped for s in inputs),
-            decode_errors=sum(s.decode_errors for s in inputs),
+            missing=sum(s.missing for s in inputs), decode_errors=sum(s.decode_errors for s in inputs),
+            ended=self._ended is not None,
             processing_ms_p50=p50, processing_ms_p99=p99, latency_ms_p50=age_p50, latency_ms_p99=age_p99,
             skipped=self.skipped(),
             streams=tuple(inputs + outputs),
@@ -409,9 +548,14 @@ class Node:
         self.stop()
         self._stats_thread.join(timeout=1.0)
         self._publish_stats()  # the last counts, for whoever sums a run up after this node has gone
-        for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub]:
+        if self._ends is not None:
+            self._ends.close()
+        for credits in self._credits:
+            credits.close()
+        for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub, self._ack_pub,
+                       self._end_pub]:
             entity.close()
-        for queryable in [*self._answers, self._queryable]:
+        for queryable in [*self._answers, self._queryable, self._end_answer, self._ack_answer]:
             queryable.undeclare()
         self._token.undeclare()
         self.session.close()
@@ -434,7 +578,8 @@ class Synced(Generic[M]):
 
     def __iter__(self) -> Iterator[dict[str, M]]:
         reference = self.joiner.reference
-        return self._node._serve(self.take, list(self.inboxes.values()), lambda s: s[reference].header.stamp_ns)
+        return self._node._serve(self.take, list(self.inboxes.values()), lambda s: s[reference].header.stamp_ns,
+                                 lambda s: s[reference].header.seq)
 
     def take(self) -> dict[str, M] | None:
         """Move queued messages into the join, one per input in turn (all of them when latest-wins,
@@ -461,11 +606,12 @@ class Synced(Generic[M]):
                              resets=joiner.resets, inputs=inputs)
 
 
-def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object]) -> int:
+def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object],
+             flow: FlowPlan | None = None) -> int:
     """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code."""
     log = logging.getLogger(f"artrack.{kind}")
     try:
-        node = Node(name, kind, bus)
+        node = Node(name, kind, bus, flow=flow)
     except (BusError, NameTaken) as exc:
         log.error("%s", exc)
         return 2

@@ -33,7 +33,7 @@ from pydantic import Field, model_validator
 from protocol.keys import Keys
 from protocol.message import Message
 from services.bus.pubsub import Inbox, Role
-from services.runtime.kind import NodeKind
+from services.runtime.kind import NodeKind, SinkRole
 from services.runtime.node import Node
 from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
@@ -102,4 +102,5 @@ def _check(params: Params) -> None:
 
 
 KIND = NodeKind(name="viewer", summary="logs the rig to Rerun: an .rrd file and/or a gRPC server",
-                params=Params, run=run, inputs=_inputs, outputs=(), check=_check)
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check,
+                sink=SinkRole(files=lambda params: () if params.rrd is None else (("rerun file", params.rrd),)))

@@ -19,6 +19,8 @@ from protocol import (
     ConfigAnswer,
     ConfigChange,
     ErrorReport,
+    FlowAck,
+    FlowEnd,
     FrameTransform,
     GroundTruth,
     Header,
@@ -183,7 +185,7 @@ def _tuples_of(strategy: st.SearchStrategy) -> st.SearchStrategy[tuple]:
 
 directions = st.sampled_from(["in", "out"])
 stream_stats = st.builds(StreamStats, key=texts, direction=directions, messages=big_counts,
-                         dropped=big_counts, decode_errors=big_counts, rate_hz=non_negative)
+                         dropped=big_counts, missing=big_counts, decode_errors=big_counts, rate_hz=non_negative)
 sync_stats = st.builds(
     SyncStats, by=st.sampled_from(["seq", "stamp"]), tolerance_ns=big_counts, sets=big_counts, dropped=big_counts,
     resets=big_counts, inputs=_tuples_of(st.builds(
@@ -213,7 +215,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         NodeStats, header=headers, node=texts, kind=texts, host=texts, pid=st.integers(-(2**70), 2**70),
         state=st.sampled_from(["starting", "running", "stopping"]), uptime_s=non_negative,
         received=big_counts, published=big_counts, processed=big_counts, dropped=big_counts,
-        decode_errors=big_counts,
+        missing=big_counts, decode_errors=big_counts, ended=st.booleans(),
         processing_ms_p50=st.none() | finite, processing_ms_p99=st.none() | finite,
         latency_ms_p50=st.none() | finite, latency_ms_p99=st.none() | finite,
         streams=_tuples_of(stream_stats), synced=_tuples_of(sync_stats)),
@@ -233,6 +235,10 @@ MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.ConfigAnswer": st.builds(
         ConfigAnswer, header=headers, node=texts, applied=st.dictionaries(texts, texts, max_size=3),
         refused=st.dictionaries(texts, texts, max_size=3), params=st.dictionaries(texts, texts, max_size=3)),
+    "artrack.FlowAck": st.builds(FlowAck, header=headers, node=texts, seq=st.integers(-1, 2**63),
+                                 started_ns=big_counts),
+    "artrack.FlowEnd": st.builds(FlowEnd, header=headers, node=texts, last_seq=st.integers(-1, 2**63),
+                                 frames=big_counts, published=st.dictionaries(texts, big_counts, max_size=3)),
     "artrack.ErrorReport": st.builds(ErrorReport, header=headers, node=texts, kind=texts, detail=texts,
                                      key=texts, count=st.integers(1, 2**80)),
     "artrack.StageTimings": st.builds(StageTimings, header=headers,

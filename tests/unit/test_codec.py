@@ -399,10 +399,10 @@ def test_an_older_version_a_class_still_reads_decodes_and_others_are_refused():
     from protocol.system import NodeStats
 
     stats = NodeStats(header=Header(stamp_ns=1), node="n", kind="k", host="h", pid=1, uptime_s=0.0)
-    old = encode(stats).replace(b'"version":2', b'"version":1', 1)
+    old = encode(stats).replace(b'"version":3', b'"version":1', 1)
     assert decode(old) == stats
-    with pytest.raises(DecodeError, match="version 3 is not understood"):
-        decode(encode(stats).replace(b'"version":2', b'"version":3', 1))
+    with pytest.raises(DecodeError, match="version 4 is not understood"):
+        decode(encode(stats).replace(b'"version":3', b'"version":4', 1))
 
 
 def test_encode_names_an_array_dtype_that_may_not_travel():

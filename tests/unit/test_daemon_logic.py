@@ -73,7 +73,7 @@ def test_changed_params_applies_reloadable_fields_only():
     assert caught.value.reasons == {"frames": "not reloadable: needs a restart", "bogus": "no such parameter"}
     with pytest.raises(Refused) as caught:
         changed_params(params, {"fps": -1})
-    assert list(caught.value.reasons) == ["fps"] and "greater than 0" in caught.value.reasons["fps"]
+    assert list(caught.value.reasons) == ["fps"] and "greater than or equal to 0" in caught.value.reasons["fps"]
 
 
 def test_live_params_answer_is_all_or_nothing_and_apply_may_refuse():

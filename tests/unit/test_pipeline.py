@@ -63,7 +63,9 @@ def test_processes_run_each_node_with_its_params_and_the_bus(tmp_path):
     assert (cam.name, cam.restart, relay.name, relay.restart) == ("cam", False, "relay", True)
     assert cam.argv[:3] == (sys.executable, "-m", "services.cli")
     params = json.dumps({"cameras": ["left"], "fps": 15})
-    assert cam.argv[3:] == ("node", "capture", "--name", "cam", "--params", params)
+    assert cam.argv[3:9] == ("node", "capture", "--name", "cam", "--params", params)
+    assert cam.argv[9] == "--flow" and json.loads(cam.argv[10]) == {}  # an endless source: real-time, no credits
+    assert relay.argv[-2:] == ("--flow", json.dumps({"upstream": ["cam"]}, separators=(",", ":")))
     assert BusConfig.from_env(cam.env) == bus
     assert bus.keys.image("left") == "site/lab1/demo/left/image"
 
@@ -81,7 +83,7 @@ FAULTS = [
     ("[nodes.cam]\nfps = 3\n", "nodes.cam.kind: Field required"),
     ("[nodes.cam]\nkind = 3\n", "nodes.cam.kind: Input should be a valid string"),
     ('[nodes.cam]\nkind = "teleport"\n', "nodes.cam: unknown node kind 'teleport' (known: blobs, capture, echo"),
-    (NODES + "fps = -1\n", "nodes.cam.fps: Input should be greater than 0"),
+    (NODES + "fps = -1\n", "nodes.cam.fps: Input should be greater than or equal to 0"),
     (NODES + 'fps = "fast"\n', "nodes.cam.fps: Input should be a valid number"),
     (NODES + "colour = 1\n", "nodes.cam.colour: Extra inputs are not permitted"),
     (NODES + 'restart = "maybe"\n', "nodes.cam.restart: Input should be a valid boolean"),

@@ -1,0 +1,79 @@
+"""Lossless runs of finite sources: every node takes every frame, so the results do not depend on the
+machine's load. Each tracker runs the same scene twice, once on an idle machine and once while busy
+processes hog every core, and the recorded results must be the same bytes."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from mcap.reader import make_reader
+
+from tests.integration.support import START_S
+from tests.load import busy
+
+LOSSLESS = "every frame accounted for"
+STREAMS_LEFT_OUT = ("/image", "/camera_info", "/truth", "/timings")
+"""Inputs (the same by construction) and stage timings (wall-clock durations) are not compared."""
+
+TRACKERS = {
+    "marker": ("synthetic:markers", 24, ()),
+    "stereo": ("synthetic:ir_rig", 24, ()),
+    "features": ("synthetic:planar_target", 20, ()),
+    "slam": ("synthetic:room", 45, ("--mapping", "inline", "--depth", "45")),
+}
+
+
+def results(path) -> dict[str, list[bytes]]:
+    """The payloads of every result key of a recording (node health and inputs left out), in log order."""
+    found: dict[str, list[bytes]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            if "/node/" in channel.topic or "/tf_static/" in channel.topic or channel.topic.endswith(STREAMS_LEFT_OUT):
+                continue
+            found.setdefault(channel.topic, []).append(message.data)
+    return found
+
+
+def run(procs, tmp_path, tracker: str, name: str):
+    source, frames, options = TRACKERS[tracker]
+    out = tmp_path / f"{name}.mcap"
+    job = procs.artrack("run", tracker, "--source", source, "--frames", str(frames), "--fps", "0",
+                        "--stamps", "source", *options, "--record", str(out), name=name)
+    assert job.wait(12 * START_S) == 0, job.describe()
+    last = [line for line in job.stderr.splitlines() if line.strip()][-1]
+    assert LOSSLESS in last, job.describe()
+    return results(out)
+
+
+@pytest.mark.parametrize("tracker", sorted(TRACKERS))
+def test_a_lossless_run_gives_the_same_results_idle_and_with_every_core_busy(procs, tmp_path, tracker):
+    idle = run(procs, tmp_path, tracker, "idle")
+    with busy():
+        loaded = run(procs, tmp_path, tracker, "loaded")
+    assert idle, "the run published no results"
+    assert sorted(idle) == sorted(loaded)
+    for key in idle:
+        assert len(idle[key]) == len(loaded[key]), key
+        assert idle[key] == loaded[key], f"{key}: results differ between the idle and the loaded run"
+
+
+SLAM_FRAMES = 90
+SLAM_RUNS = 2
+"""Runs in the suite; ``python -m tests.bench lossless`` makes ten (docs/benchmarks.md)."""
+
+
+def test_slam_with_its_mapping_process_poses_every_frame_within_its_bar_with_every_core_busy(procs, bus, tmp_path):
+    with busy():
+        for run_index in range(SLAM_RUNS):
+            out = tmp_path / f"slam-{run_index}.mcap"
+            job = procs.artrack("run", "slam", "--source", "synthetic:room", "--frames", str(SLAM_FRAMES),
+                                "--stamps", "source", "--record", str(out), name=f"slam-{run_index}")
+            assert job.wait(12 * START_S) == 0, job.describe()
+            assert LOSSLESS in job.stderr.strip().splitlines()[-1], job.describe()
+            poses = results(out)[f"{bus.config.keys.prefix}/pose/slam/cam0"]
+            assert len(poses) == SLAM_FRAMES, job.describe()
+            scored = procs.run("eval", str(out), str(out), "--est-key", "pose/slam/cam0", "--gt-key", "cam0/truth",
+                               "--gt-child", "cam0", "--align", "sim3", "--json")
+            assert scored.poll() == 0, scored.describe()
+            assert json.loads(scored.stdout)["ate_m"]["rmse"] <= 0.05, scored.stdout

@@ -1,0 +1,72 @@
+"""Flow plans from a pipeline's wiring, frame gaps, and the pace of a lossless capture."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.bus.stats import SeqGaps
+from services.launcher.flow import FlowSettings, lossless
+from services.launcher.job import build_job
+from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, read_pipeline, to_toml
+from services.launcher.tracker import Tracker
+
+
+def job(tracker: str, **source) -> PipelineSpec:
+    chosen = Tracker.load(tracker)
+    return build_job(chosen, NodeSpec(kind="capture", **source), {}, chosen.flags({}), Path("run.mcap"),
+                     Path("run.rrd"))
+
+
+def test_a_finite_source_runs_lossless_and_waits_for_every_node_that_takes_its_images():
+    plans = job("marker", source=["synthetic:markers"], frames=10).flow_plans()
+    assert plans["capture"].lossless and sorted(plans["capture"].credits_from) == ["marker-cam0", "recorder", "viewer"]
+    assert all(plans[name].acks for name in ("marker-cam0", "recorder", "viewer"))
+    assert plans["marker-cam0"].upstream == ("capture",)
+    assert sorted(plans["recorder"].upstream) == ["capture", "marker-cam0"]
+    assert plans["capture"].upstream == ()
+
+
+def test_nodes_fed_by_results_wait_for_ends_but_give_no_credits():
+    plans = job("stereo", source=["synthetic:ir_rig"], frames=10).flow_plans()
+    takers = set(plans["capture"].credits_from)
+    assert {"blobs-cam0", "blobs-cam1", "recorder", "viewer"} <= takers and "bodies" not in takers
+    assert not plans["bodies"].acks and {"blobs-cam0", "blobs-cam1"} <= set(plans["bodies"].upstream)
+
+
+@pytest.mark.parametrize("source", [{"source": ["synthetic:markers"]}, {"source": ["camera:0"]},
+                                    {"source": ["synthetic:markers"], "frames": 5, "loop": True}])
+def test_endless_sources_stay_real_time_unless_asked(source):
+    spec = job("marker", **source)
+    assert not spec.lossless() and not spec.flow_plans()["capture"].credits_from
+    forced = spec.model_copy(update={"flow": FlowSettings(mode="lossless", window=2)})
+    assert forced.lossless() and forced.flow_plans()["capture"].window == 2
+
+
+def test_realtime_asked_for_a_finite_source_takes_no_credits():
+    spec = job("marker", source=["synthetic:markers"], frames=10)
+    realtime = spec.model_copy(update={"flow": FlowSettings(mode="realtime")})
+    assert not realtime.lossless() and not any(plan.acks for plan in realtime.flow_plans().values())
+    assert not lossless(FlowSettings(), {})
+
+
+def test_the_flow_table_round_trips_through_a_pipeline_file_and_is_checked(tmp_path):
+    spec = job("marker", source=["synthetic:markers"], frames=10).model_copy(
+        update={"flow": FlowSettings(mode="realtime", window=8)})
+    text = to_toml(spec)
+    assert "[flow]" in text and 'mode = "realtime"' in text and "window = 8" in text
+    path = tmp_path / "job.toml"
+    path.write_text(text)
+    assert read_pipeline(path).flow == FlowSettings(mode="realtime", window=8)
+    path.write_text('[flow]\nmode = "fast"\n\n[nodes.cam]\nkind = "capture"\n')
+    with pytest.raises(PipelineError, match="flow.mode"):
+        read_pipeline(path)
+
+
+def test_gaps_count_the_frames_skipped_and_start_over_when_a_source_does():
+    gaps = SeqGaps()
+    assert [gaps.note("a", seq) for seq in (0, 1, 4, 5, 9)] == [0, 0, 2, 0, 3]
+    assert gaps.note("a", 2) == 0 and gaps.note("a", 3) == 0  # started over: no gap counted
+    assert gaps.note("b", 7) == 0  # the first frame seen on a key
+    assert gaps.tail(10) == (10 - 3) + (10 - 7)
