@@ -161,7 +161,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     est = load_trajectory(args.est, args.format, key=args.est_key, child=args.child)
     gt = load_trajectory(args.gt, args.format, key=args.gt_key, child=args.gt_child or args.child)
     max_dt = {} if args.max_dt is None else {"max_dt_s": args.max_dt}
-    evaluation = evaluate(est, gt, align=args.align, delta=args.delta, unit=args.delta_unit, **max_dt)
+    evaluation = evaluate(est, gt, align=args.align, delta=args.delta, unit=args.delta_unit, by=args.match_by,
+                          **max_dt)
     if args.plot is not None:
         from services.recorder.trajectory_plot import plot_evaluation
 
@@ -239,6 +240,11 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
                    help="RPE step in matched frames or in metres travelled along the truth (default frames)")
     p.add_argument("--max-dt", type=float, metavar="S",
                    help="largest stamp difference of a matched pair, seconds (default 0.02, as TUM's tools)")
+    p.add_argument("--match-by", default="auto", choices=("auto", "stamp", "frame", "index"),
+                   help="pair poses by stamp, by frame number (KITTI rows, a recording's seq) or by index (row i "
+                        "with row i); default auto: by stamp, else frame number, else index when neither is on "
+                        "both sides and the counts are equal. Fewer than half the estimate's poses paired "
+                        "(or fewer than 3) is refused, exit 2")
     p.add_argument("--format", choices=("tum", "kitti"), help="read EST and GT, when text files, as this format "
                                                               "(default: told apart by their column count)")
     p.add_argument("--est-key", metavar="KEY", help="the pose key when EST is a recording")

@@ -3,7 +3,8 @@
 Modules: ``writing`` (payloads -> MCAP files, filed by ``protocol.codec.peek``, split into
 parts), ``reading`` (a sequential, damage-tolerant MCAP reader and ``recover``),
 ``byte_queue`` (the recorder's bounded FIFO), ``playback`` (replay timing, pause and step),
-``info`` and ``export`` (offline tools). ``record_node`` and ``replay_node``
+``info`` and ``export`` (offline tools), ``trajectories``, ``pairing`` and ``scoring`` (``artrack
+eval``). ``record_node`` and ``replay_node``
 are the two bus-side nodes; only they import the runtime and Zenoh.
 
 Recording format (MCAP 1.x, chunked, zstd by default)

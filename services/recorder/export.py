@@ -34,7 +34,7 @@ import zenoh
 
 from protocol.codec import DecodeError, decode, sample_record, to_json
 from protocol.keys import check_expression
-from protocol.message import Message
+from protocol.message import Header, Message
 from protocol.poses import GroundTruth, Pose, TrackingState
 from protocol.spatial import Transform
 from services.recorder.info import summarise
@@ -155,8 +155,9 @@ class Export:
         if not seen & wanted:
             raise ExportError(f"no key {self.key!r} in {self.path} (keys: {', '.join(sorted(seen)) or 'none'})")
 
-    def transforms(self) -> Iterator[tuple[int, Transform]]:
-        """``(header.stamp_ns, transform)`` of every estimated pose on the key, as ``tum`` writes them.
+    def transforms(self) -> Iterator[tuple[Header, Transform]]:
+        """``(header, transform)`` of every estimated pose on the key, as ``tum`` writes them (its stamp
+        ``header.stamp_ns``; ``header.seq`` the frame's sequence number, which TUM has no column for).
 
         ``Pose`` messages in a state other than ``tracking`` are left out: lost, initialising and
         no calibration carry a placeholder transform, predicted one carried over from an earlier
@@ -178,12 +179,12 @@ class Export:
             else:
                 raise ExportError(f"tum needs Pose or GroundTruth messages; {self.key} carries {message.SCHEMA}")
             for transform in transforms:
-                yield message.header.stamp_ns, transform
+                yield message.header, transform
 
     def _tum(self) -> Iterator[str]:
-        for stamp_ns, transform in self.transforms():
+        for header, transform in self.transforms():
             self.rows += 1
-            yield tum_line(stamp_ns, transform)
+            yield tum_line(header.stamp_ns, transform)
 
     def _csv(self) -> Iterator[str]:
         def rows() -> Iterator[dict[str, Any]]:

@@ -4,33 +4,36 @@
   (read exactly, to the nanosecond), quaternion x y z w (normalised; one whose norm is more than
   ``QUATERNION_NORM_TOLERANCE`` from 1 is refused). Lines starting with ``#`` and blank lines
   are skipped; commas and tabs separate as well as spaces.
-* KITTI (12 numbers a line): the row-major 3x4 ``[R | t]`` of ``T_world_body``, no stamps: the
-  line's index among the poses is its frame number (``stamps_ns`` is None), and a KITTI file is
-  matched to the other trajectory by index.
+  A TUM file has no frame numbers (``frames`` is None).
+* KITTI (12 numbers a line): the row-major 3x4 ``[R | t]`` of ``T_world_body``; the line's index
+  among the poses is its frame number (``frames`` 0..N-1). Stamps come from KITTI's
+  ``times.txt`` (seconds, one a line) when one lies beside the pose file with a line per pose;
+  else ``stamps_ns`` is None.
 * MCAP: the poses of one key, decoded as ``artrack export --format tum`` decodes them (``Pose``
-  messages in a state with an estimate; ``GroundTruth`` messages need the child frame).
+  messages in a state with an estimate; ``GroundTruth`` messages need the child frame), with
+  both stamps (``header.stamp_ns``) and frame numbers (``header.seq``, the source's frames as
+  sent, from 0: an ``images:`` folder's in file order, as KITTI's, while every file reads).
 
 ``load_trajectory`` tells them apart by content: the MCAP magic, else the column count of the
-first pose line (a text format can be forced). ``match`` pairs two trajectories row by row.
+first pose line (a text format can be forced). ``pairing.pair`` pairs two trajectories row by row.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
-from services.geometry.evaluation import associate
 from services.geometry.se3 import from_quaternion_translation
 from services.recorder.export import Export
 from services.recorder.reading import MAGIC
 
-__all__ = ["TEXT_FORMATS", "Trajectory", "TrajectoryError", "is_recording", "load_trajectory", "match", "read_kitti",
-           "read_recording", "read_tum", "text_format"]
+__all__ = ["KITTI_TIMES", "TEXT_FORMATS", "Trajectory", "TrajectoryError", "is_recording", "load_trajectory",
+           "read_kitti", "read_recording", "read_tum", "text_format"]
 
 TEXT_FORMATS = ("tum", "kitti")
 log = logging.getLogger(__name__)
@@ -38,6 +41,8 @@ QUATERNION_NORM_TOLERANCE = 1e-2
 ROTATION_TOLERANCE = 1e-3
 """Largest entry of ``R^T R - I`` accepted from a KITTI line."""
 NS_PER_S = 1_000_000_000
+KITTI_TIMES = "times.txt"
+"""KITTI's stamps file (seconds from the sequence's start, one line per frame), read beside a KITTI pose file."""
 
 
 class TrajectoryError(ValueError):
@@ -47,11 +52,13 @@ class TrajectoryError(ValueError):
 @dataclass(frozen=True)
 class Trajectory:
     """(N, 4, 4) float64 ``T_world_body`` poses with (N,) int64 stamps in nanoseconds, or None when the
-    source has no stamps (KITTI: rows are frame numbers). ``name`` says where it came from."""
+    source has no stamps (a KITTI file without ``times.txt``), and (N,) int64 frame numbers, or None
+    when it has none (TUM). ``name`` says where it came from."""
 
     poses: np.ndarray
     stamps_ns: np.ndarray | None
     name: str
+    frames: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -83,16 +90,24 @@ def _numbers(path: Path, number: int, fields: list[str], count: int, what: str) 
     return values
 
 
+def _stamp_ns(path: Path, number: int, text: str) -> int:
+    """Decimal seconds ``text`` (line ``number`` of ``path``) as int nanoseconds, exactly."""
+    try:
+        seconds = Decimal(text)
+    except InvalidOperation as exc:
+        raise TrajectoryError(f"{path}:{number}: stamp {text!r} is not a number of seconds") from exc
+    if not seconds.is_finite():
+        raise TrajectoryError(f"{path}:{number}: stamp {text!r} is not a number of seconds")
+    return int((seconds * NS_PER_S).to_integral_value())
+
+
 def read_tum(path: Path | str) -> Trajectory:
     """The poses and stamps of a TUM trajectory file."""
     path = Path(path)
     poses, stamps = [], []
     for number, fields in _rows(path):
         values = _numbers(path, number, fields, 8, "a TUM file (stamp tx ty tz qx qy qz qw)")
-        try:
-            stamps.append(int((Decimal(fields[0]) * NS_PER_S).to_integral_value()))
-        except InvalidOperation as exc:
-            raise TrajectoryError(f"{path}:{number}: stamp {fields[0]!r} is not a number of seconds") from exc
+        stamps.append(_stamp_ns(path, number, fields[0]))
         q = np.array(values[4:])
         norm = float(np.linalg.norm(q))
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
@@ -102,7 +117,8 @@ def read_tum(path: Path | str) -> Trajectory:
 
 
 def read_kitti(path: Path | str) -> Trajectory:
-    """The poses of a KITTI pose file (no stamps)."""
+    """The poses of a KITTI pose file, their frame numbers 0..N-1, and their stamps when ``times.txt``
+    beside it has one line per pose (one with another count is left out, said in a warning)."""
     path = Path(path)
     poses = []
     for number, fields in _rows(path):
@@ -111,12 +127,28 @@ def read_kitti(path: Path | str) -> Trajectory:
         if np.max(np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3))) > ROTATION_TOLERANCE or np.linalg.det(T[:3, :3]) < 0:
             raise TrajectoryError(f"{path}:{number}: the 3x3 part is not a rotation")
         poses.append(T)
-    return _trajectory(path, poses, None)
+    trajectory = _trajectory(path, poses, _kitti_times(path.with_name(KITTI_TIMES), len(poses)))
+    return replace(trajectory, frames=np.arange(len(trajectory), dtype=np.int64))
+
+
+def _kitti_times(path: Path, count: int) -> np.ndarray | None:
+    """(count,) int64 stamps (ns) of the KITTI ``times.txt`` at ``path``; None when there is none, or it
+    holds another number of lines than ``count``."""
+    if not path.is_file():
+        return None
+    rows = _rows(path)
+    if len(rows) != count:
+        log.warning("%s holds %d stamps for %d poses: not used", path, len(rows), count)
+        return None
+    for number, fields in rows:
+        if len(fields) != 1:
+            raise TrajectoryError(f"{path}:{number}: KITTI times need 1 number a line, found {len(fields)}")
+    return np.array([_stamp_ns(path, number, fields[0]) for number, fields in rows], dtype=np.int64)
 
 
 def read_recording(path: Path | str, key: str | None, child: str | None = None) -> Trajectory:
     """The poses of one key of an artrack recording (as ``artrack export --format tum`` reads them), their
-    stamps the source stamps of the frames they were estimated from."""
+    stamps and frame numbers the source stamps and sequence numbers of the frames they were estimated from."""
     path = Path(path)
     if not key:
         raise TrajectoryError(f"{path} is a recording: name the pose key to read (--est-key / --gt-key)")
@@ -126,7 +158,8 @@ def read_recording(path: Path | str, key: str | None, child: str | None = None) 
         log.warning("%s is damaged: %s; read its intact part", path, job.damage)
     poses = [from_quaternion_translation(np.array(t.rotation), np.array(t.translation)) for _, t in stamped]
     name = f"{path} {key}" + (f" ({child})" if child else "")
-    return _trajectory(name, poses, np.array([stamp for stamp, _ in stamped], dtype=np.int64))
+    trajectory = _trajectory(name, poses, np.array([header.stamp_ns for header, _ in stamped], dtype=np.int64))
+    return replace(trajectory, frames=np.array([header.seq for header, _ in stamped], dtype=np.int64))
 
 
 def _trajectory(name: Path | str, poses: list[np.ndarray], stamps: np.ndarray | None) -> Trajectory:
@@ -166,12 +199,3 @@ def load_trajectory(path: Path | str, fmt: str | None = None, *, key: str | None
     if is_recording(path):
         return read_recording(path, key, child)
     return read_tum(path) if (fmt or text_format(path)) == "tum" else read_kitti(path)
-
-
-def match(est: Trajectory, gt: Trajectory, max_dt_ns: int) -> np.ndarray:
-    """(K, 2) int row pairs ``(i_est, i_gt)``: one-to-one by nearest stamp within ``max_dt_ns``
-    (``geometry.evaluation.associate``), or by index when either has no stamps (KITTI)."""
-    if est.stamps_ns is None or gt.stamps_ns is None:
-        rows = np.arange(min(len(est), len(gt)))
-        return np.stack([rows, rows], axis=1)
-    return associate(est.stamps_ns, gt.stamps_ns, max_dt_ns)

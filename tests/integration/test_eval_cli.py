@@ -20,7 +20,9 @@ from protocol import FrameTransform, GroundTruth, Header, Pose, encode
 from protocol.spatial import Transform
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
+from services.recorder.trajectories import read_kitti
 from services.recorder.writing import RecordingWriter
+from tests.data import data_dir
 
 pytestmark = pytest.mark.integration
 
@@ -108,6 +110,8 @@ def test_sim3_json_kitti_by_index_and_a_distance_delta(tmp_path):
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result["matched_by"] == "index" and result["matched"] == 31 and result["scale"] == pytest.approx(4.0)
+    assert result["matched_note"] == (f"{tmp_path / 'est.txt'} has stamps but no frame numbers, {tmp_path / 'gt.txt'} "
+                                      "frame numbers but no stamps: row i of each taken as the same instant")
     assert np.allclose(result["alignment"]["R"], R.T, atol=1e-9) and result["ate_m"]["max"] < 1e-9
     assert result["rpe"]["pairs"] == 27 and result["rpe"]["translation_m"]["max"] < 1e-9  # 4 steps of 0.5 m
     text = artrack("eval", tmp_path / "est.txt", tmp_path / "gt.txt", "--align", "se3")
@@ -161,8 +165,60 @@ def test_user_errors_are_one_line_and_exit_2(tmp_path):
     assert f"{bad}:8: a TUM file (stamp tx ty tz qx qy qz qw) needs 8 numbers a line, found 7" in one_error_line(
         artrack("eval", bad, gt))
     late = write_tum(tmp_path / "late.txt", walk(5, 1.0), T0_NS + 10**10 + STEP_NS * np.arange(6))
-    assert "no pose of" in one_error_line(artrack("eval", late, gt))
+    assert f"{late} (6 poses) and {gt} (6 poses) hardly overlap: 0 paired by stamp within 0.02 s, at least 3 " \
+           "needed" in one_error_line(artrack("eval", late, gt))
     assert "whole number >= 1" in one_error_line(artrack("eval", gt, gt, "--delta", "0.5"))
+
+
+def write_slam_run(path: Path, poses: np.ndarray, first_frame: int) -> Path:
+    """A recording of ``pose/slam/cam0``: ``poses`` (N, 4, 4) ``T_map_cam0`` tracked from frame ``first_frame`` on,
+    stamped by the wall clock as a run on an image folder is."""
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "rig0"})
+    for i, T in enumerate(poses):
+        header = Header(stamp_ns=T0_NS + STEP_NS * i, frame_id="map", seq=first_frame + i)
+        transform = Transform(translation=tuple(T[:3, 3]), rotation=tuple(Rotation.from_matrix(T[:3, :3]).as_quat()))
+        pose = Pose(header=header, child_frame_id="cam0", transform=transform)
+        writer.write("ar/rig0/pose/slam/cam0", encode(pose), i)
+    writer.close()
+    return path
+
+
+def test_a_run_that_starts_at_frame_2_scores_against_the_real_kitti_truth_by_frame_number(tmp_path):
+    truth = data_dir("vo_kitti_odometry_seq06_frames000-050") / "poses.txt"
+    true_poses = read_kitti(truth).poses
+    run = write_slam_run(tmp_path / "run.mcap", true_poses[2:], first_frame=2)
+    done = artrack("eval", run, truth, "--est-key", "pose/slam/cam0", "--align", "none")
+    assert done.returncode == 0, done.stderr
+    assert "matched      49 poses (49 estimated, 51 true) by frame number" in done.stdout
+    assert figures(done.stdout)["ATE max"] == pytest.approx(0.0, abs=1e-6)
+    by_index = artrack("eval", run, truth, "--est-key", "pose/slam/cam0", "--align", "none", "--match-by", "index")
+    assert "by index" in by_index.stdout and figures(by_index.stdout)["ATE rmse"] > 2.0  # frame k + 2 against k
+
+    exported = write_tum(tmp_path / "run.tum", true_poses[2:])  # what `artrack export` writes: no frame numbers
+    refused = one_error_line(artrack("eval", exported, truth, "--align", "none"))
+    assert f"nothing to pair {exported} (49 poses) and {truth} (51 poses) by: {exported} has stamps but no frame " \
+           "numbers" in refused and "their counts differ" in refused
+    kitti = tmp_path / "kitti"
+    kitti.mkdir()
+    shutil.copy(truth, kitti / "poses.txt")
+    (kitti / "times.txt").write_text("".join(f"{i * STEP_NS / 1e9:.6e}\n" for i in range(51)))
+    stamped = write_tum(tmp_path / "stamped.tum", true_poses[2:], STEP_NS * np.arange(2, 51) + 3_000_000)
+    done = artrack("eval", stamped, kitti / "poses.txt", "--align", "none")
+    assert done.returncode == 0, done.stderr
+    assert "matched      49 poses (49 estimated, 51 true) by stamp within 0.02 s" in done.stdout
+    assert figures(done.stdout)["ATE max"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_two_unrelated_trajectories_are_refused_with_their_counts(tmp_path):
+    truth = data_dir("vo_kitti_odometry_seq06_frames000-050") / "poses.txt"
+    other = write_slam_run(tmp_path / "other.mcap", walk(231, 0.05, 0.02), first_frame=0)  # another run, 232 frames
+    line = one_error_line(artrack("eval", other, truth, "--est-key", "pose/slam/cam0", "--align", "sim3"))
+    assert line.endswith(f"{other} pose/slam/cam0 (232 poses) and {truth} (51 poses) hardly overlap: 51 paired by "
+                         "frame number, at least 116 needed (half the estimate's poses, and no fewer than 3)"), line
+    unstamped = write_tum(tmp_path / "other.tum", walk(231, 0.05, 0.02))
+    assert "their counts differ" in one_error_line(artrack("eval", unstamped, truth))
+    assert "51 paired by index, at least 116 needed" in one_error_line(
+        artrack("eval", unstamped, truth, "--match-by", "index"))
 
 
 def test_plot_draws_both_views_or_says_how_to_install_matplotlib(tmp_path):

@@ -12,7 +12,8 @@ from services.capture.scenes.ir_rig import LAYOUTS
 from services.estimation.bodies_file import load_bodies, save_bodies
 from services.estimation.rigid_bodies import pairwise_distances
 from services.geometry.se3 import invert
-from services.recorder.trajectories import load_trajectory, match
+from services.recorder.pairing import pair
+from services.recorder.trajectories import load_trajectory
 from tests.integration.support import START_S
 
 FRAMES = 40
@@ -86,7 +87,7 @@ def test_a_body_left_out_is_defined_from_its_unlabelled_points_and_then_tracked(
     assert job.wait(4 * START_S) == 0, job.describe()
     estimated = load_trajectory(again, key="pose/body/probe")
     true_tool = load_trajectory(again, key="cam0/truth", child="body/tool")
-    pairs = match(estimated, true_tool, 1_000_000)
+    pairs = pair(estimated, true_tool, "stamp", 1_000_000).rows
     assert len(pairs) >= 0.7 * FRAMES, len(pairs)
     # the new body rides on the tool: its pose in the tool's frame stays put
     T_tool_probe = np.array([invert(true_tool.poses[j]) @ estimated.poses[i] for i, j in pairs])

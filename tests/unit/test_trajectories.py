@@ -17,12 +17,12 @@ from protocol.spatial import Transform
 from services.geometry.evaluation import Similarity, apply_similarity
 from services.geometry.se3 import make_transform
 from services.recorder.export import ExportError
+from services.recorder.pairing import pair
 from services.recorder.scoring import evaluate, format_evaluation
 from services.recorder.trajectories import (
     Trajectory,
     TrajectoryError,
     load_trajectory,
-    match,
     read_kitti,
     read_tum,
     text_format,
@@ -74,17 +74,34 @@ def test_bad_tum_files_give_one_error_naming_file_and_line(tmp_path, text, messa
         read_tum(path)
 
 
-def test_kitti_files_read_row_major_poses_without_stamps(tmp_path):
+def test_kitti_files_read_row_major_poses_numbered_by_frame_without_stamps(tmp_path):
     rng = np.random.default_rng(0)
     poses = np.array([make_transform(Rotation.random(random_state=i).as_matrix(), rng.normal(0, 3, 3))
                       for i in range(5)])
     path = write_kitti(tmp_path / "k.txt", poses)
     trajectory = load_trajectory(path)
     assert trajectory.stamps_ns is None and np.allclose(trajectory.poses, poses, atol=1e-11)
+    assert trajectory.frames.tolist() == [0, 1, 2, 3, 4]
     bad = tmp_path / "bad.txt"
     bad.write_text(path.read_text() + "1 0 0 0 0 2 0 0 0 0 1 0\n")
     with pytest.raises(TrajectoryError, match=r"bad\.txt:6: the 3x3 part is not a rotation"):
         read_kitti(bad)
+
+
+def test_a_kitti_times_file_beside_the_poses_gives_their_stamps(tmp_path, caplog):
+    path = write_kitti(tmp_path / "poses.txt", np.repeat(np.eye(4)[None], 3, axis=0))
+    (tmp_path / "times.txt").write_text("0.000000e+00\n1.036224e-01\n2.072448e-01\n")
+    trajectory = read_kitti(path)
+    assert trajectory.stamps_ns.tolist() == [0, 103_622_400, 207_244_800] and trajectory.frames.tolist() == [0, 1, 2]
+    (tmp_path / "times.txt").write_text("0.0\n0.1\n")
+    assert read_kitti(path).stamps_ns is None
+    assert f"{tmp_path / 'times.txt'} holds 2 stamps for 3 poses: not used" in caplog.text
+    (tmp_path / "times.txt").write_text("0.0\n0.1 7\n0.2\n")
+    with pytest.raises(TrajectoryError, match=r"times\.txt:2: KITTI times need 1 number a line, found 2"):
+        read_kitti(path)
+    (tmp_path / "times.txt").write_text("0.0\nsoon\n0.2\n")
+    with pytest.raises(TrajectoryError, match=r"times\.txt:2: stamp 'soon' is not a number of seconds"):
+        read_kitti(path)
 
 
 def test_the_format_is_told_by_columns_or_forced(tmp_path):
@@ -128,8 +145,10 @@ def test_a_recording_key_reads_as_export_decodes_it_skipping_poses_without_an_es
     gt = load_trajectory(recording, key="ar/r/cam0/truth", child="marker/1")
     assert len(est) == 9 and len(gt) == 10 and 1_000_000_000 + 3 * 33_333_333 not in est.stamps_ns
     assert np.allclose(est.poses[:, :3, 3], [[0.1 * i, 0, 1] for i in range(10) if i != 3])
-    pairs = match(est, gt, 0)
-    assert pairs.tolist() == [[k, i] for k, i in enumerate(i for i in range(10) if i != 3)]
+    assert est.frames.tolist() == [i for i in range(10) if i != 3] and gt.frames.tolist() == list(range(10))
+    for by in ("stamp", "frame"):
+        pairs = pair(est, gt, by).rows
+        assert pairs.tolist() == [[k, i] for k, i in enumerate(i for i in range(10) if i != 3)]
     assert evaluate(est, gt, max_dt_s=0).score.ate.stats.max < 1e-12
     with pytest.raises(TrajectoryError, match=r"is a recording: name the pose key"):
         load_trajectory(recording)
@@ -137,14 +156,6 @@ def test_a_recording_key_reads_as_export_decodes_it_skipping_poses_without_an_es
         load_trajectory(recording, key="cam0/truth")
     with pytest.raises(ExportError, match="no key 'pose/nobody'"):
         load_trajectory(recording, key="pose/nobody")
-
-
-def test_a_file_without_stamps_is_matched_by_index():
-    poses = np.repeat(np.eye(4)[None], 5, axis=0)
-    stamped = Trajectory(poses, np.arange(5) * 10, "a")
-    assert match(Trajectory(poses[:3], None, "k"), stamped, 0).tolist() == [[0, 0], [1, 1], [2, 2]]
-    with pytest.raises(TrajectoryError, match=r"no pose of b \(5\) has a stamp within 0.001 s of one of a \(5\)"):
-        evaluate(Trajectory(poses, np.arange(5) * 10 + 10**9, "b"), stamped, max_dt_s=0.001)
 
 
 def perturbed(poses: np.ndarray, sigma_m: float, similarity: Similarity, seed: int = 0) -> np.ndarray:
