@@ -140,7 +140,7 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     try:
         tracker = Tracker.load("marker")
         options = {"marker_length": MARKER_LENGTH_M, "depth": FRAME_QUEUE}
-        code = run_job(bus, build_job(tracker, source, options, tracker.flags({}), record, rerun))
+        code = run_job(bus, build_job(tracker, source, options, tracker.flags({}), record, rerun), strict=True)
     finally:
         stop.set()
         collector.join()
@@ -161,6 +161,9 @@ def _failure(card: Scorecard, record: Path, rerun: Path, code: int) -> str:
     """Why the demo did not succeed; empty when it did."""
     total, tracked = card.views()
     missing = [str(path) for path in (record, rerun) if not path.is_file()]
+    if code == JobExit.FRAMES_LOST:
+        return f"{tracked} of {total} marker views tracked, and frames were lost on the way (the line above names " \
+               "the nodes that dropped or missed them)"
     if code != 0:
         return f"the job ended with code {code} (its nodes' log lines above say why)"
     if total == 0:

@@ -214,8 +214,8 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
                 return interrupted
         if strict and ended == JobExit.DONE and watch is not None:
             watch.gather()
-            if (lost := watch.losses()) is not None:
-                why = f"--strict: {lost}"
+            why = watch.losses()
+            if why is not None:
                 return JobExit.FRAMES_LOST
         return ended
     finally:

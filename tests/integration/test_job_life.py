@@ -5,6 +5,8 @@ import os
 import shutil
 import signal
 
+import pytest
+
 from protocol import decode
 from services.launcher.status import gather
 from services.recorder.info import summarise
@@ -45,6 +47,19 @@ def test_a_source_that_cannot_start_ends_the_job_with_code_2(procs, tmp_path):
     job = procs.artrack("run", "echo", "--source", f"images:{tmp_path}", name="job")
     assert job.wait(2 * START_S) == 2, job.describe()
     assert "source capture ended with code 2" in job.stderr
+
+
+@pytest.mark.parametrize("scheme", ["images", "video"])
+def test_a_source_that_sends_no_frame_is_an_error_in_one_line_with_code_2(procs, tmp_path, scheme):
+    """A folder of files that are not images, a file OpenCV opens but cannot decode: nothing to track."""
+    for name in ("a.png", "b.png"):
+        (tmp_path / name).write_bytes(b"not an image")
+    uri = f"images:{tmp_path}" if scheme == "images" else f"video:{tmp_path / 'a.png'}"
+    job = procs.artrack("run", "echo", "--source", uri, name="job")
+    assert job.wait(2 * START_S) == 2, job.describe()
+    last = [line for line in job.stderr.splitlines() if line.strip()][-1]
+    assert last.endswith(f"{uri}: no frame could be read, none was sent"), job.describe()
+    assert "runs until Ctrl-C" not in job.stderr
 
 
 def test_a_damaged_recording_as_source_plays_to_the_damage_and_ends_with_code_3(procs, tmp_path):
