@@ -371,5 +371,15 @@ def _check(params: Params) -> None:
             fit_to_image(camera, *size, str(path))
 
 
+def _frame_sizes(params: Params) -> dict[str, tuple[int, int]]:
+    """``{camera: (width, height)}`` of the cameras whose frame size is known before capturing (``frame_sizes``)."""
+    try:
+        names = params.cameras or camera_names(params.source, params.scene)
+        sizes = frame_sizes(params.source, params.scene)
+    except SourceError as exc:
+        raise ValueError(str(exc)) from exc
+    return {name: size for name, size in zip(names, sizes, strict=False) if size is not None}
+
+
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
-                params=Params, run=run, inputs=(), outputs=_outputs, check=_check)
+                params=Params, run=run, inputs=(), outputs=_outputs, check=_check, frame_sizes=_frame_sizes)

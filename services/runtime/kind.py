@@ -20,11 +20,21 @@ launcher finds ``KIND`` by walking the packages it searches (no table lists the 
 ``check`` (optional) looks at what the parameters name outside the process, files, folders,
 dictionaries, so a launcher can refuse a pipeline before any process starts; it raises
 ValueError with one line saying what and why.
+
+Two more look across the nodes of a pipeline, where one node's files meet another's frames.
+``frame_sizes`` (optional, a source's) says the size of the frames each of its cameras will
+send, where the parameters tell it before start (a scene, an image folder, a video file, a
+recording): ``{camera: (width, height)}``, cameras of unknown size left out. ``check_frames``
+(optional, a node that may bring a calibration of its own) holds that calibration against those
+sizes: it is given the validated parameters and a function that returns ``{camera: (width,
+height)}`` of every camera the pipeline's sources told (telling them may read files or build a
+scene, so it is called only when there is a calibration to hold), and raises ValueError with one
+line when the calibration cannot be used on those frames.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +44,8 @@ from services.runtime.node import Node
 
 Keys = tuple[str, ...] | Callable[[Any], tuple[str, ...]]
 """Key templates (``"{camera}/image"``) or a function of the validated params giving the keys."""
+FrameSizes = Mapping[str, tuple[int, int]]
+"""``{camera: (width, height)}``: the size of each camera's frames, in pixels."""
 
 
 @dataclass(frozen=True)
@@ -47,6 +59,8 @@ class NodeKind:
     inputs: Keys = ()
     outputs: Keys = ()
     check: Callable[[Any], None] | None = None
+    frame_sizes: Callable[[Any], FrameSizes] | None = None
+    check_frames: Callable[[Any, Callable[[], FrameSizes]], None] | None = None
 
     def validate(self, values: dict[str, Any]) -> BaseModel:
         """Validated parameters (pydantic's ValidationError names the field otherwise)."""
