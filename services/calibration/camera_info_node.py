@@ -5,11 +5,16 @@ Shared by the nodes that work on one camera's frames (marker poses, image target
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Role
-from services.calibration.camera_info import CalibrationError, fit_to_image
+from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
 from services.convert import camera_model
 from services.geometry.camera import CameraModel
+from services.runtime.kind import FrameSizes
 from services.runtime.node import Node, NodeError
 
 FIRST_INFO_WAIT_S = 0.05
@@ -82,3 +87,24 @@ class FrameCalibration:
             newest = received.message
         if newest is not None:
             self.model = camera_model(newest)
+
+
+class OwnCalibration(Protocol):
+    """The parameters of a node of one camera that may bring a calibration file of its own."""
+
+    @property
+    def camera(self) -> str: ...
+
+    @property
+    def calib(self) -> Path | None: ...
+
+
+def check_own_calibration(params: OwnCalibration, sizes: Callable[[], FrameSizes]) -> None:
+    """What ``FrameCalibration.fit`` would stop the node for at its first frame, told before start (a node kind's
+    ``check_frames``): CalibrationError naming the file and both sizes when ``params.calib`` has another aspect
+    ratio than the frames of ``params.camera``, whose size ``sizes()`` gives when the source tells it."""
+    if params.calib is None:
+        return
+    size = sizes().get(params.camera)
+    if size is not None:
+        fit_to_image(read_camera_info(params.calib), *size, str(params.calib))

@@ -397,6 +397,16 @@ def _check(params: Params) -> None:
             fit_to_image(camera, *size, str(path))
 
 
+def _frame_sizes(params: Params) -> dict[str, tuple[int, int]]:
+    """``{camera: (width, height)}`` of the cameras whose frame size is known before capturing (``frame_sizes``)."""
+    try:
+        names = params.cameras or camera_names(params.source, params.scene)
+        sizes = frame_sizes(params.source, params.scene)
+    except SourceError as exc:
+        raise ValueError(str(exc)) from exc
+    return {name: size for name, size in zip(names, sizes, strict=False) if size is not None}
+
+
 def _finite(params: Params) -> bool:
     """Whether the capture ends by itself: no loop, no camera device, and a frame count for a scene."""
     schemes = [check_uri(uri)[0] for uri in params.source]
@@ -416,4 +426,4 @@ def _frames(params: Params) -> int | None:
 
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
-                source=SourceRole(finite=_finite, frames=_frames))
+                source=SourceRole(finite=_finite, frames=_frames, sizes=_frame_sizes))

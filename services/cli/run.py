@@ -38,7 +38,8 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
     source = flags_for(kind("capture").params, SOURCE_SKIP)
     add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
-                                   "rig)"), source)
+                                   "rig unless --rig/--namespace or ARTRACK_RIG/ARTRACK_NAMESPACE name another)"),
+              source)
     p.add_argument("--scene-option", action="append", metavar="NAME=VALUE", help="a synthetic scene's option, "
                    "converted by its type (a list as JSON: ids=[1,2])")
     own = chosen.flags({flag.field: flag for flag in source})
@@ -131,7 +132,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         if len(sources) > 1 or len(given) > 1 or run_args.scene_option:
             raise JobError("a recording is the whole rig: give one --source recording:PATH and no other source "
                            "option")
-        source: NodeSpec | Recording = Recording.open(sources[0])
+        recording = Recording.open(sources[0])
+        source: NodeSpec | Recording = recording.onto(bus_config(run_args, defaults=recording.where()))
     else:
         scene = scene_option_texts(run_args.scene_option)
         try:
@@ -150,8 +152,6 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"run it with `artrack up {run_args.save_pipeline}`")
         return 0
     bus = bus_config(run_args, defaults=spec.bus)
-    if isinstance(source, Recording):
-        bus = source.on_bus(bus)
     return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args), run_args.strict)
 
 

@@ -68,7 +68,7 @@ from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration
+from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
 from services.convert import transform_from_matrix
 from services.estimation.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
@@ -256,4 +256,5 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 KIND = NodeKind(name="features", summary="image targets' poses from a camera's frames: recognised by keypoints, "
                 "then followed by Lucas-Kanade", params=Params, run=run,
-                inputs=("{camera}/image", "{camera}/camera_info"), outputs=_outputs, check=_check)
+                inputs=("{camera}/image", "{camera}/camera_info"), outputs=_outputs, check=_check,
+                check_frames=check_own_calibration)

@@ -49,7 +49,7 @@ from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration
+from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
 from services.convert import transform_from_matrix
 from services.detection.markers import MarkerDetector
 from services.detection.node import as_message
@@ -253,4 +253,5 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 KIND = NodeKind(name="marker_pose",
                 summary="marker and board poses from a camera's frames (or a markers node's detections)",
-                params=Params, run=run, inputs=_inputs, outputs=_outputs, check=_check)
+                params=Params, run=run, inputs=_inputs, outputs=_outputs, check=_check,
+                check_frames=check_own_calibration)

@@ -32,12 +32,14 @@ distances; and a body found in the previous set and missing from this one gets o
 ``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then
 ``lost`` if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
 
-Until every camera has a calibration, sets are counted as skipped (``no_calibration``).
+Until every camera has a calibration, sets are counted as skipped (``no_calibration``). A rig file is used
+as it is: one whose camera was calibrated at another size than that camera's frames is refused before
+start wherever the source tells the frame size (``check_frames``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
@@ -60,7 +62,7 @@ from services.estimation.rigid_bodies import Matching, MatchOptions, match_bodie
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import TriangulatedPoint
-from services.runtime.kind import NodeKind
+from services.runtime.kind import FrameSizes, NodeKind
 from services.runtime.node import Node, NodeError
 
 if TYPE_CHECKING:
@@ -325,5 +327,22 @@ def _check(params: Params) -> None:
     load(params)
 
 
+def _check_frames(params: Params, sizes: Callable[[], FrameSizes]) -> None:
+    """Each camera of the rig file against the size of its frames, where the source tells it (``sizes()``):
+    ValueError naming the file, the camera and both sizes when they differ. The file is used as it is,
+    with no scaling to the frames, as blobs carry no frame size to scale it to."""
+    if params.rig_file is None:
+        return
+    rig = read_rig(params.rig_file)
+    for name in params.cameras:
+        size = sizes().get(name)
+        camera = rig.camera(name)
+        if size is not None and (camera.width, camera.height) != size:
+            raise ValueError(f"{params.rig_file}: camera {name} is calibrated for {camera.width}x{camera.height}, "
+                             f"its frames are {size[0]}x{size[1]}: a rig file is used as it is (blob centroids "
+                             f"are in the frames' pixels), use one made at {size[0]}x{size[1]}")
+
+
 KIND = NodeKind(name="rigid_bodies", summary="rigid bodies' 6-DoF poses from the blobs of a calibrated rig's cameras",
-                params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check)
+                params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check,
+                check_frames=_check_frames)

@@ -3,8 +3,8 @@
 The job is a ``PipelineSpec`` like any pipeline file (``--save-pipeline`` writes it, ``artrack
 up`` runs it as a daemon): ``build_job`` fills a tracker template for the source's cameras.
 The source is a capture node (any capture URI) or a replay node (``recording:PATH.mcap``:
-the cameras' images, calibration and ground truth, restamped with the time they go out, on
-the recording's own rig). A job differs from a daemon only in its order and its end: the
+the cameras' images, calibration and ground truth, restamped with the time they go out, on its own
+rig or the one asked for). A job differs from a daemon only in its order and its end: the
 nodes that read the bus start first; once every one of them is live (plus a moment for their
 subscriptions to reach the bus), the sources (the nodes that read nothing). A finite source ends
 with an end of stream naming its last frame, and each node publishes its own end once it has
@@ -60,7 +60,10 @@ REPLAYED_STREAMS = ("image", "camera_info", "truth")
 @dataclass(frozen=True)
 class Recording:
     """A recorded session as a job's source: its cameras and the rig it is replayed on (the one it was
-    recorded on, unless ``moved_to`` another, where its keys are retargeted)."""
+    recorded on, unless ``moved_to`` another, where its keys are retargeted).
+
+    A job replays it ``onto`` the namespace and rig of its bus settings: ``where()`` (its own) unless the
+    command line or the environment name others."""
 
     path: Path
     cameras: tuple[str, ...]
@@ -88,13 +91,18 @@ class Recording:
             raise JobError(f"{uri}: no camera images in it")
         return cls(path, cameras, where["namespace"], where["rig"])
 
-    def on_bus(self, bus: BusConfig) -> BusConfig:
-        """``bus`` moved to the namespace and rig the recording's keys are replayed on."""
-        return bus.model_copy(update={"namespace": self.namespace, "rig": self.rig})
+    def where(self) -> dict[str, Any]:
+        """The namespace and rig it is replayed on, as bus settings (a pipeline's ``[bus]``)."""
+        return {"namespace": self.namespace, "rig": self.rig}
 
     def moved_to(self, bus: BusConfig) -> Recording:
         """This recording replayed on ``bus``'s namespace and rig instead of its own."""
         return replace(self, namespace=bus.namespace, rig=bus.rig, retarget=True)
+
+    def onto(self, bus: BusConfig) -> Recording:
+        """This recording replayed on ``bus``'s namespace and rig: as recorded when they are its own, else
+        ``moved_to`` them."""
+        return self if (bus.namespace, bus.rig) == (self.namespace, self.rig) else self.moved_to(bus)
 
     def node(self) -> tuple[str, dict[str, Any]]:
         keys = [f"{camera}/{stream}" for camera in self.cameras for stream in REPLAYED_STREAMS]
@@ -148,7 +156,7 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
         nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:
         nodes["viewer"] = NodeSpec(kind="viewer", rrd=str(rerun))
-    bus = {"namespace": source.namespace, "rig": source.rig} if isinstance(source, Recording) else {}
+    bus = source.where() if isinstance(source, Recording) else {}
     return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 
 

@@ -34,6 +34,7 @@ field and the reason.
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import tomllib
@@ -141,8 +142,10 @@ def resolved(spec: PipelineSpec, where: str = "pipeline") -> PipelineSpec:
 
 
 def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
-    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name),
-    so a pipeline that cannot start is refused before any process starts: PipelineError naming
+    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name), then
+    hold each node's own calibration against the frame sizes the sources tell before they start
+    (``NodeKind.check_frames``, ``SourceRole.sizes``), so a pipeline that cannot start, or whose
+    node would stop at its first frame, is refused before any process starts: PipelineError naming
     ``where``, the node and the reason."""
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)
@@ -150,6 +153,33 @@ def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
             node_kind.preflight(node_kind.validate(node.params))
         except (ValueError, OSError) as exc:
             raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+    sizes = functools.cache(functools.partial(_frame_sizes, spec, where))
+    for name, node in spec.nodes.items():
+        node_kind = kind(node.kind)
+        if node_kind.check_frames is None:
+            continue
+        try:
+            node_kind.check_frames(node_kind.validate(node.params), sizes)
+        except PipelineError:
+            raise  # a source that could not tell its sizes: already named
+        except (ValueError, OSError) as exc:
+            raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+
+
+def _frame_sizes(spec: PipelineSpec, where: str) -> dict[str, tuple[int, int]]:
+    """``{camera: (width, height)}`` of the frames the nodes of ``spec`` send, as far as their kinds tell before
+    they start (``SourceRole.sizes``: scenes, image folders, video files, recordings); PipelineError naming
+    ``where`` and the node when one cannot tell."""
+    sizes: dict[str, tuple[int, int]] = {}
+    for name, node in spec.nodes.items():
+        node_kind = kind(node.kind)
+        if node_kind.source is None:
+            continue
+        try:
+            sizes.update(node_kind.source.sizes(node_kind.validate(node.params)))
+        except (ValueError, OSError) as exc:
+            raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+    return sizes
 
 
 def read_pipeline(path: Path) -> PipelineSpec:

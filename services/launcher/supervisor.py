@@ -1,13 +1,16 @@
 """Process supervision: start commands, restart the ones that die, stop them all.
 
-A child that exits with code 0 has finished its job and is left alone. One that dies
-(non-zero code or a signal) while the supervisor runs is restarted after a back-off that doubles
-with each quick failure (0.5 s, 1 s, 2 s ... up to 10 s) and resets once the child has
-run for ``stable_s``. The restart budget bounds a crash loop: a child that would need more
-than ``max_restarts`` restarts within ``window_s`` seconds is marked failed, logged as an
-error and left down, while the others keep running. Stopping sends SIGTERM to every child, waits up to ``grace_s``, then
-SIGKILLs what is left and reaps everything. On Linux each child also asks the kernel for
-SIGTERM should the supervisor die without stopping it, so no child outlives it.
+A child that exits with code 0 has finished its job and is left alone. One that exits with
+code 2 (``EXIT_CANNOT_RUN``: it cannot do its job as asked, a node's ``NodeError``) would fail
+alike however often it started, so it is marked failed at once, logged as an error and left
+down. One that dies otherwise (another non-zero code or a signal) while the supervisor runs is
+restarted after a back-off that doubles with each quick failure (0.5 s, 1 s, 2 s ... up to
+10 s) and resets once the child has run for ``stable_s``. The restart budget bounds a crash
+loop: a child that would need more than ``max_restarts`` restarts within ``window_s`` seconds
+is marked failed, logged as an error and left down. The others keep running either way.
+Stopping sends SIGTERM to every child, waits up to ``grace_s``, then SIGKILLs what is left and
+reaps everything. On Linux each child also asks the kernel for SIGTERM should the supervisor
+die without stopping it, so no child outlives it.
 
 Each child's stderr passes through the supervisor line by line (to its own stderr), and the
 last line a child wrote before it exited is kept as the reason it exited (``reason``, a log
@@ -36,7 +39,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from services.runtime.restarts import RESTART_ENV
+from services.runtime.restarts import EXIT_CANNOT_RUN, RESTART_ENV
 
 log = logging.getLogger(__name__)
 
@@ -199,8 +202,13 @@ class Supervisor:
                     for name, c in self._children.items()]
 
     def failure(self, name: str) -> str:
-        """Why the child ``name`` was marked failed, in one line: its exits within the budget and their cause."""
+        """Why the child ``name`` was marked failed, in one line: that it cannot do its job and why (its
+        reason, less the ``node NAME: `` a node's line starts with), or its exits within the budget and their
+        cause."""
         child = self._children[name]
+        if child.exit_code == EXIT_CANNOT_RUN:
+            return (f"it cannot do its job (exit code {EXIT_CANNOT_RUN}, not restarted: it would fail alike): "
+                    f"{child.reason.removeprefix(f'node {name}: ')}")
         causes = set(child.causes)
         said = f"each time: {child.reason}" if len(causes) == 1 else f"the last time: {child.reason}"
         return (f"it exited {len(child.causes)} times within {self.settings.window_s:.0f} s, more than its restart "
@@ -261,7 +269,7 @@ class Supervisor:
             child.finished = True
             log.info("%s exited with %s after %.1f s", child.spec.name, how, ran)
             return
-        if not child.budget.allow(now):
+        if code == EXIT_CANNOT_RUN or not child.budget.allow(now):
             child.failed = True
             log.error("%s exited with %s after %.1f s; FAILED, left down: %s", child.spec.name, how, ran,
                       self.failure(child.spec.name),

@@ -369,6 +369,29 @@ def _check(params: Params) -> None:
         recorded_prefix(params.path)
 
 
+def _frame_sizes(params: Params) -> dict[str, tuple[int, int]]:
+    """``{camera: (width, height)}`` of the first image of each camera replayed (``<camera>/image`` of the rig the
+    recording was made on, within ``keys``); none for a recording that does not say its rig."""
+    try:
+        prefix = recorded_prefix(params.path)
+    except ValueError:
+        return {}
+    namespace, _, rig = prefix.rpartition("/")
+    selection = Selection(Keys(namespace, rig), params.keys)
+    sizes: dict[str, tuple[int, int]] = {}
+    for recorded in Scan(params.path).messages():
+        camera = recorded.channel.topic.removeprefix(f"{prefix}/").partition("/")[0]
+        if recorded.channel.topic != f"{prefix}/{camera}/image" or camera in sizes or not selection(recorded.channel):
+            continue
+        try:
+            image = decode(recorded.message.data)
+        except DecodeError:
+            continue
+        if isinstance(image, Image):
+            sizes[camera] = (image.width, image.height)
+    return sizes
+
+
 def _frames(params: Params) -> int | None:
     """Frames per camera the replay will send (the fewest images on an image channel it selects, by the
     image keys in ``keys``, or on any when none are named); None when looping or when the file cannot be
@@ -387,4 +410,4 @@ def _frames(params: Params) -> int | None:
 
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
-                source=SourceRole(finite=lambda params: not params.loop, frames=_frames))
+                source=SourceRole(finite=lambda params: not params.loop, frames=_frames, sizes=_frame_sizes))

@@ -25,11 +25,19 @@ A kind's role tells the launcher what it is for a job, so no launcher code names
 ``source`` (a ``SourceRole``) for a kind that brings frames onto the bus (whether it ends by
 itself, how many frames it will send), ``sink`` (a ``SinkRole``) for one that takes in
 everything to write it somewhere (the files it writes).
+
+One more looks across the nodes of a pipeline, where one node's files meet another's frames
+(the sizes its sources tell, ``SourceRole.sizes``). ``check_frames``
+(optional, a node that may bring a calibration of its own) holds that calibration against those
+sizes: it is given the validated parameters and a function that returns ``{camera: (width,
+height)}`` of every camera the pipeline's sources told (telling them may read files or build a
+scene, so it is called only when there is a calibration to hold), and raises ValueError with one
+line when the calibration cannot be used on those frames.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +48,8 @@ from services.runtime.node import Node
 
 Keys = tuple[str, ...] | Callable[[Any], tuple[str, ...]]
 """Key templates (``"{camera}/image"``) or a function of the validated params giving the keys."""
+FrameSizes = Mapping[str, tuple[int, int]]
+"""``{camera: (width, height)}``: the size of each camera's frames, in pixels."""
 
 
 @dataclass(frozen=True)
@@ -48,11 +58,15 @@ class SourceRole:
 
     ``finite``: whether the node ends by itself (files, a recording, a scene with a frame count;
     not a camera, an endless scene or a loop). ``frames``: how many frames per camera it will
-    send; None when it has no end or that cannot be told before it starts.
+    send; None when it has no end or that cannot be told before it starts. ``sizes``: the size of
+    the frames each of its cameras will send, where the parameters tell it before start (a scene,
+    an image folder, a video file, a recording): ``{camera: (width, height)}``, cameras of unknown
+    size left out.
     """
 
     finite: Callable[[Any], bool]
     frames: Callable[[Any], int | None]
+    sizes: Callable[[Any], FrameSizes]
 
 
 @dataclass(frozen=True)
@@ -76,6 +90,7 @@ class NodeKind:
     check: Callable[[Any], None] | None = None
     source: SourceRole | None = None
     sink: SinkRole | None = None
+    check_frames: Callable[[Any, Callable[[], FrameSizes]], None] | None = None
 
     def validate(self, values: dict[str, Any]) -> BaseModel:
         """Validated parameters (pydantic's ValidationError names the field otherwise)."""

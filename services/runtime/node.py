@@ -58,6 +58,7 @@ from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
 from services.runtime.flow import Credits, Ends, FlowPlan, end_message
 from services.runtime.memory import settle_heap
 from services.runtime.reconfig import LiveParams
+from services.runtime.restarts import EXIT_CANNOT_RUN
 from services.runtime.sync import JoinBy, Joiner, join_key, key_tolerance
 
 M = TypeVar("M", bound=Message)
@@ -97,7 +98,8 @@ class Tapped(Protocol):
 class NodeError(RuntimeError):
     """A node cannot do its job (a missing camera, a bad file): the message says what and why.
 
-    ``run_node`` logs it as one line, without a traceback, and exits with code 2.
+    ``run_node`` logs it as one line, without a traceback, and exits with code 2 (``EXIT_CANNOT_RUN``): a
+    supervisor does not restart it.
     """
 
 
@@ -614,7 +616,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
         node = Node(name, kind, bus, flow=flow)
     except (BusError, NameTaken) as exc:
         log.error("%s", exc)
-        return 2
+        return EXIT_CANNOT_RUN
     with node:
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: node.stop())
@@ -624,7 +626,7 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
             body(node)
         except NodeError as exc:
             log.error("node %s: %s", name, exc)
-            return 2
+            return EXIT_CANNOT_RUN
         except Exception:
             log.exception("node %s failed", name)
             return 1
@@ -632,6 +634,6 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
             node.linger()
     if node.taken is not None:
         log.error("%s", node.taken)
-        return 2
+        return EXIT_CANNOT_RUN
     log.info("node %s stopped", name)
     return 0

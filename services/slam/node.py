@@ -64,7 +64,7 @@ from protocol.spatial import Transform
 from protocol.system import StageTimings
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration
+from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
 from services.convert import transform_from_matrix
 from services.detection.grey import as_grey
 from services.detection.settings import DEFAULT_DICTIONARY, DetectorSettings
@@ -375,4 +375,4 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 KIND = NodeKind(name="slam", summary="monocular SLAM: the camera's pose in a map of keyframes and points built "
                 "from its frames", params=Params, run=run, inputs=("{camera}/image", "{camera}/camera_info"),
-                outputs=_outputs, check=_check)
+                outputs=_outputs, check=_check, check_frames=check_own_calibration)

@@ -1,5 +1,6 @@
-"""The life of an ``artrack run`` job: a node that cannot start, a killed recorder, a crash loop,
-a damaged recording as source, Ctrl-C, and ``artrack status`` on a running job."""
+"""The life of an ``artrack run`` job: a node that cannot start, a killed recorder, a crash loop, a node
+that cannot do its job once frames come, a damaged recording as source, Ctrl-C, and ``artrack status`` on a
+running job."""
 
 import os
 import shutil
@@ -103,6 +104,20 @@ def test_a_node_that_keeps_dying_spends_its_restart_budget_and_ends_the_job(proc
     assert job.wait(START_S) == 1, job.describe()
     last = [line for line in job.stderr.splitlines() if line.strip()][-1]
     assert "node echo failed: it exited 2 times" in last and "each time: killed by SIGKILL" in last, job.describe()
+
+
+def test_a_node_that_cannot_do_its_job_is_not_restarted_and_ends_the_job_with_its_reason(procs, tmp_path):
+    """A node that stops with a NodeError once frames come (exit 2) would fail alike however often it
+    started: it is left down, and the job ends at once with code 1 and the node's one line."""
+    path = tmp_path / "give_up.toml"
+    path.write_text(f'[nodes.cam]\nkind = "capture"\nsource = ["synthetic:pattern"]\nframes = {ENDLESS}\nfps = 5\n'
+                    'scene = { width = 96, height = 64 }\n\n[nodes.give-up]\nkind = "give_up"\ncamera = "cam0"\n')
+    job = procs.artrack("run", str(path), name="job", env={"ARTRACK_PLUGINS": "tests.plugin_tracker"})
+    assert job.wait(START_S) == 1, job.describe()
+    last = [line for line in job.stderr.splitlines() if line.strip()][-1]
+    assert last.endswith("node give-up failed: it cannot do its job (exit code 2, not restarted: it would fail "
+                         "alike): cam0 sends 96x64 frames, which this node cannot use"), job.describe()
+    assert "restarting" not in job.stderr and job.stderr.count("started give-up") == 1, job.describe()
 
 
 def test_a_killed_recorder_goes_on_in_a_new_part_and_info_lists_the_parts(procs, session, bus, tmp_path):

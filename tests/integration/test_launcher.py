@@ -7,12 +7,15 @@ import signal
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Role
+from services.calibration.camera_info import write_camera_info
+from services.geometry.camera import CameraModel
 
-from .support import START_S, live_names, pid_alive, states, wait_live, wait_until
+from .support import ROOT, START_S, live_names, pid_alive, states, wait_live, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -136,3 +139,20 @@ def test_bad_pipeline_is_refused_before_anything_starts(bus, procs, tmp_path, ca
     assert done.stdout == ""
     started = [p.read_text() for p in seen.iterdir()]
     assert len(started) == 1 and " up " in started[0], f"processes started: {started}"
+
+
+def test_up_refuses_a_nodes_own_calibration_made_for_other_frames_before_anything_starts(procs, tmp_path):
+    """A pipeline file's replay tells the size of the frames it will send (the recording's first image of each
+    camera it replays), and a node's own calibration file is held against it before any process starts."""
+    calib, path = tmp_path / "hd.yaml", tmp_path / "hd.toml"
+    K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])
+    write_camera_info(calib, CameraModel("cam0", 1280, 720, K, np.zeros(5), np.eye(4)))
+    path.write_text(f'[nodes.replay]\nkind = "replay"\npath = "{ROOT / "recordings" / "markers.mcap"}"\n'
+                    'keys = ["cam0/image"]\n\n'
+                    f'[nodes.marker]\nkind = "marker_pose"\nmarker_length = 0.05\ncalib = "{calib}"\n')
+    done = procs.run("up", str(path))
+    assert done.poll() == 2, done.describe()
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, done.stderr
+    assert (f"ERROR artrack: {path}: nodes.marker: {calib}: calibrated for 1280x720, the frames are 640x480 "
+            "(another aspect ratio)") in lines[0], done.stderr

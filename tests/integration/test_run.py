@@ -1,5 +1,6 @@
 """``artrack run``: a whole job in processes, recorded, ending with its finite source."""
 
+import dataclasses
 import tomllib
 
 import cv2
@@ -10,8 +11,15 @@ from mcap.reader import make_reader
 from protocol import decode
 from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Role
-from tests.integration.support import START_S, collect
+from services.calibration.camera_info import write_camera_info
+from services.calibration.rig import Rig, write_rig
+from services.capture.scenes import make_scene
+from services.geometry.camera import CameraModel
+from services.recorder.info import summarise
+from tests.integration.support import ROOT, START_S, collect
 from tests.viewer_contents import RrdContents
+
+RECORDINGS = ROOT / "recordings"
 
 
 def test_run_records_a_finite_job_and_exits_cleanly(procs, tmp_path):
@@ -84,6 +92,57 @@ def test_run_refuses_what_its_nodes_could_not_start_with_before_starting_any(pro
     assert job.poll() == 2, job.describe()
     lines = [line for line in job.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and expected.format(existing=existing) in lines[0], job.stderr
+
+
+WRONG_SIZE = "calibrated for 1280x720, the frames are 640x480 (another aspect ratio): use a calibration made at 640x480"
+
+
+@pytest.mark.parametrize(("options", "expected"), [
+    (["marker", "--source", "recording:{recordings}/markers.mcap", "--marker-length", "0.05",
+      "--marker-pose-calib", "{hd}"], "job: nodes.marker-cam0: {hd}: " + WRONG_SIZE),
+    (["marker", "--source", "synthetic:markers", "--frames", "5", "--marker-length", "0.05", "--calib", "{hd}"],
+     "job: nodes.capture: {hd}: " + WRONG_SIZE),
+    (["features", "--source", "synthetic:planar_target", "--frames", "5", "--target", "synthetic:planar_target",
+      "--features-calib", "{hd}"], "job: nodes.features-cam0: {hd}: " + WRONG_SIZE),
+    (["slam", "--source", "images:{images}", "--slam-calib", "{hd}"], "job: nodes.slam-cam0: {hd}: " + WRONG_SIZE),
+    (["stereo", "--source", "recording:{recordings}/ir_rig.mcap", "--rig-file", "{rig}"],
+     "job: nodes.bodies: {rig}: camera cam0 is calibrated for 1280x960, its frames are 640x480"),
+], ids=["marker-pose-calib", "calib", "features-calib", "slam-calib", "rig-file"])
+def test_run_refuses_a_calibration_made_for_other_frames_before_starting(procs, tmp_path, options, expected):
+    """Every calibration option, the capture's and a node's own, is held against the size of the source's frames
+    before any process starts (each of these sources sends 640x480 frames)."""
+    hd, rig, images = tmp_path / "hd.yaml", tmp_path / "rig.yaml", tmp_path / "images"
+    K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])
+    write_camera_info(hd, CameraModel("cam0", 1280, 720, K, np.zeros(5), np.eye(4)))
+    doubled = np.diag([2.0, 2.0, 1.0])  # the ir_rig scene's cameras as a rig file made at twice their size
+    write_rig(rig, Rig("bar", tuple(dataclasses.replace(camera, width=2 * camera.width, height=2 * camera.height,
+                                                        K=doubled @ camera.K)
+                                    for camera in make_scene("ir_rig").cameras)))
+    images.mkdir()
+    cv2.imwrite(str(images / "0.png"), np.zeros((480, 640), np.uint8))
+    places = {"hd": hd, "rig": rig, "images": images, "recordings": RECORDINGS}
+    job = procs.run("run", *[option.format(**places) for option in options])
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and f" ERROR artrack: {expected.format(**places)}" in lines[0], job.stderr
+
+
+def test_a_recording_is_replayed_on_the_rig_asked_for(procs, bus, tmp_path):
+    """ARTRACK_RIG (the test's rig, in every process's environment) and --rig move a recording's replay off the
+    rig it was made on, so two jobs of one recording run side by side, each on its own rig."""
+    by_env, by_flag = tmp_path / "env.mcap", tmp_path / "flag.mcap"
+    other = f"{bus.rig}-flag"
+    jobs = [procs.artrack("run", "echo", "--source", f"recording:{RECORDINGS / 'pattern.mcap'}", "--record",
+                          str(out), *options, name=out.stem)
+            for out, options in ((by_env, ()), (by_flag, ("--rig", other)))]
+    for job in jobs:
+        assert job.wait(4 * START_S) == 0, job.describe()
+    for out, rig in ((by_env, bus.rig), (by_flag, other)):
+        info = summarise(out)
+        assert info.metadata["artrack.recording"]["rig"] == rig
+        keys = {channel.key for channel in info.channels if channel.messages}
+        assert {f"ar/{rig}/cam0/image", f"ar/{rig}/cam0/truth", f"ar/{rig}/cam0/echo"} <= keys, keys
+        assert all(key.startswith(f"ar/{rig}/") for key in keys), keys
 
 
 @pytest.mark.parametrize("length", ["0", "-0.05"])

@@ -1,1 +1,1 @@
-"""A node kind and a tracker that exist only here, found through ``ARTRACK_PLUGINS=tests.plugin_tracker``."""
+"""Node kinds and a tracker that exist only here, found through ``ARTRACK_PLUGINS=tests.plugin_tracker``."""

@@ -1,5 +1,5 @@
 """What the supervisor keeps of a child's exit: its last stderr line as the reason, the restart number it
-passes on, and a one-line account of a spent restart budget."""
+passes on, and a one-line account of a spent restart budget or of a child that cannot do its job."""
 
 from __future__ import annotations
 
@@ -62,6 +62,21 @@ def test_children_learn_their_restart_number_and_a_spent_budget_says_the_cause_w
     assert seen.read_text().split() == ["0", "1", "2"]
     assert supervisor.failure("rec") == ("it exited 3 times within 60 s, more than its restart budget (2 restarts) "
                                          "allows; each time: disk full")
+
+
+def test_a_child_that_cannot_do_its_job_is_failed_at_once_and_says_why(tmp_path: Path):
+    seen = tmp_path / "starts"
+    code = (f"import sys; open({str(seen)!r}, 'a').write('start '); "
+            "print('node cam: no camera 7', file=sys.stderr); sys.exit(2)")
+    settings = SupervisorSettings(backoff_s=0.01, max_backoff_s=0.01, max_restarts=5)
+    supervisor = Supervisor([_child("cam", code)], settings)
+    supervisor.start()
+    _until_settled(supervisor)
+    (health,) = supervisor.health()
+    assert (health.state, health.restarts, health.exit_code) == ("failed", 0, 2)
+    assert seen.read_text().split() == ["start"]
+    assert supervisor.failure("cam") == ("it cannot do its job (exit code 2, not restarted: it would fail alike): "
+                                         "no camera 7")
 
 
 def test_a_killed_child_is_said_to_be_killed_whatever_it_wrote_last():
