@@ -426,4 +426,5 @@ def _frames(params: Params) -> int | None:
 
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
-                source=SourceRole(finite=_finite, frames=_frames, sizes=_frame_sizes))
+                source=SourceRole(finite=_finite, frames=_frames, fps=lambda params: params.fps,
+                                  wall_stamps=lambda params: params.stamps == "wall", sizes=_frame_sizes))

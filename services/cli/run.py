@@ -8,13 +8,10 @@ import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ValidationError
-
 from services.cli.bus_options import add_bus_options, bus_config
 
 if TYPE_CHECKING:
-    from services.launcher.flags import Flag
-    from services.launcher.pipeline import PipelineSpec
+    pass
 
 log = logging.getLogger("artrack")
 
@@ -70,20 +67,6 @@ def _display_options(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--quiet", action="store_true", help="no progress and no summary at the end")
 
 
-def _with_flow(spec: PipelineSpec, args: argparse.Namespace) -> PipelineSpec:
-    """``spec`` with the flow asked by ``--flow`` and ``--window`` (what is not given stays as it was)."""
-    from services.launcher.flow import FlowSettings
-
-    given = {field: value for field, value in (("mode", args.flow), ("window", args.window)) if value is not None}
-    if not given:
-        return spec
-    try:
-        flow = FlowSettings.model_validate({**spec.flow.model_dump(), **given})
-    except ValidationError as exc:
-        raise ValueError(f"--window: {exc.errors()[0]['msg']}") from exc
-    return spec.model_copy(update={"flow": flow})
-
-
 def _display(args: argparse.Namespace):
     from services.launcher.progress import Display
 
@@ -102,10 +85,11 @@ def scene_option_texts(given: list[str] | None) -> dict[str, str]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from services.launcher.flags import explain, given_values
-    from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job, run_job
-    from services.launcher.kinds import catalogue, kind
-    from services.launcher.pipeline import NodeSpec, read_pipeline, save_pipeline
+    from services.launcher.assembly import JobRequest, assemble, with_flow
+    from services.launcher.flags import given_values
+    from services.launcher.job import run_job
+    from services.launcher.kinds import catalogue
+    from services.launcher.pipeline import read_pipeline, save_pipeline
     from services.launcher.tracker import Tracker
 
     asked = args.tracker in ("-h", "--help") or (args.tracker is None and {"-h", "--help"} & set(args.rest))
@@ -118,32 +102,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 0 if asked else 2
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
-        spec = _with_flow(read_pipeline(Path(args.tracker)), run_args)
+        spec = with_flow(read_pipeline(Path(args.tracker)), _flow_given(run_args))
         bus = bus_config(run_args, defaults=spec.bus, source=args.tracker)
         return run_job(bus, spec, args.tracker, _display(run_args), run_args.strict)
     p, source_flags, own_flags = _run_parser(args.tracker)
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
-    options = given_values(run_args, own_flags)
-    sources = given.get("source", [])
-    if not sources:
+    if not given.get("source"):
         p.error("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
-    if any(uri.startswith(RECORDING_SCHEME) for uri in sources):
-        if len(sources) > 1 or len(given) > 1 or run_args.scene_option:
-            raise JobError("a recording is the whole rig: give one --source recording:PATH and no other source "
-                           "option")
-        recording = Recording.open(sources[0])
-        source: NodeSpec | Recording = recording.onto(bus_config(run_args, defaults=recording.where()))
-    else:
-        scene = scene_option_texts(run_args.scene_option)
-        try:
-            captured = kind("capture").validate({**given, "scene": scene})
-        except ValidationError as exc:
-            raise ValueError(explain(exc, source_flags, "source")) from exc
-        source = NodeSpec(kind="capture", **given, **({"scene": scene} if scene else {}))
-        options = _with_known_settings(options, own_flags, captured)
-    spec = _with_flow(build_job(Tracker.load(args.tracker), source, options, own_flags, run_args.record,
-                                run_args.rerun), run_args)
+    bus, spec = assemble(JobRequest(
+        tracker=args.tracker, source=given, bus=lambda defaults: bus_config(run_args, defaults=defaults),
+        scene=scene_option_texts(run_args.scene_option), options=given_values(run_args, own_flags), flags=own_flags,
+        source_flags=source_flags, record=run_args.record, rerun=run_args.rerun, flow=_flow_given(run_args)))
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
         save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "
@@ -151,24 +121,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"wrote {run_args.save_pipeline}: {len(spec.nodes)} nodes ({', '.join(spec.nodes)}); "
               f"run it with `artrack up {run_args.save_pipeline}`")
         return 0
-    bus = bus_config(run_args, defaults=spec.bus)
     return run_job(bus, spec, f"artrack run {args.tracker}", _display(run_args), run_args.strict)
 
 
-def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
-    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
-    tracker's flags not given; each value taken said in one line."""
-    from services.capture.sources import known_settings
-
-    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
-    taken = dict(options)
-    for flag in flags:
-        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
-            value, uri = known[flag.field]
-            taken[flag.key] = value
-            shown = " ".join(map(str, value)) if isinstance(value, tuple | list) else value
-            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, shown, uri, flag.option)
-    return taken
+def _flow_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The flow fields given by ``--flow`` and ``--window``."""
+    return {name: value for name, value in (("mode", args.flow), ("window", args.window)) if value is not None}
 
 
 def _command_line(argv: list[str], without: str) -> str:

@@ -151,9 +151,10 @@ class JobWatch:
         self.source = sources[0]
         source = spec.nodes[self.source]
         self.total = frames_expected(source)
-        fps = source.params.get("fps")
-        self.asked = None if fps is None else float(fps)
-        self.wall_stamps = source.kind == "replay" or source.params.get("stamps", "wall") == "wall"
+        declared = kind(source.kind)
+        params = declared.validate(source.params)
+        self.asked = declared.source.fps(params) if declared.source is not None else None
+        self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params)
         self.figures = JobFigures()
         self._lock = threading.Lock()
         self._stop = threading.Event()

@@ -410,4 +410,5 @@ def _frames(params: Params) -> int | None:
 
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
-                source=SourceRole(finite=lambda params: not params.loop, frames=_frames, sizes=_frame_sizes))
+                source=SourceRole(finite=lambda params: not params.loop, frames=_frames, fps=lambda params: None,
+                                  wall_stamps=lambda params: params.restamp, sizes=_frame_sizes))

@@ -58,7 +58,9 @@ class SourceRole:
 
     ``finite``: whether the node ends by itself (files, a recording, a scene with a frame count;
     not a camera, an endless scene or a loop). ``frames``: how many frames per camera it will
-    send; None when it has no end or that cannot be told before it starts. ``sizes``: the size of
+    send; None when it has no end or that cannot be told before it starts. ``fps``: the pace asked
+    (None: the source's own). ``wall_stamps``: whether frames are stamped with the time they go out
+    (so their stamps measure latency). ``sizes``: the size of
     the frames each of its cameras will send, where the parameters tell it before start (a scene,
     an image folder, a video file, a recording): ``{camera: (width, height)}``, cameras of unknown
     size left out.
@@ -66,6 +68,8 @@ class SourceRole:
 
     finite: Callable[[Any], bool]
     frames: Callable[[Any], int | None]
+    fps: Callable[[Any], float | None]
+    wall_stamps: Callable[[Any], bool]
     sizes: Callable[[Any], FrameSizes]
 
 
