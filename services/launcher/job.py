@@ -220,6 +220,8 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
                 return JobExit.NODE_FAILED
             if stop.is_set():
                 return interrupted
+        if watch is not None:
+            watch.restarts = {child.name: child.restarts for child in supervisor.health() if child.restarts}
         if strict and ended == JobExit.DONE and watch is not None:
             watch.gather()
             why = watch.losses()

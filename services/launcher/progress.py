@@ -156,6 +156,8 @@ class JobWatch:
         self.asked = declared.source.fps(params) if declared.source is not None else None
         self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params)
         self.figures = JobFigures()
+        self.restarts: dict[str, int] = {}
+        """Nodes the job restarted, and how often (set by the job before the summary)."""
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._started = time.monotonic()
@@ -269,12 +271,15 @@ class JobWatch:
         return "\n".join(lines)
 
     def losses(self, stats: dict[str, NodeStats] | None = None) -> str | None:
-        """One line saying which nodes dropped frames, missed frames on the bus or could not join them;
-        None when none did."""
+        """One line saying which nodes dropped frames, missed frames on the bus, could not join them or were
+        restarted (losing the frames they held); None when none did."""
         if stats is None:
             with self._lock:
                 stats = {name: s for name, s in self.figures.stats.items() if name in self.spec.nodes}
         parts = []
+        if self.restarts:
+            parts.append("restarted (the frames they held are lost) " +
+                         ", ".join(f"{name} {count}x" for name, count in sorted(self.restarts.items())))
         for what, count in (("dropped", lambda s: s.dropped), ("missing (never arrived)", lambda s: s.missing),
                             ("unjoined", lambda s: s.unjoined)):
             counts = {name: count(s) for name, s in sorted(stats.items()) if count(s)}

@@ -94,11 +94,13 @@ class Credits:
             return
         with self._cond:
             name = ack.node
-            if self._runs.get(name) != ack.started_ns:  # a new run of the node: caught up with what was sent
-                self._runs[name] = ack.started_ns
-                self._acked[name] = max(ack.seq, self._sent[-1] if self._sent and name in self._acked else ack.seq)
+            if name not in self._runs:
+                self._acked[name] = ack.seq
+            elif self._runs[name] != ack.started_ns:  # a new run of the node: caught up with what was sent
+                self._acked[name] = max(ack.seq, self._sent[-1] if self._sent else ack.seq)
             else:
                 self._acked[name] = max(self._acked[name], ack.seq)
+            self._runs[name] = ack.started_ns
             self._gone.discard(name)
             self._cond.notify_all()
 
@@ -123,8 +125,9 @@ class Credits:
         started = time.monotonic()
         noted = started
         with self._cond:
-            if self._sent and seq <= self._sent[-1]:
+            if self._sent and seq <= self._sent[-1]:  # the source started over: so do the counts
                 self._sent.clear()
+                self._acked = dict.fromkeys(self._acked, -1)
             while (blocking := self._blocking()) and running() and not self._stopped:
                 self._cond.wait(0.1)
                 now = time.monotonic()

@@ -23,7 +23,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -166,5 +165,4 @@ def bench_lossless() -> list[dict[str, Any]]:
         lines = [line for tracker in TRACKERS for line in bench_tracker(tracker, folder)]
         lines.append(bench_credits(folder))
         lines.append(bench_slam_process(folder))
-        time.sleep(0)
     return lines
