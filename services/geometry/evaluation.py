@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry.absolute_orientation import umeyama_alignment
-from services.geometry.rotation import rotation_angle
+from services.geometry.rotation import rotation_angle, rotation_angles
 
 __all__ = [
     "ALIGNMENTS",
@@ -257,16 +257,7 @@ def relative_pose_error(est: np.ndarray, gt: np.ndarray, delta: float = 1, unit:
     motion_est = np.linalg.inv(P[i]) @ P[j]
     motion_gt = np.linalg.inv(G[i]) @ G[j]
     E = np.linalg.inv(motion_gt) @ motion_est
-    return RelativeError(pairs, np.linalg.norm(E[:, :3, 3], axis=1), _angles(E[:, :3, :3]))
-
-
-def _angles(R: np.ndarray) -> np.ndarray:
-    """(M,) rotation angles (rad) of (M, 3, 3) rotations, from both the cosine and the sine of the angle
-    (accurate near 0 and pi, where an arccos of the trace alone loses half the digits)."""
-    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
-    sin = np.linalg.norm(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
-                                  axis=1), axis=1) / 2
-    return np.arctan2(sin, cos)
+    return RelativeError(pairs, np.linalg.norm(E[:, :3, 3], axis=1), rotation_angles(E[:, :3, :3]))
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt_ns: int) -> np.ndarray:

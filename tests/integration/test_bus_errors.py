@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import socket
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -30,17 +29,15 @@ COMMANDS = {
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 def test_client_with_no_router_fails_with_one_clear_line(procs, unused_endpoint, command):
     dead = unused_endpoint
-    started = time.monotonic()
     env = {"ARTRACK_RETRY": "0"} if command == "node" else None
-    done = procs.run(*COMMANDS[command], "--mode", "client", "--connect", dead, timeout=30, env=env)
-    took = time.monotonic() - started
+    # It gives up rather than retrying: 15 s catches a retry loop (the time is the `refusals` benchmark's).
+    done = procs.run(*COMMANDS[command], "--mode", "client", "--connect", dead, timeout=15, env=env)
     assert done.poll() not in (None, 0), done.describe()
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, f"expected one error line:\n{done.stderr}"
     assert "ERROR" in lines[0] and dead in lines[0] and "client" in lines[0], lines[0]
     assert "Traceback" not in done.stderr
     assert done.stdout == ""
-    assert took < 15, f"took {took:.1f} s to give up"
 
 
 @pytest.mark.parametrize("command", ["list", "router"])

@@ -8,7 +8,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -141,16 +140,12 @@ def test_demo_names_a_missing_recording(procs, tmp_path):
 
 
 @pytest.mark.parametrize("kind, params", [("echo", {"camera": "cam0"}), ("capture", SMALL_CAMERA)])
-def test_node_stops_within_2s_on_sigterm_and_leaves_the_bus(bus, procs, session, kind, params):
+def test_node_stops_on_sigterm_and_leaves_the_bus(bus, procs, session, kind, params):
     node = start_node(procs, kind, "n1", **params)
     wait_live(session, bus.keys, {"n1"}, [node])
     wait_until(lambda: "n1" in states(session, bus.keys), START_S, "the node to answer its state query")
-    started = time.monotonic()
     os.kill(node.pid, signal.SIGTERM)
-    code = node.wait(10)
-    took = time.monotonic() - started
-    assert code == 0, node.describe()
-    assert took < 2.0, f"{kind} node took {took:.2f} s to stop on SIGTERM"
+    assert node.wait(10) == 0, node.describe()  # a hang, not a slow stop: the time is the `stops` benchmark's
     assert "node n1 stopped" in node.stderr
     wait_until(lambda: "n1" not in live_names(session, bus.keys), 5, "the node's liveliness token to go")
     assert "n1" not in states(session, bus.keys)

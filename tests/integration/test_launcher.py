@@ -81,13 +81,10 @@ def test_up_runs_restarts_and_stops_a_pipeline(bus, procs, session, tmp_path):
                START_S, "the restarted echo node to count what it relayed")
     assert "echo exited with signal 9" in launcher.stderr
 
-    # SIGTERM the launcher: it stops within 2 s and nothing it started is left.
-    started = time.monotonic()
+    # SIGTERM the launcher: it stops (10 s catches a hang; the time is the `stops` benchmark's) and nothing
+    # it started is left.
     launcher.popen.send_signal(signal.SIGTERM)
-    code = launcher.wait(10)
-    took = time.monotonic() - started
-    assert code == 0, launcher.describe()
-    assert took < 2.0, f"the launcher took {took:.2f} s to stop"
+    assert launcher.wait(10) == 0, launcher.describe()
     seen = [launcher.pid, *pids.values(), new_echo]
     assert [pid for pid in seen if pid_alive(pid)] == [], f"left running: {seen}"
     wait_until(lambda: not live_names(session, keys), 5, "the nodes' liveliness tokens to go")

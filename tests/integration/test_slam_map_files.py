@@ -1,6 +1,7 @@
 """``artrack run slam`` with map files: a run saves its map as the node stops, a second run of the same
 frames localises in it without changing it; map files and options that cannot work are refused before any
-process starts, and a map made for another camera is refused by the running node, which goes on."""
+process starts (how long that takes is the ``refusals`` benchmark's), and a map made for another camera is
+refused by the running node, which goes on."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import dataclasses
 import json
 import os
 import signal
-import time
 
 import numpy as np
 import pytest
@@ -30,7 +30,6 @@ FRAMES = 90
 KEY = "pose/slam/cam0"
 MARGIN_M = 0.005
 """How much worse than the mapping run the localising run's ATE may be (metres of the room)."""
-REFUSED_S = 3.0
 
 
 def _run(procs, *options: str):
@@ -91,14 +90,11 @@ def test_run_refuses_map_files_and_options_that_cannot_work_before_starting(proc
     garbage, missing = tmp_path / "garbage.npz", tmp_path / "missing.npz"
     garbage.write_bytes(b"not a map, " * 100)
     paths = {"garbage": garbage, "missing": missing, "folder": tmp_path}
-    start = time.monotonic()
     job = procs.run("run", "slam", "--source", "synthetic:room", "--frames", "5",
                     *[o.format(**paths) for o in options])
-    seconds = time.monotonic() - start
     assert job.poll() == 2, job.describe()
     lines = [line for line in job.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and expected.format(**paths) in lines[0], job.stderr
-    assert seconds < REFUSED_S, seconds
 
 
 def test_the_node_goes_on_past_a_map_of_another_camera_and_says_once_when_its_map_cannot_be_saved(

@@ -1,11 +1,11 @@
 """``artrack run slam`` on a recording and on a video file, by real processes over a real bus: the room scene
 recorded (or written to a lossless video beside its calibration file) is tracked and scored against its
-ground truth; a source path that does not exist, or a file that is no video, is refused at once, in one line."""
+ground truth; a source path that does not exist, or a file that is no video, is refused in one line before any job
+starts (how long that takes is the ``refusals`` benchmark's)."""
 
 from __future__ import annotations
 
 import json
-import time
 
 import cv2
 import numpy as np
@@ -26,7 +26,6 @@ FPS = 30
 KEY = "pose/slam/cam0"
 ATE_BAR_M = 0.05
 """Loose bar on the ATE after Sim(3) (metres of the room): tracked in process, the room scores 1-2 cm."""
-REFUSED_S = 3.0
 
 
 def _slam(procs, *options: str) -> list[Pose]:
@@ -91,14 +90,11 @@ def test_slam_tracks_a_video_file_with_a_calibration_file_scored_by_frame_index(
     ("recording:/nope.mcap", "recording:/nope.mcap: no such recording"),
     ("video:{garbage}", "video:{garbage}: OpenCV cannot read this file"),
 ], ids=["missing-video", "missing-recording", "garbage-video"])
-def test_a_source_that_cannot_be_read_is_refused_at_once_in_one_line(procs, tmp_path, source, expected):
+def test_a_source_that_cannot_be_read_is_refused_in_one_line_before_starting(procs, tmp_path, source, expected):
     garbage = tmp_path / "garbage.mkv"
     garbage.write_bytes(b"not a video, " * 400)
     source, expected = source.format(garbage=garbage), expected.format(garbage=garbage)
-    start = time.monotonic()
     job = procs.run("run", "slam", "--source", source, "--depth", "5")
-    seconds = time.monotonic() - start
     assert job.poll() == 2, job.describe()
     lines = [line for line in job.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and expected in lines[0], job.stderr
-    assert seconds < REFUSED_S, seconds

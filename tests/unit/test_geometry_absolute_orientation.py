@@ -44,7 +44,7 @@ def test_three_point_and_least_squares_agree_on_three_exact_points(seed):
     a = fit_rigid(body, world, method="three_point").T_world_body
     b = fit_rigid(body, world, method="svd").T_world_body
     rotation, translation = pose_error(a, b)
-    assert rotation < 1e-10 and translation < 1e-12
+    assert rotation < 1e-12 and translation < 1e-12
 
 
 def test_least_squares_matches_scipy_kabsch_on_noisy_points():

@@ -14,6 +14,9 @@ from services.recorder.reading import Recorded, Scan
 from services.recorder.writing import RecordingWriter
 
 MS = 1_000_000
+STALL_MS = 100
+"""Later than due by this much is a stall, not the scheduling jitter of a busy machine (replay's timing
+on an idle one is the recorder benchmark's: p99 about 1 ms)."""
 
 
 class FakeClock:
@@ -35,6 +38,17 @@ def recording(path: Path, gaps_ms: list[int], keys: tuple[str, ...] = ("ar/r/pos
         writer.flush()
     writer.close()
     return path
+
+
+class Readings:
+    """The monotonic clock (ns), keeping every reading."""
+
+    def __init__(self) -> None:
+        self.values: list[int] = []
+
+    def __call__(self) -> int:
+        self.values.append(time.monotonic_ns())
+        return self.values[-1]
 
 
 class Published:
@@ -73,12 +87,13 @@ def test_the_position_advances_at_rate_and_stands_still_while_paused():
 
 def test_a_pass_keeps_the_recorded_gaps_divided_by_the_rate(tmp_path):
     path = recording(tmp_path / "r.mcap", [40, 80, 40, 120, 40])
-    published = Published()
-    done = play_pass(path, Pacer(4.0), published)
+    published, readings = Published(), Readings()
+    done = play_pass(path, Pacer(4.0), published, clock=readings)
     assert published.seqs == list(range(6)) and done.played == done.read == 6
-    gaps_ms = [(b - a) / MS for a, b in zip(published.times, published.times[1:], strict=False)]
-    assert gaps_ms == pytest.approx([10, 20, 10, 30, 10], abs=4)
-    assert max(done.lateness_ns) < 4 * MS and done.damage is None and not done.stopped
+    due = [reading - late for reading, late in zip(readings.values, done.lateness_ns, strict=True)]
+    assert [b - a for a, b in zip(due, due[1:], strict=False)] == [10 * MS, 20 * MS, 10 * MS, 30 * MS, 10 * MS]
+    assert min(done.lateness_ns) >= 0 and max(done.lateness_ns) < STALL_MS * MS  # never early, never stalled
+    assert done.damage is None and not done.stopped
     assert done.last_ns == 320 * MS
 
 
@@ -101,13 +116,17 @@ def test_step_and_resume_from_another_thread(tmp_path):
         time.sleep(0.15)
         assert published.seqs == []
         pacer.step()
+        deadline = time.monotonic() + 10
+        while not published.seqs and time.monotonic() < deadline:
+            time.sleep(0.01)
         time.sleep(0.15)  # more than the gap to the next message: still paused
         assert published.seqs == [0]
         resumed = time.monotonic_ns()
         pacer.resume()
         player.join(2.0)
         assert published.seqs == [0, 1, 2, 3]
-        assert (published.times[1] - resumed) / MS == pytest.approx(100, abs=15)  # the gap after the step is kept
+        gap_ms = (published.times[1] - resumed) / MS
+        assert 100 <= gap_ms < 100 + STALL_MS  # the gap after the step is kept: never early, not stalled
     finally:
         pacer.stop()
         player.join(2.0)
