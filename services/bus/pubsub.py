@@ -13,6 +13,8 @@ Streams have a role that sets their Zenoh quality of service and their queueing:
   higher and client apps slow the marker pipeline less (``make bench BENCH="routing apps"``,
   figures in docs/benchmarks.md).
 * ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
+* ``END`` (a node's end of stream, and its last statistics just before it): priority DATA_LOW
+  as status, congestion BLOCK, so the two are never dropped and arrive in that order.
 
 A lossless run (a finite source under flow control, ``services.runtime.flow``) publishes frames
 with congestion BLOCK instead, and its subscribers queue every frame: the source's credits bound
@@ -50,6 +52,7 @@ class Role(StrEnum):
     FRAME = "frame"
     RESULT = "result"
     STATUS = "status"
+    END = "end"
 
 
 class _Qos(TypedDict):
@@ -61,9 +64,10 @@ _QOS: dict[Role, _Qos] = {
     Role.FRAME: {"priority": zenoh.Priority.DATA, "congestion_control": zenoh.CongestionControl.DROP},
     Role.RESULT: {"priority": zenoh.Priority.DATA_HIGH, "congestion_control": zenoh.CongestionControl.BLOCK},
     Role.STATUS: {"priority": zenoh.Priority.DATA_LOW, "congestion_control": zenoh.CongestionControl.DROP},
+    Role.END: {"priority": zenoh.Priority.DATA_LOW, "congestion_control": zenoh.CongestionControl.BLOCK},
 }
 
-DEFAULT_DEPTH = {Role.FRAME: 1, Role.RESULT: 10_000, Role.STATUS: 100}
+DEFAULT_DEPTH = {Role.FRAME: 1, Role.RESULT: 10_000, Role.STATUS: 100, Role.END: 100}
 
 
 class RawPublisher:

@@ -161,7 +161,6 @@ class JobWatch:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._started = time.monotonic()
-        self._drawn = False
         if self.total is None and display.summary:
             self._say(f"live source ({self.source}): runs until Ctrl-C")
         self._subscribers = [
@@ -213,7 +212,6 @@ class JobWatch:
             if self.display.progress:  # the cursor goes back to the start: a node's log line overwrites it
                 self.display.out.write("\x1b[K" + line + "\r")
                 self.display.out.flush()
-                self._drawn = True
             elif time.monotonic() - logged >= LOG_EVERY_S:
                 log.info("%s", line)
                 logged = time.monotonic()
@@ -242,8 +240,8 @@ class JobWatch:
         self._thread.join(timeout=2 * REFRESH_S + QUERY_S)
         for subscriber in self._subscribers:
             subscriber.undeclare()
-        if self._drawn:
-            self.display.out.write("\x1b[K")
+        if self.display.progress:  # the last figures once more, then the line makes way for the summary
+            self.display.out.write("\x1b[K" + self.progress_line() + "\r\x1b[K")
         if self.display.summary:
             self._say(self.summary())
 

@@ -191,7 +191,8 @@ class Node:
             self._errors_pub = Publisher(self.session, self.keys.errors(name), ErrorReport, Role.STATUS)
             self._queryable = self.session.declare_queryable(self.keys.state(name), self._on_state_query)
             self._ack_pub = Publisher(self.session, self.keys.ack(name), FlowAck, Role.RESULT)
-            self._end_pub = Publisher(self.session, self.keys.end(name), FlowEnd, Role.RESULT)
+            self._end_pub = Publisher(self.session, self.keys.end(name), FlowEnd, Role.END)
+            self._last_stats_pub = Publisher(self.session, self.keys.stats(name), NodeStats, Role.END)
             self._end_answer = self.session.declare_queryable(self.keys.end(name), self._on_end_query)
             self._ack_answer = self.session.declare_queryable(self.keys.ack(name), self._on_ack_query)
             self._ends = Ends(self.session, self.keys, self.flow.upstream, self._poke) if self.flow.upstream else None
@@ -416,10 +417,11 @@ class Node:
             for key, count in tapped.counter.counts_by_key().items():
                 received[key] = received.get(key, 0) + count
         expressions = [zenoh.KeyExpr(tapped.key) for tapped in inputs]
-        short = {key: count - received.get(key, 0) for key, count in self._ends.published().items()
-                 if count > received.get(key, 0) and any(e.includes(zenoh.KeyExpr(key)) for e in expressions)}
+        expected = {key: count for key, count in self._ends.published().items()
+                    if any(e.includes(zenoh.KeyExpr(key)) for e in expressions)}
+        short = {key: count - received.get(key, 0) for key, count in expected.items() if count > received.get(key, 0)}
         if short:
-            now, total = time.monotonic(), sum(received.values())
+            now, total = time.monotonic(), sum(received.get(key, 0) for key in expected)
             if self._short_since is None or total != self._short_total:
                 self._short_since, self._short_total = now, total
                 return False
@@ -434,7 +436,9 @@ class Node:
         return True
 
     def _publish_end(self, end: FlowEnd) -> None:
+        """Publish ``end``, just after the statistics it closes (a recorder that ends on it has them)."""
         self._ended = end
+        self._last_stats_pub.put(self.stats())
         self._end_pub.put(end)
         self.log.info("end of stream: last frame %d%s", end.last_seq,
                       f", {end.frames} frames sent" if end.frames else "")
@@ -555,7 +559,7 @@ class Node:
         for credits in self._credits:
             credits.close()
         for entity in [*self._inboxes, *self._publishers, self._stats_pub, self._errors_pub, self._ack_pub,
-                       self._end_pub]:
+                       self._end_pub, self._last_stats_pub]:
             entity.close()
         for queryable in [*self._answers, self._queryable, self._end_answer, self._ack_answer]:
             queryable.undeclare()

@@ -89,9 +89,11 @@ def states(session, keys) -> dict:
     return {name: s for (rig, name), s in node_states(session, keys, 2.0).items() if rig == keys.rig}
 
 
-def start_node(procs, kind: str, name: str, env: dict[str, str] | None = None, **params):
-    """``artrack node KIND --name NAME --params JSON`` on the test's bus (``env``: changes to its environment)."""
-    return procs.artrack("node", kind, "--name", name, "--params", json.dumps(params), name=name, env=env)
+def start_node(procs, kind: str, name: str, env: dict[str, str] | None = None, flow: dict | None = None, **params):
+    """``artrack node KIND --name NAME --params JSON`` on the test's bus (``env``: changes to its environment;
+    ``flow``: its part in a lossless flow, a ``FlowPlan`` as a dict, as the launcher would give it)."""
+    return procs.artrack("node", kind, "--name", name, "--params", json.dumps(params),
+                         *(() if flow is None else ("--flow", json.dumps(flow))), name=name, env=env)
 
 
 def wait_live(session, keys, names: set[str], procs_to_check=()) -> None:

@@ -129,6 +129,8 @@ def test_a_killed_recorder_goes_on_in_a_new_part_and_info_lists_the_parts(procs,
     wait_until(lambda: out.exists() and summarise(out).messages > 20, 2 * START_S, "the recorder to flush")
     os.kill(recorder, signal.SIGKILL)
     assert job.wait(3 * START_S) == 0, job.describe()
+    last = job.stderr.strip().splitlines()[-1]
+    assert last.strip() == "frames lost: restarted (the frames they held are lost) recorder 1x", job.describe()
 
     second = tmp_path / "run.part2.mcap"
     assert sorted(p.name for p in tmp_path.glob("*.mcap")) == ["run.mcap", "run.part2.mcap"]

@@ -95,7 +95,7 @@ BAD_PIPELINES = {
     "unknown kind": ('[nodes.echo]\nkind = "echo"\n\n[nodes.track]\nkind = "teleport"\n',
                      ["nodes.track", "unknown node kind 'teleport'"]),
     "bad parameter value": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam]\nkind = "capture"\nfps = -5\n',
-                            ["nodes.cam.fps", "greater than 0"]),
+                            ["nodes.cam.fps", "greater than or equal to 0"]),
     "unknown parameter": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam]\nkind = "capture"\nfsp = 30\n',
                           ["nodes.cam.fsp", "Extra inputs are not permitted"]),
     "bad toml": ('[nodes.echo]\nkind = "echo"\n\n[nodes.cam\nkind = "capture"\n', ["not valid TOML", "line 4"]),

@@ -159,9 +159,11 @@ def test_a_calibrated_file_source_gives_accurate_poses(bus, procs, session, tmp_
         uri = f"video:{video}"
     poses = Inbox(session, bus.keys.poses(), Pose, Role.RESULT)
     try:
-        node = start_node(procs, "marker_pose", "marker", marker_length=LENGTH)
+        node = start_node(procs, "marker_pose", "marker", marker_length=LENGTH,
+                          flow={"lossless": True, "acks": True, "upstream": ["cam"]})
         wait_live(session, bus.keys, {"marker"}, [node])
-        start_node(procs, "capture", "cam", source=uri, calib=[str(calib)], fps=10, wait_for_subscriber=True)
+        start_node(procs, "capture", "cam", source=uri, calib=[str(calib)], fps=10,
+                   flow={"lossless": True, "credits_from": ["marker"]})  # every frame, whatever the load
         got = collect(poses, lambda got: {p.header.seq for p in got} >= set(range(8)))
         tracking = [p for p in got if p.state is TrackingState.TRACKING]
         assert {(p.header.seq, p.child_frame_id) for p in tracking} >= {(s, c) for s, k in truth.items() for c in k}

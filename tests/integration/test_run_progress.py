@@ -33,10 +33,10 @@ def table(lines: list[str], heading: str) -> dict[str, dict[str, str]]:
     return rows
 
 
-def test_a_job_too_fast_for_its_source_says_so_and_its_summary_matches_the_recording(procs, tmp_path):
+def test_a_real_time_job_too_fast_for_its_source_says_so_and_its_summary_matches_the_recording(procs, tmp_path):
     out = tmp_path / "job.mcap"
     job = procs.artrack("run", "marker", "--source", "synthetic:markers", "--frames", "60", "--fps", "1000",
-                        "--marker-length", "0.05", "--record", str(out), name="job")
+                        "--flow", "realtime", "--marker-length", "0.05", "--record", str(out), name="job")
     assert job.wait(4 * START_S) == 0, job.describe()
     assert job.stdout == ""  # standard output stays for data
     assert "\x1b[K" not in job.stderr  # not a terminal: no progress line
@@ -69,7 +69,24 @@ def test_a_job_too_fast_for_its_source_says_so_and_its_summary_matches_the_recor
     assert bool(advice) == (dropped > 0), lines
     if dropped:
         assert f"marker-cam0 dropped {dropped} of " in advice[0] and "--depth N" in advice[0]
-    assert f"recording: {out}" in lines[-1]
+    assert f"recording: {out}" in lines[-2]
+    lost = f"frames lost: dropped {dropped} (marker-cam0 {dropped})" if dropped else "every frame accounted for"
+    assert lines[-1].strip().startswith(lost), lines[-1]
+
+
+def test_a_lossless_job_takes_every_frame_sends_none_late_and_says_every_frame_is_accounted_for(procs, tmp_path):
+    out = tmp_path / "job.mcap"
+    job = procs.artrack("run", "marker", "--source", "synthetic:markers", "--frames", "60", "--fps", "1000",
+                        "--marker-length", "0.05", "--record", str(out), "--strict", name="job")
+    assert job.wait(4 * START_S) == 0, job.describe()
+    lines = summary_of(job.stderr)
+    source = next(line for line in lines if line.strip().startswith("source capture:"))
+    assert "60 of 60 frames sent" in source and "late" not in source, source
+    nodes = table(lines, "NODE")
+    assert (nodes["marker-cam0"]["IN"], nodes["marker-cam0"]["DONE"]) == ("120", "60")  # images and calibration
+    assert all(row["DROPPED"] == row["MISSING"] == "0" for row in nodes.values()), nodes
+    assert len(recorded(out)[next(key for key in recorded(out) if key.endswith("/cam0/image"))]) == 60
+    assert lines[-1].strip() == "every frame accounted for: no node dropped a frame or missed one"
 
 
 def test_progress_on_redraws_one_line_with_the_frame_total(procs):
