@@ -29,6 +29,8 @@ from services.launcher.supervisor import Supervisor
 log = logging.getLogger("artrack.up")
 
 ANSWER_TIMEOUT_S = 2.0
+JOIN_S = 10.0
+"""How long stopping waits for the thread that opens this process's session to leave Zenoh."""
 
 
 def pipeline_name(path: Path) -> str:
@@ -133,6 +135,7 @@ class Daemon:
             stop.set()
             reloader.join()
             self._leave()
+            joiner.join(JOIN_S)  # a thread still inside Zenoh as Python shuts down would abort the process
         failed = [h.name for h in self.supervisor.health() if h.state == "failed"]
         log.info("pipeline %s stopped%s", self.path, f"; failed: {', '.join(failed)}" if failed else "")
         return 1 if failed else 0

@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 REFRESH_S = 0.5
 LOG_EVERY_S = 10.0
 QUERY_S = 0.4
+JOIN_S = 10.0
+"""How long closing waits for the progress thread to finish its last query (a loaded machine is slow)."""
 SLOW_SOURCE = 0.9
 """A source delivering less than this share of the rate asked is called out in the summary."""
 
@@ -155,6 +157,7 @@ class JobWatch:
         params = declared.validate(source.params)
         self.asked = declared.source.fps(params) if declared.source is not None else None
         self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params)
+        self.lossless = spec.lossless()
         self.figures = JobFigures()
         self.restarts: dict[str, int] = {}
         """Nodes the job restarted, and how often (set by the job before the summary)."""
@@ -237,7 +240,7 @@ class JobWatch:
     def close(self) -> None:
         """Stop watching; print the summary (unless quiet)."""
         self._stop.set()
-        self._thread.join(timeout=2 * REFRESH_S + QUERY_S)
+        self._thread.join(timeout=JOIN_S)  # a thread still inside Zenoh as Python shuts down would abort it
         for subscriber in self._subscribers:
             subscriber.undeclare()
         if self.display.progress:  # the last figures once more, then the line makes way for the summary
@@ -296,7 +299,10 @@ class JobWatch:
         late = source.skipped.get("late", 0)
         if late:
             text += f"; {late} late"
-        if late or (rate is not None and self.asked and rate < SLOW_SOURCE * self.asked):
+        slow = rate is not None and self.asked and rate < SLOW_SOURCE * self.asked
+        if self.lossless and slow:
+            text += ": lossless, at the pace of the slowest node"
+        elif late or slow:
             text += ": the source could not keep the pace asked"
         return text
 
