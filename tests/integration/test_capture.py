@@ -40,7 +40,8 @@ def test_two_camera_scene_shares_stamps_and_publishes_truth(bus, procs, session)
     inboxes = {name: Inbox(session, keys.image(name), Image, Role.RESULT) for name in ("cam0", "cam1")}
     truth = Inbox(session, keys.truth("cam1"), GroundTruth, Role.RESULT)
     try:
-        start_node(procs, "capture", "rig", source="synthetic:ir_rig", frames=4, fps=20, wait_for_subscriber=True)
+        start_node(procs, "capture", "rig", source="synthetic:ir_rig", frames=4, fps=20, wait_for_subscriber=True,
+                   flow={"lossless": True})  # frames block rather than drop on a busy bus: all four arrive
         left, right = collect(inboxes["cam0"], 4), collect(inboxes["cam1"], 4)
         assert [m.header for m in left] == [m.header.model_copy(update={"frame_id": "cam0"}) for m in right]
         assert [m.header.frame_id for m in right] == ["cam1"] * 4
