@@ -4,11 +4,12 @@ For each tracker, ``artrack run TRACKER --source SCENE --frames N --fps 0 --stam
 (lossless: the source waits for its slowest node) runs ``RUNS`` times on an idle machine and ``RUNS``
 times while ``tests.load.busy`` spins a process on every core. From each recording:
 
-* ``rate_hz``: frames the pipeline got through per second (the recorder's first to last image);
+* ``rate_hz``: frames the pipeline got through per second (from the recorder's first image to its
+  last result, so a node fed by another's results counts too);
 * ``node_rate_hz``: the rate its slowest node could keep alone, 1000 / its processing p50 (its
   last statistics), i.e. the work per frame in one process;
-* ``same_results``: whether the results (every key but the inputs, timings and node health) are the
-  same bytes as the first idle run's.
+* ``same_results``: whether the results (every key but the inputs, timings and node health, keys taken
+  relative to the run's rig) are the same bytes as the first idle run's.
 
 ``slam_process`` runs SLAM with its mapping process (the default) ``SLAM_RUNS`` times under load and
 counts the runs in which every frame got a pose and the ATE (sim3) stayed within ``SLAM_BAR_M``.
@@ -24,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -62,38 +64,47 @@ def _run(tracker: str, source: str, frames: int, options: tuple[str, ...], folde
     return out
 
 
-def _read(path: Path) -> tuple[dict[str, list[bytes]], list[int], dict[str, NodeStats], list[tuple[int, int]]]:
-    """Results by key, the images' log times, each node's last statistics, and (stamp, log time) of poses."""
-    results: dict[str, list[bytes]] = {}
-    images: list[int] = []
-    stats: dict[str, NodeStats] = {}
-    poses: list[tuple[int, int]] = []
+@dataclass
+class Recorded:
+    """What one run recorded: results by key (relative to the rig), the last result's log time, the images'
+    log times, each node's last statistics, and (stamp, log time) of every pose."""
+
+    results: dict[str, list[bytes]] = field(default_factory=dict)
+    last_ns: int = 0
+    images: list[int] = field(default_factory=list)
+    stats: dict[str, NodeStats] = field(default_factory=dict)
+    poses: list[tuple[int, int]] = field(default_factory=list)
+
+
+def _read(path: Path) -> Recorded:
+    got = Recorded()
     with open(path, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            topic = channel.topic
+            topic = channel.topic.split("/", 2)[2]  # <namespace>/<rig>/... : each run has a rig of its own
             if topic.endswith("/image"):
-                images.append(message.log_time)
+                got.images.append(message.log_time)
             elif topic.endswith("/stats"):
                 decoded = decode(message.data)
                 if isinstance(decoded, NodeStats):
-                    stats[decoded.node] = decoded
-            if "/node/" in topic or "/tf_static/" in topic or topic.endswith(LEFT_OUT):
+                    got.stats[decoded.node] = decoded
+            if topic.startswith(("node/", "tf_static/")) or topic.endswith(LEFT_OUT):
                 continue
-            results.setdefault(topic, []).append(message.data)
-            if "/pose/" in topic:
+            got.results.setdefault(topic, []).append(message.data)
+            got.last_ns = max(got.last_ns, message.log_time)
+            if topic.startswith("pose/"):
                 pose = decode(message.data)
                 if isinstance(pose, Pose):
-                    poses.append((pose.header.stamp_ns, message.log_time))
-    return results, images, stats, poses
+                    got.poses.append((pose.header.stamp_ns, message.log_time))
+    return got
 
 
 def _figures(path: Path) -> tuple[dict[str, Any], dict[str, list[bytes]]]:
-    results, images, stats, _ = _read(path)
-    span = (images[-1] - images[0]) / 1e9 if len(images) > 1 else float("nan")
-    slowest = max((s.processing_ms_p50 or 0.0) for name, s in stats.items() if s.kind not in ("capture", "recorder"))
-    return {"rate_hz": round((len(set(images)) - 1) / span, 1) if span else None,
+    got = _read(path)
+    span = (got.last_ns - got.images[0]) / 1e9 if got.images else float("nan")
+    slowest = max((s.processing_ms_p50 or 0.0) for s in got.stats.values() if s.kind not in ("capture", "recorder"))
+    return {"rate_hz": round((len(set(got.images)) - 1) / span, 1) if span else None,
             "node_rate_hz": round(1000.0 / slowest, 1) if slowest else None,
-            "lost": sum(s.dropped + s.missing for s in stats.values())}, results
+            "lost": sum(s.dropped + s.missing for s in got.stats.values())}, got.results
 
 
 def bench_tracker(tracker: str, folder: Path) -> list[dict[str, Any]]:
@@ -132,7 +143,7 @@ def bench_slam_process(folder: Path) -> dict[str, Any]:
                                      "pose/slam/cam0", "--gt-key", "cam0/truth", "--gt-child", "cam0", "--align",
                                      "sim3", "--json"], cwd=ROOT, capture_output=True, text=True)
             ate = json.loads(scored.stdout)["ate_m"]["rmse"] if scored.returncode == 0 else float("inf")
-            poses = len(next(v for k, v in _read(path)[0].items() if k.endswith("/pose/slam/cam0")))
+            poses = len(_read(path).results.get("pose/slam/cam0", []))
             ates.append(round(ate, 4))
             posed.append(poses)
             good += int(poses == SLAM_FRAMES and ate <= SLAM_BAR_M)
@@ -149,8 +160,7 @@ def bench_credits(folder: Path) -> dict[str, Any]:
         for flow in ("realtime", "lossless"):
             path = _run("marker", "synthetic:markers", PACED_FRAMES, (), folder, "--fps", str(PACED_FPS),
                         "--flow", flow, "--stamps", "wall")
-            _, _, _, poses = _read(path)
-            latencies[flow].append(float(np.percentile([(log - stamp) / 1e6 for stamp, log in poses], 50)))
+            latencies[flow].append(float(np.percentile([(log - stamp) / 1e6 for stamp, log in _read(path).poses], 50)))
     deltas = [lossless - realtime for realtime, lossless in zip(latencies["realtime"], latencies["lossless"],
                                                                  strict=True)]
     return {"bench": "lossless", "figure": "credits_latency_p50", "fps": PACED_FPS,
