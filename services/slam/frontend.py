@@ -20,11 +20,18 @@ Then, for each frame (as ORB-SLAM does):
 
 With ``localisation_only`` the map stays as it is: frames are tracked, no keyframe is made.
 
+The keyframe decision (``mapping.keyframe_decision``) may hang on whether the mapper is idle, which
+depends on the machine's load when mapping runs apart. With ``wait_for_mapping`` the tracker then
+waits for the mapper to be idle (at most ``MAPPING_WAIT_S``, a warning when that passes), so that a
+run fed every frame does not make fewer keyframes on a busy machine than on an idle one.
+
 Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
 """
 
 from __future__ import annotations
 
+import logging
+import time
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -36,7 +43,7 @@ from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationState, initialise
 from services.slam.map import PointArrays, SlamMap
-from services.slam.mapping import Mapper, need_keyframe
+from services.slam.mapping import KeyframeDecision, Mapper, keyframe_decision
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
 from services.slam.optimisation import refine_pose, reprojection_errors
 from services.slam.projection import project_points, search_projected
@@ -44,7 +51,13 @@ from services.slam.relocalisation import Relocaliser, solve_pnp
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["SlamState", "Tracked", "Tracker"]
+__all__ = ["MAPPING_WAIT_S", "SlamState", "Tracked", "Tracker"]
+
+logger = logging.getLogger(__name__)
+
+MAPPING_WAIT_S = 60.0
+"""The longest a keyframe decision waits for the mapper (``Tracker``'s ``wait_for_mapping``): far beyond a
+keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
 
 
 class SlamState(StrEnum):
@@ -82,10 +95,11 @@ class _Frame:
 
 class Tracker:
     """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper`` (none with
-    ``localisation_only``)."""
+    ``localisation_only``). ``wait_for_mapping``: a keyframe decision that hangs on the mapper being
+    idle waits for it (``mapping.Mapper.wait_idle``) instead of taking it as busy."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: Mapper,
-                 localisation_only: bool = False):
+                 localisation_only: bool = False, wait_for_mapping: bool = False):
         self.K = np.asarray(camera.K, np.float64)
         self.size = (camera.width, camera.height)
         self.settings = settings
@@ -99,6 +113,7 @@ class Tracker:
         self._lost = int(bool(slam_map.keyframes))
         self._relocaliser = Relocaliser(slam_map, self.K, self.size, settings)
         self.localisation_only = localisation_only
+        self.wait_for_mapping = wait_for_mapping
         self._reference_keyframe = -1
         self._last_keyframe_stamp = 0
 
@@ -214,7 +229,7 @@ class Tracker:
         self._last = frame
         keyframe_id = None
         with stage_timer(timings, "keyframe"):
-            if not self.localisation_only and self._wants_keyframe(frame, tracked):
+            if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
                 keyframe_id = self._insert_keyframe(frame)
         return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
@@ -310,16 +325,32 @@ class Tracker:
             return None
         return refined.T_camera_world, float(refined.rms_px)
 
-    def _wants_keyframe(self, frame: _Frame, tracked: int) -> bool:
-        s = self.settings
+    def _wants_keyframe(self, frame: _Frame, tracked: int, timings: dict[str, float]) -> bool:
+        """The keyframe decision for ``frame``; the milliseconds waited for the mapper go to ``timings``
+        (``mapping_wait``) when it waited."""
         with self.map.lock:
             reference = self.map.keyframes.get(self._reference_keyframe)
             least = 2 if len(self.map.keyframes) <= 2 else 3
             reference_tracked = 0 if reference is None else sum(
                 1 for p in reference.point_ids[reference.point_ids >= 0].tolist()
                 if p in self.map.points and len(self.map.points[p].observations) >= least)
-        return need_keyframe(s, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked, reference_tracked,
-                             self.mapper.idle)
+        decision = keyframe_decision(self.settings, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked,
+                                     reference_tracked)
+        if decision is KeyframeDecision.IF_IDLE and self.wait_for_mapping:
+            return self._wait_for_mapper(frame, timings)
+        idle = self.mapper.idle  # asked at every decision: it brings in what the mapping process sent back
+        return decision is KeyframeDecision.YES or (decision is KeyframeDecision.IF_IDLE and idle)
+
+    def _wait_for_mapper(self, frame: _Frame, timings: dict[str, float]) -> bool:
+        """Whether the mapper became idle within ``MAPPING_WAIT_S`` (a warning if not); the milliseconds
+        waited go to ``timings`` (``mapping_wait``)."""
+        started = time.perf_counter()
+        idle = self.mapper.wait_idle(MAPPING_WAIT_S)
+        timings["mapping_wait"] = (time.perf_counter() - started) * 1e3
+        if not idle:
+            logger.warning("frame %d: the mapper was still busy after %.0f s of waiting; no keyframe made",
+                           frame.index, MAPPING_WAIT_S)
+        return idle
 
     def _insert_keyframe(self, frame: _Frame) -> int:
         keyframe = self.map.add_keyframe(frame.stamp_ns, frame.T_camera_world, frame.features, frame.point_ids)

@@ -16,12 +16,12 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
    observations it finds to be outliers are removed.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
-waits for it, or inline in ``enqueue`` (deterministic, for tests). It holds the map's lock only to
-take snapshots and to apply results, in short steps of at most ``SNAPSHOT_POINTS`` points that check
-what changed meanwhile: searches, triangulation, points' summaries (``SlamMap.refresh_points``) and the
-bundle adjustment's problem are computed outside it. (A frame tracked between two steps of one
-result sees part of it applied, as a frame tracked between two keyframes' results sees one.) A
-keyframe processed while others wait gets only steps 1 and 2.
+waits for it unless it asks to (``wait_idle``), or inline in ``enqueue`` (deterministic, for tests).
+It holds the map's lock only to take snapshots and to apply results, in short steps of at most
+``SNAPSHOT_POINTS`` points that check what changed meanwhile: searches, triangulation, points'
+summaries (``SlamMap.refresh_points``) and the bundle adjustment's problem are computed outside it.
+(A frame tracked between two steps of one result sees part of it applied, as a frame tracked between
+two keyframes' results sees one.) A keyframe processed while others wait gets only steps 1 and 2.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from enum import Enum
 from typing import Protocol, TypeVar
 
 import numpy as np
@@ -48,8 +49,8 @@ from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "LocalMapper", "MappedKeyframe", "Mapper", "need_keyframe",
-           "triangulation_checks"]
+__all__ = ["CHI2_ONE_DOF", "CHI2_TWO_DOF", "KeyframeDecision", "LocalMapper", "MappedKeyframe", "Mapper",
+           "keyframe_decision", "triangulation_checks"]
 
 logger = logging.getLogger(__name__)
 _Item = TypeVar("_Item")
@@ -86,6 +87,10 @@ class Mapper(Protocol):
     @property
     def idle(self) -> bool: ...
 
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until no keyframe is waiting or being mapped (True), at most ``timeout_s`` seconds (False)."""
+        ...
+
     def enqueue(self, keyframe_id: int) -> None: ...
 
     def adjust_initial_map(self, first: int, second: int) -> None: ...
@@ -95,19 +100,29 @@ class Mapper(Protocol):
     def close(self) -> None: ...
 
 
-def need_keyframe(settings: SlamSettings, seconds_since: float, tracked: int, reference_tracked: int,
-                  mapper_idle: bool) -> bool:
+class KeyframeDecision(Enum):
+    """Whether a tracked frame becomes a keyframe: ``YES``, ``NO``, or ``IF_IDLE`` (only with the mapper idle)."""
+
+    YES = "yes"
+    NO = "no"
+    IF_IDLE = "if_idle"
+
+
+def keyframe_decision(settings: SlamSettings, seconds_since: float, tracked: int,
+                      reference_tracked: int) -> KeyframeDecision:
     """Whether a tracked frame becomes a keyframe: it tracks ``tracked`` points where its reference
     keyframe tracks ``reference_tracked`` well-observed ones, ``seconds_since`` after the last
     keyframe. Under ``keyframe_ratio`` of the reference's points (new area in view) it does once
-    ``min_keyframe_gap_s`` passed and the mapper is idle, or once ``max_keyframe_gap_s`` passed;
-    and always when nearly lost (under twice ``min_tracked``)."""
+    ``max_keyframe_gap_s`` passed, and between ``min_keyframe_gap_s`` and that only if the mapper is
+    idle (``IF_IDLE``); it always does when nearly lost (under twice ``min_tracked``)."""
     s = settings
     if tracked < 2 * s.min_tracked:
-        return True
-    new_area = tracked < s.keyframe_ratio * reference_tracked
-    due = seconds_since >= s.max_keyframe_gap_s or (seconds_since >= s.min_keyframe_gap_s and mapper_idle)
-    return new_area and due
+        return KeyframeDecision.YES
+    if tracked >= s.keyframe_ratio * reference_tracked:
+        return KeyframeDecision.NO
+    if seconds_since >= s.max_keyframe_gap_s:
+        return KeyframeDecision.YES
+    return KeyframeDecision.IF_IDLE if seconds_since >= s.min_keyframe_gap_s else KeyframeDecision.NO
 
 
 def triangulation_checks(points: np.ndarray, centres: np.ndarray, residuals: np.ndarray, depths: np.ndarray,
@@ -145,7 +160,9 @@ class LocalMapper:
         self.settings = settings
         self.history: list[MappedKeyframe] = []
         self._queue: queue.Queue[int | None] = queue.Queue()
-        self._busy = threading.Event()
+        self._unfinished = 0
+        """Keyframes handed to the thread and not mapped yet (under ``_finished``)."""
+        self._finished = threading.Condition()
         self._thread: threading.Thread | None = None
         if threaded:
             self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
@@ -153,15 +170,23 @@ class LocalMapper:
 
     @property
     def idle(self) -> bool:
-        """No keyframe waiting or being processed."""
-        return self._queue.empty() and not self._busy.is_set()
+        """No keyframe waiting or being processed (always, inline)."""
+        with self._finished:
+            return self._unfinished == 0
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until the thread has mapped every keyframe handed to it (True), at most ``timeout_s``
+        seconds (False); inline, True at once."""
+        with self._finished:
+            return self._finished.wait_for(lambda: self._unfinished == 0, timeout_s)
 
     def enqueue(self, keyframe_id: int) -> None:
         """Hand over a new keyframe: queued for the thread, or processed at once without one."""
         if self._thread is None:
             self.process(keyframe_id)
         else:
-            self._busy.set()
+            with self._finished:
+                self._unfinished += 1
             self._queue.put(keyframe_id)
 
     def close(self) -> None:
@@ -176,14 +201,14 @@ class LocalMapper:
 
     def _run(self) -> None:
         while (keyframe_id := self._queue.get()) is not None:
-            self._busy.set()
             try:
                 self.process(keyframe_id, others_waiting=not self._queue.empty())
             except Exception:
                 logger.exception("local mapping failed on keyframe %d; the map stays as it was", keyframe_id)
             finally:
-                if self._queue.empty():
-                    self._busy.clear()
+                with self._finished:
+                    self._unfinished -= 1
+                    self._finished.notify_all()
 
     def process(self, keyframe_id: int, others_waiting: bool = False,
                 stepped: Callable[[], None] | None = None) -> None:

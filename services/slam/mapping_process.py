@@ -15,7 +15,8 @@ A thread of the tracker's process reads the messages off the pipe as they come; 
 the changes in before each frame and when it asks whether the mapper is idle (``sync``,
 ``SlamMap.apply_changes``); keyframes it made that the
 mapper has not processed yet keep their observations. ``idle`` (no keyframe waiting) feeds the
-keyframe decision as the thread's does.
+keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
+mapper has none left to send.
 
 Costs (``tests/bench/slam_tracking.py``): the process starts in about 0.6 s (``MappingProcess`` waits
 for it: NumPy, OpenCV and pycolmap are imported again); a keyframe travels as about 100 kB; its
@@ -31,6 +32,7 @@ import pickle
 import queue
 import signal
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -112,6 +114,19 @@ class MappingProcess:
         """No keyframe sent and not mapped yet (after bringing in what has come back)."""
         self.sync()
         return not self._pending
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Bring in every change that comes back until each keyframe sent is mapped (True), at most
+        ``timeout_s`` seconds (False). A mapping process that is gone has nothing pending."""
+        deadline = time.monotonic() + timeout_s
+        self.sync()
+        while self._pending:
+            try:
+                message = self._received.get(timeout=max(deadline - time.monotonic(), 0.0))
+            except queue.Empty:
+                return False
+            self._receive(pickle.loads(message))
+        return True
 
     def enqueue(self, keyframe_id: int) -> None:
         """Send the tracker's new keyframe ``keyframe_id`` (and the counters since the last message)."""

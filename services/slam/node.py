@@ -29,6 +29,11 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   that ``initializing`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
   ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
 
+Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): a
+keyframe decision that hangs on the mapper being idle waits for it (``SlamSystem``'s ``wait_for_mapping``;
+the source waits for the node meanwhile), so that a loaded machine, whose mapper is busy longer, does not
+make fewer keyframes and lose the track. A real-time run never waits: a busy mapper means no keyframe yet.
+
 Map files (``services.slam.map_file``): with ``map`` every new system starts from that file's map
 (relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last
 system's map is written when the node stops (not when it holds no keyframe; a file that cannot be written is
@@ -222,7 +227,7 @@ class _CameraSlam:
         params = self._params
         try:
             system = SlamSystem(camera, mapping=params.mapping, map_path=params.map,
-                                localisation_only=params.localisation_only)
+                                localisation_only=params.localisation_only, wait_for_mapping=self._node.flow.lossless)
         except MapFileError as error:
             self._node.log.error("%s: no poses for %s with this calibration", error, params.camera)
             self._refused = (camera, error)

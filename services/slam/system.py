@@ -3,7 +3,10 @@
 It ties together the feature extraction (``features``), the tracker (``frontend``), the map
 (``map``) and the local mapper (``mapping``): in a process of its own (``mapping="process"``, the
 default, ``mapping_process``), on a thread (``"thread"``) or inline (``"inline"``: each keyframe
-mapped before ``process`` returns; deterministic).
+mapped before ``process`` returns; deterministic). Mapping apart, a keyframe decision that hangs on
+the mapper being idle takes it as busy when it is (real time: tracking never waits), or with
+``wait_for_mapping`` waits for it (``frontend``): a run fed every frame then makes no fewer
+keyframes on a loaded machine.
 A map saved by an earlier run (``map_file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.
@@ -55,7 +58,8 @@ class FrameResult:
     ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
     ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
     keyframe; ``timings_ms`` per stage (``map_sync``: bringing in the mapping process's changes,
-    ``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``initial_map`` on the frame that
+    ``keypoints``, ``match``, ``pose``, ``local_map``, ``keyframe``, ``mapping_wait`` when the keyframe decision
+    waited for the mapper (``wait_for_mapping``; included in ``keyframe``), ``initial_map`` on the frame that
     starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
     ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``calibration_check``
     on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
@@ -97,11 +101,13 @@ class SlamSystem:
     ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
     fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
     lengths or with its principal point outside the image). ``localisation_only``: never change the map.
-    ``save_path``: where ``close`` saves the map (None: not saved)."""
+    ``save_path``: where ``close`` saves the map (None: not saved). ``wait_for_mapping``: a keyframe
+    decision that hangs on the mapper being idle waits for it (for runs fed every frame, whose frames
+    may wait; off: real time, the decision takes a busy mapper as busy)."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping: str = "process",
                  map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,
-                 save_path: str | os.PathLike[str] | None = None):
+                 save_path: str | os.PathLike[str] | None = None, wait_for_mapping: bool = False):
         if mapping not in MAPPING_MODES:
             raise ValueError(f"mapping {mapping!r}: one of {', '.join(MAPPING_MODES)}")
         _check_camera(camera)
@@ -121,8 +127,9 @@ class SlamSystem:
         else:
             self._mapper = LocalMapper(self.map, camera.K, size, s,
                                        threaded=mapping == "thread" and not localisation_only)
-        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only)
+        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only, wait_for_mapping)
         self.mapping = mapping
+        self.wait_for_mapping = wait_for_mapping
         self._tracked: list[tuple[int, int, np.ndarray]] = []
         """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
         self._last_stamp: int | None = None

@@ -1,7 +1,10 @@
-"""Local mapping: the keyframe decision, the checks on triangulated points, new points between two
-keyframes, and ``SlamSystem``'s behaviour on bad frames and with its mapping thread."""
+"""Local mapping: the keyframe decision (and its wait for a busy mapper), the checks on triangulated
+points, new points between two keyframes, and ``SlamSystem``'s behaviour on bad frames and with its
+mapping thread or process."""
 
 import dataclasses
+import threading
+import time
 
 import cv2
 import numpy as np
@@ -13,25 +16,117 @@ from services.geometry.epipolar import near_lines
 from services.geometry.evaluation import umeyama
 from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_midpoint
-from services.slam.features import FrameFeatures
+from services.slam.features import FeatureExtractor, FrameFeatures
+from services.slam.frontend import Tracked, Tracker
 from services.slam.map import SlamMap
-from services.slam.mapping import LocalMapper, need_keyframe, triangulation_checks
+from services.slam.mapping import KeyframeDecision, LocalMapper, keyframe_decision, triangulation_checks
 from services.slam.system import SlamSettings, SlamState, SlamSystem
 
 SETTINGS = SlamSettings()
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
 
 
-@pytest.mark.parametrize(("seconds", "tracked", "reference", "idle", "expected"), [
-    (0.6, 200, 300, True, True),     # new area, mapper idle
-    (0.6, 290, 300, True, False),    # little new area
-    (0.2, 200, 300, True, False),    # too soon after the last keyframe
-    (0.6, 200, 300, False, False),   # the mapper is busy...
-    (1.2, 200, 300, False, True),    # ...but too long has passed
-    (0.1, 40, 300, False, True),     # nearly lost
+@pytest.mark.parametrize(("seconds", "tracked", "reference", "expected"), [
+    (0.6, 200, 300, KeyframeDecision.IF_IDLE),   # new area: a keyframe if the mapper is idle...
+    (1.2, 200, 300, KeyframeDecision.YES),       # ...and whatever it does once too long has passed
+    (0.6, 290, 300, KeyframeDecision.NO),        # little new area
+    (2.0, 290, 300, KeyframeDecision.NO),
+    (0.2, 200, 300, KeyframeDecision.NO),        # too soon after the last keyframe
+    (0.1, 40, 300, KeyframeDecision.YES),        # nearly lost
 ])
-def test_keyframe_decision(seconds, tracked, reference, idle, expected):
-    assert need_keyframe(SETTINGS, seconds, tracked, reference, idle) is expected
+def test_keyframe_decision(seconds, tracked, reference, expected):
+    assert keyframe_decision(SETTINGS, seconds, tracked, reference) is expected
+
+
+BUSY_S = 0.2
+
+
+class BusyUntilWaitedFor:
+    """An inline ``LocalMapper`` that, after each keyframe it maps, says it is busy until the tracker
+    waits for it (``wait_idle`` then takes ``BUSY_S``): a mapper slower than any frame rate."""
+
+    def __init__(self, mapper: LocalMapper):
+        self._mapper = mapper
+        self.history = mapper.history
+        self.busy = False
+        self.waits = 0
+
+    @property
+    def idle(self) -> bool:
+        return not self.busy
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        self.waits += 1
+        if self.busy:
+            time.sleep(min(BUSY_S, timeout_s))
+            self.busy = timeout_s < BUSY_S
+        return not self.busy
+
+    def enqueue(self, keyframe_id: int) -> None:
+        self._mapper.enqueue(keyframe_id)
+        self.busy = True
+
+    def adjust_initial_map(self, first: int, second: int) -> None:
+        self._mapper.adjust_initial_map(first, second)
+
+    def sync(self) -> None:
+        """Nothing to bring in."""
+
+    def close(self) -> None:
+        self._mapper.close()
+
+
+def track_room(camera: CameraModel, frames: int, wait_for_mapping: bool) -> tuple[list[Tracked], list[dict[str, float]],
+                                                                                 BusyUntilWaitedFor]:
+    """The room's first ``frames`` frames through a ``Tracker`` mapping with ``BusyUntilWaitedFor``."""
+    scene, s = make_scene("room"), SETTINGS
+    extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
+    slam_map = SlamMap(s.scale_factor, s.levels)
+    mapper = BusyUntilWaitedFor(LocalMapper(slam_map, camera.K, (camera.width, camera.height), s, threaded=False))
+    tracker = Tracker(camera, s, slam_map, mapper, wait_for_mapping=wait_for_mapping)
+    results, timings = [], []
+    for index in range(frames):
+        frame = scene.render(index)
+        timings.append({})
+        results.append(tracker.track(round(frame.time_s * 1e9), extractor.extract(frame.images["cam0"]), timings[-1]))
+    return results, timings, mapper
+
+
+def test_a_keyframe_decision_waits_for_a_busy_mapper_when_asked(room_camera):
+    waited, waited_timings, mapper = track_room(room_camera, 45, wait_for_mapping=True)
+    asked = [i for i, timings in enumerate(waited_timings) if "mapping_wait" in timings]
+    assert asked and mapper.waits == len(asked)
+    busy = [i for i in asked if waited_timings[i]["mapping_wait"] >= BUSY_S * 1e3]
+    assert busy, "no keyframe decision found the mapper busy"
+    first = busy[0]
+    # the frame became a keyframe once the mapper was idle, after waiting for it
+    assert waited[first].keyframe_id is not None
+    real_time, real_time_timings, real_time_mapper = track_room(room_camera, first + 1, wait_for_mapping=False)
+    # without the option the same frame, tracked alike up to there, is no keyframe: the mapper is busy
+    assert [r.keyframe_id for r in real_time[:first]] == [r.keyframe_id for r in waited[:first]]
+    assert real_time[first].state is waited[first].state and real_time[first].keyframe_id is None
+    assert real_time_mapper.waits == 0 and not any("mapping_wait" in t for t in real_time_timings)
+
+
+def test_the_mapping_thread_is_waited_for_until_its_keyframes_are_mapped(monkeypatch):
+    mapper = LocalMapper(SlamMap(1.2, 8), K, (640, 480), SETTINGS, threaded=True)
+    release = threading.Event()
+    mapped = []
+    monkeypatch.setattr(mapper, "process", lambda keyframe_id, others_waiting=False: mapped.append(release.wait()))
+    try:
+        assert mapper.idle and mapper.wait_idle(0.0)
+        mapper.enqueue(0)
+        mapper.enqueue(1)
+        assert not mapper.idle and not mapper.wait_idle(0.05)
+        threading.Timer(0.3, release.set).start()
+        started, cpu = time.monotonic(), time.thread_time()
+        assert mapper.wait_idle(30.0)
+        # woken when the last keyframe is mapped, without spinning meanwhile
+        assert time.monotonic() - started >= 0.25 and time.thread_time() - cpu < 0.05
+        assert mapper.idle and mapped == [True, True]
+    finally:
+        release.set()
+        mapper.close()
 
 
 def test_triangulation_checks():
@@ -128,8 +223,11 @@ def test_bad_frames_are_reported_not_raised(room_camera):
 
 @pytest.mark.parametrize("mapping", ["thread", "process"])
 def test_room_tracked_while_mapping_apart(room_camera, mapping):
+    """Every frame fed, as in a lossless run, whose keyframe decisions wait for the mapper
+    (``wait_for_mapping``): a loaded machine, whose mapper is busy longer, makes no fewer keyframes."""
     scene = make_scene("room")
-    system = SlamSystem(room_camera, dataclasses.replace(SETTINGS, max_keypoints=1000), mapping=mapping)
+    system = SlamSystem(room_camera, dataclasses.replace(SETTINGS, max_keypoints=1000), mapping=mapping,
+                        wait_for_mapping=True)
     try:
         frames = [scene.render(i) for i in range(90)]
         results = [system.process(round(frame.time_s * 1e9), frame.images["cam0"]) for frame in frames]

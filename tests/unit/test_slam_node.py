@@ -1,17 +1,24 @@
-"""The slam node's conversions, without a bus: map points cut to a count, a frame's result as a Pose."""
+"""The slam node without a bus: map points cut to a count, a frame's result as a Pose, and the keyframe
+decisions of a lossless run waiting for the mapper."""
 
 from __future__ import annotations
 
+import logging
 import math
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
+from protocol.keys import Keys
 from protocol.message import Header
 from protocol.poses import TrackingState
 from services.convert import matrix_from_transform
+from services.geometry.camera import CameraModel, intrinsics
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
-from services.slam.node import as_pose, decimated
+from services.runtime.flow import FlowPlan
+from services.slam.node import Params, _CameraSlam, as_pose, decimated
 from services.slam.system import FrameResult, SlamState
 
 HEADER = Header(stamp_ns=5, frame_id="map", seq=2)
@@ -39,3 +46,15 @@ def test_a_tracked_frame_becomes_its_pose_and_an_initialising_one_an_identity_wi
     assert waiting.quality.reprojection_rms_px is None and waiting.header == HEADER
     lost = as_pose(HEADER, "cam0", FrameResult(SlamState.LOST, "too_few_matches", None, 0, math.nan, None, {}))
     assert lost.state is TrackingState.LOST
+
+
+@pytest.mark.parametrize("lossless", [True, False])
+def test_the_keyframe_decisions_wait_for_mapping_in_a_lossless_run_only(lossless):
+    node = SimpleNamespace(keys=Keys(), flow=FlowPlan(lossless=lossless), publisher=lambda *_: None,
+                           log=logging.getLogger(__name__))
+    camera = CameraModel("cam0", 640, 480, intrinsics(640, 480, 60.0), np.zeros(5), np.eye(4))
+    slam = _CameraSlam(node, Params(mapping="thread"))
+    try:
+        assert slam.system_for(camera, 0).wait_for_mapping is lossless
+    finally:
+        slam.close()
