@@ -34,9 +34,8 @@ from typing import Any
 
 import zenoh
 
-from protocol.codec import DecodeError, decode, encode
-from protocol.flow import FlowEnd
-from services.bus.discovery import every_answer, node_reports
+from protocol.codec import encode
+from services.bus.discovery import node_reports
 from services.bus.session import BusConfig, open_session
 from services.launcher.flags import Flag
 from services.launcher.flow import finite
@@ -47,13 +46,13 @@ from services.launcher.supervisor import ChildHealth, Supervisor
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 from services.recorder.reading import EXIT_DAMAGED, NotMcap
+from services.runtime.flow import Ends
 from services.runtime.memory import settle_heap
 
 log = logging.getLogger(__name__)
 
 SETTLE_S = 0.5
 START_LIMIT_S = 30.0
-END_QUERY_S = 0.5
 RECORDING_SCHEME = "recording:"
 REPLAYED_STREAMS = ("image", "camera_info", "truth")
 
@@ -186,7 +185,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
                                    spec.supervisor)
     supervising = [supervisor]
     health = _answer_health(session, bus, title, spec, supervising)
-    ends = _Ends(session, bus, ending)
+    ends = Ends(session, bus.keys, ending)
     why: str | None = None  # said last, once every node has stopped
     watch: JobWatch | None = None
     try:
@@ -315,45 +314,7 @@ def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None,
     return JobWatch(session, bus, spec, display if shows and display is not None else Display(summary=False))
 
 
-class _Ends:
-    """The nodes of ``names`` that have published their end of stream, heard as they end (subscribed
-    before any source starts) or, for one that ended earlier, answered on its end queryable."""
-
-    def __init__(self, session: zenoh.Session, bus: BusConfig, names: set[str]):
-        self.names = names
-        self._session = session
-        self._keys = bus.keys
-        self._ended: set[str] = set()
-        self._lock = threading.Lock()
-        self._subscriber = session.declare_subscriber(bus.keys.every_node("end"), self._on_end)
-
-    def _on_end(self, sample: zenoh.Sample) -> None:
-        try:
-            end = decode(sample.payload.to_bytes())
-        except DecodeError:
-            return
-        if isinstance(end, FlowEnd):
-            self._take(end)
-
-    def _take(self, end: FlowEnd) -> None:
-        with self._lock:
-            if end.node in self.names:
-                self._ended.add(end.node)
-
-    def waiting(self) -> set[str]:
-        with self._lock:
-            return self.names - self._ended
-
-    def ask(self) -> None:
-        """Ask every node still waited for whether it has ended (a reply lost on the way is asked again)."""
-        for _, end in every_answer(self._session, self._keys.every_node("end"), FlowEnd, END_QUERY_S):
-            self._take(end)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-
-
-def _await_ends(ends: _Ends, supervisor: Supervisor, stop: threading.Event) -> str | None:
+def _await_ends(ends: Ends, supervisor: Supervisor, stop: threading.Event) -> str | None:
     """Wait until every node ``ends`` waits for has ended, or ``stop``: None; else why a node failed first.
     A node that finished (exited 0) without an end is not waited for."""
     asked = time.monotonic()

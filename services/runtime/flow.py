@@ -166,13 +166,20 @@ class Ends:
     ``on_end`` is called (on Zenoh's thread) at each new end, so a waiting consumer can wake.
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, upstream: Iterable[str], on_end: Callable[[], None]):
+    def __init__(self, session: zenoh.Session, keys: Keys, upstream: Iterable[str],
+                 on_end: Callable[[], None] = lambda: None):
         self.upstream = tuple(upstream)
+        self._session = session
+        self._keys = keys
         self._on_end = on_end
         self._ends: dict[str, FlowEnd] = {}
         self._lock = threading.Lock()
         self._subscribers = [session.declare_subscriber(keys.end(name), self._on_sample) for name in self.upstream]
-        for _, end in every_answer(session, keys.every_node("end"), FlowEnd, END_QUERY_S):
+        self.ask()
+
+    def ask(self) -> None:
+        """Ask the nodes for the ends they have published (one that came before the subscription, or was lost)."""
+        for _, end in every_answer(self._session, self._keys.every_node("end"), FlowEnd, END_QUERY_S):
             self._take(end)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -192,6 +199,11 @@ class Ends:
 
     def all_ended(self) -> bool:
         return bool(self.upstream) and len(self._ends) == len(self.upstream)
+
+    def waiting(self) -> set[str]:
+        """The nodes of ``upstream`` that have not ended yet."""
+        with self._lock:
+            return set(self.upstream) - set(self._ends)
 
     def published(self) -> dict[str, int]:
         """Messages the ended upstream nodes say they published, by key (summed over nodes)."""
