@@ -26,10 +26,11 @@ def test_scene_frames_yield_the_keypoints_found_in_process(bus, procs, session):
     images = Inbox(session, keys.image("cam0"), Image, Role.RESULT)
     params = {"camera": "cam0", "method": "orb", "max_count": 300, "depth": 16}
     try:
-        node = start_node(procs, "keypoints", "keypoints", **params)
+        node = start_node(procs, "keypoints", "keypoints", flow={"lossless": True, "acks": True, "upstream": ["cam"]},
+                          **params)
         wait_live(session, keys, {"keypoints"}, [node])
         start_node(procs, "capture", "cam", source="synthetic:planar_target", frames=FRAMES, fps=10,
-                   wait_for_subscriber=True)
+                   flow={"lossless": True, "credits_from": ["keypoints"]})  # every frame, whatever the load
         messages = collect(found, FRAMES)
         frames = {m.header.seq: m for m in collect(images, FRAMES)}
     finally:
