@@ -24,11 +24,11 @@ from collections.abc import Callable, Iterable
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from protocol.codec import DecodeError, decode, encode
 from protocol.flow import FlowAck, FlowEnd
 from protocol.keys import Keys
 from protocol.message import Header
 from services.bus.discovery import every_answer
+from services.bus.pubsub import Listener
 
 END_QUERY_S = 0.5
 """How long a starting node asks the nodes it depends on for their acks or ends so far."""
@@ -74,19 +74,12 @@ class Credits:
         self._gone: set[str] = set()
         self._sent: list[int] = []
         self._stopped = False
-        self._entities = [session.declare_subscriber(keys.ack(name), self._on_ack) for name in self._names]
-        self._entities += [session.liveliness().declare_subscriber(keys.node(name), self._on_token)
-                           for name in self._names]
+        self._acks = [Listener(session, keys.ack(name), FlowAck, lambda received: self._take(received.message))
+                      for name in self._names]
+        self._tokens = [session.liveliness().declare_subscriber(keys.node(name), self._on_token)
+                        for name in self._names]
         self.waited_s = 0.0
         for _, ack in every_answer(session, keys.every_node("ack"), FlowAck, END_QUERY_S):
-            self._take(ack)
-
-    def _on_ack(self, sample: zenoh.Sample) -> None:
-        try:
-            ack = decode(sample.payload.to_bytes())
-        except DecodeError:
-            return
-        if isinstance(ack, FlowAck):
             self._take(ack)
 
     def _take(self, ack: FlowAck) -> None:
@@ -156,8 +149,10 @@ class Credits:
 
     def close(self) -> None:
         self.stop()
-        for entity in self._entities:
-            entity.undeclare()
+        for listener in self._acks:
+            listener.close()
+        for token in self._tokens:
+            token.undeclare()
 
 
 class Ends:
@@ -174,20 +169,13 @@ class Ends:
         self._on_end = on_end
         self._ends: dict[str, FlowEnd] = {}
         self._lock = threading.Lock()
-        self._subscribers = [session.declare_subscriber(keys.end(name), self._on_sample) for name in self.upstream]
+        self._listeners = [Listener(session, keys.end(name), FlowEnd, lambda received: self._take(received.message))
+                           for name in self.upstream]
         self.ask()
 
     def ask(self) -> None:
         """Ask the nodes for the ends they have published (one that came before the subscription, or was lost)."""
         for _, end in every_answer(self._session, self._keys.every_node("end"), FlowEnd, END_QUERY_S):
-            self._take(end)
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        try:
-            end = decode(sample.payload.to_bytes())
-        except DecodeError:
-            return
-        if isinstance(end, FlowEnd):
             self._take(end)
 
     def _take(self, end: FlowEnd) -> None:
@@ -220,14 +208,10 @@ class Ends:
             return max((end.last_seq for end in self._ends.values()), default=-1)
 
     def close(self) -> None:
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
+        for listener in self._listeners:
+            listener.close()
 
 
 def end_message(node: str, last_seq: int, published: dict[str, int], frames: int = 0) -> FlowEnd:
     return FlowEnd(header=Header(stamp_ns=time.time_ns()), node=node, last_seq=last_seq, frames=frames,
                    published=published)
-
-
-def ack_payload(node: str, seq: int, started_ns: int) -> bytes:
-    return encode(FlowAck(header=Header(stamp_ns=time.time_ns()), node=node, seq=seq, started_ns=started_ns))
