@@ -8,7 +8,7 @@ exact, so the figures do not depend on FLANN's random trees) with k = 2 and Lowe
 of the reference image, no refinement beyond OpenCV's, no state from frame to frame.
 
 Pixels: the centre of the top-left pixel at (0, 0). Target frame: origin at the image's centre, x
-right, y up, z towards the viewer (``services.estimation.targets``). Poses ``T_camera_target`` (4, 4),
+right, y up, z towards the viewer (``services.estimation.targets.target``). Poses ``T_camera_target`` (4, 4),
 OpenCV's camera frame.
 """
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.estimation.targets import target_points
+from services.estimation.targets.target import target_points
 
 RATIO = 0.75
 THRESHOLD_PX = 3.0

@@ -17,11 +17,11 @@ import numpy as np
 from protocol.detections import Blobs
 from protocol.message import Header
 from services.capture.scenes.ir_rig import IrRigScene
-from services.detection.blobs_node import Params as BlobsParams
-from services.detection.blobs_node import as_message, detector
-from services.estimation.correspondence import triangulate_blobs
-from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import Params, pixels
+from services.detection.blobs.node import Params as BlobsParams
+from services.detection.blobs.node import as_message, detector
+from services.estimation.bodies.correspondence import triangulate_blobs
+from services.estimation.bodies.node import Params, pixels
+from services.estimation.bodies.rigid import match_bodies
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle, rotvec_from_matrix

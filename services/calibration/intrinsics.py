@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.detection.markers import aruco_dictionary
+from services.detection.markers.detector import aruco_dictionary
 from services.geometry.camera import CameraModel
 from services.geometry.homography import DegenerateError, homography_dlt
 from services.geometry.rotation import matrix_from_rotvec

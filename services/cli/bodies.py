@@ -22,14 +22,14 @@ NS_PER_S = 1_000_000_000
 def spread(spheres: np.ndarray) -> str:
     """``N spheres, distances A to B mm``: the count and the shortest and longest sphere-to-sphere distance
     of (N, 3) sphere centres, metres."""
-    from services.estimation.rigid_bodies import pairwise_distances
+    from services.estimation.bodies.rigid import pairwise_distances
 
     distances = pairwise_distances(spheres)[np.triu_indices(len(spheres), 1)]
     return f"{len(spheres)} spheres, distances {distances.min() * 1e3:.1f} to {distances.max() * 1e3:.1f} mm"
 
 
 def cmd_bodies_check(args: argparse.Namespace) -> int:
-    from services.estimation.bodies_file import check_bodies, load_bodies
+    from services.estimation.bodies.file import check_bodies, load_bodies
 
     bodies = load_bodies(args.file)
     for name, spheres in bodies.items():
@@ -57,8 +57,8 @@ def unlabelled_points(recording: Path, at_s: float, key: str = "points") -> tupl
 
 
 def cmd_bodies_define(args: argparse.Namespace) -> int:
-    from services.estimation.bodies_file import NAME_PATTERN, check_bodies, load_bodies, parse_bodies, save_bodies
-    from services.estimation.body_definition import body_frame
+    from services.estimation.bodies.definition import body_frame
+    from services.estimation.bodies.file import NAME_PATTERN, check_bodies, load_bodies, parse_bodies, save_bodies
 
     if not NAME_PATTERN.fullmatch(args.name):
         raise ValueError(f"body name {args.name!r}: use letters, digits, '_', '.', '-'")

@@ -130,7 +130,7 @@ def _ir_blobs(image: np.ndarray) -> np.ndarray:
     """(N, 2) centroids, px, of the clean blobs the IR detector finds in a mono (or BGR) image."""
     import cv2
 
-    from services.detection.blobs import detect_ir_blobs
+    from services.detection.blobs.bright import detect_ir_blobs
 
     mono = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     return detect_ir_blobs(mono).clean().centroids
@@ -143,7 +143,7 @@ def _floor_frame(path: Path, cameras: list[CameraModel]) -> np.ndarray:
 
     from services.calibration.camera_info import CalibrationError
     from services.calibration.wand import floor_frame, order_lframe
-    from services.estimation.correspondence import triangulate_blobs
+    from services.estimation.bodies.correspondence import triangulate_blobs
     from services.recorder.camera_frames import camera_frames
 
     recorded = camera_frames(path, _ir_blobs)

@@ -13,7 +13,8 @@ def cmd_markers_print(args: argparse.Namespace) -> int:
     import cv2
     import yaml
 
-    from services.detection.marker_sheet import (
+    from services.detection.markers.settings import DEFAULT_DICTIONARY
+    from services.detection.markers.sheet import (
         PAPERS,
         Sheet,
         board_document,
@@ -24,7 +25,6 @@ def cmd_markers_print(args: argparse.Namespace) -> int:
         write_pdf,
         write_png,
     )
-    from services.detection.settings import DEFAULT_DICTIONARY
 
     suffix = args.out.suffix.lower()
     if args.paper not in PAPERS:

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-    from services.detection.keypoints import KeypointParams
-    from services.estimation.target_library import TargetLibrary
+    from services.detection.keypoints.detector import KeypointParams
+    from services.estimation.targets.library import TargetLibrary
 
 EXIT_WARNINGS = 1
 EXIT_POOR = 2
@@ -21,21 +21,21 @@ CHECK_HELP = ("how trackable an image is as a target (keypoint count, spread, re
 
 def library(args: argparse.Namespace) -> TargetLibrary:
     """The target library of ``--targets`` (default: the user's)."""
-    from services.estimation.target_library import TargetLibrary
+    from services.estimation.targets.library import TargetLibrary
 
     return TargetLibrary(args.targets)
 
 
 def detector_of(feature: str | None) -> KeypointParams:
     """The detector settings of ``--feature`` (None: the default feature); ValueError for an unknown one."""
-    from services.estimation.target_features import DEFAULT_FEATURE, feature_params
+    from services.estimation.targets.features import DEFAULT_FEATURE, feature_params
 
     return feature_params(feature or DEFAULT_FEATURE)
 
 
 def print_check(image: np.ndarray, detector: KeypointParams) -> int:
     """Print the trackability of ``image`` with ``detector``'s keypoints; the exit status of its verdict."""
-    from services.estimation.target_check import check_image
+    from services.estimation.targets.check import check_image
 
     report = check_image(image, detector)
     print(f"{report.verdict}: {report.keypoints} keypoints, coverage {report.coverage:.0%}, spread "
@@ -65,7 +65,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from services.estimation.target_features import CAP_FRAME_PX, has_scale_space
+    from services.estimation.targets.features import CAP_FRAME_PX, has_scale_space
 
     targets = library(args)
     info = targets.info(args.target)
@@ -90,7 +90,7 @@ def cmd_remove(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from services.estimation.target_library import read_image
+    from services.estimation.targets.library import read_image
 
     return print_check(read_image(args.image), detector_of(args.feature))
 

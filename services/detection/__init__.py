@@ -1,2 +1,2 @@
-"""Detection: square fiducial markers (ArUco / AprilTag) and blobs (IR threshold, LoG scale space, HSV colour)
-found in images, and the node that publishes markers."""
+"""Detection in images, one package per kind of feature: ``markers`` (ArUco / AprilTag), ``blobs`` (IR threshold,
+LoG scale space, HSV colour) and ``keypoints`` (corners and descriptors); algorithms and their nodes."""

@@ -1,1 +1,3 @@
-"""Pose estimation algorithms (marker poses, marker maps, calibration) and their node; pure numpy/OpenCV."""
+"""Pose estimation, one package per tracker: ``markers`` (planar markers and marker maps), ``bodies`` (rigid
+bodies of IR spheres seen by a rig) and ``targets`` (natural-feature image targets); algorithms and their nodes.
+``motion``, ``pose_filter`` and ``overlay`` serve more than one tracker."""

@@ -32,7 +32,7 @@ from services.calibration.camera_info import write_camera_info
 from services.calibration.rig import Rig, write_rig
 from services.capture.scenes import make_scene
 from services.convert import transform_from_matrix
-from services.estimation.bodies_file import BodiesFileError, save_bodies
+from services.estimation.bodies.file import BodiesFileError, save_bodies
 from services.recorder.export import tum_line
 
 __all__ = ["SceneExport", "SceneExportError", "export_scene", "image_name", "truth_path"]

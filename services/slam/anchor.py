@@ -2,7 +2,7 @@
 
 Monocular SLAM poses ``T_map_camera`` are in a map frame of arbitrary origin, orientation and
 scale. A marker of known side, seen in the same frames, gives metric ``T_camera_marker``
-(``services.estimation.marker_pose``). From such pairs ``MarkerAnchor`` fits the similarity
+(``services.estimation.markers.pose``). From such pairs ``MarkerAnchor`` fits the similarity
 ``p_marker = s R p_map + t`` (``s``: metres per map unit), so that any SLAM pose can be given in
 the marker's frame, in metres: ``T_marker_camera = S T_map_camera`` with the translation scaled
 (``Anchor.to_marker``).

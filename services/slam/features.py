@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.detection.grey import as_grey8
-from services.detection.keypoints import KeypointDetector, KeypointParams
+from services.detection.keypoints.detector import KeypointDetector, KeypointParams
 from services.geometry.camera import CameraModel, undistort_pixels
 
 __all__ = ["FrameFeatures", "FeatureExtractor"]
@@ -36,7 +36,7 @@ class FrameFeatures:
 
 
 class FeatureExtractor:
-    """ORB keypoints spread over a grid (``services.detection.keypoints``), their pixels undistorted
+    """ORB keypoints spread over a grid (``services.detection.keypoints.detector``), their pixels undistorted
     through ``camera``'s ``K`` and ``dist``."""
 
     def __init__(self, camera: CameraModel, max_count: int, levels: int, scale_factor: float, fast_threshold: int):

@@ -72,8 +72,8 @@ from services.calibration.camera_info import read_camera_info
 from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
 from services.convert import transform_from_matrix
 from services.detection.grey import as_grey
-from services.detection.settings import DEFAULT_DICTIONARY, DetectorSettings
-from services.estimation.marker_pose import MarkerPoseEstimator
+from services.detection.markers.settings import DEFAULT_DICTIONARY, DetectorSettings
+from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError

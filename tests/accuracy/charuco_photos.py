@@ -15,9 +15,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.detection.markers import MarkerDetector
-from services.estimation.marker_map import MarkerMap, map_from_poses
-from services.estimation.marker_pose import MarkerPoseEstimator
+from services.detection.markers.detector import MarkerDetector
+from services.estimation.markers.map import MarkerMap, map_from_poses
+from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import make_transform
 

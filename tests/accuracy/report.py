@@ -39,9 +39,9 @@ import numpy as np
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.markers import MarkersScene
-from services.detection.markers import REFINEMENTS, MarkerDetector
-from services.estimation.marker_map import map_from_poses, marker_corners
-from services.estimation.marker_pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, TargetPose
+from services.detection.markers.detector import REFINEMENTS, MarkerDetector
+from services.estimation.markers.map import map_from_poses, marker_corners
+from services.estimation.markers.pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, TargetPose
 from services.geometry.camera import project_points
 from services.geometry.homography import homography_dlt, pose_from_homography
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle

@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
-from services.detection.blobs_node import Params as BlobParams
-from services.detection.blobs_node import detector
-from services.estimation.body_tracking import BodyTracker
-from services.estimation.correspondence import triangulate_blobs
-from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import point_arrays
+from services.detection.blobs.node import Params as BlobParams
+from services.detection.blobs.node import detector
+from services.estimation.bodies.correspondence import triangulate_blobs
+from services.estimation.bodies.node import point_arrays
+from services.estimation.bodies.rigid import match_bodies
+from services.estimation.bodies.tracking import BodyTracker
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
 

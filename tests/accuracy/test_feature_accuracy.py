@@ -41,18 +41,18 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.base import SceneFrame
-from services.detection.keypoints import KeypointParams
-from services.estimation.target_alignment import TargetAligner
-from services.estimation.target_features import feature_params, is_binary, make_extractor, to_grey
-from services.estimation.target_measure import refine_homography
-from services.estimation.target_recognition import (
+from services.detection.keypoints.detector import KeypointParams
+from services.estimation.targets.alignment import TargetAligner
+from services.estimation.targets.features import feature_params, is_binary, make_extractor, to_grey
+from services.estimation.targets.measure import refine_homography
+from services.estimation.targets.recognition import (
     RecognitionOptions,
     TargetRecognizer,
     make_matcher,
     match_descriptors,
 )
-from services.estimation.target_tracking import TargetTracker
-from services.estimation.targets import build_target
+from services.estimation.targets.target import build_target
+from services.estimation.targets.tracking import TargetTracker
 from services.geometry.camera import intrinsics
 from services.geometry.evaluation import pose_error
 from tests.data import data_dir, data_root

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.detection.blobs import BlobFlag, detect_ir_blobs
+from services.detection.blobs.bright import BlobFlag, detect_ir_blobs
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 

@@ -32,8 +32,8 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.detection.markers import DEFAULT_REFINEMENT
-from services.estimation.marker_map import marker_corners
+from services.detection.markers.detector import DEFAULT_REFINEMENT
+from services.estimation.markers.map import marker_corners
 from services.geometry.camera import project_points
 from services.geometry.refine import pose_covariance, residuals_and_jacobian
 from services.geometry.se3 import transform_points

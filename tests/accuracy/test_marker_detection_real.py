@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detection.markers import MarkerDetector
+from services.detection.markers.detector import MarkerDetector
 from tests.accuracy.charuco_photos import (
     CALIBRATION,
     CHARUCO_PHOTOS,

@@ -18,8 +18,8 @@ No ground-truth poses exist, so:
 import numpy as np
 import pytest
 
-from services.detection.markers import MarkerDetector
-from services.estimation.marker_map import marker_corners
+from services.detection.markers.detector import MarkerDetector
+from services.estimation.markers.map import marker_corners
 from services.geometry.se3 import transform_points
 from tests.accuracy.charuco_photos import (
     CHARUCO_PHOTOS,

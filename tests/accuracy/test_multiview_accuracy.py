@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.correspondence import CorrespondenceOptions, triangulate_blobs
+from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import reproject
 

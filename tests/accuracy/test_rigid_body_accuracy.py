@@ -19,7 +19,7 @@ import json
 import numpy as np
 
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
-from services.estimation.rigid_bodies import match_bodies
+from services.estimation.bodies.rigid import match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
 

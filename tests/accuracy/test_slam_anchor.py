@@ -28,7 +28,7 @@ import numpy as np
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.room import RoomScene
-from services.estimation.offline import track_images
+from services.estimation.markers.offline import track_images
 from services.geometry.evaluation import absolute_trajectory_error
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert

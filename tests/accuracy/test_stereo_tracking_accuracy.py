@@ -35,7 +35,7 @@ from protocol.detections import Blobs
 from services.calibration.wand import Wand, calibrate_wand
 from services.capture.scenes import make_scene
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigScene
-from services.estimation.rigid_bodies_node import Params, pixels
+from services.estimation.bodies.node import Params, pixels
 from services.geometry.se3 import invert
 from tests.ir_tracking import Tracked, mean_mahalanobis, rendered_blobs, summary, track, whitened_rms
 from tests.wand_blobs import extrinsic_errors

@@ -24,7 +24,7 @@ import json
 import statistics
 from typing import Any
 
-from services.detection.settings import DetectorSettings
+from services.detection.markers.settings import DetectorSettings
 from tests.bench.figures import paired_median
 from tests.bench.markers import FPS, FRAMES, MARKER_LENGTH, pipeline
 

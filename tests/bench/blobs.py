@@ -25,9 +25,9 @@ import cv2
 import numpy as np
 
 from services.capture.scenes import make_scene
-from services.detection.blobs import IrBlobParams, detect_ir_blobs
-from services.detection.colour_blobs import HueModel, detect_colour_blobs
-from services.detection.scale_space import detect_log_blobs
+from services.detection.blobs.bright import IrBlobParams, detect_ir_blobs
+from services.detection.blobs.colour import HueModel, detect_colour_blobs
+from services.detection.blobs.scale_space import detect_log_blobs
 
 WIDTH, HEIGHT = 640, 480
 FRAMES, LOG_FRAMES, WARMUP = 300, 20, 5

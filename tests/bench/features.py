@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from services.capture.scenes import make_scene
-from services.estimation.target_features import make_extractor
-from services.estimation.target_recognition import TargetRecognizer, make_matcher
-from services.estimation.target_tracking import TargetTracker
-from services.estimation.targets import build_target
+from services.estimation.targets.features import make_extractor
+from services.estimation.targets.recognition import TargetRecognizer, make_matcher
+from services.estimation.targets.target import build_target
+from services.estimation.targets.tracking import TargetTracker
 from tests.bench.blobs import one_opencv_thread, per_frame_us
 from tests.feature_baseline import SiftBaseline
 

@@ -38,8 +38,8 @@ import numpy as np
 
 from protocol import Header, Image, TrackingState, decode, encode
 from services.capture.scenes import make_scene
-from services.estimation.features_node import Params, as_pose, load_targets, make_trackers
-from services.estimation.target_tracking import track_targets
+from services.estimation.targets.node import Params, as_pose, load_targets, make_trackers
+from services.estimation.targets.tracking import track_targets
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 

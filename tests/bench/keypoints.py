@@ -1,6 +1,6 @@
 """Keypoint detection speed per 640x480 frame, single-threaded OpenCV.
 
-Every method of ``services.detection.keypoints`` (``orb``, ``sift``, ``akaze``, ``harris``,
+Every method of ``services.detection.keypoints.detector`` (``orb``, ``sift``, ``akaze``, ``harris``,
 ``shi_tomasi``) with its own descriptors, on frames of the synthetic ``planar_target`` scene,
 capped at ``MAX_COUNT`` keypoints spread by grid bucketing (the node's default); beside them
 ORB with TEBLID descriptors, ORB spread by ANMS and without spreading, and OpenCV's plain
@@ -21,7 +21,7 @@ import numpy as np
 
 from services.capture.scenes import make_scene
 from services.detection.grey import as_grey8
-from services.detection.keypoints import METHODS, KeypointDetector, KeypointParams
+from services.detection.keypoints.detector import METHODS, KeypointDetector, KeypointParams
 from tests.bench.blobs import WARMUP, one_opencv_thread, per_frame_us
 
 WIDTH, HEIGHT = 640, 480

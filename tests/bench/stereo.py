@@ -46,11 +46,11 @@ import numpy as np
 from protocol import encode
 from protocol.message import Header
 from services.capture.scenes import make_scene
-from services.detection import blobs_node
-from services.estimation import rigid_bodies_node
-from services.estimation.bodies_file import save_bodies
-from services.estimation.correspondence import rig_geometry, triangulate_blobs
-from services.estimation.rigid_bodies import Matching, match_bodies
+from services.detection.blobs import node as blobs_node
+from services.estimation.bodies import node as rigid_bodies_node
+from services.estimation.bodies.correspondence import rig_geometry, triangulate_blobs
+from services.estimation.bodies.file import save_bodies
+from services.estimation.bodies.rigid import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariance
 from services.geometry.triangulation import triangulate_many
 from tests.bench.link import at_rate, cpu_seconds

@@ -16,7 +16,7 @@ from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene
 from services.convert import matrix_from_transform
-from services.estimation.marker_map import grid_map
+from services.estimation.markers.map import grid_map
 from services.geometry.camera import project_points
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import invert, transform_points

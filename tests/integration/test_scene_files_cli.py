@@ -9,8 +9,8 @@ from mcap.reader import make_reader
 from protocol.codec import decode
 from protocol.mocap import Points3D
 from services.capture.scenes.ir_rig import LAYOUTS
-from services.estimation.bodies_file import load_bodies, save_bodies
-from services.estimation.rigid_bodies import pairwise_distances
+from services.estimation.bodies.file import load_bodies, save_bodies
+from services.estimation.bodies.rigid import pairwise_distances
 from services.geometry.se3 import invert
 from services.recorder.pairing import pair
 from services.recorder.trajectories import load_trajectory

@@ -5,9 +5,9 @@ import pytest
 
 from services.capture.scenes.ir_rig import LAYOUTS
 from services.cli import main
-from services.estimation.bodies_file import save_bodies
-from services.estimation.body_definition import body_frame
-from services.estimation.rigid_bodies import pairwise_distances
+from services.estimation.bodies.definition import body_frame
+from services.estimation.bodies.file import save_bodies
+from services.estimation.bodies.rigid import pairwise_distances
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import transform_points
 

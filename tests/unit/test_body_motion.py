@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from services.estimation.body_motion import ConstantVelocity, MotionOptions
+from services.estimation.motion import ConstantVelocity, MotionOptions
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
 

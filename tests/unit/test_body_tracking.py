@@ -6,9 +6,9 @@ from protocol.message import Header
 from protocol.poses import TrackingState
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.convert import matrix_from_transform
-from services.estimation.body_tracking import BodyTracker, TrackingOptions, match_with_prediction
-from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import Params, predicted_poses
+from services.estimation.bodies.node import Params, predicted_poses
+from services.estimation.bodies.rigid import match_bodies
+from services.estimation.bodies.tracking import BodyTracker, TrackingOptions, match_with_prediction
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.estimation.centroid_noise import CentroidNoise, degrees_of_freedom, robust_variance
+from services.estimation.bodies.centroid_noise import CentroidNoise, degrees_of_freedom, robust_variance
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import reproject, triangulate
 

@@ -12,7 +12,7 @@ from protocol.message import Header
 from protocol.system import ConfigChange, PipelineHealth, SupervisedNode
 from services.bus.session import BusConfig
 from services.capture.node import Params as CaptureParams
-from services.detection.node import Params as MarkerParams
+from services.detection.markers.node import Params as MarkerParams
 from services.launcher import daemon
 from services.launcher.pipeline import PipelineError, params_model, read_pipeline
 from services.launcher.reload import plan_reload

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detection.blobs import BlobFlag, Blobs, IrBlobParams, detect_ir_blobs
+from services.detection.blobs.bright import BlobFlag, Blobs, IrBlobParams, detect_ir_blobs
 from tests.blob_images import disc_image
 
 BACKGROUND = 12

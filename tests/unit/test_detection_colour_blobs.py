@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from services.detection.blobs import BlobFlag
-from services.detection.colour_blobs import (
+from services.detection.blobs.bright import BlobFlag
+from services.detection.blobs.colour import (
     ColourBlobParams,
     HueModel,
     circular_mean_spread,

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detection.corner_lines import fit_lines, refine_corners
+from services.detection.markers.corner_lines import fit_lines, refine_corners
 
 SIZE = 120
 SUPERSAMPLE = 8

@@ -6,7 +6,7 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.plane import rectangle_corners
-from services.detection.markers import DICTIONARY_NAMES, MarkerDetector, aruco_dictionary, to_grey
+from services.detection.markers.detector import DICTIONARY_NAMES, MarkerDetector, aruco_dictionary, to_grey
 from services.geometry.camera import project_points
 from services.geometry.se3 import transform_points
 

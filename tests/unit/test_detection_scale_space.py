@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detection.blobs import BlobFlag
-from services.detection.scale_space import LogBlobParams, detect_log_blobs, disc_overlap
+from services.detection.blobs.bright import BlobFlag
+from services.detection.blobs.scale_space import LogBlobParams, detect_log_blobs, disc_overlap
 from tests.blob_images import disc_image
 
 SHAPE = (240, 320)

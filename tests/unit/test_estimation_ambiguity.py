@@ -4,7 +4,7 @@ propagation of guesses (a choice by lower error in an ambiguous view anchors not
 import numpy as np
 import pytest
 
-from services.estimation.ambiguity import AmbiguityTracker
+from services.estimation.markers.ambiguity import AmbiguityTracker
 from services.geometry.planar_pnp import Candidate
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from services.capture.scenes.ir_rig import LAYOUTS
-from services.estimation.bodies_file import BodiesFileError, check_bodies, load_bodies, save_bodies
+from services.estimation.bodies.file import BodiesFileError, check_bodies, load_bodies, save_bodies
 from services.geometry.rotation import matrix_from_rotvec
 
 LAYOUTS_FILE = Path(__file__).parents[2] / "pipelines" / "ir_rig_bodies.yaml"

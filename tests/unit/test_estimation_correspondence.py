@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.correspondence import CorrespondenceOptions, gated_assignment, triangulate_blobs, unambiguous
+from services.estimation.bodies.correspondence import (
+    CorrespondenceOptions,
+    gated_assignment,
+    triangulate_blobs,
+    unambiguous,
+)
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import reproject
 

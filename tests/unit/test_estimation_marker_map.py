@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.marker_map import (
+from services.estimation.markers.map import (
     MarkerMapError,
     grid_map,
     load_marker_map,

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.marker_map import MapMarker, MarkerMap, map_from_poses, marker_corners
-from services.estimation.marker_pose import METHODS, MarkerPoseEstimator, single_observation
+from services.estimation.markers.map import MapMarker, MarkerMap, map_from_poses, marker_corners
+from services.estimation.markers.pose import METHODS, MarkerPoseEstimator, single_observation
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.planar_pnp import ippe_candidates
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle

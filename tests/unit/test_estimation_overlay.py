@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.estimation.marker_map import grid_map
+from services.estimation.markers.map import grid_map
 from services.estimation.overlay import (
     AXIS_COLORS,
     OverlayTarget,

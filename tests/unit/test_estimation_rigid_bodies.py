@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes.ir_rig import LAYOUTS
-from services.estimation.rigid_bodies import MatchOptions, body_candidates, match_bodies
+from services.estimation.bodies.rigid import MatchOptions, body_candidates, match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points

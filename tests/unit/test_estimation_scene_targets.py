@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.scene_targets import is_scene_target, scene_target, scene_target_name
+from services.estimation.targets.scene import is_scene_target, scene_target, scene_target_name
 
 
 def test_the_scene_settles_its_own_target_and_names_the_options_that_shape_it():

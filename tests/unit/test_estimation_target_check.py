@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.target_check import check_image, repeated_fraction, spread
+from services.estimation.targets.check import check_image, repeated_fraction, spread
 
 
 @pytest.fixture(scope="module")

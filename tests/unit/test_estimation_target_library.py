@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.target_features import feature_params
-from services.estimation.target_library import (
+from services.estimation.targets.features import feature_params
+from services.estimation.targets.library import (
     DamagedTargetError,
     DuplicateTargetError,
     TargetImageError,

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.target_features import make_extractor
-from services.estimation.target_recognition import (
+from services.estimation.targets.features import make_extractor
+from services.estimation.targets.recognition import (
     RecognitionOptions,
     RecognitionState,
     TargetRecognizer,
     make_matcher,
     match_descriptors,
 )
-from services.estimation.targets import build_target
+from services.estimation.targets.target import build_target
 from services.geometry.camera import intrinsics, undistort_pixels
 from services.geometry.evaluation import pose_error
 from tests.object_box import HAND_CHECKED_TOP_LEFT, OUTLINE, SCENE_FOV_DEG, box_images, box_outline

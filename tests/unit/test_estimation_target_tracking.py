@@ -11,16 +11,16 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.texture import procedural_texture
-from services.estimation.target_features import make_extractor
-from services.estimation.target_recognition import TargetRecognizer
-from services.estimation.target_tracking import (
+from services.estimation.targets.features import make_extractor
+from services.estimation.targets.recognition import TargetRecognizer
+from services.estimation.targets.target import build_target
+from services.estimation.targets.tracking import (
     FrameFeatures,
     TargetTracker,
     TrackingOptions,
     TrackState,
     track_targets,
 )
-from services.estimation.targets import build_target
 from services.geometry.evaluation import pose_error
 
 FRAMES = range(0, 150, 2)

@@ -6,9 +6,9 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.plane import texel_from_plane
-from services.detection.keypoints import KeypointDetector
-from services.estimation.target_features import feature_params, keypoint_cap, make_extractor, to_grey
-from services.estimation.targets import (
+from services.detection.keypoints.detector import KeypointDetector
+from services.estimation.targets.features import feature_params, keypoint_cap, make_extractor, to_grey
+from services.estimation.targets.target import (
     MAX_LEVELS,
     MIN_LEVEL_SIDE,
     build_target,

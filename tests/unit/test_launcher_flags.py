@@ -86,7 +86,7 @@ def test_type_names_for_help(annotation, expected):
 
 def test_the_built_in_kinds_and_trackers_are_found_where_they_are_declared():
     found = catalogue()
-    assert found.kinds["marker_pose"] == "services.estimation.node"
+    assert found.kinds["marker_pose"] == "services.estimation.markers.node"
     assert found.kinds["capture"] == "services.capture.node"
     assert found.trackers["marker"].parent.parent.name == "estimation"
     assert kind("echo").keys(kind("echo").validate({"camera": "cam3"})) == (("cam3/image",), ("cam3/echo",))

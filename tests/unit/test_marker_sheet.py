@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from services.cli import PAPER_NAMES, main
-from services.detection.marker_sheet import (
+from services.detection.markers.detector import MarkerDetector
+from services.detection.markers.sheet import (
     INCH_M,
     PAPERS,
     board_document,
@@ -23,9 +24,8 @@ from services.detection.marker_sheet import (
     write_pdf,
     write_png,
 )
-from services.detection.markers import MarkerDetector
-from services.estimation.marker_map import load_marker_map, parse_marker_map
-from services.estimation.marker_pose import MarkerPoseEstimator
+from services.estimation.markers.map import load_marker_map, parse_marker_map
+from services.estimation.markers.pose import MarkerPoseEstimator
 
 POINT_M = INCH_M / 72
 

@@ -8,7 +8,7 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.cli import main
-from services.estimation.marker_map import load_marker_map
+from services.estimation.markers.map import load_marker_map
 from services.launcher.pipeline import read_pipeline
 
 PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"

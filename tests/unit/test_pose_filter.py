@@ -10,8 +10,8 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.estimation.pose_filter import OneEuroOptions, OneEuroPoseFilter
-from services.estimation.target_tracking import TargetTracker
-from services.estimation.targets import build_target
+from services.estimation.targets.target import build_target
+from services.estimation.targets.tracking import TargetTracker
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform

@@ -11,7 +11,7 @@ from services.calibration.rig import read_rig
 from services.capture.scenes import make_scene
 from services.capture.scenes.ir_rig import LAYOUTS
 from services.capture.sources import SourceError, SourceFrame, camera_names, frame_sizes, open_source, seconds_to_ns
-from services.estimation.bodies_file import load_bodies
+from services.estimation.bodies.file import load_bodies
 from services.recorder.scene_export import SceneExportError, export_scene, image_name
 from services.recorder.trajectories import read_tum
 

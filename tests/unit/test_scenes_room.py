@@ -7,7 +7,7 @@ import pytest
 from services.capture.scenes import make_scene
 from services.capture.scenes.compositing import render_faces
 from services.capture.scenes.room import BOXES, CHECKER_INNER, HEIGHT_M, LENGTH_M, WIDTH_M
-from services.detection.markers import MarkerDetector
+from services.detection.markers.detector import MarkerDetector
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 

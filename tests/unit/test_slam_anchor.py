@@ -16,7 +16,7 @@ import pytest
 from services.capture.scenes import make_scene
 from services.capture.scenes.markers import inside_image
 from services.capture.scenes.room import RoomScene
-from services.estimation.marker_pose import MarkerPoseEstimator
+from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.camera import project_points
 from services.geometry.evaluation import Similarity, absolute_trajectory_error, apply_similarity
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle

@@ -15,13 +15,12 @@ from services.calibration.rig import Rig, write_rig
 from services.capture.scenes import make_scene
 from services.capture.scenes.ir_rig import LAYOUTS
 from services.convert import matrix_from_transform
-from services.detection.blobs import BlobFlag
-from services.detection.blobs_node import Params as BlobParams
-from services.detection.blobs_node import UnusableFrame, as_message, detector
-from services.estimation.bodies_file import check_bodies, save_bodies
-from services.estimation.correspondence import triangulate_blobs
-from services.estimation.rigid_bodies import match_bodies
-from services.estimation.rigid_bodies_node import (
+from services.detection.blobs.bright import BlobFlag
+from services.detection.blobs.node import Params as BlobParams
+from services.detection.blobs.node import UnusableFrame, as_message, detector
+from services.estimation.bodies.correspondence import triangulate_blobs
+from services.estimation.bodies.file import check_bodies, save_bodies
+from services.estimation.bodies.node import (
     Params,
     body_poses,
     load,
@@ -29,6 +28,7 @@ from services.estimation.rigid_bodies_node import (
     point_arrays,
     points_message,
 )
+from services.estimation.bodies.rigid import match_bodies
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.launcher.tracker import Tracker
 

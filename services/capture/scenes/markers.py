@@ -26,7 +26,7 @@ import numpy as np
 from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
 from services.capture.scenes.paths import plane_viewing_path
 from services.capture.scenes.plane import PlaneTexture, rectangle_corners
-from services.detection.markers import DICTIONARY_NAMES, aruco_dictionary
+from services.detection.markers.detector import DICTIONARY_NAMES, aruco_dictionary
 from services.geometry.camera import CameraModel, intrinsics, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
 

@@ -16,7 +16,7 @@ shakes. Ground truth:
 The scene settles the ``target`` of a tracker (``known_settings``): itself, as the URI
 ``synthetic:planar_target`` followed by ``?name=value&...`` for each option that shapes the target
 (``TARGET_OPTIONS``) and differs from its default, from which a target is built afresh
-(``services.estimation.scene_targets``).
+(``services.estimation.targets.scene``).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ from services.capture.scenes.compositing import Face, render_faces
 from services.capture.scenes.markers import inside_image
 from services.capture.scenes.plane import PlaneTexture, rectangle_corners, texel_from_plane
 from services.capture.scenes.texture import procedural_texture
-from services.detection.markers import DICTIONARY_NAMES, aruco_dictionary
+from services.detection.markers.detector import DICTIONARY_NAMES, aruco_dictionary
 from services.geometry.camera import CameraModel, intrinsics, look_at, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.geometry.trajectory import SinePath

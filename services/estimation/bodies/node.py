@@ -1,0 +1,348 @@
+"""Rigid bodies node: the blobs of every camera of a calibrated rig -> 3D points -> ``T_world_body`` poses.
+
+Inputs: ``<camera>/blobs`` of each of ``cameras`` (``protocol.detections.Blobs``, one blobs node per
+camera), joined by ``header.seq``: only the blobs of one instant are ever triangulated together;
+a camera's blobs that find no partners are counted as unjoined in the node's statistics
+(``NodeStats.synced``), never used. The rig (world = the rig frame) is the ``rig_file``
+(``services.calibration.rig``), else each camera's newest ``<camera>/camera_info``, whose
+``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so).
+The bodies are the ``bodies`` file (``services.estimation.bodies.file``), else the ``ir_rig``
+scene's own (``services.capture.scenes.ir_rig.LAYOUTS``); what ``check_bodies`` finds doubtful
+about them is logged at start, one line each.
+
+Per joined set (``services.estimation.bodies.correspondence``, ``services.estimation.bodies.rigid``):
+the blobs without flags (``flagged`` uses the flagged ones too) are put in correspondence and
+triangulated, the bodies matched among the points and each fitted. Outputs, with the header of
+the set's frames and ``frame_id`` ``world``:
+
+* ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none); the
+  covariances are for centroid noise of ``sigma_px``, by default (``auto``) the running estimate of
+  ``services.estimation.bodies.centroid_noise.CentroidNoise`` from the points' reprojection residuals;
+* ``pose/body/<name>``: ``Pose`` ``T_world_body`` (child ``body/<name>``) per body found, state
+  ``tracking``, with the spheres used (``quality.inliers``), the fit's residual RMS
+  (``quality.residual_rms_m``) and its 6x6 covariance (``Pose``'s convention: perturbation
+  (tx, ty, tz, rx, ry, rz) in the body frame); a body found in the previous set and not in this
+  one gets one ``lost`` pose (identity transform).
+
+With ``predict`` (off by default; off, the per-set path is the one above and nothing more), the bodies
+are followed from set to set (``services.estimation.bodies.tracking.BodyTracker``): each body's
+constant-velocity motion, from its last two fits and their stamps, predicts its pose in the next set;
+its spheres are looked for within ``predict_gate`` of where they should be before any search by
+distances; and a body found in the previous set and missing from this one gets one pose with state
+``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then
+``lost`` if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
+
+Until every camera has a calibration, sets are counted as skipped (``no_calibration``). A rig file is used
+as it is: one whose camera was calibrated at another size than that camera's frames is refused before
+start wherever the source tells the frame size (``check_frames``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator
+
+from protocol.detections import Blobs
+from protocol.keys import KeyName
+from protocol.message import Header
+from protocol.mocap import Points3D
+from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.sensors import CameraInfo
+from services.bus.pubsub import Inbox, Publisher, Role
+from services.calibration.rig import Rig, read_rig
+from services.convert import camera_model, transform_from_matrix
+from services.estimation.bodies.centroid_noise import CentroidNoise
+from services.estimation.bodies.file import check_bodies, load_bodies
+from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
+from services.estimation.markers.tracking import TargetTracks
+from services.geometry.absolute_orientation import child_frame_covariance
+from services.geometry.camera import CameraModel
+from services.geometry.triangulation import TriangulatedPoint
+from services.runtime.kind import FrameSizes, NodeKind
+from services.runtime.node import Node, NodeError
+
+if TYPE_CHECKING:
+    from services.estimation.bodies.correspondence import CorrespondenceOptions
+    from services.estimation.bodies.tracking import TrackingOptions
+    from services.estimation.motion import Prediction
+
+WORLD = "world"
+FIRST_INFO_WAIT_S = 0.5
+"""The longest the first set waits for the cameras' first CameraInfo."""
+INFO_DEPTH = 100
+
+
+class Params(BaseModel):
+    """The rig's cameras, its calibration and bodies, and the gates of correspondence and matching."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), description="the rig's cameras, whose blobs "
+                                                                               "are joined")
+    rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the "
+                                                            "cameras' CameraInfo with their T_rig_camera")
+    bodies: Path | None = Field(default=None, description="bodies YAML; default: the ir_rig scene's bodies")
+    flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
+    epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
+    reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view, px")
+    sigma_px: PositiveFloat | Literal["auto"] = Field(
+        default="auto", description="centroid noise of the covariances, px; auto: estimated from the points' "
+                                    "reprojection residuals over the last sets")
+    min_views: int = Field(default=2, ge=2, description="fewest cameras that must see a point")
+    distance_tolerance: float = Field(default=0.003, gt=0, description="sphere distance tolerance of matching, m")
+    gate_rms: float = Field(default=0.001, gt=0, description="largest residual RMS of a body's fit, m: a few "
+                                                              "times the fits' RMS (0.1-0.3 mm), under what a "
+                                                              "wrong point within distance_tolerance gives")
+    sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
+    predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
+                                                     "matched near it first, one missing set bridged")
+    predict_gate: float = Field(default=0.015, gt=0, description="farthest a point may lie from a sphere's "
+                                                                  "predicted position, m")
+    predict_gap_s: float = Field(default=0.2, gt=0, description="longest time without a fit before a body's "
+                                                                "motion is forgotten, s")
+
+    @field_validator("cameras")
+    @classmethod
+    def _a_rig(cls, cameras: tuple[str, ...]) -> tuple[str, ...]:
+        if len(cameras) < 2 or len(set(cameras)) != len(cameras):
+            raise ValueError(f"triangulating needs two or more distinct cameras, got {', '.join(cameras) or 'none'}")
+        return cameras
+
+    def correspondence(self) -> CorrespondenceOptions:
+        from services.estimation.bodies.correspondence import CorrespondenceOptions
+
+        return CorrespondenceOptions(epipolar_gate_px=self.epipolar_gate_px,
+                                     reprojection_gate_px=self.reprojection_gate_px,
+                                     sigma_px=1.0 if self.sigma_px == "auto" else self.sigma_px,
+                                     min_views=self.min_views)
+
+    def point_noise(self) -> PointNoise:
+        return PointNoise(None if self.sigma_px == "auto" else self.sigma_px)
+
+    def matching(self) -> MatchOptions:
+        return MatchOptions(distance_tolerance=self.distance_tolerance, gate_rms=self.gate_rms)
+
+    def tracking(self) -> TrackingOptions:
+        from services.estimation.bodies.tracking import TrackingOptions
+        from services.estimation.motion import MotionOptions
+
+        return TrackingOptions(gate=self.predict_gate,
+                               motion=MotionOptions(max_gap_ns=max(1, round(self.predict_gap_s * 1e9))))
+
+
+def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
+    """The rig file's cameras (None without a file) and the bodies; ValueError (one line) when unusable."""
+    rig = None
+    if params.rig_file is not None:
+        rig = read_rig(params.rig_file)
+        missing = [name for name in params.cameras if name not in rig.names]
+        if missing:
+            raise ValueError(f"{params.rig_file}: no camera {', '.join(missing)} in the rig (it has "
+                             f"{', '.join(rig.names)})")
+    if params.bodies is not None:
+        bodies = load_bodies(params.bodies)
+    else:
+        from services.capture.scenes.ir_rig import LAYOUTS
+
+        bodies = dict(LAYOUTS)
+    return rig, bodies
+
+
+class Calibration:
+    """Each camera's model: the rig file's, or the newest CameraInfo of each camera."""
+
+    def __init__(self, cameras: tuple[str, ...], rig: Rig | None, infos: Mapping[str, Inbox[CameraInfo]]):
+        self.cameras = cameras
+        self.infos = infos
+        self.models: dict[str, CameraModel] = {} if rig is None else {name: rig.camera(name) for name in cameras}
+        self.waited = False
+        self.used: dict[str, dict] = {}
+        """The CameraInfo fields (all but the header) each camera's model was last built from."""
+
+    def current(self) -> list[CameraModel] | None:
+        """The cameras in ``cameras`` order, None while one has no calibration yet."""
+        self.refresh()
+        if len(self.models) < len(self.cameras) and not self.waited:
+            self.waited = True
+            for name in self.cameras:
+                if name not in self.models and (received := self.infos[name].recv(FIRST_INFO_WAIT_S)) is not None:
+                    self.models[name] = camera_model(received.message, name)
+        if len(self.models) < len(self.cameras):
+            return None
+        return [self.models[name] for name in self.cameras]
+
+    def missing(self) -> list[str]:
+        return [name for name in self.cameras if name not in self.models]
+
+    def refresh(self) -> None:
+        """Take in the newest CameraInfo of each camera that arrived (none with a rig file); a camera's model
+        is rebuilt only when its CameraInfo changed (a source sends it with every frame)."""
+        for name, inbox in self.infos.items():
+            newest = None
+            while (received := inbox.take()) is not None:
+                newest = received.message
+            if newest is not None and newest.model_dump(exclude={"header"}) != self.used.get(name):
+                self.used[name] = newest.model_dump(exclude={"header"})
+                self.models[name] = camera_model(newest, name)
+
+
+def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
+    """(N, 2) float64 centroids of the blobs to triangulate: the unflagged ones, or all with ``flagged``."""
+    return blobs.centroids if flagged else blobs.centroids[blobs.flags == 0]
+
+
+def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float64 points (world) and (N, 3, 3) float64 covariances (m^2) of ``found``."""
+    return (np.array([p.point for p in found], np.float64).reshape(-1, 3),
+            np.array([p.covariance for p in found], np.float64).reshape(-1, 3, 3))
+
+
+class PointNoise:
+    """The points' covariances under the centroid noise: ``sigma_px`` fixed (the points triangulated with it),
+    or None: estimated by a ``CentroidNoise`` from each set's residuals (the points triangulated with 1 px)."""
+
+    def __init__(self, sigma_px: float | None):
+        self.noise = CentroidNoise() if sigma_px is None else None
+
+    def arrays(self, found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
+        """``point_arrays`` of one set's points, their covariances scaled by the estimate once it has taken
+        them in."""
+        points, covariances = point_arrays(found)
+        if self.noise is None:
+            return points, covariances
+        sigma_px = self.noise.update(np.array([p.rms_px for p in found]), np.array([p.views for p in found]))
+        return points, covariances * sigma_px**2
+
+
+def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching,
+                   covariances: np.ndarray | None = None) -> Points3D:
+    """The set's points with the body each was matched to; ``covariances`` (N, 3, 3) m^2 when not the points'
+    own."""
+    body = np.full(len(found), -1, np.int32)
+    for match in matching.bodies.values():
+        body[match.indices[match.indices >= 0]] = names.index(match.name)
+    points, own = point_arrays(found)
+    covariances = own if covariances is None else covariances
+    return Points3D(header=header, bodies=tuple(names), points=points,
+                    residual_px=np.array([p.rms_px for p in found], np.float32),
+                    views=np.array([p.views for p in found], np.uint8), covariances=covariances, body=body)
+
+
+def body_poses(header: Header, matching: Matching) -> list[Pose]:
+    """One ``tracking`` pose per body found."""
+    poses = []
+    for name, match in matching.bodies.items():
+        fit = match.fit
+        covariance = None if fit.covariance is None else child_frame_covariance(fit.covariance, fit.T_world_body)
+        poses.append(Pose(header=header, child_frame_id=f"body/{name}",
+                          transform=transform_from_matrix(fit.T_world_body),
+                          quality=PoseQuality(inliers=match.spheres_used, residual_rms_m=fit.residual_rms),
+                          covariance=None if covariance is None else tuple(float(v) for v in covariance.ravel())))
+    return poses
+
+
+def predicted_poses(header: Header, predicted: Mapping[str, Prediction]) -> list[Pose]:
+    """One ``predicted`` pose per body bridged: the predicted transform and its grown covariance, no inliers."""
+    return [Pose(header=header, child_frame_id=f"body/{name}", state=TrackingState.PREDICTED,
+                 transform=transform_from_matrix(p.T_world_body),
+                 covariance=tuple(float(v) for v in child_frame_covariance(p.covariance, p.T_world_body).ravel()))
+            for name, p in predicted.items()]
+
+
+class PosePublishers:
+    """One publisher per body, made when the body is first found; one ``lost`` pose when it goes."""
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.publishers: dict[str, Publisher[Pose]] = {}
+        self.tracks = TargetTracks()
+
+    def put(self, header: Header, tracking: list[Pose]) -> None:
+        """Publish this set's poses (``tracking`` or ``predicted``), and one ``lost`` pose per body they lack
+        that the previous set had."""
+        lost = [Pose(header=header, child_frame_id=child, state=TrackingState.LOST)
+                for child in self.tracks.update(pose.child_frame_id for pose in tracking)]
+        for pose in tracking + lost:
+            child = pose.child_frame_id
+            if child not in self.publishers:
+                self.publishers[child] = self.node.publisher(self.node.keys.pose(child), Pose, Role.RESULT)
+            self.publishers[child].put(pose)
+
+
+def run(node: Node, params: Params) -> None:
+    from services.estimation.bodies.correspondence import triangulate_blobs  # scipy.optimize: only where it runs
+
+    try:
+        rig, bodies = load(params)
+    except ValueError as exc:
+        raise NodeError(str(exc)) from exc
+    for warning in check_bodies(bodies, params.matching()):
+        node.log.warning("bodies: %s", warning)
+    keys = node.keys
+    infos = {} if rig is not None else {
+        name: node.inbox(keys.camera_info(name), CameraInfo, Role.RESULT, depth=INFO_DEPTH) for name in params.cameras}
+    calibration = Calibration(params.cameras, rig, infos)
+    sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.RESULT, by="seq",
+                       depth=params.sync_depth)
+    points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
+    poses = PosePublishers(node)
+    names = list(bodies)
+    correspondence, matching_options, noise = params.correspondence(), params.matching(), params.point_noise()
+    tracker = None
+    if params.predict:
+        from services.estimation.bodies.tracking import BodyTracker
+
+        tracker = BodyTracker(bodies, matching_options, params.tracking())
+    for joined in sets:
+        first = joined[params.cameras[0]]
+        header = first.header.model_copy(update={"frame_id": WORLD})
+        cameras = calibration.current()
+        if cameras is None:
+            node.report("no_calibration", f"no CameraInfo for {', '.join(calibration.missing())} and no rig file: "
+                        "nothing triangulated", keys.camera_info(calibration.missing()[0]))
+            continue
+        found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
+                                  correspondence)
+        points, covariances = noise.arrays(found)
+        if tracker is None:
+            matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
+            poses.put(header, body_poses(header, matching))
+        else:
+            tracked = tracker.step(header.stamp_ns, points, covariances)
+            matching = tracked.matching
+            poses.put(header, body_poses(header, matching) + predicted_poses(header, tracked.predicted))
+        points_out.put(points_message(header, found, names, matching, covariances))
+
+
+def _inputs(params: Params) -> tuple[str, ...]:
+    infos = () if params.rig_file is not None else tuple(f"{name}/camera_info" for name in params.cameras)
+    return (*(f"{name}/blobs" for name in params.cameras), *infos)
+
+
+def _check(params: Params) -> None:
+    load(params)
+
+
+def _check_frames(params: Params, sizes: Callable[[], FrameSizes]) -> None:
+    """Each camera of the rig file against the size of its frames, where the source tells it (``sizes()``):
+    ValueError naming the file, the camera and both sizes when they differ. The file is used as it is,
+    with no scaling to the frames, as blobs carry no frame size to scale it to."""
+    if params.rig_file is None:
+        return
+    rig = read_rig(params.rig_file)
+    for name in params.cameras:
+        size = sizes().get(name)
+        camera = rig.camera(name)
+        if size is not None and (camera.width, camera.height) != size:
+            raise ValueError(f"{params.rig_file}: camera {name} is calibrated for {camera.width}x{camera.height}, "
+                             f"its frames are {size[0]}x{size[1]}: a rig file is used as it is (blob centroids "
+                             f"are in the frames' pixels), use one made at {size[0]}x{size[1]}")
+
+
+KIND = NodeKind(name="rigid_bodies", summary="rigid bodies' 6-DoF poses from the blobs of a calibrated rig's cameras",
+                params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check,
+                check_frames=_check_frames)

@@ -1,0 +1,183 @@
+"""Rigid bodies followed from instant to instant: matching near predicted poses, and one missing instant bridged.
+
+``match_with_prediction`` finds the bodies among an instant's points as ``rigid_bodies.match_bodies``
+does, but a body with a predicted pose is looked for first where its spheres should be:
+
+1. every predicted body's spheres are placed at their predicted world positions, and all of them
+   together are assigned one-to-one to the points (least total distance, each pair closer than
+   ``gate`` metres, ``correspondence.gated_assignment``), so no point goes to two bodies;
+2. each predicted body with at least ``min_spheres`` spheres assigned is fitted (``fit_rigid``); while
+   its residual RMS exceeds ``gate_rms`` and spheres remain above ``min_spheres``, the sphere farthest
+   from its fitted position is let go and the body fitted again;
+3. the bodies without a prediction, or whose predicted assignment failed, are matched by their
+   distance signatures (``match_bodies``) among the points the others left.
+
+``BodyTracker`` runs this instant after instant, one ``body_motion.ConstantVelocity`` per body fed
+with the fits, and bridges: a body published at the previous instant (found, or bridged less than
+``bridge`` times in a row) and not found now is given its predicted pose and covariance, to be
+published with state ``predicted``; missing once more, it is left out (its track reports it lost).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.estimation.bodies.correspondence import gated_assignment
+from services.estimation.bodies.rigid import (
+    DEFAULT_OPTIONS,
+    BodyMatch,
+    Matching,
+    MatchOptions,
+    check_points,
+    match_bodies,
+)
+from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions, Prediction
+from services.geometry.absolute_orientation import RigidFit, fit_rigid
+from services.geometry.se3 import transform_points
+
+__all__ = ["DEFAULT_TRACKING", "BodyTracker", "Tracked", "TrackingOptions", "match_with_prediction"]
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """``gate``: farthest a point may lie from a sphere's predicted position, m; ``min_spheres``: fewest
+    spheres a predicted body is fitted with (>= 3); ``bridge``: instants in a row a body missing is given
+    its predicted pose; ``motion``: the motion model's options."""
+
+    gate: float = 0.015
+    min_spheres: int = 3
+    bridge: int = 1
+    motion: MotionOptions = DEFAULT_MOTION
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.gate, int | float) and np.isfinite(self.gate) and self.gate > 0):
+            raise ValueError(f"gate must be a finite number > 0 (metres), got {self.gate!r}")
+        for name, least in (("min_spheres", 3), ("bridge", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+
+
+DEFAULT_TRACKING = TrackingOptions()
+
+
+def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
+                          predictions: Mapping[str, np.ndarray], covariances: np.ndarray | None = None,
+                          options: MatchOptions = DEFAULT_OPTIONS,
+                          tracking: TrackingOptions = DEFAULT_TRACKING) -> Matching:
+    """Find the bodies among the points, the predicted ones near their predictions (see the module docstring).
+
+    ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points_world``: (M, 3) float64, world
+    frame; ``predictions``: name -> (4, 4) predicted ``T_world_body`` (bodies absent have none);
+    ``covariances``: (M, 3, 3) float64 point covariances (m^2) or None. Each point goes to one body at most.
+    """
+    points = check_points(points_world, "points_world")
+    if covariances is not None and np.shape(covariances) != (len(points), 3, 3):
+        raise ValueError(f"covariances must be ({len(points)}, 3, 3), one per point, got {np.shape(covariances)}")
+    covariances = None if covariances is None else np.asarray(covariances, dtype=np.float64)
+    names = list(bodies)
+    predicted = [name for name in names if name in predictions]
+    found: dict[str, BodyMatch] = {}
+    if predicted and len(points):
+        expected = np.concatenate([transform_points(predictions[name], bodies[name]) for name in predicted])
+        owner = np.concatenate([np.full(len(bodies[name]), k) for k, name in enumerate(predicted)])
+        first = np.cumsum([0] + [len(bodies[name]) for name in predicted])
+        cost = np.linalg.norm(expected[:, None, :] - points[None, :, :], axis=2)
+        indices = [np.full(len(bodies[name]), -1, np.int64) for name in predicted]
+        for row, column in gated_assignment(cost, tracking.gate):
+            k = owner[row]
+            indices[k][row - first[k]] = column
+        for k, name in enumerate(predicted):
+            fitted = _fit_near(np.asarray(bodies[name], np.float64), points, covariances, indices[k], options,
+                               tracking.min_spheres)
+            if fitted is not None:
+                found[name] = BodyMatch(name, *fitted)
+    taken = np.zeros(len(points), bool)
+    for match in found.values():
+        taken[match.indices[match.indices >= 0]] = True
+    rest = [name for name in names if name not in found]
+    free = np.flatnonzero(~taken)
+    if rest and len(free):
+        searched = match_bodies({name: bodies[name] for name in rest}, points[free],
+                                None if covariances is None else covariances[free], options)
+        for name, match in searched.bodies.items():
+            remapped = np.where(match.indices >= 0, free[np.maximum(match.indices, 0)], -1)
+            found[name] = BodyMatch(name, remapped, match.fit)
+            taken[remapped[remapped >= 0]] = True
+    ordered = {name: found[name] for name in names if name in found}
+    return Matching(ordered, np.flatnonzero(~taken).astype(np.int64))
+
+
+def _fit_near(spheres: np.ndarray, points: np.ndarray, covariances: np.ndarray | None, indices: np.ndarray,
+              options: MatchOptions, min_spheres: int) -> tuple[np.ndarray, RigidFit] | None:
+    """The assignment (spheres let go set to -1) and its fit within ``gate_rms``, or None."""
+    indices = indices.copy()
+    while np.count_nonzero(indices >= 0) >= min_spheres:
+        seen = np.flatnonzero(indices >= 0)
+        try:
+            fit = fit_rigid(spheres[seen], points[indices[seen]],
+                            None if covariances is None else covariances[indices[seen]])
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        if fit.residual_rms <= options.gate_rms:
+            return indices, fit
+        residuals = np.linalg.norm(points[indices[seen]] - transform_points(fit.T_world_body, spheres[seen]), axis=1)
+        indices[seen[int(np.argmax(residuals))]] = -1
+    return None
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """One instant: ``matching`` (the bodies found, as ``match_bodies`` gives them) and ``predicted``: name ->
+    ``Prediction`` for each body bridged at this instant (not found, given its predicted pose)."""
+
+    matching: Matching
+    predicted: dict[str, Prediction] = field(default_factory=dict)
+
+
+class BodyTracker:
+    """The bodies followed over a sequence of instants (``step`` per instant, stamps increasing)."""
+
+    def __init__(self, bodies: Mapping[str, np.ndarray], options: MatchOptions = DEFAULT_OPTIONS,
+                 tracking: TrackingOptions = DEFAULT_TRACKING):
+        self.bodies = dict(bodies)
+        self.options = options
+        self.tracking = tracking
+        self.models = {name: ConstantVelocity(tracking.motion) for name in self.bodies}
+        self.bridged: dict[str, int] = {}
+        """Bodies published at the previous instant -> how many instants in a row they were bridged."""
+        self.stamp_ns: int | None = None
+
+    def step(self, stamp_ns: int, points_world: np.ndarray, covariances: np.ndarray | None = None) -> Tracked:
+        """Match the bodies among this instant's (M, 3) ``points_world`` (with (M, 3, 3) ``covariances`` or None),
+        update their motion and bridge those missing. A ``stamp_ns`` not after the previous step's (a
+        recording played again from its start) starts every body afresh."""
+        if self.stamp_ns is not None and stamp_ns <= self.stamp_ns:
+            for model in self.models.values():
+                model.reset()
+            self.bridged = {}
+        self.stamp_ns = stamp_ns
+        forecasts = {name: forecast for name, model in self.models.items()
+                     if (forecast := model.predict(stamp_ns)) is not None}
+        points = check_points(points_world, "points_world")
+        if len(points) == 0:
+            matching = Matching()
+        elif forecasts:
+            matching = match_with_prediction(self.bodies, points, {n: f.T_world_body for n, f in forecasts.items()},
+                                             covariances, self.options, self.tracking)
+        else:
+            matching = match_bodies(self.bodies, points, covariances, self.options)
+        bridged: dict[str, int] = {}
+        predicted: dict[str, Prediction] = {}
+        for name, match in matching.bodies.items():
+            self.models[name].update(stamp_ns, match.fit.T_world_body, match.fit.covariance)
+            bridged[name] = 0
+        for name, count in self.bridged.items():
+            if name not in bridged and count < self.tracking.bridge and name in forecasts:
+                predicted[name] = forecasts[name]
+                bridged[name] = count + 1
+        self.bridged = bridged
+        return Tracked(matching, predicted)
