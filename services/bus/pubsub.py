@@ -9,9 +9,8 @@ Streams have a role that sets their Zenoh quality of service and their queueing:
   ``depth`` (default 10 000) in order; should a consumer fall that far behind, the oldest
   are dropped, counted and logged, never silently. Not express: Zenoh then sends a frame's
   poses that are ready together in one batch, so each subscriber wakes once per frame rather
-  than once per pose. A lone pose still arrives as fast as with express, pose throughput is
-  higher and client apps slow the marker pipeline less (``make bench BENCH="routing apps"``,
-  figures in docs/benchmarks.md).
+  than once per pose: pose throughput is higher and client apps slow the marker pipeline less
+  (the batched figures: ``make bench BENCH="routing apps"``, docs/benchmarks.md).
 * ``STATUS`` (stats, error reports): priority DATA_LOW, congestion DROP.
 * ``END`` (a node's end of stream, and its last statistics just before it): priority DATA_LOW
   as status, congestion BLOCK, so the two are never dropped and arrive in that order.

@@ -24,8 +24,7 @@ edges bend as the lens bends them, and drawn anti-aliased with sub-pixel vertice
 ``cv2.drawFrameAxes`` draws the same axes unclipped (tests/unit/test_estimation_overlay.py
 compares the two).
 
-Drawing costs a copy of the frame and then a fixed amount per target, more with distortion
-(docs/benchmarks.md).
+Drawing costs a copy of the frame and then a fixed amount per target, more with distortion.
 """
 
 from __future__ import annotations

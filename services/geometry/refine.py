@@ -36,7 +36,7 @@ MAX_DAMPING = 1e12
 LADDER = 6
 """Dampings a problem tries in one pass after a rejected step. At the optimum, where rounding noise
 decides, rejections come in short streaks: the first rejection and one pass of ``LADDER`` cover nearly
-all of them on the ``markers`` scene (streak lengths in docs/benchmarks.md)."""
+all of them on the ``markers`` scene."""
 SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
                  [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=np.float64).reshape(3, 9)

@@ -8,7 +8,8 @@ then raises to the largest block freed) and trims the top of its heap once more 
 that threshold lies free. A process that allocates and frees one image-sized buffer per
 message (``encode``'s ``bytes``, Zenoh's copy of it) falls into a cycle of returning the
 memory and page-faulting it back: minor page faults on every message and a fraction of the
-throughput the same code reaches with fixed thresholds (docs/benchmarks.md).
+throughput the same code reaches with fixed thresholds (``ARTRACK_MALLOC=default make bench
+BENCH=transport`` measures it, docs/benchmarks.md).
 
 Every artrack process fixes the thresholds when it starts (``services.cli.main`` calls
 ``tune_malloc``), and so do both processes of the benchmarks. Set ``ARTRACK_MALLOC=default``
@@ -48,7 +49,7 @@ def settle_heap() -> None:
     A node's start leaves its modules, classes and pydantic schemas behind, long-lived objects
     that every full collection would otherwise walk again, pausing the node for a good part of
     a frame period (the frame behind it is late, and frames that pile up behind it are
-    dropped); frozen, they are skipped (pause times in docs/benchmarks.md).
+    dropped); frozen, they are skipped.
     """
     gc.collect()
     gc.freeze()

@@ -44,15 +44,14 @@ Two fits (``method``):
   a straight line: ``min_breadth_m``).
 
 ``tests/unit/test_slam_anchor.py`` compares the two on the same noisy sightings of an exact path:
-``rays`` is the more accurate in scale (8 times), rotation (18 times) and position. With a real SLAM
-trajectory (``tests/accuracy/test_slam_anchor.py``, docs/slam.md) ``centres`` lands its camera centres
-a little closer (it minimises just that) but its rotation is three times further off, so the marker's
-origin, seen from the camera, lands centimetres away (6 cm against 9 mm RMS): where an AR app draws.
-``rays`` is the default.
+``rays`` is the more accurate in scale, rotation and position. With a real SLAM trajectory
+(``tests/accuracy/test_slam_anchor.py``; figures of both in docs/slam.md) ``centres`` lands its camera
+centres a little closer (it minimises just that) but its rotation is further off, so the marker's
+origin, seen from the camera, lands further away: where an AR app draws. ``rays`` is the default.
 
 Refitting: the fit is redone after every accepted pair, over the last ``max_frames`` accepted
 pairs; it is never frozen. Monocular scale drifts along a sequence, so the newest sightings say
-best how the map around the marker relates to metres; a fit over 900 pairs costs about 4 ms. An
+best how the map around the marker relates to metres. An
 anchor is reported once the inliers number ``min_frames`` and their camera centres, the SLAM ones
 carried into the marker frame by the fit (more precise than the marker poses'), spread over
 ``min_baseline_m`` (twice their RMS distance from their mean: two places ``b`` apart give ``b``);

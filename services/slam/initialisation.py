@@ -15,8 +15,8 @@ for the same noise, and on a plane the homography then won only two matches in t
 The chosen model's pose is used to triangulate the model's inliers. From the essential matrix, it
 is ``cv2.recoverPose`` on USAC's matrix, or pycolmap's refined LO-RANSAC pose
 (``two_view.fit_relative_pose``) when that is clearly better supported (``two_view.support_gain``):
-USAC alone settled, in some draws facing a wall, on a model 1.8 to 11 % less supported than the true
-pose and up to 6.6 deg off.
+USAC alone settles, in some draws facing a wall, on a model clearly less supported than the true
+pose and degrees off.
 From the homography, it is the decomposition of ``cv2.decomposeHomographyMat`` with the most points
 in front of both cameras. It is accepted only with a median triangulation angle (parallax) large enough
 for depth to be measured, enough points in front of both cameras and, from a homography, a runner-up

@@ -18,9 +18,9 @@ mapper has not processed yet keep their observations. ``idle`` (no keyframe wait
 keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
 mapper has none left to send.
 
-Costs (``tests/bench/slam_tracking.py``): the process starts in about 0.6 s (``MappingProcess`` waits
-for it: NumPy, OpenCV and pycolmap are imported again); a keyframe travels as about 100 kB; its
-changes are unpickled in the tracker's thread (1-2 ms a KITTI frame at the median).
+Costs: ``MappingProcess`` waits for the process to start (NumPy, OpenCV and pycolmap are imported
+again); the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
+``tests/bench/slam_tracking.py``, figures in docs/benchmarks.md).
 """
 
 from __future__ import annotations

@@ -5,14 +5,13 @@ on a map loaded from a file).
    points (their representative descriptors) in an LSH index (``cv2.FlannBasedMatcher``,
    ``LSH_INDEX``), kept under the distance bound and the ratio test; each point so matched votes
    for every keyframe observing it. The keyframes with the most votes (at least
-   ``pnp_min_inliers``, at most ``reloc_candidates``) are the candidates. Measured against
-   exhaustive matching (``matching.match_descriptors``, every keypoint against every point) on the
-   room scene's map (``tests/unit/test_slam_relocalisation.py``, figures in docs/slam.md): the LSH
-   index takes under a millisecond to build (it is rebuilt whenever the map changed; never in
-   localisation-only mode, where copying a large map's points would cost more), its queries take
-   about half the time of the exhaustive match, and it finds 98-99.7 % of the exhaustive matches;
-   votes only rank keyframes, so the approximate neighbour is enough, and its cost grows far
-   slower than the exhaustive match's with the map's size. A bag of binary words (ORB-SLAM's
+   ``pnp_min_inliers``, at most ``reloc_candidates``) are the candidates. Against exhaustive
+   matching (``matching.match_descriptors``, every keypoint against every point; figures in
+   docs/slam.md) the LSH index is cheap to build (it is rebuilt whenever the map changed; never in
+   localisation-only mode, where copying a large map's points would cost more), quicker to query,
+   and finds nearly all of the exhaustive matches; votes only rank keyframes, so the approximate
+   neighbour is enough, and its cost grows far slower than the exhaustive match's with the map's
+   size. A bag of binary words (ORB-SLAM's
    DBoW2) needs a vocabulary trained offline; maps of a few thousand points do without.
 2. **Pose.** For each candidate in turn, the frame is matched again with the points the candidate
    observes only (few distractors, so more matches pass the ratio test), and the matches whose

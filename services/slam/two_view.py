@@ -8,16 +8,10 @@ monocular scale is arbitrary, so its translation has unit norm. Points are (N, 3
 a's camera frame.
 
 The essential matrix comes from OpenCV's USAC (``cv2.USAC_ACCURATE``: uniform sampling, MSAC score,
-graph-cut local optimisation). On random 3D clouds (1000 matches, 30 % outliers, 1 px noise) it ran
-as fast as ``USAC_MAGSAC`` (7.3 against 6.5 ms; plain RANSAC 71 ms) with a median rotation error of
-0.21 deg against MAGSAC++'s 0.11 deg; but on the ``room`` scene's geometry (2 000-3 500 matches,
-20 % outliers, 0.5 px noise, 0.3 m baseline) MAGSAC++ kept about 7 % fewer inliers and, in one draw
-of eight, settled on a pose 1.3 deg and 11 deg (translation) off where ``USAC_ACCURATE`` stayed under
-0.2 deg and 1.5 deg: the steadier of the two is used.
+graph-cut local optimisation), on the ``room`` scene's geometry the steadier of it and ``USAC_MAGSAC``.
 
 OpenCV's USAC all the same settles, in some draws, on a model that explains the matches clearly
-worse than the true pose does (its chi-square support 1.8 to 11 % lower; on the room's frames 500 / 545,
-facing a wall, 6.6 deg and 20 deg off): a second hypothesis comes from pycolmap's LO-RANSAC of the
+worse than the true pose does (a view facing a wall): a second hypothesis comes from pycolmap's LO-RANSAC of the
 relative pose with a final Gauss-Newton refinement of the Sampson error over its inliers
 (``fit_relative_pose``), and the caller takes it when it is clearly better supported
 (``support_gain``). Even the best

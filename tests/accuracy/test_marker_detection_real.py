@@ -68,6 +68,8 @@ def test_gridboard_photo_fits_one_board_plane(folder):
         return float(np.sqrt(np.mean(np.sum((fitted - image_points) ** 2, axis=1))))
 
     rms, separation = min((homography_rms(s), s) for s in np.arange(0.05, 0.40, 0.002))
+    print(f"\ngboriginal.png: separation {separation:.3f} of the side fits at {rms:.2f} px RMS, the "
+          f"tutorial's 0.1 at {homography_rms(0.1):.2f} px")
     assert rms <= 0.6 and 0.19 < separation < 0.21
 
 

@@ -10,7 +10,7 @@ iterator over every pose of the rig, one formatted line per pose to /dev/null) a
 before the first frame, peers meeting the nodes through the same router as apps on one machine
 do. The passes run in the order ``PASSES`` (0, 5, 5, 0): a drift of the shared machine hits
 both conditions alike. A condition's p50 / p99 are medians over its passes (every pass listed);
-the ratios apps / none are medians over the pairs of passes. Target (issue 5): the pipeline's
+the ratios apps / none are medians over the pairs of passes. Target: the pipeline's
 own latency p50 moves by no more than ``TARGET_RATIO`` - 1; its p99 ratio and the subscriber's
 ratios are reported beside it. The subscriber's figure is not the pipeline's own: on 2 cores
 its process competes with the five apps for the CPU at the moment they all receive the same

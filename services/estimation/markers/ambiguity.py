@@ -10,7 +10,7 @@ A pose is anchored when it was unambiguous, or was itself chosen by an anchored 
 picked by its lower error in an ambiguous view is a guess and anchors nothing, so a guess never
 propagates from frame to frame (the idea of ArUco's MarkerPoseTracker). A wider ``ratio`` hands
 more views to the track, which is itself noisy; the default 2 is the value that gave the smallest
-error tail on the noisy views of the accuracy data set (docs/benchmarks.md).
+error tail on the noisy views of the accuracy data set (its share of ambiguous views: docs/benchmarks.md).
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ Methods (``method``):
 * ``"ippe+lm"`` (default): the IPPE candidate refined by the same LM. It reaches the same optimum
   as ``lm`` from a closer start and needs no homography per marker, so it is the cheaper of the two.
 
-Accuracy and speed of each method: docs/benchmarks.md.
+Accuracy of each method: docs/benchmarks.md.
 
 The single markers of a frame are solved together: each still gets its own OpenCV IPPE call,
 but the candidates of all of them are scored in one batch, their LM refinements run as one

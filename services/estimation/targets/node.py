@@ -31,7 +31,7 @@ once, only when a target needs recognition. Each target gets one ``Pose`` per fr
 Why the node extracts keypoints itself, on demand, rather than joining a ``keypoints`` node's
 output by ``seq`` (``Node.synced``): a tracked frame needs no keypoints at all (Lucas-Kanade
 follows the points of the previous frame), only a frame that falls back to recognition does. A
-``keypoints`` node would describe every frame (ORB on 640x480: about 9 ms, SIFT 55 ms) and send
+``keypoints`` node would describe every frame (its cost per frame: docs/benchmarks.md) and send
 its descriptors over the bus, and this node would wait for them before it could even start
 following points: more CPU on a 2-core machine and a hop more of latency on every frame, for
 keypoints that are thrown away on nearly all of them. Extracted here they also come from the
