@@ -72,6 +72,8 @@ def run(count: int, ghosts: int = 0, hide: bool = False, options: Correspondence
 @pytest.mark.parametrize("count", [2, 3])
 def test_sphere_centres_within_a_fraction_of_a_millimetre(count):
     score = run(count)
+    print(f"\n{count} cameras: {score.found} of {score.spheres} spheres triangulated, median error "
+          f"{np.median(score.errors_m) * 1e3:.2f} mm, {score.mixed} from blobs of two spheres")
     assert score.mixed == 0
     assert score.found >= (0.95 if count == 2 else 1.0) * score.spheres
     assert np.median(score.errors_m) < 0.3e-3

@@ -8,9 +8,8 @@ Methods (``KeypointParams.method``):
   levels, each ``scale_factor`` smaller; intensity-centroid orientation; rotated BRIEF, 256 bits).
 * ``sift``: OpenCV's SIFT (difference of Gaussians; 128 floats), its doubled first octave upsampled
   with ``enable_precise_upscale`` (pixel x to 2x): OpenCV's default upsampling places every keypoint
-  about a quarter of a pixel right of and below the feature, at every octave (measured on Gaussian
-  blobs: +0.23 to +0.25 px), which a homography between two images of different scale turns into a
-  shift of the target (docs/accuracy.md).
+  about a quarter of a pixel right of and below the feature, at every octave, which a homography
+  between two images of different scale turns into a shift of the target (docs/accuracy.md).
 * ``akaze``: OpenCV's AKAZE (nonlinear scale space; binary MLDB, 486 bits), from
   ``cv2.xfeatures2d`` in OpenCV 5.
 * ``harris`` and ``shi_tomasi``: corners of the response maps of ``services.detection.keypoints.harris``
