@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.capture.scenes import make_scene
-from services.estimation.targets.check import check_image, repeated_fraction, spread
+from services.estimation.targets.check import Trackability, check_image, repeated_fraction, spread
 
 
 @pytest.fixture(scope="module")
@@ -13,9 +13,16 @@ def texture():
     return make_scene("planar_target").texture
 
 
+def shown(report: Trackability) -> Trackability:
+    """``report``, its figures printed on a line of their own (``pytest -s``)."""
+    print(f"\n{report.verdict}: {report.keypoints} keypoints, coverage {report.coverage:.2f}, entropy "
+          f"{report.entropy:.2f}, repeated {report.repeated:.3f}")
+    return report
+
+
 @pytest.mark.parametrize("feature", ["orb", "sift"])
 def test_a_rich_texture_is_good(texture, feature):
-    report = check_image(texture, feature)
+    report = shown(check_image(texture, feature))
     assert report.verdict == "good" and report.warnings == ()
     assert report.keypoints > 2000 and report.coverage > 0.9 and report.entropy > 0.85 and report.repeated < 0.1
 
@@ -23,7 +30,7 @@ def test_a_rich_texture_is_good(texture, feature):
 def test_a_flat_image_is_poor(texture):
     flat = np.full(texture.shape, 128, np.uint8)
     cv2.circle(flat, (500, 300), 80, 60, -1)
-    report = check_image(cv2.GaussianBlur(flat, (0, 0), 2))
+    report = shown(check_image(cv2.GaussianBlur(flat, (0, 0), 2)))
     assert report.verdict == "poor" and report.keypoints < 100
     assert any("keypoints (want" in w for w in report.warnings)
     assert any("cover" in w for w in report.warnings)
@@ -32,7 +39,7 @@ def test_a_flat_image_is_poor(texture):
 @pytest.mark.parametrize("feature", ["orb", "sift"])
 def test_a_tiled_pattern_is_poor_for_its_repeats(texture, feature):
     tiled = np.tile(texture[300:364, 300:380], (12, 13))[:texture.shape[0], :texture.shape[1]]
-    report = check_image(tiled, feature)
+    report = shown(check_image(tiled, feature))
     assert report.verdict == "poor" and report.repeated > 0.9 and report.coverage > 0.9
     assert [w for w in report.warnings if "repeat" in w]
 
@@ -40,7 +47,7 @@ def test_a_tiled_pattern_is_poor_for_its_repeats(texture, feature):
 def test_texture_in_one_corner_is_fair_with_a_spread_warning(texture):
     corner = np.full(texture.shape, 128, np.uint8)
     corner[:250, :300] = texture[:250, :300]
-    report = check_image(corner)
+    report = shown(check_image(corner))
     assert report.verdict == "fair" and report.coverage < 0.2
     assert any("cover" in w for w in report.warnings) and any("clustered" in w for w in report.warnings)
 

@@ -5,8 +5,8 @@ Steps, each of which may end the attempt with the state saying why:
 1. Match the frame's descriptors to the target's, both k = 2 nearest neighbours and Lowe's ratio
    test (a match is kept when its distance is below ``ratio`` times the second-nearest's): binary
    descriptors through a FLANN locality-sensitive hashing index of the target's, built once (a
-   frame's 2000 ORB descriptors against a target's 5000 cost a brute-force Hamming search about
-   four times as long, for the same pose: docs/feature-targets.md), float ones through a FLANN
+   brute-force Hamming search of a frame's 2000 ORB descriptors among a target's 5000 costs several
+   times as long, for the same pose: docs/feature-targets.md), float ones through a FLANN
    k-d forest. With ``cross_check`` a match is also the frame keypoint the target keypoint itself
    matches best (an exact brute-force search).
 2. Undistort the matched frame pixels (``cv2.undistortPoints`` back onto the same ``K``) and fit the
@@ -64,7 +64,7 @@ LSH_TABLES = 4
 LSH_KEY_BITS = 12
 LSH_PROBE_LEVEL = 1
 """The hashing index of binary descriptors: 4 tables of 12-bit keys, probing buckets one bit away too,
-finds 97 % of the brute-force search's ratio-tested matches."""
+finds nearly all of the brute-force search's ratio-tested matches."""
 
 
 class RecognitionState(StrEnum):
@@ -96,8 +96,8 @@ class RecognitionOptions:
     RMS residual of a published pose (1.5: a true pose stays well under a pixel, a wrong one agreeing
     with 15 chance matches does not). ``sigma_px``: per-axis pixel noise of the covariance; None
     estimates it from the residuals. ``max_iterations``: of the robust estimator. ``index_above``: a
-    binary target with more descriptors than this is matched through a hashing index (three times
-    faster than brute force on a 5000-descriptor poster, 97 % of its matches); a smaller one by exact
+    binary target with more descriptors than this is matched through a hashing index (several times
+    faster than brute force on a 5000-descriptor poster, nearly all of its matches); a smaller one by exact
     Hamming brute force, which costs little there and misses no match a small target can ill spare.
     ``refine``: measure the inliers against the target image and fit the homography and pose again on
     them (step 5 of the module's docstring; off by default: refined, recognition alone is about as accurate
