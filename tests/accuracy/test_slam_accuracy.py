@@ -5,9 +5,10 @@ alignment, every frame tracked from the first tracked one on, none lost
 Two trajectories are scored. The final one (``SlamSystem.trajectory``: each tracked frame through its
 reference keyframe's bundle-adjusted pose, what SLAM benchmarks score and what a user exports at the
 end) is held to the bars: the synthetic ``room`` (600 frames) within 1 % of its path length; KITTI 06
-frames 0-50 within 0.05 m; TUM fr3 long_office_household at about 1 Hz within 0.02 m. The online poses (each frame's as tracked, what the bus
-carries live) have looser bars near their measured figures, so that a regression shows: the room
-within 1 % too, KITTI within 0.08 m (measured 0.057 m), TUM within 0.025 m (measured 0.017 m).
+frames 0-50 within 0.05 m; TUM fr3 long_office_household at about 1 Hz within 0.02 m. The online
+poses (each frame's as tracked, what the bus carries live) have looser bars near their measured
+figures, so that a regression shows: the room within 1 % too, KITTI within 0.08 m (measured
+0.057 m), TUM within 0.025 m (measured 0.017 m).
 """
 
 from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, kitti, room, run, tum
