@@ -45,7 +45,7 @@ def search_roots(environ: dict[str, str] | None = None) -> tuple[str, ...]:
     return (BUILT_IN, *(name.strip() for name in text.split(",") if name.strip()))
 
 
-def _declared_kind(path: Path) -> str | None:
+def declared_kind(path: Path) -> str | None:
     """The literal ``name`` of a module-level ``KIND = NodeKind(...)`` in ``path``, if any."""
     for statement in ast.parse(path.read_text(), str(path)).body:
         if not (isinstance(statement, ast.Assign) and isinstance(statement.value, ast.Call)):
@@ -85,7 +85,7 @@ def catalogue(roots: tuple[str, ...] | None = None) -> Catalogue:
             for path in sorted(directory.rglob("*.py")):
                 if path.name != "node.py" and not path.name.endswith("_node.py"):
                     continue
-                name = _declared_kind(path)
+                name = declared_kind(path)
                 if name is not None:
                     module = ".".join((root, *path.relative_to(directory).with_suffix("").parts))
                     _add(kinds, name, module, "node kind")

@@ -1,9 +1,10 @@
 """SLAM node: one camera's frames -> the camera's pose in a map built as it goes (``services.slam.system``).
 
 Inputs: the camera's ``image`` key (latest-wins, ``depth`` frames waiting while one is processed) and its
-``camera_info`` key (the newest CameraInfo, taken in between frames; a ``calib`` file given here wins,
-scaled to the frames when only their size differs: ``services.calibration.camera_info_node``). Frames may
-be ``mono8``, ``mono16``, ``bgr8`` or ``bgra8``; SLAM is given their grey levels.
+``camera_info`` key (the newest CameraInfo, taken in between frames: ``services.runtime.frame_calibration``; a
+``calib`` file given here wins, scaled to the frames when only their size differs:
+``services.calibration.fixed``). Frames may be ``mono8``, ``mono16``, ``bgr8`` or ``bgra8``; SLAM is given
+their grey levels.
 
 Outputs, each with the header of the frame it came from (``frame_id`` the map frame, ``map_frame``):
 
@@ -69,12 +70,13 @@ from protocol.spatial import Transform
 from protocol.system import StageTimings
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
-from services.convert import transform_from_matrix
+from services.calibration.fixed import FixedCalibration, check_own_calibration
+from services.convert import camera_model, transform_from_matrix
 from services.detection.grey import as_grey
 from services.detection.markers.settings import DEFAULT_DICTIONARY, DetectorSettings
 from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.camera import CameraModel
+from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.slam.anchor import MarkerAnchor, MarkerSighting
@@ -321,11 +323,11 @@ class _CameraSlam:
 def run(node: Node, params: Params) -> None:
     try:
         _check(params)
-        fixed = read_camera_info(params.calib) if params.calib else None
+        fixed = FixedCalibration.read(params.calib) if params.calib else None
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
+    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
     slam = _CameraSlam(node, params)
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     header, child = None, params.camera

@@ -12,7 +12,7 @@ the frame's header unchanged, zero rows when nothing was found. ``method`` picks
   bgr8 (or bgra8) frames. A mono frame gets an empty Blobs and is reported as skipped.
 
 A frame the method cannot work on is counted as skipped and reported
-(``services.detection.detector_node``). One frame may wait while another is searched (``depth``).
+(``services.runtime.frame_detection``). One frame may wait while another is searched (``depth``).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from services.detection.blobs.bright import Blobs as FoundBlobs
 from services.detection.blobs.bright import IrBlobParams, detect_ir_blobs
 from services.detection.blobs.colour import ColourBlobParams, HueModel, detect_colour_blobs
 from services.detection.blobs.scale_space import LogBlobParams, detect_log_blobs
-from services.detection.detector_node import UnusableFrame, detect_frames
 from services.detection.grey import MONO16_SCALE, as_grey
+from services.runtime.frame_detection import UnusableFrame, detect_frames
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 

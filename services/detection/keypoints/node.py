@@ -9,7 +9,7 @@ all (``none``).
 
 Frames may be mono8, mono16 (scaled to 8 bits by 1/257), bgr8 or bgra8 (made grey). A frame
 with a side under ``MIN_SIDE_PX`` gets an empty Keypoints and is reported as skipped
-(``services.detection.detector_node``). One frame may wait while
+(``services.runtime.frame_detection``). One frame may wait while
 another is searched (``depth``).
 """
 
@@ -22,10 +22,10 @@ from protocol.detections import Keypoints
 from protocol.keys import KeyName
 from protocol.message import Header
 from services.bus.pubsub import Role
-from services.detection.detector_node import UnusableFrame, detect_frames
 from services.detection.grey import as_grey8
 from services.detection.keypoints.detector import EDGE_PX, Descriptor, KeypointDetector, KeypointParams, Method, Spread
 from services.detection.keypoints.detector import Keypoints as FoundKeypoints
+from services.runtime.frame_detection import UnusableFrame, detect_frames
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 

@@ -48,9 +48,8 @@ from protocol.message import Header
 from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
-from services.convert import transform_from_matrix
+from services.calibration.fixed import FixedCalibration, check_own_calibration
+from services.convert import camera_model, transform_from_matrix
 from services.detection.markers.detector import MarkerDetector
 from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
@@ -59,6 +58,7 @@ from services.estimation.markers.pose import DEFAULT_METHOD, FrameEstimate, Mark
 from services.estimation.markers.tracking import TargetTracks, marker_detector
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
+from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
@@ -148,14 +148,14 @@ class _Overlay:
         self._out.put(Image(header=header, encoding="bgr8", data=drawn))
 
 
-def _prepare(params: Params) -> tuple[MarkerMap | None, CameraModel | None, MarkerDetector | None]:
+def _prepare(params: Params) -> tuple[MarkerMap | None, FixedCalibration | None, MarkerDetector | None]:
     """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be
     had, or when detecting here with no side length at all (every marker would fail to give a pose)."""
     if params.input == "images" and params.marker_length is None and not params.lengths and params.board is None:
         raise ValueError("no marker side length, so no pose could be given: marker_length is needed (artrack run: "
                          "--marker-length METRES, > 0), or lengths of single ids, or a board")
     board = load_marker_map(params.board) if params.board else None
-    fixed = read_camera_info(params.calib) if params.calib else None
+    fixed = FixedCalibration.read(params.calib) if params.calib else None
     detector = marker_detector(params, board) if params.input == "images" else None
     return board, fixed, detector
 
@@ -182,7 +182,7 @@ def run(node: Node, params: Params) -> None:
 
     node.configurable(params, apply)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
+    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]
@@ -203,7 +203,7 @@ def run(node: Node, params: Params) -> None:
 
 def _detected(node: Node, frames: Inbox[Image], live: dict[str, MarkerDetector], dictionary: str,
               out: Publisher[MarkerDetections],
-              calibration: FrameCalibration) -> Iterator[tuple[Image, MarkerDetections]]:
+              calibration: FrameCalibration[CameraModel]) -> Iterator[tuple[Image, MarkerDetections]]:
     """Each frame from ``frames`` with its detections by ``live["detector"]`` (replaced by live
     changes; given the calibration known so far, if any, for its corner refinement), published on
     ``out`` once the frame's poses are out: the detections are a side output, and the poses

@@ -1,8 +1,9 @@
 """Features node: one camera's frames -> the pose of each image target (``T_camera_target``).
 
 Inputs: the camera's ``image`` key and its ``camera_info`` key (the newest CameraInfo, taken in
-between frames; a ``calib`` file given here wins, scaled to the frames when only their size
-differs and refused when their aspect ratio does too: ``services.calibration.camera_info_node``).
+between frames: ``services.runtime.frame_calibration``; a ``calib`` file given here wins, scaled to the
+frames when only their size differs and refused when their aspect ratio does too:
+``services.calibration.fixed``).
 
 Targets: ``target`` names them, each a target of the library in ``targets`` (default
 ``$XDG_DATA_HOME/artrack/targets``, see ``services.estimation.targets.library``) or a synthetic
@@ -68,8 +69,8 @@ from protocol.poses import Pose, PoseQuality, TrackingState
 from protocol.sensors import Image
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
-from services.calibration.camera_info_node import FrameCalibration, check_own_calibration
-from services.convert import transform_from_matrix
+from services.calibration.fixed import FixedCalibration, check_own_calibration
+from services.convert import camera_model, transform_from_matrix
 from services.estimation.markers.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroPoseFilter
@@ -78,6 +79,7 @@ from services.estimation.targets.recognition import RecognitionOptions, Recognit
 from services.estimation.targets.scene import is_scene_target, scene_target, scene_target_name
 from services.estimation.targets.target import Target
 from services.estimation.targets.tracking import TargetPose, TargetTracker, TrackingOptions, TrackState, track_targets
+from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 
@@ -217,13 +219,13 @@ class _Overlay:
 def run(node: Node, params: Params) -> None:
     try:
         targets = load_targets(params)
-        fixed = read_camera_info(params.calib) if params.calib else None
+        fixed = FixedCalibration.read(params.calib) if params.calib else None
         frames_of = _Frames(make_trackers(params, targets), params.filter)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     node.log.info("tracking %s on %s", ", ".join(t.name for t in targets), params.camera)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, fixed, str(params.calib))
+    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, targets) if params.overlay else None
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
