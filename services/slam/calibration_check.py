@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from services.slam.map import SlamMap
+from services.slam.map.database import MapDatabase
 from services.slam.optimisation import reprojection_errors
 
 __all__ = ["FocalCheck", "check_focal"]
@@ -51,7 +51,7 @@ class FocalCheck:
                 f"{self.error_free_px:.3f} px)")
 
 
-def check_focal(slam_map: SlamMap, K: np.ndarray, size: tuple[int, int]) -> FocalCheck | None:
+def check_focal(slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int]) -> FocalCheck | None:
     """The check of the module docstring on a snapshot of ``slam_map`` (taken under its lock) for the
     (3, 3) ``K`` of a camera of ``size`` (width, height) px; None with fewer than three keyframes."""
     with slam_map.lock:

@@ -42,7 +42,9 @@ from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationState, initialise
-from services.slam.map import PointArrays, SlamMap
+from services.slam.map.covisibility import CovisibilityGraph
+from services.slam.map.database import MapDatabase
+from services.slam.map.map_point import PointArrays
 from services.slam.mapping import KeyframeDecision, Mapper, keyframe_decision
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
 from services.slam.optimisation import refine_pose, reprojection_errors
@@ -98,12 +100,13 @@ class Tracker:
     ``localisation_only``). ``wait_for_mapping``: a keyframe decision that hangs on the mapper being
     idle waits for it (``mapping.Mapper.wait_idle``) instead of taking it as busy."""
 
-    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: SlamMap, mapper: Mapper,
+    def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: MapDatabase, mapper: Mapper,
                  localisation_only: bool = False, wait_for_mapping: bool = False):
         self.K = np.asarray(camera.K, np.float64)
         self.size = (camera.width, camera.height)
         self.settings = settings
         self.map = slam_map
+        self.covisibility = CovisibilityGraph(slam_map)
         self.mapper = mapper
         self._index = -1
         self._reference: _Frame | None = None
@@ -287,7 +290,7 @@ class Tracker:
             return relocalised.T_camera_world, relocalised.reason
         s = self.settings
         with stage_timer(timings, "match"):
-            keyframes = self.map.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
+            keyframes = self.covisibility.local_keyframes(last.point_ids[last.point_ids >= 0], s.local_keyframes)
             points = self.map.arrays(self.map.points_of(keyframes))
             rows, keypoints = match_descriptors(points.descriptors, features.descriptors, s.match_max_distance,
                                                 s.match_ratio)
@@ -304,7 +307,7 @@ class Tracker:
         """Search the local map's points around pose ``T`` and refine on every match; ``point_ids``
         keeps the inliers. Returns the refined pose and its RMS, px; None under ``min_tracked`` inliers."""
         s = self.settings
-        keyframes = self.map.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
+        keyframes = self.covisibility.local_keyframes(point_ids[point_ids >= 0], s.local_keyframes)
         if keyframes:
             self._reference_keyframe = keyframes[0]
         local = self.map.points_of(keyframes)

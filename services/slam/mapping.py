@@ -2,7 +2,7 @@
 
 For each new keyframe, in order (ORB-SLAM's local mapping):
 
-1. Cull recent points that failed (``SlamMap.cull_points``).
+1. Cull recent points that failed (``map.cleaner.LocalMapCleaner``).
 2. Triangulate new points between the keyframe's unmatched keypoints and those of its best
    covisible keyframes: descriptor matches within a chi-square bound of the epipolar line, on the
    half of it where the rays meet in front of both cameras,
@@ -19,7 +19,7 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
 waits for it unless it asks to (``wait_idle``), or inline in ``enqueue`` (deterministic, for tests).
 It holds the map's lock only to take snapshots and to apply results, in short steps of at most
 ``SNAPSHOT_POINTS`` points that check what changed meanwhile: searches, triangulation, points'
-summaries (``SlamMap.refresh_points``) and the bundle adjustment's problem are computed outside it.
+summaries (``MapDatabase.refresh_points``) and the bundle adjustment's problem are computed outside it.
 (A frame tracked between two steps of one result sees part of it applied, as a frame tracked between
 two keyframes' results sees one.) A keyframe processed while others wait gets only steps 1 and 2.
 """
@@ -42,7 +42,10 @@ from services.geometry.camera_stack import CameraStack
 from services.geometry.epipolar import fundamental_matrix, near_lines
 from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_many
-from services.slam.map import Keyframe, SlamMap
+from services.slam.map.cleaner import LocalMapCleaner
+from services.slam.map.covisibility import CovisibilityGraph
+from services.slam.map.database import MapDatabase
+from services.slam.map.keyframe import Keyframe
 from services.slam.matching import match_candidates, rotation_consistent
 from services.slam.optimisation import BundleProblem, bundle_adjust
 from services.slam.projection import project_points, search_projected
@@ -152,9 +155,11 @@ def triangulation_checks(points: np.ndarray, centres: np.ndarray, residuals: np.
 class LocalMapper:
     """Processes new keyframes of ``slam_map`` (a camera of intrinsics ``K`` (3, 3), undistorted)."""
 
-    def __init__(self, slam_map: SlamMap, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
+    def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
                  threaded: bool):
         self.map = slam_map
+        self.covisibility = CovisibilityGraph(slam_map)
+        self.cleaner = LocalMapCleaner(slam_map, settings)
         self.K = np.asarray(K, np.float64)
         self.size = size
         self.settings = settings
@@ -220,7 +225,7 @@ class LocalMapper:
         wall, cpu = time.perf_counter(), time.thread_time()
         timings: dict[str, float] = {}
         with stage_timer(timings, "cull"):
-            self.map.cull_points(keyframe_id, s.cull_found_ratio, s.cull_min_observations, probation=3)
+            self.cleaner.cull_points(keyframe_id)
         with stage_timer(timings, "triangulate"):
             self.triangulate(keyframe_id, stepped)
         if not others_waiting:
@@ -230,7 +235,7 @@ class LocalMapper:
                 stepped()
             with stage_timer(timings, "bundle_adjustment"):
                 with self.map.lock:
-                    window = [keyframe_id] + self.map.covisible(keyframe_id, s.ba_window - 1)
+                    window = [keyframe_id] + self.covisibility.covisible(keyframe_id, s.ba_window - 1)
                 self.adjust(window)
         self.history.append(MappedKeyframe(keyframe_id, timings, (time.perf_counter() - wall) * 1e3,
                                            (time.thread_time() - cpu) * 1e3, self._queue.qsize()))
@@ -308,7 +313,7 @@ class LocalMapper:
         many. ``stepped`` is called after each neighbour that gave new points."""
         s = self.settings
         made = 0
-        for neighbour_id in self.map.covisible(keyframe_id, s.triangulation_neighbours):
+        for neighbour_id in self.covisibility.covisible(keyframe_id, s.triangulation_neighbours):
             with self.map.lock:
                 keyframe, neighbour = self.map.keyframes[keyframe_id], self.map.keyframes.get(neighbour_id)
             if neighbour is None:
@@ -364,7 +369,7 @@ class LocalMapper:
         observations were merged or added."""
         s = self.settings
         changed = 0
-        neighbours = self.map.covisible(keyframe_id, s.triangulation_neighbours)
+        neighbours = self.covisibility.covisible(keyframe_id, s.triangulation_neighbours)
         for source, target in [(keyframe_id, n) for n in neighbours] + [(n, keyframe_id) for n in neighbours]:
             with self.map.lock:
                 if source not in self.map.keyframes or target not in self.map.keyframes:
@@ -406,7 +411,7 @@ def _chunks(items: list[_Item]) -> Iterator[list[_Item]]:
 class _Pair:
     """A keyframe and a neighbour to triangulate from (copies of their poses)."""
 
-    def __init__(self, keyframe: Keyframe, neighbour: Keyframe, slam_map: SlamMap):
+    def __init__(self, keyframe: Keyframe, neighbour: Keyframe, slam_map: MapDatabase):
         self.keyframe, self.neighbour = keyframe, neighbour
         self.T_neighbour_keyframe = neighbour.T_camera_world @ invert(keyframe.T_camera_world)
         seen = neighbour.point_ids[neighbour.point_ids >= 0]

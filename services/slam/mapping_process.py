@@ -1,19 +1,19 @@
 """Local mapping in a process of its own: the tracker never shares an interpreter lock with it.
 
-The tracker keeps its map (``SlamMap``); the mapping process keeps a copy and is the only one to
+The tracker keeps its map (``MapDatabase``); the mapping process keeps a copy and is the only one to
 change points and keyframe poses. They talk through a queue (to the mapper) and a pipe (back):
 
-* to the mapper: ``reset`` (a whole map, ``SlamMap.snapshot``: after the map is started or loaded),
+* to the mapper: ``reset`` (a whole map, ``map.sync.snapshot``: after the map is started or loaded),
   ``keyframe`` (a new keyframe as the tracker made it, with the tracking counters added since the last
-  message, ``SlamMap.take_counts``) and ``stop``;
+  message, ``map.sync.take_counts``) and ``stop``;
 * to the tracker: ``ready`` once, then for each keyframe ``points`` after each of its neighbours gave
-  new points and after their fusion (what changed so far, ``SlamMap.take_changes``: the tracker needs
+  new points and after their fusion (what changed so far, ``map.sync.take_changes``: the tracker needs
   new points first, as it gets them from a mapping thread) and ``mapped`` once its mapping is done
   (what changed since, and the mapper's stage times, wall and CPU milliseconds); ``stopped`` at the end.
 
 A thread of the tracker's process reads the messages off the pipe as they come; the tracker brings
 the changes in before each frame and when it asks whether the mapper is idle (``sync``,
-``SlamMap.apply_changes``); keyframes it made that the
+``map.sync.apply_changes``); keyframes it made that the
 mapper has not processed yet keep their observations. ``idle`` (no keyframe waiting) feeds the
 keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
 mapper has none left to send.
@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from services.slam.map import SlamMap
+from services.slam.map import sync
+from services.slam.map.database import MapDatabase
 from services.slam.mapping import LocalMapper, MappedKeyframe
 from services.slam.settings import SlamSettings
 
@@ -59,7 +60,7 @@ class MappingProcess:
     """``LocalMapper`` of ``slam_map``'s copy in a spawned process; camera intrinsics ``K`` (3, 3),
     image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not come up."""
 
-    def __init__(self, slam_map: SlamMap, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
+    def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
         self.map = slam_map
         self._local = LocalMapper(slam_map, K, size, settings, threaded=False)
         context = multiprocessing.get_context("spawn")
@@ -77,7 +78,7 @@ class MappingProcess:
         self._received: queue.Queue[bytes] = queue.Queue()
         self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
         self._receiver.start()
-        slam_map.record_counts()
+        sync.record_counts(slam_map)
         self._wait_ready()
         if slam_map.keyframes:
             self._reset()
@@ -135,7 +136,7 @@ class MappingProcess:
         with self.map.lock:
             keyframe = self.map.keyframes[keyframe_id]
             message = ("keyframe", keyframe.id, keyframe.stamp_ns, keyframe.T_camera_world.copy(), keyframe.features,
-                       keyframe.point_ids.copy(), self.map.take_counts())
+                       keyframe.point_ids.copy(), sync.take_counts(self.map))
         self._pending.append(keyframe_id)
         self._inbox.put(message)
 
@@ -157,7 +158,7 @@ class MappingProcess:
     def close(self) -> None:
         """Let the process map the keyframes it was given, bring their changes in, and end it."""
         if self._alive:
-            self._inbox.put(("stop", self.map.take_counts()))
+            self._inbox.put(("stop", sync.take_counts(self.map)))
         while self._alive:
             try:
                 self._receive(pickle.loads(self._received.get(timeout=STOP_TIMEOUT_S)))
@@ -175,23 +176,23 @@ class MappingProcess:
 
     def _reset(self) -> None:
         with self.map.lock:
-            snapshot = self.map.snapshot()
-            self.map.take_counts()
+            snapshot = sync.snapshot(self.map)
+            sync.take_counts(self.map)
         self._pending.clear()
         self._inbox.put(("reset", snapshot))
 
     def _receive(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
         if kind == "points":
-            self.map.apply_changes(message[1], self._pending)
+            sync.apply_changes(self.map, message[1], self._pending)
         elif kind == "mapped":
             _, keyframe_id, changes, record = message
             if keyframe_id in self._pending:
                 self._pending.remove(keyframe_id)
-            self.map.apply_changes(changes, self._pending)
+            sync.apply_changes(self.map, changes, self._pending)
             self.history.append(record)
         elif kind == "stopped":
-            self.map.apply_changes(message[1], [])
+            sync.apply_changes(self.map, message[1], [])
             self._pending.clear()
             self._alive = False
         elif kind in ("failed", "ended"):
@@ -207,8 +208,8 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
         writer.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))
 
     parent = multiprocessing.parent_process()
-    slam_map = SlamMap(scale_factor, levels)
-    slam_map.record_changes()
+    slam_map = MapDatabase(scale_factor, levels)
+    sync.record_changes(slam_map)
     mapper = LocalMapper(slam_map, K, size, settings, threaded=False)
     waiting: list[int] = []
     stopping = False
@@ -225,11 +226,11 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
             if waiting:
                 keyframe_id = waiting.pop(0)
                 mapper.process(keyframe_id, others_waiting=bool(waiting),
-                               stepped=lambda: send("points", slam_map.take_changes()))
-                send("mapped", keyframe_id, slam_map.take_changes(),
+                               stepped=lambda: send("points", sync.take_changes(slam_map)))
+                send("mapped", keyframe_id, sync.take_changes(slam_map),
                      dataclasses.replace(mapper.history.pop(), waiting=len(waiting)))
             elif stopping:
-                send("stopped", slam_map.take_changes())
+                send("stopped", sync.take_changes(slam_map))
                 return
             elif parent is not None and not parent.is_alive():
                 return
@@ -240,18 +241,18 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
         send("failed", f"{type(error).__name__}: {error}")
 
 
-def _take(message: tuple[Any, ...], slam_map: SlamMap, waiting: list[int]) -> bool:
+def _take(message: tuple[Any, ...], slam_map: MapDatabase, waiting: list[int]) -> bool:
     """Apply one message from the tracker; True for ``stop``."""
     kind = message[0]
     if kind == "reset":
-        slam_map.restore(message[1])
+        sync.restore(slam_map, message[1])
         waiting.clear()
     elif kind == "keyframe":
         _, keyframe_id, stamp_ns, T, features, point_ids, counts = message
-        slam_map.add_counts(counts)
+        sync.add_counts(slam_map, counts)
         slam_map.add_keyframe(stamp_ns, T, features, point_ids, keyframe_id=keyframe_id)
         waiting.append(keyframe_id)
     elif kind == "stop":
-        slam_map.add_counts(message[1])
+        sync.add_counts(slam_map, message[1])
         return True
     return False

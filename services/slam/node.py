@@ -35,7 +35,7 @@ keyframe decision that hangs on the mapper being idle waits for it (``SlamSystem
 the source waits for the node meanwhile), so that a loaded machine, whose mapper is busy longer, does not
 make fewer keyframes and lose the track. A real-time run never waits: a busy mapper means no keyframe yet.
 
-Map files (``services.slam.map_file``): with ``map`` every new system starts from that file's map
+Map files (``services.slam.map.file``): with ``map`` every new system starts from that file's map
 (relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last
 system's map is written when the node stops (not when it holds no keyframe; a file that cannot be written is
 one error line). A map file that is missing, not a map file or of another version is refused before the node
@@ -80,7 +80,7 @@ from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.slam.anchor import MarkerAnchor, MarkerSighting
-from services.slam.map_file import MapFileError, read_header
+from services.slam.map.file import MapFileError, read_header
 from services.slam.system import STEP_BACK_S, FrameResult, SlamState, SlamSystem
 
 STATES = {SlamState.INITIALISING: TrackingState.INITIALIZING, SlamState.TRACKING: TrackingState.TRACKING,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.slam.features import FrameFeatures
-from services.slam.map import PointArrays
+from services.slam.map.map_point import PointArrays
 from services.slam.matching import search_by_projection
 
 __all__ = ["Projected", "project_points", "search_projected"]

@@ -38,7 +38,9 @@ import cv2
 import numpy as np
 
 from services.slam.features import FrameFeatures
-from services.slam.map import PointArrays, SlamMap
+from services.slam.map.covisibility import CovisibilityGraph
+from services.slam.map.database import MapDatabase
+from services.slam.map.map_point import PointArrays
 from services.slam.matching import match_descriptors, rotation_consistent
 from services.slam.optimisation import PoseRefinement, refine_pose
 from services.slam.projection import Projected, project_points, search_projected
@@ -100,8 +102,9 @@ class Relocaliser:
     """Finds a lost frame's pose in ``slam_map`` for a camera of intrinsics ``K`` (3, 3) (undistorted
     pixels) and image ``size`` (width, height) px."""
 
-    def __init__(self, slam_map: SlamMap, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
+    def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
         self.map = slam_map
+        self.covisibility = CovisibilityGraph(slam_map)
         self.K = np.asarray(K, np.float64)
         self.size = size
         self.settings = settings
@@ -133,7 +136,7 @@ class Relocaliser:
         pairs = matcher.knnMatch(features.descriptors, k=2)
         matched = {best.trainIdx for best, second in (m for m in pairs if len(m) == 2)
                    if best.distance <= s.match_max_distance and best.distance < s.match_ratio * second.distance}
-        votes = self.map.observers(ids[sorted(matched)])
+        votes = self.covisibility.observers(ids[sorted(matched)])
         return [k for k, n in votes.most_common(s.reloc_candidates) if n >= s.pnp_min_inliers]
 
     def relocalise(self, features: FrameFeatures, timings: dict[str, float]) -> Relocalisation:
@@ -167,7 +170,7 @@ class Relocaliser:
             indices = np.flatnonzero(keyframe.point_ids >= 0)
             own = self.map.arrays(keyframe.point_ids[indices])
             angles = keyframe.features.angles[indices[np.isin(keyframe.point_ids[indices], own.ids)]]
-            group = [keyframe_id] + self.map.covisible(keyframe_id, COVISIBLE_OF_CANDIDATE)
+            group = [keyframe_id] + self.covisibility.covisible(keyframe_id, COVISIBLE_OF_CANDIDATE)
             return own, angles, self.map.arrays(self.map.points_of(group))
 
     def _try(self, keyframe_id: int, features: FrameFeatures) -> tuple[np.ndarray, np.ndarray] | None:

@@ -7,7 +7,7 @@ mapped before ``process`` returns; deterministic). Mapping apart, a keyframe dec
 the mapper being idle takes it as busy when it is (real time: tracking never waits), or with
 ``wait_for_mapping`` waits for it (``frontend``): a run fed every frame then makes no fewer
 keyframes on a loaded machine.
-A map saved by an earlier run (``map_file``) can be given at the start: the system relocalises
+A map saved by an earlier run (``map.file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.
 Frames: the world is the first keyframe's camera frame (OpenCV camera frame), in the map's
@@ -27,8 +27,8 @@ from services.geometry.se3 import invert
 from services.slam.calibration_check import check_focal
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import SlamState, Tracked, Tracker
-from services.slam.map import SlamMap
-from services.slam.map_file import MapFileError, load_map, save_map
+from services.slam.map.database import MapDatabase
+from services.slam.map.file import MapFileError, load_map, save_map
 from services.slam.mapping import LocalMapper, Mapper
 from services.slam.mapping_process import MappingProcess
 from services.slam.settings import SlamSettings
@@ -73,7 +73,7 @@ class FrameResult:
     timings_ms: dict[str, float]
 
 
-def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: SlamSettings) -> SlamMap:
+def _loaded_map(path: str | os.PathLike[str], camera: CameraModel, settings: SlamSettings) -> MapDatabase:
     """The map file's map, refused (``MapFileError``) without keyframes or made with another ORB pyramid."""
     slam_map = load_map(path, camera)
     if (slam_map.levels, slam_map.scale_factor) != (settings.levels, settings.scale_factor):
@@ -98,7 +98,7 @@ class SlamSystem:
     """Tracks one calibrated ``camera``'s frames while mapping; ``mapping``: one of ``MAPPING_MODES``
     (ValueError for another).
 
-    ``map_path``: a map file to start from (``map_file.load_map``; ``MapFileError`` when it does not
+    ``map_path``: a map file to start from (``map.file.load_map``; ``MapFileError`` when it does not
     fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
     lengths or with its principal point outside the image). ``localisation_only``: never change the map.
     ``save_path``: where ``close`` saves the map (None: not saved). ``wait_for_mapping``: a keyframe
@@ -116,7 +116,7 @@ class SlamSystem:
         s = self.settings
         if localisation_only and map_path is None:
             raise ValueError("localisation_only needs a map to localise in (map_path)")
-        self.map = SlamMap(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
+        self.map = MapDatabase(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
         self.localisation_only = localisation_only
         self.save_path = save_path
         self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
@@ -234,7 +234,7 @@ class SlamSystem:
         return self.map.revision
 
     def save_map(self, path: str | os.PathLike[str]) -> None:
-        """Write the map to ``path`` (``map_file`` format): a snapshot taken under the map's lock."""
+        """Write the map to ``path`` (``map.file`` format): a snapshot taken under the map's lock."""
         save_map(self.map, self.camera, path)
 
     def close(self) -> None:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.slam.map_file import load_map, read_header
+from services.slam.map.file import load_map, read_header
 from services.slam.system import SlamSystem
 from tests.accuracy.slam_sequences import KITTI, TUM
 from tests.data import data_dir

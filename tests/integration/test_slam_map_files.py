@@ -18,7 +18,7 @@ from protocol.poses import Pose, TrackingState
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.convert import camera_info
-from services.slam.map_file import read_header
+from services.slam.map.file import read_header
 from services.slam.system import SlamSystem
 from tests.integration.support import START_S, STOP_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import recorded

@@ -12,17 +12,17 @@ from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
 from services.slam.calibration_check import check_focal
 from services.slam.features import FrameFeatures
-from services.slam.map import SlamMap
+from services.slam.map.database import MapDatabase
 
 K_TRUE = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 SIZE = (640, 480)
 
 
-def made_map(keyframes: int = 6, seed: int = 2) -> SlamMap:
+def made_map(keyframes: int = 6, seed: int = 2) -> MapDatabase:
     """The map of the module docstring, of its first ``keyframes`` keyframes."""
     rng = np.random.default_rng(seed)
     points = rng.uniform([-2.0, -1.5, 3.0], [2.0, 1.5, 5.0], (400, 3))
-    slam_map = SlamMap(1.2, 8)
+    slam_map = MapDatabase(1.2, 8)
     for k in range(keyframes):
         angle = np.radians(-15 + 6 * k)
         T = make_transform(matrix_from_rotvec([0.3 * angle, angle, 0.05 * k]), [0.15 * k - 0.4, 0.05 * k, 0.1 * k])
@@ -40,7 +40,7 @@ def made_map(keyframes: int = 6, seed: int = 2) -> SlamMap:
 
 
 @pytest.fixture(scope="module")
-def slam_map() -> SlamMap:
+def slam_map() -> MapDatabase:
     return made_map()
 
 

@@ -4,9 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from services.slam import map as map_module
 from services.slam.features import FrameFeatures
-from services.slam.map import SlamMap
+from services.slam.map import database, point_summary
+from services.slam.map.cleaner import LocalMapCleaner
+from services.slam.map.covisibility import CovisibilityGraph
+from services.slam.map.database import MapDatabase
+from services.slam.settings import SlamSettings
 
 
 def features(n: int, seed: int = 0) -> FrameFeatures:
@@ -23,9 +26,9 @@ def pose(x: float) -> np.ndarray:
 
 
 @pytest.fixture
-def chain() -> SlamMap:
+def chain() -> MapDatabase:
     """Keyframes 0, 1, 2 along x; points 0-9 seen by 0 and 1, points 10-14 by 1 and 2, point 15 by all."""
-    slam_map = SlamMap(1.2, 8)
+    slam_map = MapDatabase(1.2, 8)
     for k in range(3):
         slam_map.add_keyframe(k, pose(0.1 * k), features(20, k), np.full(20, -1))
     for i in range(10):
@@ -37,15 +40,17 @@ def chain() -> SlamMap:
 
 
 def test_covisibility_counts_shared_points(chain):
-    assert chain.covisibility(1) == {0: 11, 2: 6}
-    assert chain.covisibility(0) == {1: 11, 2: 1}
-    assert chain.covisible(0, 5, least=2) == [1]
+    graph = CovisibilityGraph(chain)
+    assert graph.covisibility(1) == {0: 11, 2: 6}
+    assert graph.covisibility(0) == {1: 11, 2: 1}
+    assert graph.covisible(0, 5, least=2) == [1]
     assert chain.keyframes[0].point_ids[:10].tolist() == list(range(10))
 
 
 def test_local_map_of_matched_points(chain):
-    assert chain.local_keyframes(np.array([10, 11]), 5) == [1, 2, 0]
-    assert chain.local_keyframes(np.array([10, 11]), 1) == [1]
+    graph = CovisibilityGraph(chain)
+    assert graph.local_keyframes(np.array([10, 11]), 5) == [1, 2, 0]
+    assert graph.local_keyframes(np.array([10, 11]), 1) == [1]
     assert chain.points_of([2]).tolist() == [10, 11, 12, 13, 14, 15]
     arrays = chain.arrays(np.array([3, 99, 4]))
     assert arrays.ids.tolist() == [3, 4]
@@ -70,18 +75,26 @@ def test_removing_an_observation_drops_a_point_left_with_one(chain):
     assert chain.points[15].observations == {0: 15, 1: 15}
 
 
+def test_covisibility_follows_the_database_revision(chain):
+    graph = CovisibilityGraph(chain)
+    assert graph.covisibility(0) == {1: 11, 2: 1}
+    chain.remove_point(15)
+    assert graph.covisibility(0) == {1: 10}
+
+
 def test_culling_removes_recent_points_rarely_found_or_seen(chain):
+    cleaner = LocalMapCleaner(chain, SlamSettings(cull_found_ratio=0.25, cull_min_observations=3))
     chain.count_visible(np.arange(5), found=np.zeros(5, bool))
     for _ in range(4):
         chain.count_visible(np.array([0, 1]))
     # points 0 and 1: found 1 of 6 times; 2-4: 1 of 2; 0-9 made in keyframe 0, 10-14 in keyframe 1
-    assert chain.cull_points(1, min_found_ratio=0.25, min_observations=3, probation=3) == 2
+    assert cleaner.cull_points(1) == 2
     assert 0 not in chain.points and 1 not in chain.points and 2 in chain.points
     # two keyframes on, points seen by two keyframes only go
-    assert chain.cull_points(2, min_found_ratio=0.25, min_observations=3, probation=3) == 8
+    assert cleaner.cull_points(2) == 8
     assert sorted(chain.points) == [10, 11, 12, 13, 14, 15]
-    # past probation nothing is culled
-    assert chain.cull_points(5, min_found_ratio=0.25, min_observations=3, probation=3) == 0
+    # past probation (three keyframes) nothing is culled
+    assert cleaner.cull_points(5) == 0
 
 
 def test_merging_moves_observations(chain):
@@ -106,7 +119,7 @@ def test_median_descriptors_agree_with_opencv_hamming():
     rng = np.random.default_rng(3)
     counts = np.array([1, 2, 3, 4, 5, 3, 6, 2])
     descriptors = rng.integers(0, 256, (int(counts.sum()), 32), dtype=np.uint8)
-    chosen = map_module._median_descriptors(descriptors, counts)
+    chosen = point_summary.median_descriptors(descriptors, counts)
     for row, start in enumerate(np.concatenate([[0], np.cumsum(counts)[:-1]])):
         own = descriptors[start:start + counts[row]]
         if len(own) <= 2:
@@ -138,7 +151,7 @@ def test_refreshing_many_points_equals_updating_each(chain):
 
 def test_refresh_leaves_alone_points_changed_while_it_computed(chain, monkeypatch):
     """What another thread changes between the snapshot and the write-back is not overwritten."""
-    summarise = map_module._summarise
+    summarise = point_summary.summarise
 
     def meanwhile(drafts, scale_factor, levels):
         chain.remove_observation(15, 0, refresh=False)
@@ -147,20 +160,20 @@ def test_refresh_leaves_alone_points_changed_while_it_computed(chain, monkeypatc
 
     for point_id in (13, 14, 15):
         chain.points[point_id].max_distance = np.inf
-    monkeypatch.setattr(map_module, "_summarise", meanwhile)
+    monkeypatch.setattr(database, "summarise", meanwhile)
     chain.refresh_points(np.array([13, 14, 15]))
     assert np.isfinite(chain.points[13].max_distance)
     assert chain.points[14].max_distance == np.inf and chain.points[15].max_distance == np.inf
 
 
 def test_adding_points_skips_keypoints_taken_while_it_computed(chain, monkeypatch):
-    summarise = map_module._summarise
+    summarise = point_summary.summarise
 
     def meanwhile(drafts, scale_factor, levels):
         chain.add_observation(10, 0, 16, refresh=False)
         return summarise(drafts, scale_factor, levels)
 
-    monkeypatch.setattr(map_module, "_summarise", meanwhile)
+    monkeypatch.setattr(database, "summarise", meanwhile)
     made = chain.add_points(np.array([[0.0, 0.1, 2.0], [0.1, 0.1, 2.0], [0.2, 0.1, 2.0]]),
                             [{0: 16, 2: 16}, {1: 17, 2: 17}, {0: 18, 7: 18}])
     assert len(made) == 1 and chain.points[made[0]].observations == {1: 17, 2: 17}

@@ -10,8 +10,8 @@ import pytest
 
 from services.geometry.camera import CameraModel, intrinsics
 from services.slam.features import FrameFeatures
-from services.slam.map import SlamMap
-from services.slam.map_file import FORMAT, VERSION, MapFileError, load_map, read_header, save_map
+from services.slam.map.database import MapDatabase
+from services.slam.map.file import FORMAT, VERSION, MapFileError, load_map, read_header, save_map
 from services.slam.settings import SlamSettings
 from services.slam.system import SlamSystem
 
@@ -25,11 +25,11 @@ def camera(width: int = WIDTH, height: int = HEIGHT, fx_offset: float = 0.0) -> 
     return CameraModel("cam0", width, height, K, np.zeros(5), np.eye(4))
 
 
-def random_map(seed: int = 0) -> SlamMap:
+def random_map(seed: int = 0) -> MapDatabase:
     """KEYFRAMES keyframes of random features and POINTS points, each seen by two to four keyframes."""
     rng = np.random.default_rng(seed)
     s = SlamSettings()
-    slam_map = SlamMap(s.scale_factor, s.levels)
+    slam_map = MapDatabase(s.scale_factor, s.levels)
     for k in range(KEYFRAMES):
         levels = rng.integers(0, s.levels, KEYPOINTS)
         features = FrameFeatures(pixels=rng.uniform(0, [WIDTH, HEIGHT], (KEYPOINTS, 2)), levels=levels,
@@ -161,7 +161,7 @@ def test_the_system_refuses_a_map_of_another_camera_or_pyramid(saved):
 def test_an_empty_map_or_no_map_is_refused_for_localisation(tmp_path):
     s = SlamSettings()
     empty = tmp_path / "empty.npz"
-    save_map(SlamMap(s.scale_factor, s.levels), camera(), empty)
+    save_map(MapDatabase(s.scale_factor, s.levels), camera(), empty)
     assert load_map(empty, camera()).keyframes == {}
     with pytest.raises(MapFileError, match="no keyframes"):
         SlamSystem(camera(), mapping="inline", map_path=empty, localisation_only=True)

@@ -5,11 +5,12 @@ import pytest
 
 from services.capture.scenes import make_scene
 from services.slam.features import FrameFeatures
-from services.slam.map import SlamMap
+from services.slam.map import sync
+from services.slam.map.database import MapDatabase
 from services.slam.system import SlamState, SlamSystem
 
 
-def assert_same_map(copy: SlamMap, original: SlamMap) -> None:
+def assert_same_map(copy: MapDatabase, original: MapDatabase) -> None:
     assert copy.keyframes.keys() == original.keyframes.keys()
     for keyframe_id, keyframe in original.keyframes.items():
         np.testing.assert_array_equal(copy.keyframes[keyframe_id].T_camera_world, keyframe.T_camera_world)
@@ -28,20 +29,20 @@ def test_a_copy_fed_the_changes_after_every_frame_stays_the_map():
     bundle adjustment) reaches a copy restored from its snapshot and fed ``take_changes`` after each frame."""
     scene = make_scene("room")
     system = SlamSystem(scene.cameras[0], mapping="inline")
-    copy = SlamMap(system.map.scale_factor, system.map.levels)
+    copy = MapDatabase(system.map.scale_factor, system.map.levels)
     frames = (scene.render(index) for index in range(150))
     try:
         for frame in frames:
             result = system.process(round(frame.time_s * 1e9), frame.images["cam0"])
             if result.state is SlamState.TRACKING and not len(copy.keyframes):
-                copy.restore(system.map.snapshot())
-                system.map.record_changes()
+                sync.restore(copy, sync.snapshot(system.map))
+                sync.record_changes(system.map)
                 continue
             if len(copy.keyframes):
                 if result.keyframe_id is not None:  # the tracker's copy makes its keyframes itself
                     made = system.map.keyframes[result.keyframe_id]
                     copy.add_keyframe(made.stamp_ns, made.T_camera_world, made.features, made.point_ids, made.id)
-                copy.apply_changes(system.map.take_changes(), pending=[])
+                sync.apply_changes(copy, sync.take_changes(system.map), pending=[])
         assert len(system.map.keyframes) >= 6 and len(system.map.points) >= 500
         assert system.map.replaced  # fusion merged points, and said which into which
         assert_same_map(copy, system.map)
@@ -49,11 +50,11 @@ def test_a_copy_fed_the_changes_after_every_frame_stays_the_map():
         system.close()
 
 
-def _map_with_points(points: int = 4) -> tuple[SlamMap, FrameFeatures]:
+def _map_with_points(points: int = 4) -> tuple[MapDatabase, FrameFeatures]:
     rng = np.random.default_rng(1)
     features = FrameFeatures(rng.uniform(0, 640, (10, 2)), np.zeros(10, np.int64), np.zeros(10, np.float32),
                              rng.integers(0, 256, (10, 32), dtype=np.uint8), np.ones(10))
-    slam_map = SlamMap(1.2, 8)
+    slam_map = MapDatabase(1.2, 8)
     for shift in (0.0, 0.2):
         T = np.eye(4)
         T[0, 3] = shift
@@ -68,16 +69,16 @@ def test_a_pending_keyframe_keeps_its_observations_and_follows_merges():
     and removes point 2: keyframe 2's keypoint of point 0 moves to point 1, that of point 2 is freed,
     and the points the changes replaced keep keyframe 2's observations."""
     mapper_map, features = _map_with_points()
-    tracker_map = SlamMap(1.2, 8)
-    tracker_map.restore(mapper_map.snapshot())
-    mapper_map.record_changes()
+    tracker_map = MapDatabase(1.2, 8)
+    sync.restore(tracker_map, sync.snapshot(mapper_map))
+    sync.record_changes(mapper_map)
     point_ids = np.full(10, -1)
     point_ids[[0, 2, 3]] = [0, 2, 3]
     pending = tracker_map.add_keyframe(0, np.eye(4), features, point_ids)
     mapper_map.merge_points(1, 0)
     mapper_map.remove_point(2)
     mapper_map.set_position(3, np.array([0.3, 0.0, 3.5]))
-    tracker_map.apply_changes(mapper_map.take_changes(), pending=[pending.id])
+    sync.apply_changes(tracker_map, sync.take_changes(mapper_map), pending=[pending.id])
     assert pending.point_ids[[0, 2, 3]].tolist() == [1, -1, 3]
     assert tracker_map.points[1].observations == {0: 1, 1: 1, pending.id: 0}
     assert tracker_map.points[3].observations == {0: 3, 1: 3, pending.id: 3}
@@ -90,14 +91,14 @@ def test_a_pending_keyframe_keeps_its_observations_and_follows_merges():
 
 def test_tracking_counters_reach_the_mapper_once():
     mapper_map, _ = _map_with_points()
-    tracker_map = SlamMap(1.2, 8)
-    tracker_map.restore(mapper_map.snapshot())
-    tracker_map.record_counts()
+    tracker_map = MapDatabase(1.2, 8)
+    sync.restore(tracker_map, sync.snapshot(mapper_map))
+    sync.record_counts(tracker_map)
     tracker_map.count_visible(np.array([0, 1, 9]), np.array([True, False, True]))
     tracker_map.count_visible(np.array([0]))
-    counts = tracker_map.take_counts()
-    assert counts == {0: (2, 1), 1: (1, 0)} and tracker_map.take_counts() == {}
-    mapper_map.add_counts(counts)
+    counts = sync.take_counts(tracker_map)
+    assert counts == {0: (2, 1), 1: (1, 0)} and sync.take_counts(tracker_map) == {}
+    sync.add_counts(mapper_map, counts)
     assert [(mapper_map.points[p].visible, mapper_map.points[p].found) for p in (0, 1, 2)] == [(3, 2), (2, 1), (1, 1)]
 
 

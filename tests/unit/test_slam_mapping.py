@@ -18,7 +18,7 @@ from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_midpoint
 from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.frontend import Tracked, Tracker
-from services.slam.map import SlamMap
+from services.slam.map.database import MapDatabase
 from services.slam.mapping import KeyframeDecision, LocalMapper, keyframe_decision, triangulation_checks
 from services.slam.system import SlamSettings, SlamState, SlamSystem
 
@@ -81,7 +81,7 @@ def track_room(camera: CameraModel, frames: int, wait_for_mapping: bool) -> tupl
     """The room's first ``frames`` frames through a ``Tracker`` mapping with ``BusyUntilWaitedFor``."""
     scene, s = make_scene("room"), SETTINGS
     extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
-    slam_map = SlamMap(s.scale_factor, s.levels)
+    slam_map = MapDatabase(s.scale_factor, s.levels)
     mapper = BusyUntilWaitedFor(LocalMapper(slam_map, camera.K, (camera.width, camera.height), s, threaded=False))
     tracker = Tracker(camera, s, slam_map, mapper, wait_for_mapping=wait_for_mapping)
     results, timings = [], []
@@ -109,7 +109,7 @@ def test_a_keyframe_decision_waits_for_a_busy_mapper_when_asked(room_camera):
 
 
 def test_the_mapping_thread_is_waited_for_until_its_keyframes_are_mapped(monkeypatch):
-    mapper = LocalMapper(SlamMap(1.2, 8), K, (640, 480), SETTINGS, threaded=True)
+    mapper = LocalMapper(MapDatabase(1.2, 8), K, (640, 480), SETTINGS, threaded=True)
     release = threading.Event()
     mapped = []
     monkeypatch.setattr(mapper, "process", lambda keyframe_id, others_waiting=False: mapped.append(release.wait()))
@@ -183,7 +183,7 @@ def test_new_points_between_two_keyframes_are_where_the_scene_is():
     rng = np.random.default_rng(3)
     world = rng.uniform([-1.5, -1, 3], [1.5, 1, 5], (300, 3))
     descriptors = rng.integers(0, 256, (300, 32), dtype=np.uint8)
-    slam_map = SlamMap(1.2, 8)
+    slam_map = MapDatabase(1.2, 8)
     poses = [np.eye(4), np.eye(4)]
     poses[1][:3, 3] = [-0.3, 0.0, 0.0]
     for T in poses:

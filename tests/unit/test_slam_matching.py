@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from services.slam.map import PointArrays
+from services.slam.map.map_point import PointArrays
 from services.slam.matching import (
     hamming,
     hamming_matrix,

@@ -22,7 +22,7 @@ Arrays (K keyframes holding N keypoints in all, P points, M observations):
   representative descriptor breaks ties by that order).
 
 A point's representative descriptor, viewing direction and distance range are not stored: loading
-recomputes them from the observations (``SlamMap.update_point``), as the mapper does. Loading
+recomputes them from the observations (``MapDatabase.update_point``), as the mapper does. Loading
 renumbers keyframes and points in their saved order.
 
 A file is refused with ``MapFileError`` (a ValueError), one line naming the file and what is
@@ -46,7 +46,7 @@ import numpy as np
 
 from services.geometry.camera import CameraModel
 from services.slam.features import FrameFeatures
-from services.slam.map import SlamMap
+from services.slam.map.database import MapDatabase
 
 __all__ = ["FORMAT", "VERSION", "K_TOLERANCE_PX", "DIST_TOLERANCE", "MapFileError", "save_map", "load_map",
            "read_header"]
@@ -72,7 +72,7 @@ def _camera_header(camera: CameraModel) -> dict[str, Any]:
             "dist": np.asarray(camera.dist, np.float64).ravel().tolist()}
 
 
-def save_map(slam_map: SlamMap, camera: CameraModel, path: str | os.PathLike[str]) -> dict[str, Any]:
+def save_map(slam_map: MapDatabase, camera: CameraModel, path: str | os.PathLike[str]) -> dict[str, Any]:
     """Write ``slam_map`` of ``camera`` to ``path`` (replaced atomically: written beside it, then
     renamed). Returns the header written; ``MapFileError`` when the file cannot be written."""
     with slam_map.lock:
@@ -218,7 +218,7 @@ def _checked_arrays(path: str | os.PathLike[str], header: dict[str, Any],
     return arrays
 
 
-def load_map(path: str | os.PathLike[str], camera: CameraModel) -> SlamMap:
+def load_map(path: str | os.PathLike[str], camera: CameraModel) -> MapDatabase:
     """The map saved in ``path`` for ``camera``; ``MapFileError`` (one line) when the file is not a
     map file of this version, was made for another camera, or is inconsistent."""
     arrays = _open(path)
@@ -227,7 +227,7 @@ def load_map(path: str | os.PathLike[str], camera: CameraModel) -> SlamMap:
     arrays = _checked_arrays(path, header, arrays)
     try:
         pyramid = header["pyramid"]
-        slam_map = SlamMap(float(pyramid["scale_factor"]), int(pyramid["levels"]))
+        slam_map = MapDatabase(float(pyramid["scale_factor"]), int(pyramid["levels"]))
     except (KeyError, TypeError, ValueError):
         raise MapFileError(path, "its header has no usable pyramid") from None
     offsets = arrays["keyframe_offsets"]
