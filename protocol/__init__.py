@@ -11,7 +11,7 @@ from protocol.keys import Keys
 from protocol.maps import Keyframes, PointCloud
 from protocol.message import Header, Message, message_type, message_types
 from protocol.mocap import Points3D
-from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody, TrackingState
+from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody
 from protocol.sensors import CameraInfo, Image, RegionOfInterest
 from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
 from protocol.system import (
@@ -31,6 +31,7 @@ from protocol.system import (
     SyncInputStats,
     SyncStats,
 )
+from protocol.tracking_state import TrackingState
 
 __all__ = [
     "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",

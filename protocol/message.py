@@ -53,7 +53,8 @@ class Message(Struct):
     SCHEMA: ClassVar[str]
     VERSION: ClassVar[int]
     READS_OLDER: ClassVar[tuple[int, ...]] = ()
-    """Older versions this class still decodes: they differ only by fields that have a default now."""
+    """Older versions this class still decodes: they differ only by fields that have a default now, or by
+    values the class's validators read as their current ones (``Pose``'s older spelling of a state)."""
     ARRAY_FIELDS: ClassVar[dict[str, ArraySpec]] = {}
 
     header: Header

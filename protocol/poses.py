@@ -3,35 +3,30 @@
 A ``Pose`` is ``T_parent_child`` where the parent is ``header.frame_id`` (a camera's
 optical frame for marker poses, ``world`` for rigid bodies, the map frame for SLAM) and the
 child is ``child_frame_id`` (``marker/7``, ``body/wand``, the camera for SLAM). Its header is the
-header of the frame it was estimated from.
+header of the frame it was estimated from. Its state is a ``TrackingState`` (``protocol.tracking_state``).
 """
 
 from __future__ import annotations
 
 import math
-from enum import StrEnum
+from typing import Annotated, Any
 
-from pydantic import Field, field_validator
+from pydantic import BeforeValidator, Field, field_validator
 
 from protocol.message import Message, Struct
 from protocol.spatial import FrameTransform, Transform
+from protocol.tracking_state import TrackingState
+
+OLD_SPELLINGS = {"initializing": TrackingState.INITIALISING}
+"""States as older versions of ``Pose`` (1 to 3) and ``RigidBodies`` (1, 2) wrote them -> the state."""
 
 
-class TrackingState(StrEnum):
-    """Where a tracker stands for one target."""
+def _state(value: Any) -> Any:
+    return OLD_SPELLINGS.get(value, value) if isinstance(value, str) else value
 
-    TRACKING = "tracking"
-    """A fresh estimate from this frame's measurements."""
-    RECOGNISED = "recognised"
-    """A fresh estimate from this frame's measurements, found from scratch (a natural-feature target
-    recognised by its descriptors) rather than followed on from the previous frame."""
-    PREDICTED = "predicted"
-    """No measurement in this frame; the pose is carried over or predicted."""
-    INITIALIZING = "initializing"
-    LOST = "lost"
-    """No pose; ``Pose.reason`` may say why."""
-    NO_CALIBRATION = "no_calibration"
-    """The camera has no calibration, so no metric pose can be given."""
+
+WireState = Annotated[TrackingState, BeforeValidator(_state)]
+"""A ``TrackingState`` as it travels; older versions' spellings (``OLD_SPELLINGS``) decode to theirs."""
 
 
 class PoseQuality(Struct):
@@ -61,16 +56,17 @@ class Pose(Message):
     pose has none, when the tracker knows (a natural-feature target: ``too_few_matches``, ...);
     on a pose that has one, a warning that qualifies it (SLAM: ``calibration_suspect``); else empty.
 
-    Version 3 added the ``recognised`` state and ``reason``; versions 1 and 2 still decode.
+    Version 3 added the ``recognised`` state and ``reason``, version 4 spells ``initialising`` so (versions
+    1 to 3: ``initializing``); versions 1 to 3 still decode.
     """
 
     SCHEMA = "artrack.Pose"
-    VERSION = 3
-    READS_OLDER = (1, 2)
+    VERSION = 4
+    READS_OLDER = (1, 2, 3)
 
     child_frame_id: str
     transform: Transform = Transform()
-    state: TrackingState = TrackingState.TRACKING
+    state: WireState = TrackingState.TRACKING
     reason: str = ""
     quality: PoseQuality = PoseQuality()
     covariance: Covariance6 | None = None
@@ -88,16 +84,19 @@ class RigidBody(Struct):
 
     name: str
     transform: Transform = Transform()
-    state: TrackingState = TrackingState.TRACKING
+    state: WireState = TrackingState.TRACKING
     quality: PoseQuality = PoseQuality()
 
 
 class RigidBodies(Message):
-    """Every configured rigid body of a rig at one instant; ``header.frame_id`` is the world frame."""
+    """Every configured rigid body of a rig at one instant; ``header.frame_id`` is the world frame.
+
+    Version 3 spells the state ``initialising`` so (versions 1 and 2: ``initializing``); they still decode.
+    """
 
     SCHEMA = "artrack.RigidBodies"
-    VERSION = 2
-    READS_OLDER = (1,)
+    VERSION = 3
+    READS_OLDER = (1, 2)
 
     bodies: tuple[RigidBody, ...] = ()
 

@@ -30,7 +30,8 @@ from typing import TextIO
 
 import numpy as np
 
-from protocol.poses import GroundTruth, Pose, TrackingState
+from protocol.poses import GroundTruth, Pose
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Role
 from services.bus.session import BusConfig, open_session
 from services.convert import matrix_from_transform

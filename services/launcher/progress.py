@@ -31,8 +31,9 @@ from typing import TextIO
 import zenoh
 
 from protocol.codec import DecodeError, decode
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
 from protocol.system import NodeStats
+from protocol.tracking_state import TrackingState
 from services.bus.discovery import node_states
 from services.bus.session import BusConfig
 from services.launcher.kinds import kind

@@ -35,8 +35,9 @@ import zenoh
 from protocol.codec import DecodeError, decode, sample_record, to_json
 from protocol.keys import check_expression
 from protocol.message import Header, Message
-from protocol.poses import GroundTruth, Pose, TrackingState
+from protocol.poses import GroundTruth, Pose
 from protocol.spatial import Transform
+from protocol.tracking_state import TrackingState
 from services.recorder.info import summarise
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA

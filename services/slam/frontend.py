@@ -33,15 +33,15 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
-from services.slam.initialisation import InitialisationState, initialise
+from services.slam.initialisation import InitialisationStatus, initialise
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
 from services.slam.map.map_point import PointArrays
@@ -53,7 +53,7 @@ from services.slam.relocalisation import Relocaliser, solve_pnp
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["MAPPING_WAIT_S", "SlamState", "Tracked", "Tracker"]
+__all__ = ["MAPPING_WAIT_S", "Tracked", "Tracker"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,21 +62,14 @@ MAPPING_WAIT_S = 60.0
 keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
 
 
-class SlamState(StrEnum):
-    """Where the tracker is: no map yet, tracking the map, or lost."""
-
-    INITIALISING = "initialising"
-    TRACKING = "tracking"
-    LOST = "lost"
-
-
 @dataclass(frozen=True)
 class Tracked:
-    """One frame's outcome: ``state``; ``reason`` ("" when tracking); ``T_camera_world`` (4, 4) or None;
-    ``tracked`` map points kept as inliers; ``rms_px`` their reprojection RMS (NaN without a pose);
-    ``keyframe_id`` when the frame became a keyframe."""
+    """One frame's outcome: ``state`` (``initialising``: no map yet, ``tracking`` the map, or ``lost``);
+    ``reason`` ("" when tracking); ``T_camera_world`` (4, 4) or None; ``tracked`` map points kept as
+    inliers; ``rms_px`` their reprojection RMS (NaN without a pose); ``keyframe_id`` when the frame
+    became a keyframe."""
 
-    state: SlamState
+    state: TrackingState
     reason: str
     T_camera_world: np.ndarray | None = None
     tracked: int = 0
@@ -132,7 +125,7 @@ class Tracker:
         started = bool(self.map.keyframes) and (self._last is not None or self._lost > 0)
         if len(features) < self.settings.min_tracked:
             self._lost += int(bool(started))
-            return Tracked(SlamState.LOST if started else SlamState.INITIALISING, "no_texture")
+            return Tracked(TrackingState.LOST if started else TrackingState.INITIALISING, "no_texture")
         if not started:
             return self._initialise(stamp_ns, features, timings)
         return self._track(stamp_ns, features, timings)
@@ -143,7 +136,7 @@ class Tracker:
         reference = self._reference
         if reference is None or self._index - reference.index > s.reference_max_age:
             self._reference = frame
-            return Tracked(SlamState.INITIALISING, "new_reference")
+            return Tracked(TrackingState.INITIALISING, "new_reference")
         with stage_timer(timings, "match"):
             first = reference.features
             a, b = search_by_projection(first.pixels, np.full(len(first), s.init_window_px), first.levels,
@@ -153,25 +146,25 @@ class Tracker:
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
             found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
-        if found.state is InitialisationState.TOO_FEW_MATCHES:
+        if found.status is InitialisationStatus.TOO_FEW_MATCHES:
             self._reference = frame
         if not found.initialised or found.T_second_first is None:
-            return Tracked(SlamState.INITIALISING, found.state.value)
+            return Tracked(TrackingState.INITIALISING, found.status.value)
         if int(found.inliers.sum()) < s.init_min_points:
-            return Tracked(SlamState.INITIALISING, "too_few_points")
+            return Tracked(TrackingState.INITIALISING, "too_few_points")
         with stage_timer(timings, "initial_map"):
             keyframe_id = self._start_map(reference, frame, a[found.inliers], b[found.inliers],
                                           found.points[found.inliers], found.T_second_first)
         if keyframe_id is None:
             self._reference = frame
-            return Tracked(SlamState.INITIALISING, "too_few_points")
+            return Tracked(TrackingState.INITIALISING, "too_few_points")
         last = self._last
         assert last is not None
         seen = np.flatnonzero(last.point_ids >= 0)
         points = self.map.arrays(last.point_ids[seen])
         seen = seen[np.isin(last.point_ids[seen], points.ids)]
         errors = reprojection_errors(self.K, last.T_camera_world, points.positions, features.pixels[seen])
-        return Tracked(SlamState.TRACKING, "", last.T_camera_world.copy(), len(seen),
+        return Tracked(TrackingState.TRACKING, "", last.T_camera_world.copy(), len(seen),
                        float(np.sqrt(np.mean(errors**2))), keyframe_id)
 
     def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
@@ -221,7 +214,7 @@ class Tracker:
                 found = self._track_local_map(T, features, point_ids)
         if found is None:
             self._lost += 1
-            return Tracked(SlamState.LOST, reason or "too_few_matches")
+            return Tracked(TrackingState.LOST, reason or "too_few_matches")
         T, rms = found
         tracked = int(np.count_nonzero(point_ids >= 0))
         self._velocity = None
@@ -234,7 +227,7 @@ class Tracker:
         with stage_timer(timings, "keyframe"):
             if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
                 keyframe_id = self._insert_keyframe(frame)
-        return Tracked(SlamState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
+        return Tracked(TrackingState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
     def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
                        timings: dict[str, float]) -> tuple[np.ndarray | None, int]:

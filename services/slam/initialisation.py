@@ -56,12 +56,12 @@ from services.slam.two_view import (
     triangulate_pair,
 )
 
-__all__ = ["InitialisationState", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
+__all__ = ["InitialisationStatus", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
            "initialise"]
 
 
-class InitialisationState(StrEnum):
-    """What two frames allow: a map, or why not yet."""
+class InitialisationStatus(StrEnum):
+    """What two frames allow: a map, or why not yet (the tracker's ``Pose.reason`` while it initialises)."""
 
     INITIALISED = "initialised"
     TOO_FEW_MATCHES = "too_few_matches"
@@ -119,8 +119,8 @@ class InitialisationSettings:
 class TwoViewInitialisation:
     """The outcome for N matches.
 
-    ``state``; ``model``; ``T_second_first`` (4, 4) float64, translation of unit norm (None when no
-    pose was found; given in the waiting states too when one was); ``inliers`` (N,) bool, the matches
+    ``status``; ``model``; ``T_second_first`` (4, 4) float64, translation of unit norm (None when no
+    pose was found; given in the waiting statuses too when one was); ``inliers`` (N,) bool, the matches
     triangulated in front of both cameras within ``max_rms_px`` (all False unless initialised);
     ``points`` (N, 3) float64, first camera's frame, NaN where not an inlier; ``parallax_deg``
     median triangulation angle of the model's inliers, degrees (NaN when not measured); ``in_front`` fraction
@@ -129,7 +129,7 @@ class TwoViewInitialisation:
     ``essential_inliers`` / ``homography_inliers`` the two USAC inlier counts.
     """
 
-    state: InitialisationState
+    status: InitialisationStatus
     model: InitialisationModel
     T_second_first: np.ndarray | None
     inliers: np.ndarray
@@ -142,26 +142,26 @@ class TwoViewInitialisation:
 
     @property
     def initialised(self) -> bool:
-        return self.state is InitialisationState.INITIALISED
+        return self.status is InitialisationStatus.INITIALISED
 
 
 def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarray, dist: np.ndarray,
                settings: InitialisationSettings | None = None) -> TwoViewInitialisation:
     """Try to start a map from N matches: ``pixels_first[i]`` (observed, distorted px) in the first
     frame and ``pixels_second[i]`` in the second, both (N, 2), one camera of (3, 3) ``K`` and
-    plumb_bob ``dist`` (5,). Degenerate cases end in a waiting state, never in a map."""
+    plumb_bob ``dist`` (5,). Degenerate cases end in a waiting status, never in a map."""
     s = settings or InitialisationSettings()
     first = undistort_pixels(pixels_first, K, dist)
     second = undistort_pixels(pixels_second, K, dist)
     n = len(first)
     wait = _Outcome(n)
     if n < s.min_matches:
-        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+        return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     E, essential_inliers = fit_essential(first, second, K, s.threshold_px, s.confidence)
     H, homography_inliers = fit_homography(first, second, s.threshold_px, s.confidence)
     wait.counts = int(essential_inliers.sum()), int(homography_inliers.sum())
     if E is None and H is None:
-        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+        return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     support_E = essential_support(E, K, first, second, s.sigma_px) if E is not None else 0.0
     support_H = homography_support(H, first, second, s.sigma_px) if H is not None else 0.0
     planar = support_H > s.planar_ratio * (support_H + support_E)
@@ -170,7 +170,7 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     else:
         T, model_inliers = _best_essential_pose(E, essential_inliers, first, second, K, s)
     if model_inliers.sum() < s.min_matches:
-        return wait.result(InitialisationState.TOO_FEW_MATCHES)
+        return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     a, b = first[model_inliers], second[model_inliers]
     ambiguous = uncertain = False
     if planar:
@@ -187,19 +187,19 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     finite = np.all(np.isfinite(found.points), axis=1)
     wait.parallax = float(np.median(parallax_deg(found.points[finite], T))) if finite.any() else 0.0
     if wait.parallax < s.min_parallax_deg:
-        return wait.result(InitialisationState.LOW_PARALLAX)
+        return wait.result(InitialisationStatus.LOW_PARALLAX)
     if wait.in_front < s.min_in_front:
-        return wait.result(InitialisationState.FEW_IN_FRONT)
+        return wait.result(InitialisationStatus.FEW_IN_FRONT)
     if ambiguous:
-        return wait.result(InitialisationState.PLANAR_WAIT)
+        return wait.result(InitialisationStatus.PLANAR_WAIT)
     if uncertain:
-        return wait.result(InitialisationState.POSE_UNCERTAIN)
+        return wait.result(InitialisationStatus.POSE_UNCERTAIN)
     kept = found.in_front & (found.rms_px <= s.max_rms_px)
     inliers = np.zeros(n, bool)
     inliers[np.flatnonzero(model_inliers)[kept]] = True
     points = np.full((n, 3), np.nan)
     points[inliers] = found.points[kept]
-    return wait.result(InitialisationState.INITIALISED, inliers, points)
+    return wait.result(InitialisationStatus.INITIALISED, inliers, points)
 
 
 def _best_essential_pose(E: np.ndarray | None, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
@@ -232,7 +232,7 @@ def _pick_homography_pose(H: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.nda
 
 
 class _Outcome:
-    """What is known so far of one ``initialise`` call, made into its result once the state is known."""
+    """What is known so far of one ``initialise`` call, made into its result once the status is known."""
 
     def __init__(self, n: int):
         self.n = n
@@ -243,10 +243,10 @@ class _Outcome:
         self.in_front = 0.0
         self.pose_std = (float("nan"), float("nan"))
 
-    def result(self, state: InitialisationState, inliers: np.ndarray | None = None,
+    def result(self, status: InitialisationStatus, inliers: np.ndarray | None = None,
                points: np.ndarray | None = None) -> TwoViewInitialisation:
         return TwoViewInitialisation(
-            state=state, model=self.model, T_second_first=self.T,
+            status=status, model=self.model, T_second_first=self.T,
             inliers=np.zeros(self.n, bool) if inliers is None else inliers,
             points=np.full((self.n, 3), np.nan) if points is None else points,
             parallax_deg=self.parallax, in_front=self.in_front, pose_std_deg=self.pose_std,

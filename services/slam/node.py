@@ -9,7 +9,7 @@ their grey levels.
 Outputs, each with the header of the frame it came from (``frame_id`` the map frame, ``map_frame``):
 
 * ``pose/slam/<camera>``, every frame: a ``Pose`` ``T_<map_frame>_<camera>`` (child frame the frame's
-  ``frame_id``, else the camera's name), state ``initializing`` (no map yet), ``tracking`` or ``lost``,
+  ``frame_id``, else the camera's name), state ``initialising`` (no map yet), ``tracking`` or ``lost``,
   ``reason`` when not tracking (the system's: ``low_parallax``, ``too_few_matches``, ...; the node's own:
   ``no_calibration``, ``unusable_frame``; ``calibration_suspect`` on a tracked frame once the camera matrix
   failed the system's check), quality ``inliers`` (map points tracked in the frame) and
@@ -27,7 +27,7 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   ``frame_id`` ``marker/<id>``). The node detects and poses that marker in each tracked frame itself
   (``dictionary``, ``marker_length``; the marker tracker's detector and estimator) and fits the map's
   scale and pose to its sightings (``services.slam.anchor``); state ``tracking`` once anchored, before
-  that ``initializing`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
+  that ``initialising`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
   ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
 
 Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): a
@@ -64,10 +64,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.keys import KeyName
 from protocol.maps import Keyframes, PointCloud
 from protocol.message import Header
-from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
 from protocol.spatial import Transform
 from protocol.system import StageTimings
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
 from services.calibration.fixed import FixedCalibration, check_own_calibration
@@ -81,10 +82,7 @@ from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.slam.anchor import MarkerAnchor, MarkerSighting
 from services.slam.map.file import MapFileError, read_header
-from services.slam.system import STEP_BACK_S, FrameResult, SlamState, SlamSystem
-
-STATES = {SlamState.INITIALISING: TrackingState.INITIALIZING, SlamState.TRACKING: TrackingState.TRACKING,
-          SlamState.LOST: TrackingState.LOST}
+from services.slam.system import STEP_BACK_S, FrameResult, SlamSystem
 
 
 class Params(BaseModel):
@@ -170,7 +168,7 @@ def as_pose(header: Header, child: str, result: FrameResult) -> Pose:
     quality = PoseQuality(inliers=max(result.tracked, 0), reprojection_rms_px=(
         float(result.reprojection_rms_px) if np.isfinite(result.reprojection_rms_px) else None))
     T = result.T_world_camera
-    return Pose(header=header, child_frame_id=child, state=STATES[result.state], reason=result.reason,
+    return Pose(header=header, child_frame_id=child, state=result.state, reason=result.reason,
                 quality=quality, transform=Transform() if T is None else transform_from_matrix(T))
 
 
@@ -260,9 +258,9 @@ class _CameraSlam:
         marker_header = header.model_copy(update={"frame_id": self._anchoring.target})
         T = None if result.T_world_camera is None else self._anchoring.to_marker(camera, grey, result.T_world_camera)
         if T is None:
-            waiting = result.state is SlamState.TRACKING
+            waiting = result.state is TrackingState.TRACKING
             self._anchored.put(Pose(header=marker_header, child_frame_id=child,
-                                    state=TrackingState.INITIALIZING if waiting else STATES[result.state],
+                                    state=TrackingState.INITIALISING if waiting else result.state,
                                     reason=self._anchoring.anchor.status.value if waiting else result.reason))
             return
         pose = as_pose(marker_header, child, result)

@@ -22,11 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import invert
 from services.slam.calibration_check import check_focal
 from services.slam.features import FeatureExtractor
-from services.slam.frontend import SlamState, Tracked, Tracker
+from services.slam.frontend import Tracked, Tracker
 from services.slam.map.database import MapDatabase
 from services.slam.map.file import MapFileError, load_map, save_map
 from services.slam.mapping import LocalMapper, Mapper
@@ -34,7 +35,7 @@ from services.slam.mapping_process import MappingProcess
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["FrameResult", "MAPPING_MODES", "MapFileError", "SlamSettings", "SlamState", "SlamSystem"]
+__all__ = ["FrameResult", "MAPPING_MODES", "MapFileError", "SlamSettings", "SlamSystem"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ class FrameResult:
     ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``calibration_check``
     on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
 
-    state: SlamState
+    state: TrackingState
     reason: str
     T_world_camera: np.ndarray | None
     tracked: int
@@ -164,7 +165,7 @@ class SlamSystem:
             self._remember(stamp_ns, tracked.T_camera_world, tracked.keyframe_id)
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
         reason = tracked.reason
-        if tracked.state is SlamState.TRACKING and self._calibration == "calibration_suspect":
+        if tracked.state is TrackingState.TRACKING and self._calibration == "calibration_suspect":
             reason = self._calibration
         return FrameResult(tracked.state, reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
@@ -203,8 +204,8 @@ class SlamSystem:
             logger.warning("frame skipped: stamped %.3f s before the previous frame (out of order)", back_s)
         return skipped
 
-    def _tracker_state(self) -> SlamState:
-        return SlamState.LOST if self.map.keyframes else SlamState.INITIALISING
+    def _tracker_state(self) -> TrackingState:
+        return TrackingState.LOST if self.map.keyframes else TrackingState.INITIALISING
 
     def keyframe_poses(self) -> list[tuple[int, int, np.ndarray]]:
         """(keyframe id, stamp_ns, (4, 4) T_world_camera) of every keyframe, oldest first."""

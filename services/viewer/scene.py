@@ -11,7 +11,7 @@ publishes one per frame), the bounded trail of each posed frame, the entities al
 their static style (colours, sizes), the transforms each source's last GroundTruth listed,
 and the cameras seen so far (``cameras``, in order of appearance, for the blueprint).
 
-Poses in state ``tracking`` or ``predicted`` are drawn; any other state (lost, initializing,
+Poses in state ``tracking`` or ``predicted`` are drawn; any other state (lost, initialising,
 no calibration) clears the pose's entity, so stale axes do not linger, and adds nothing to
 its trajectory. A transform that a source's previous GroundTruth listed and its current one
 does not (a marker that left the view) is cleared the same way, and so is a detection
@@ -32,10 +32,11 @@ from protocol.detections import Blobs, Keypoints, MarkerDetections
 from protocol.maps import Keyframes, PointCloud
 from protocol.message import Message
 from protocol.mocap import Points3D
-from protocol.poses import GroundTruth, Pose, RigidBodies, TrackingState
+from protocol.poses import GroundTruth, Pose, RigidBodies
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import Transform
 from protocol.system import ErrorReport, NodeStats, StageTimings
+from protocol.tracking_state import TrackingState
 from services.viewer import layout
 from services.viewer.images import RateGate, image_archetype
 

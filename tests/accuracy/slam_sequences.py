@@ -20,11 +20,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import absolute_trajectory_error, associate
 from services.recorder.trajectories import read_kitti, read_tum
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 from tests.data import data_root
 
 KITTI = "vo_kitti_odometry_seq06_frames000-050"
@@ -102,7 +103,7 @@ class SlamRun:
     keyframe_ate_m: float
     length_m: float
     scored: int
-    states: list[SlamState]
+    states: list[TrackingState]
     first_tracked: int
     tracking_ms: np.ndarray
     stage_ms: dict[str, float]
@@ -112,11 +113,11 @@ class SlamRun:
 
     @property
     def lost(self) -> int:
-        return sum(state is SlamState.LOST for state in self.states)
+        return sum(state is TrackingState.LOST for state in self.states)
 
     @property
     def untracked_after_start(self) -> int:
-        return sum(state is not SlamState.TRACKING for state in self.states[self.first_tracked:])
+        return sum(state is not TrackingState.TRACKING for state in self.states[self.first_tracked:])
 
     def line(self) -> str:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
@@ -145,7 +146,7 @@ def run(sequence: Sequence, mapping: str = "inline") -> SlamRun:
             tracking.append(timings["total"] - timings.get("mapping", 0.0))
             if "mapping" in timings:
                 mapping.append(timings["mapping"])
-            if result.state is SlamState.TRACKING:
+            if result.state is TrackingState.TRACKING:
                 for stage in ("keypoints", "match", "pose", "local_map", "keyframe"):
                     stages.setdefault(stage, []).append(timings.get(stage, 0.0) - (
                         timings.get("mapping", 0.0) if stage == "keyframe" else 0.0))
@@ -162,7 +163,7 @@ def run(sequence: Sequence, mapping: str = "inline") -> SlamRun:
     true_poses = np.array(true)
     ate = absolute_trajectory_error(np.array(estimated), true_poses, "sim3")
     length = float(np.sum(np.linalg.norm(np.diff(true_poses[:, :3, 3], axis=0), axis=1)))
-    first = next((i for i, state in enumerate(states) if state is SlamState.TRACKING), len(states))
+    first = next((i for i, state in enumerate(states) if state is TrackingState.TRACKING), len(states))
     keyframe_ate, final_ate = (absolute_trajectory_error(np.array([T for _, T in poses]),
                                                          np.array([truth_at[stamp] for stamp, _ in poses]), "sim3")
                                for poses in (keyframes, final))

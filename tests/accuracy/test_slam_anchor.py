@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.capture.scenes.room import RoomScene
 from services.estimation.markers.offline import track_images
@@ -33,7 +34,7 @@ from services.geometry.evaluation import absolute_trajectory_error
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.slam.anchor import AnchorSettings, AnchorStatus, MarkerAnchor, MarkerSighting
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 
 FRAMES = 300
 """The room's first 10 s: the marker whole in view in frames 45-121 and 191-264."""
@@ -77,7 +78,7 @@ def anchored_run() -> AnchoredRun:
     try:
         for frame, found in zip(frames, markers, strict=True):
             result = slam.process(round(frame.time_s * 1e9), frame.images["cam0"])
-            if result.state != SlamState.TRACKING or result.T_world_camera is None:
+            if result.state != TrackingState.TRACKING or result.T_world_camera is None:
                 continue
             poses[frame.index] = result.T_world_camera
             pose = found.poses.get(f"marker/{MARKER_ID}")

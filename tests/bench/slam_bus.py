@@ -29,7 +29,7 @@ import numpy as np
 from protocol import Header, TrackingState
 from services.capture.scenes import make_scene
 from services.slam.node import as_pose
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 
@@ -59,7 +59,7 @@ def in_process() -> dict[str, Any]:
             result = system.process(header.stamp_ns, image)
             as_pose(header, camera.name, result)
             times.append((time.perf_counter() - started) * 1e3)
-            tracked += result.state is SlamState.TRACKING
+            tracked += result.state is TrackingState.TRACKING
     finally:
         system.close()
     return {**_p50_p99(times[WARMUP:]), "tracked": tracked}

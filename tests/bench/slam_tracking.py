@@ -46,9 +46,10 @@ from typing import Any
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import absolute_trajectory_error
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 from tests.accuracy.slam_sequences import KITTI, kitti, room
 from tests.bench.blobs import one_opencv_thread
 from tests.bench.link import at_rate
@@ -148,7 +149,7 @@ def run(frames: Frames, mapping: str) -> tuple[dict[str, Any], dict[str, Any]]:
             inline_cpu = system._mapper.history[-1].cpu_ms if "mapping" in timings else 0.0
             cpu.append((time.thread_time() - cpu_before) * 1e3 - inline_cpu)
             states.append(result.state)
-            if result.state is SlamState.TRACKING:
+            if result.state is TrackingState.TRACKING:
                 for stage in STAGES:
                     stages[stage].append(timings.get(stage, 0.0) - (mapping_ms if stage == "keyframe" else 0.0))
         elapsed = time.perf_counter() - started
@@ -164,7 +165,7 @@ def run(frames: Frames, mapping: str) -> tuple[dict[str, Any], dict[str, Any]]:
     line = {**common, "figure": "tracking", "fps": round(fps, 1), **_p50_p90(tracking),
             "cpu": _p50_p90(cpu),
             "stages": {stage: _p50_p90(values) for stage, values in stages.items()},
-            "tracked": states.count(SlamState.TRACKING), "lost": states.count(SlamState.LOST),
+            "tracked": states.count(TrackingState.TRACKING), "lost": states.count(TrackingState.LOST),
             "keyframes": len(system.map.keyframes), "ate_m": round(float(ate), 4),
             "frames_waited_on_mapping": waited_inline + waited_lock,
             "frames_mapped_inline": waited_inline, "lock_wait_ms_max": round(lock_max, 2),

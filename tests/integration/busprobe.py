@@ -32,9 +32,10 @@ import time
 import numpy as np
 
 from protocol.message import Header, Message
-from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
 from protocol.spatial import Transform
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Publisher, Role
 from services.bus.session import BusConfig, open_session
 

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from protocol.detections import MarkerDetections
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Role
 from services.client.client import connect
 

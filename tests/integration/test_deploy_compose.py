@@ -10,7 +10,8 @@ import signal
 
 import pytest
 
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Role
 from services.bus.session import BusConfig
 from tests.deploy_files import artrack_services, host_pipeline, instruction

@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 
 from protocol.message import Header
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo, Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.capture.scenes import make_scene
 from services.convert import camera_info

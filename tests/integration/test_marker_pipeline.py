@@ -11,7 +11,8 @@ from mcap.reader import make_reader
 from protocol import decode
 from protocol.detections import MarkerDetections
 from protocol.message import Header
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene

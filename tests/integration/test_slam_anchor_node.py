@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.capture.scenes.room import RoomScene
 from services.convert import matrix_from_transform
@@ -38,7 +39,7 @@ def test_slam_run_with_an_anchor_marker_gives_metric_poses_in_the_marker_frame(p
     anchored: list[Pose] = messages[f"{prefix}/{KEY}"]
     assert len(anchored) == FRAMES and all(p.header.frame_id == "marker/0" for p in anchored)
     tracking = [p for p in anchored if p.state is TrackingState.TRACKING]
-    waiting = [p.reason for p in anchored[:45] if p.state is TrackingState.INITIALIZING]
+    waiting = [p.reason for p in anchored[:45] if p.state is TrackingState.INITIALISING]
     assert "too_few_frames" in waiting and len(tracking) >= 40, [(p.state, p.reason) for p in anchored]
     scene = make_scene("room", marker=True)
     assert isinstance(scene, RoomScene) and scene.T_world_marker is not None

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from protocol.message import Header
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo, Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.convert import camera_info
 from services.slam.map.file import read_header
@@ -67,7 +68,7 @@ def test_a_saved_map_localises_a_second_run_of_the_same_frames(procs, tmp_path):
     poses, keyframes = _poses_and_keyframes(second_out)
     assert [p.header.seq for p in poses] == list(range(FRAMES))
     states_seen = [p.state for p in poses]
-    assert TrackingState.INITIALIZING not in states_seen, states_seen  # the map is there from the first frame
+    assert TrackingState.INITIALISING not in states_seen, states_seen  # the map is there from the first frame
     first = states_seen.index(TrackingState.TRACKING)
     assert first < 5 and all(s is TrackingState.TRACKING for s in states_seen[first:]), states_seen
     assert all(np.allclose(k.poses, first_keyframes[-1].poses, atol=1e-9) for k in keyframes)  # the map never moved

@@ -6,8 +6,9 @@ from __future__ import annotations
 import pytest
 
 from protocol.message import Header
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
 from protocol.sensors import Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene
@@ -50,7 +51,7 @@ def test_late_and_repeated_frames_are_skipped_and_a_step_far_back_starts_a_new_m
         assert [(p.state, p.reason) for p in (late, twice)] == [(TrackingState.LOST, "out_of_order")] * 2
         assert send(index + 1).state is TrackingState.TRACKING  # the same map goes on
         restarted = send(index + 2, sent[-1] - round(2 * STEP_BACK_S * 1e9))
-        assert (restarted.state, restarted.reason) == (TrackingState.INITIALIZING, "new_reference")
+        assert (restarted.state, restarted.reason) == (TrackingState.INITIALISING, "new_reference")
         stats = wait_until(lambda: (s := states(session, keys).get("slam")) and s.processed == len(sent) and s,
                            START_S, f"the node to count {len(sent)} frames")
         assert node.poll() is None, node.describe()

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from protocol.message import Header
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo, Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
 from services.capture.scenes import make_scene
@@ -41,7 +42,7 @@ def test_slam_run_tracks_the_room_records_exports_scores_and_views(procs, tmp_pa
     assert [p.header.seq for p in poses] == list(range(FRAMES))  # frames queue (--depth): a pose for every one
     assert all((p.header.frame_id, p.child_frame_id) == ("map", "cam0") for p in poses)
     states_seen = [p.state for p in poses]
-    assert states_seen[0] is TrackingState.INITIALIZING and poses[0].reason
+    assert states_seen[0] is TrackingState.INITIALISING and poses[0].reason
     first = states_seen.index(TrackingState.TRACKING)
     tracking = [p for p in poses if p.state is TrackingState.TRACKING]
     assert first < FRAMES // 3 and len(tracking) >= 0.9 * (FRAMES - first), states_seen
@@ -151,12 +152,12 @@ def test_garbage_and_unusable_frames_are_counted_while_the_node_goes_on(bus, pro
         assert (send(0, room[0]).state, seen[0].reason) == (TrackingState.LOST, "no_calibration")
         infos.put(camera_info(Header(stamp_ns=1_000, frame_id="cam0"), scene.cameras[0]))
         wait_until(lambda: received(keys.camera_info("cam0")) == 1, START_S, "the CameraInfo to arrive")
-        assert send(1, room[0]).state is TrackingState.INITIALIZING
+        assert send(1, room[0]).state is TrackingState.INITIALISING
         raw.put(random.Random(3).randbytes(4096))
         wait_until(lambda: decode_errors() == 1, START_S, "the garbage to be counted")
         assert (send(2, np.zeros((4, 4), np.uint8)).state, seen[2].reason) == (TrackingState.LOST, "unusable_frame")
         after = send(3, room[1])
-        assert after.state is TrackingState.INITIALIZING and after.reason not in ("unusable_frame", "no_calibration")
+        assert after.state is TrackingState.INITIALISING and after.reason not in ("unusable_frame", "no_calibration")
         stats = wait_until(lambda: (s := states(session, keys).get("slam")) and s.processed == 4 and s, START_S,
                            "the node to count 4 frames")
         assert node.poll() is None, node.describe()

@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.poses import Pose, TrackingState
+from protocol.poses import Pose
+from protocol.tracking_state import TrackingState
 from services.calibration.camera_info import write_camera_info
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import score_trajectory

@@ -3,7 +3,7 @@
 import numpy as np
 
 from protocol.message import Header
-from protocol.poses import TrackingState
+from protocol.tracking_state import TrackingState
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.convert import matrix_from_transform
 from services.estimation.bodies.node import Params, predicted_poses

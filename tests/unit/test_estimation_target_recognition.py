@@ -13,7 +13,7 @@ from services.capture.scenes import make_scene
 from services.estimation.targets.features import make_extractor
 from services.estimation.targets.recognition import (
     RecognitionOptions,
-    RecognitionState,
+    RecognitionStatus,
     TargetRecognizer,
     make_matcher,
     match_descriptors,
@@ -47,7 +47,7 @@ def errors(recognizer, frames, K, dist=None, distort=None):
         (_, _, T_true), = frame.truth["cam0"]
         image = frame.images["cam0"] if distort is None else distort(frame.images["cam0"])
         result = recognizer.recognise_image(image, K, dist, extract)
-        assert result.state is RecognitionState.RECOGNISED, (frame.index, result.state, result.inliers)
+        assert result.status is RecognitionStatus.RECOGNISED, (frame.index, result.status, result.inliers)
         angle, distance = pose_error(result.T_camera_target, T_true)
         rotation.append(np.degrees(angle))
         translation.append(100 * distance / np.linalg.norm(T_true[:3, 3]))
@@ -118,17 +118,17 @@ def test_a_frame_without_the_target_gives_no_pose(scene):
         image = room.render(index).images["cam0"]
         result = recognizer.recognise_image(image, intrinsics(image.shape[1], image.shape[0], 60.0))
         assert not result.recognised and result.T_camera_target is None and result.covariance is None
-        assert result.state in (RecognitionState.TOO_FEW_MATCHES, RecognitionState.TOO_FEW_INLIERS,
-                                RecognitionState.NO_POSE)
+        assert result.status in (RecognitionStatus.TOO_FEW_MATCHES, RecognitionStatus.TOO_FEW_INLIERS,
+                                RecognitionStatus.NO_POSE)
     grey = np.full((480, 640), 110, np.uint8)
     result = recognizer.recognise_image(grey, intrinsics(640, 480, 60.0))
-    assert result.state is RecognitionState.NO_FEATURES and result.T_camera_target is None
+    assert result.status is RecognitionStatus.NO_FEATURES and result.T_camera_target is None
 
 
 def test_descriptors_of_another_kind_are_no_features(scene, frames):
     recognizer = TargetRecognizer(build_target("poster", scene.texture, scene.size_m[0]))
     points, descriptors = make_extractor("sift")(frames[0].images["cam0"])
-    assert recognizer.recognise(points, descriptors, scene.cameras[0].K).state is RecognitionState.NO_FEATURES
+    assert recognizer.recognise(points, descriptors, scene.cameras[0].K).status is RecognitionStatus.NO_FEATURES
 
 
 def test_cross_check_keeps_mutual_best_matches_only():
@@ -162,10 +162,10 @@ def test_bars_above_the_fit_refuse_a_pose(scene, frames):
     target = build_target("poster", scene.texture, scene.size_m[0])
     K = scene.cameras[0].K
     strict = TargetRecognizer(target, RecognitionOptions(max_rms_px=0.05)).recognise_image(frames[0].images["cam0"], K)
-    assert strict.state is RecognitionState.REPROJECTION_TOO_HIGH and strict.T_camera_target is None
+    assert strict.status is RecognitionStatus.REPROJECTION_TOO_HIGH and strict.T_camera_target is None
     assert strict.rms_px > 0.05
     many = TargetRecognizer(target, RecognitionOptions(min_inliers=100000)).recognise_image(frames[0].images["cam0"], K)
-    assert many.state is RecognitionState.TOO_FEW_MATCHES
+    assert many.status is RecognitionStatus.TOO_FEW_MATCHES
 
 
 @pytest.mark.parametrize("options", [{"ratio": 0.0}, {"min_inliers": 3}, {"max_rms_px": 0}, {"sigma_px": -1.0},

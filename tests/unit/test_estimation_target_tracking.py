@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.capture.scenes.texture import procedural_texture
 from services.estimation.targets.features import make_extractor
@@ -18,7 +19,6 @@ from services.estimation.targets.tracking import (
     FrameFeatures,
     TargetTracker,
     TrackingOptions,
-    TrackState,
     track_targets,
 )
 from services.geometry.evaluation import pose_error
@@ -78,8 +78,8 @@ def test_tracking_is_never_lost_and_at_least_as_accurate_as_recognition_alone(sc
     assert all(p.posed for p in poses), [(f.index, p.reason) for f, p in zip(frames, poses, strict=True)
                                          if not p.posed]
     states = [p.state for p in poses]
-    recognised = states.count(TrackState.RECOGNISED)
-    assert states[0] is TrackState.RECOGNISED and recognised <= 2
+    recognised = states.count(TrackingState.RECOGNISED)
+    assert states[0] is TrackingState.RECOGNISED and recognised <= 2
     recognizer, extract = TargetRecognizer(target), make_extractor(target.detector)
     alone, recognised_s = [], []
     for frame in frames:
@@ -90,7 +90,7 @@ def test_tracking_is_never_lost_and_at_least_as_accurate_as_recognition_alone(sc
         alone.append(result.T_camera_target)
     tracking = errors([p.T_camera_target for p in poses], frames)
     recognition = errors(alone, frames)
-    tracked = np.array([s is TrackState.TRACKING for s in states])
+    tracked = np.array([s is TrackingState.TRACKING for s in states])
     print(f"\n{len(frames)} frames, {recognised} recognised, {tracked.sum()} tracked")
     print(summary("tracking", *tracking, tracked_s[tracked]))
     print(summary("recognition", *recognition, np.array(recognised_s)))
@@ -126,8 +126,8 @@ def test_a_covered_frame_is_lost_and_the_target_recognised_when_it_returns(scene
         pose = tracker.track(image, K, None, stamp(index))
         states.append(pose.state)
         reasons.append(pose.reason)
-    assert states == [TrackState.RECOGNISED, *[TrackState.TRACKING] * 3, TrackState.LOST,
-                      TrackState.RECOGNISED, TrackState.TRACKING, TrackState.TRACKING]
+    assert states == [TrackingState.RECOGNISED, *[TrackingState.TRACKING] * 3, TrackingState.LOST,
+                      TrackingState.RECOGNISED, TrackingState.TRACKING, TrackingState.TRACKING]
     assert reasons[4] == "no_features" and reasons[5] == ""
 
 
@@ -144,7 +144,7 @@ def test_several_targets_share_one_extraction_a_frame(scene, frames, target):
     K = scene.cameras[0].K
     for frame in frames[:6]:
         poses = track_targets(trackers, frame.images["cam0"], K, None, stamp(frame.index))
-        assert poses[0].posed and poses[1].state is TrackState.LOST
+        assert poses[0].posed and poses[1].state is TrackingState.LOST
     assert len(calls) == 6
     features = FrameFeatures(frames[0].images["cam0"], counted)
     assert len(calls) == 6  # nothing extracted until asked

@@ -32,6 +32,8 @@ MARK = "%% rooms: python -m tests.unit.test_layers"
 """The comment that marks the rooms drawing among the page's mermaid blocks."""
 SOLID, DOTTED = "-->", "-.->"
 """A room's modules import another room; only its node modules do."""
+VOCABULARY = ("protocol.tracking_state",)
+"""What of ``protocol`` algorithms may import: the tracking states they report in (standard library only)."""
 
 
 def module_name(path: Path) -> str:
@@ -113,8 +115,14 @@ def test_algorithms_never_touch_the_bus_or_the_wire(algorithms):
     for module, imported in modules().items():
         if not within(module, (f"services.{algorithms}",)) or module in node_modules():
             continue
-        bad += [f"{module} -> {name}" for name in sorted(imported) if within(name, BUS_SIDE)]
+        bad += [f"{module} -> {name}" for name in sorted(imported)
+                if within(name, BUS_SIDE) and not within(name, VOCABULARY)]
     assert bad == []
+
+
+def test_the_vocabulary_algorithms_share_with_the_wire_imports_only_the_standard_library():
+    for name in VOCABULARY:
+        assert modules()[name] <= {"__future__", "__future__.annotations", "enum", "enum.StrEnum"}, name
 
 
 def test_the_bus_knows_nothing_of_nodes():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -24,7 +25,10 @@ from protocol import (
     PointCloud,
     Pose,
     PoseQuality,
+    RigidBodies,
+    RigidBody,
     StageTimings,
+    TrackingState,
     Transform,
     decode,
     encode,
@@ -231,16 +235,32 @@ def test_pose_refuses_a_covariance_that_is_not_6x6(covariance: tuple[float, ...]
         Pose(header=HEADER, child_frame_id="body/wand", covariance=covariance)
 
 
-def test_a_lost_pose_says_why_and_a_recognised_one_travels_at_version_3():
+def test_a_lost_pose_says_why_and_a_recognised_one_travels_at_version_4():
     lost = Pose(header=HEADER, child_frame_id="target/poster", state="lost", reason="too_few_matches")
     recognised = Pose(header=HEADER, child_frame_id="target/poster", state="recognised")
     assert decode(encode(lost)) == lost and decode(encode(recognised)).state == "recognised"
-    assert b'"version":3' in encode(lost)
+    assert b'"version":4' in encode(lost)
 
 
 def test_a_pose_of_version_2_still_decodes_with_no_reason():
-    old = encode(Pose(header=HEADER, child_frame_id="marker/7")).replace(b'"version":3', b'"version":2')
+    old = encode(Pose(header=HEADER, child_frame_id="marker/7")).replace(b'"version":4', b'"version":2')
     assert decode(old).reason == "" and decode(old).state == "tracking"
+
+
+def test_a_state_spelled_initializing_by_older_versions_decodes_as_initialising():
+    """Pose versions 1 to 3 and RigidBodies versions 1 and 2 (older recordings) wrote ``initializing``."""
+    pose = Pose(header=HEADER, child_frame_id="cam0", state=TrackingState.INITIALISING, reason="low_parallax")
+    assert b'"state":"initialising"' in encode(pose)
+    for version in (1, 2, 3):
+        document = {**json.loads(encode(pose)), "version": version, "state": "initializing"}
+        if version < 3:  # no reason before version 3
+            del document["reason"]
+        assert decode(json.dumps(document).encode()) == pose.model_copy(update={"reason": document.get("reason", "")})
+    bodies = RigidBodies(header=HEADER, bodies=(RigidBody(name="wand", state=TrackingState.INITIALISING),))
+    for version in (1, 2):
+        document = json.loads(encode(bodies))
+        document["version"], document["bodies"][0]["state"] = version, "initializing"
+        assert decode(json.dumps(document).encode()) == bodies
 
 
 # --- detections ---

@@ -13,9 +13,9 @@ import pytest
 
 from protocol import Header, Image, Pose, encode, to_json
 from protocol.codec import sample_record
-from protocol.poses import TrackingState
 from protocol.spatial import Transform
 from protocol.system import ErrorReport
+from protocol.tracking_state import TrackingState
 from services.recorder.export import Export, ExportError, flatten, tum_line
 from services.recorder.info import format_info, summarise
 from services.recorder.writing import RecordingWriter

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from protocol.tracking_state import TrackingState
 from services.detection.grey import MONO16_SCALE
 from services.geometry.evaluation import absolute_trajectory_error
-from services.slam.system import FrameResult, SlamState, SlamSystem
+from services.slam.system import FrameResult, SlamSystem
 from tests.slam_passes import room_frames, room_scene
 
 MAPPED = 60
@@ -66,7 +67,7 @@ def mapped(scene, frames: int = MAPPED) -> tuple[SlamSystem, Run]:
     run = Run([], [])
     for index in range(frames):
         feed(system, run, scene, index)
-    assert run.results[-1].state is SlamState.TRACKING
+    assert run.results[-1].state is TrackingState.TRACKING
     return system, run
 
 
@@ -76,7 +77,7 @@ def assert_tracked_well(run: Run, first: int) -> None:
     errors = run.errors_m()
     for place in range(first, len(run.results)):
         if run.truth[place] is not None:
-            assert (run.results[place].state, run.results[place].reason) == (SlamState.TRACKING, ""), place
+            assert (run.results[place].state, run.results[place].reason) == (TrackingState.TRACKING, ""), place
             assert errors[place] < MAX_ERROR_M, (place, errors[place])
 
 
@@ -85,11 +86,11 @@ def test_textureless_frames_before_the_map_wait_then_the_map_starts(scene):
     run = Run([], [])
     for image in BLANKS.values():
         result = feed(system, run, scene, 0, image, stamp_ns=len(run.results))
-        assert (result.state, result.reason, result.T_world_camera) == (SlamState.INITIALISING, "no_texture", None)
+        assert (result.state, result.reason, result.T_world_camera) == (TrackingState.INITIALISING, "no_texture", None)
     for index in range(1, 40):
         feed(system, run, scene, index)
     states = [r.state for r in run.results]
-    assert SlamState.TRACKING in states and states[-1] is SlamState.TRACKING
+    assert TrackingState.TRACKING in states and states[-1] is TrackingState.TRACKING
     system.close()
 
 
@@ -98,11 +99,11 @@ def test_textureless_and_noise_frames_are_lost_then_relocalised(scene):
     noise = np.random.default_rng(5).integers(0, 256, (480, 640), np.uint8)
     for index, (name, image) in enumerate([*BLANKS.items(), ("noise", noise)], start=MAPPED):
         result = feed(system, run, scene, index, image)
-        assert result.state is SlamState.LOST and result.T_world_camera is None, name
+        assert result.state is TrackingState.LOST and result.T_world_camera is None, name
         expected = ("no_texture",) if name != "noise" else ("no_candidates", "too_few_matches", "not_confirmed")
         assert result.reason in expected, (name, result.reason)
     back = feed(system, run, scene, MAPPED + 4)
-    assert back.state is SlamState.TRACKING and "relocalise_candidates" in back.timings_ms
+    assert back.state is TrackingState.TRACKING and "relocalise_candidates" in back.timings_ms
     for index in range(MAPPED + 5, MAPPED + 30):
         feed(system, run, scene, index)
     assert_tracked_well(run, MAPPED + 4)
@@ -120,9 +121,9 @@ def test_a_frame_of_elsewhere_in_the_sequence_then_the_sequence_goes_on(scene):
     print(f"frame 1310 at frame {MAPPED}'s stamp: {jump.state} {jump.reason}")
     for index in range(MAPPED + 1, MAPPED + 30):
         feed(system, run, scene, index)
-    if jump.state is SlamState.LOST:
+    if jump.state is TrackingState.LOST:
         assert jump.reason in ("no_candidates", "too_few_matches", "not_confirmed") and jump.T_world_camera is None
-    assert_tracked_well(run, MAPPED + 2 if jump.state is SlamState.LOST else MAPPED)
+    assert_tracked_well(run, MAPPED + 2 if jump.state is TrackingState.LOST else MAPPED)
     system.close()
 
 
@@ -132,7 +133,7 @@ def test_a_frame_stamped_far_ahead_then_the_sequence_goes_on_and_keeps_making_ke
     keyframes are made again at their usual pace (the time since the last keyframe is taken either way)."""
     system, run = mapped(scene)
     ahead = feed(system, run, scene, 1310)
-    assert ahead.state is SlamState.TRACKING and ahead.keyframe_id is not None, ahead
+    assert ahead.state is TrackingState.TRACKING and ahead.keyframe_id is not None, ahead
     results = [feed(system, run, scene, index) for index in range(MAPPED, MAPPED + 60)]
     assert_tracked_well(run, MAPPED)
     made = [place for place, r in enumerate(results) if r.keyframe_id is not None]
@@ -147,12 +148,12 @@ def test_frames_out_of_order_are_skipped_and_a_step_far_back_is_tracked(scene, c
         feed(system, run, scene, MAPPED)
         twice = system.process(stamp_of(scene, MAPPED), next(room_frames(scene, [MAPPED]))[1])
     for result in (earlier, twice):
-        assert (result.state, result.reason, result.T_world_camera) == (SlamState.LOST, "out_of_order", None)
+        assert (result.state, result.reason, result.T_world_camera) == (TrackingState.LOST, "out_of_order", None)
     assert len([r for r in caplog.records if "out of order" in r.getMessage()]) == 2
     following = feed(system, run, scene, MAPPED + 1)
-    assert following.state is SlamState.TRACKING and "relocalise_candidates" not in following.timings_ms
+    assert following.state is TrackingState.TRACKING and "relocalise_candidates" not in following.timings_ms
     back = feed(system, run, scene, 0)  # 2 s back: the sequence jumped, tracked in the map
-    assert back.state is SlamState.TRACKING, back.reason
+    assert back.state is TrackingState.TRACKING, back.reason
     for index in range(MAPPED + 2, MAPPED + 20):
         feed(system, run, scene, index)
     assert_tracked_well(run, MAPPED)
@@ -172,17 +173,17 @@ def test_grey_colour_and_16_bit_frames_track_alike_and_unusable_ones_are_skipped
     for index in range(MAPPED):
         grey = next(room_frames(scene, [index]))[1]
         result = feed(system, run, scene, index, formats(grey)[index % 5], same_view=True)
-    assert result.state is SlamState.TRACKING
+    assert result.state is TrackingState.TRACKING
     unusable = [np.zeros((240, 320), np.uint8), np.zeros((480, 640), np.float32), np.zeros((480, 640), np.int16),
                 np.zeros((480, 640, 1), np.uint8), np.zeros((480, 640, 2), np.uint8), np.zeros(640 * 480, np.uint8),
                 np.zeros((640, 480), np.uint8)]
     with caplog.at_level(logging.WARNING, logger="services.slam.system"):
         for offset, image in enumerate(unusable):
             skipped = system.process(stamp_of(scene, MAPPED) + offset, image)
-            assert (skipped.state, skipped.reason, skipped.T_world_camera) == (SlamState.LOST, "bad_image", None)
+            assert (skipped.state, skipped.reason, skipped.T_world_camera) == (TrackingState.LOST, "bad_image", None)
     assert len([r for r in caplog.records if "frame skipped" in r.getMessage()]) == len(unusable)
     following = feed(system, run, scene, MAPPED)
-    assert following.state is SlamState.TRACKING and "relocalise_candidates" not in following.timings_ms
+    assert following.state is TrackingState.TRACKING and "relocalise_candidates" not in following.timings_ms
     assert_tracked_well(run, 10)
     system.close()
 
@@ -216,5 +217,5 @@ def test_a_wrong_camera_matrix_is_reported_on_every_tracked_frame_after_the_chec
     errors = run.errors_m()
     print(f"fx x{fx_scale}, principal point {principal_shift}: checked at frame {checked}, position error RMS "
           f"{np.sqrt(np.mean(np.square(list(errors.values())))):.3f} m after Sim(3); {caplog.records[0].getMessage()}")
-    assert all(r.state is SlamState.TRACKING and r.reason == "calibration_suspect" for r in run.results[checked:])
+    assert all(r.state is TrackingState.TRACKING and r.reason == "calibration_suspect" for r in run.results[checked:])
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "calibration looks wrong" in caplog.text

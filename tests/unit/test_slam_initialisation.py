@@ -12,7 +12,7 @@ from services.capture.scenes import make_scene
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
-from services.slam.initialisation import InitialisationModel, InitialisationState, initialise
+from services.slam.initialisation import InitialisationModel, InitialisationStatus, initialise
 from services.slam.two_view import pose_std_deg
 
 NOISE_PX = 0.5
@@ -68,7 +68,7 @@ def test_room_frames_far_enough_apart_initialise(room, first, second):
     pixels_first, pixels_second, truth, wrong = observe(T_first_world, T_second_world, points_world, first, 0.2)
     result = initialise(pixels_first, pixels_second, K, np.zeros(5))
 
-    assert result.state is InitialisationState.INITIALISED and result.initialised
+    assert result.status is InitialisationStatus.INITIALISED and result.initialised
     assert result.model is InitialisationModel.ESSENTIAL
     T = result.T_second_first
     assert T is not None and np.linalg.norm(T[:3, 3]) == pytest.approx(1.0)
@@ -118,7 +118,7 @@ def test_room_frames_facing_a_wall_initialise_right_or_wait(room, first, second)
             assert result.T_second_first is not None
             errors.append(pose_errors_deg(result.T_second_first, T_true))
         else:
-            assert result.state is InitialisationState.POSE_UNCERTAIN and not result.inliers.any()
+            assert result.status is InitialisationStatus.POSE_UNCERTAIN and not result.inliers.any()
             waiting.append(result.pose_std_deg)
     print(f"\nframes {first}/{second}: {len(errors)} initialised, worst rotation "
           f"{max((e[0] for e in errors), default=float('nan')):.2f} deg, direction "
@@ -158,7 +158,7 @@ def test_pure_rotation_waits_for_parallax(room, axis):
     rotation = make_transform(matrix_from_rotvec(np.radians(8.0) * np.array(axis) / np.linalg.norm(axis)), np.zeros(3))
     pixels_first, pixels_second, _, _ = observe(T_first_world, rotation @ T_first_world, points_world, 3, 0.2)
     result = initialise(pixels_first, pixels_second, K, np.zeros(5))
-    assert result.state is InitialisationState.LOW_PARALLAX and not result.initialised
+    assert result.status is InitialisationStatus.LOW_PARALLAX and not result.initialised
     assert result.parallax_deg < 0.5
     assert not result.inliers.any() and np.all(np.isnan(result.points))
 
@@ -167,7 +167,7 @@ def test_room_frames_too_close_wait_for_parallax(room):
     scene, points_world = room
     T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 2))
     pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 5, 0.2)
-    assert initialise(pixels_first, pixels_second, K, np.zeros(5)).state is InitialisationState.LOW_PARALLAX
+    assert initialise(pixels_first, pixels_second, K, np.zeros(5)).status is InitialisationStatus.LOW_PARALLAX
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -184,7 +184,7 @@ def test_a_plane_is_initialised_from_its_homography_or_waited_out(seed):
     pixels_first, pixels_second, _, _ = observe(T_first_plane, T_second_first @ T_first_plane, on_plane, seed)
     result = initialise(pixels_first, pixels_second, K, np.zeros(5))
     assert result.model is InitialisationModel.HOMOGRAPHY
-    assert result.state in (InitialisationState.INITIALISED, InitialisationState.PLANAR_WAIT)
+    assert result.status in (InitialisationStatus.INITIALISED, InitialisationStatus.PLANAR_WAIT)
     if result.initialised:
         assert result.T_second_first is not None
         rotation_deg, direction_deg = pose_errors_deg(result.T_second_first, T_second_first)
@@ -198,7 +198,7 @@ def test_too_few_matches(room):
     T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 45))
     pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 0)
     result = initialise(pixels_first[:40], pixels_second[:40], K, np.zeros(5))
-    assert result.state is InitialisationState.TOO_FEW_MATCHES and result.T_second_first is None
+    assert result.status is InitialisationStatus.TOO_FEW_MATCHES and result.T_second_first is None
     assert result.inliers.shape == (40,) and result.points.shape == (40, 3)
 
 

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.slam.features import FrameFeatures
 from services.slam.map import sync
 from services.slam.map.database import MapDatabase
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 
 
 def assert_same_map(copy: MapDatabase, original: MapDatabase) -> None:
@@ -34,7 +35,7 @@ def test_a_copy_fed_the_changes_after_every_frame_stays_the_map():
     try:
         for frame in frames:
             result = system.process(round(frame.time_s * 1e9), frame.images["cam0"])
-            if result.state is SlamState.TRACKING and not len(copy.keyframes):
+            if result.state is TrackingState.TRACKING and not len(copy.keyframes):
                 sync.restore(copy, sync.snapshot(system.map))
                 sync.record_changes(system.map)
                 continue

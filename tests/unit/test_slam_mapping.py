@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.epipolar import near_lines
@@ -20,7 +21,7 @@ from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.frontend import Tracked, Tracker
 from services.slam.map.database import MapDatabase
 from services.slam.mapping import KeyframeDecision, LocalMapper, keyframe_decision, triangulation_checks
-from services.slam.system import SlamSettings, SlamState, SlamSystem
+from services.slam.system import SlamSettings, SlamSystem
 
 SETTINGS = SlamSettings()
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
@@ -216,9 +217,9 @@ def test_bad_frames_are_reported_not_raised(room_camera):
     system = SlamSystem(room_camera, mapping="inline")
     for image in (np.zeros((10, 10), np.uint8), np.zeros((480, 640), np.float32), np.zeros((480, 640, 2), np.uint8)):
         result = system.process(0, image)
-        assert (result.state, result.reason, result.T_world_camera) == (SlamState.INITIALISING, "bad_image", None)
+        assert (result.state, result.reason, result.T_world_camera) == (TrackingState.INITIALISING, "bad_image", None)
     blank = system.process(1, np.zeros((480, 640), np.uint8))
-    assert (blank.state, blank.reason) == (SlamState.INITIALISING, "no_texture")
+    assert (blank.state, blank.reason) == (TrackingState.INITIALISING, "no_texture")
 
 
 @pytest.mark.parametrize("mapping", ["thread", "process"])
@@ -240,8 +241,8 @@ def test_room_tracked_while_mapping_apart(room_camera, mapping):
     assert all(record.stages["triangulate"] > 0 and record.cpu_ms > 0 for record in system._mapper.history)
     assert all("map_sync" in r.timings_ms and "mapping" not in r.timings_ms for r in results)
     states = [r.state for r in results]
-    first = states.index(SlamState.TRACKING)
-    assert first < 30 and all(state is SlamState.TRACKING for state in states[first:])
+    first = states.index(TrackingState.TRACKING)
+    assert first < 30 and all(state is TrackingState.TRACKING for state in states[first:])
     assert [stamp for stamp, _ in system.trajectory()] == [round(f.time_s * 1e9) for f in frames[first:]]
     assert results[first].keyframe_id is not None and revision > 0
     keyframes = system.keyframe_poses()
@@ -263,11 +264,11 @@ def test_lost_on_blank_frames_then_relocalised(room_camera):
     for stamp, image in ((2_010_000_000, np.zeros((480, 640), np.uint8)), (2_020_000_000, np.full((480, 640), 128,
                                                                                                   np.uint8))):
         result = system.process(stamp, image)
-        assert (result.state, result.reason, result.T_world_camera) == (SlamState.LOST, "no_texture", None)
+        assert (result.state, result.reason, result.T_world_camera) == (TrackingState.LOST, "no_texture", None)
     # half a second later, the camera elsewhere: found again by PnP against the whole map
     frame = scene.render(75)
     result = system.process(round(frame.time_s * 1e9), frame.images["cam0"])
-    assert result.state is SlamState.TRACKING and result.tracked > 100
+    assert result.state is TrackingState.TRACKING and result.tracked > 100
     # within 5 cm of the truth, through the similarity fitted to the first 52 tracked frames (a path
     # of 0.73 m, so its scale is known to a few per cent)
     alignment = umeyama(np.array(estimated), np.array(true), with_scale=True)

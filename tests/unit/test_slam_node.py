@@ -12,14 +12,14 @@ import pytest
 
 from protocol.keys import Keys
 from protocol.message import Header
-from protocol.poses import TrackingState
+from protocol.tracking_state import TrackingState
 from services.convert import matrix_from_transform
 from services.geometry.camera import CameraModel, intrinsics
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
 from services.runtime.flow import FlowPlan
 from services.slam.node import Params, _CameraSlam, as_pose, decimated
-from services.slam.system import FrameResult, SlamState
+from services.slam.system import FrameResult
 
 HEADER = Header(stamp_ns=5, frame_id="map", seq=2)
 
@@ -36,15 +36,16 @@ def test_a_map_with_more_points_than_asked_is_cut_evenly_over_its_ids():
 
 def test_a_tracked_frame_becomes_its_pose_and_an_initialising_one_an_identity_with_its_reason():
     T = make_transform(matrix_from_rotvec([0.1, -0.2, 0.3]), [1.0, 2.0, 3.0])
-    tracked = as_pose(HEADER, "cam0", FrameResult(SlamState.TRACKING, "", T, 120, 0.8, None, {"total": 9.0}))
+    tracked = as_pose(HEADER, "cam0", FrameResult(TrackingState.TRACKING, "", T, 120, 0.8, None, {"total": 9.0}))
     assert (tracked.state, tracked.reason, tracked.child_frame_id) == (TrackingState.TRACKING, "", "cam0")
     assert np.allclose(matrix_from_transform(tracked.transform), T)
     assert (tracked.quality.inliers, tracked.quality.reprojection_rms_px) == (120, 0.8)
-    waiting = as_pose(HEADER, "cam0", FrameResult(SlamState.INITIALISING, "low_parallax", None, 0, math.nan, None, {}))
-    assert (waiting.state, waiting.reason) == (TrackingState.INITIALIZING, "low_parallax")
+    waiting = as_pose(HEADER, "cam0",
+                      FrameResult(TrackingState.INITIALISING, "low_parallax", None, 0, math.nan, None, {}))
+    assert (waiting.state, waiting.reason) == (TrackingState.INITIALISING, "low_parallax")
     assert np.allclose(matrix_from_transform(waiting.transform), np.eye(4))
     assert waiting.quality.reprojection_rms_px is None and waiting.header == HEADER
-    lost = as_pose(HEADER, "cam0", FrameResult(SlamState.LOST, "too_few_matches", None, 0, math.nan, None, {}))
+    lost = as_pose(HEADER, "cam0", FrameResult(TrackingState.LOST, "too_few_matches", None, 0, math.nan, None, {}))
     assert lost.state is TrackingState.LOST
 
 

@@ -15,11 +15,12 @@ import cv2
 import numpy as np
 import pytest
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.matching import match_descriptors
 from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
 MAPPED_FRAMES = 120
@@ -139,16 +140,17 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
     alignment = first.alignment()
     fix = orientation_fix(first, alignment)
     jump = feed(system, scene, 1310)
-    assert jump.state == SlamState.TRACKING and jump.T_world_camera is not None
+    assert jump.state == TrackingState.TRACKING and jump.T_world_camera is not None
     blank_results = [feed(system, scene, 1311 + i, np.full((480, 640), level, np.uint8))
                      for i, level in enumerate((0, 128, 255))]
-    assert [(r.state, r.reason, r.T_world_camera) for r in blank_results] == [(SlamState.LOST, "no_texture", None)] * 3
+    lost = (TrackingState.LOST, "no_texture", None)
+    assert [(r.state, r.reason, r.T_world_camera) for r in blank_results] == [lost] * 3
     elsewhere = feed(system, make_scene("room", seed=7), 40)
-    assert elsewhere.state == SlamState.LOST and elsewhere.T_world_camera is None
+    assert elsewhere.state == TrackingState.LOST and elsewhere.T_world_camera is None
     assert elsewhere.reason in ("no_candidates", "too_few_matches", "not_confirmed")
     print(f"a frame of another room: lost ({elsewhere.reason}) in {elsewhere.timings_ms['total']:.0f} ms")
     back = feed(system, scene, 820)
-    assert back.state == SlamState.TRACKING and back.T_world_camera is not None
+    assert back.state == TrackingState.TRACKING and back.T_world_camera is not None
     assert back.timings_ms.get("relocalise_candidates", 0) > 0, "the frame after lost ones goes through relocalisation"
     for result, index in ((jump, 1310), (back, 820)):
         error_m, error_deg = aligned_errors(result.T_world_camera, scene.camera_pose(index), alignment, fix)
@@ -157,4 +159,4 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
               f"Sim(3) alignment (first pass ATE {first.ate_m() * 100:.1f} cm); {stages}")
         assert error_m < MAX_POSITION_ERROR_M and error_deg < MAX_ROTATION_ERROR_DEG
     following = feed(system, scene, 821)
-    assert following.state == SlamState.TRACKING and "relocalise_candidates" not in following.timings_ms
+    assert following.state == TrackingState.TRACKING and "relocalise_candidates" not in following.timings_ms

@@ -2,10 +2,11 @@
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.capture.scenes import make_scene
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
-from services.slam.system import SlamState, SlamSystem
+from services.slam.system import SlamSystem
 
 
 def test_trajectory_follows_the_keyframes():
@@ -17,7 +18,7 @@ def test_trajectory_follows_the_keyframes():
         frame = scene.render(index)
         stamp = round(frame.time_s * 1e9)
         result = system.process(stamp, frame.images["cam0"])
-        if result.state is SlamState.TRACKING:
+        if result.state is TrackingState.TRACKING:
             assert result.T_world_camera is not None
             online[stamp] = result.T_world_camera
         if result.keyframe_id is not None:

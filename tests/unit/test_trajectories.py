@@ -12,8 +12,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from protocol import FrameTransform, GroundTruth, Header, Pose, encode
-from protocol.poses import TrackingState
 from protocol.spatial import Transform
+from protocol.tracking_state import TrackingState
 from services.geometry.evaluation import Similarity, apply_similarity
 from services.geometry.se3 import make_transform
 from services.recorder.export import ExportError

@@ -50,8 +50,9 @@ from protocol.detections import Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.mocap import Points3D
-from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.poses import Pose, PoseQuality
 from protocol.sensors import CameraInfo
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
 from services.convert import camera_model, transform_from_matrix

@@ -45,8 +45,9 @@ from pydantic import ConfigDict, Field, model_validator
 from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.fixed import FixedCalibration, check_own_calibration
 from services.convert import camera_model, transform_from_matrix

@@ -65,8 +65,9 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.poses import Pose, PoseQuality, TrackingState
+from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
+from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
 from services.calibration.fixed import FixedCalibration, check_own_calibration
@@ -75,16 +76,13 @@ from services.estimation.markers.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroPoseFilter
 from services.estimation.targets.library import TargetLibrary
-from services.estimation.targets.recognition import RecognitionOptions, RecognitionState
+from services.estimation.targets.recognition import RecognitionOptions, RecognitionStatus
 from services.estimation.targets.scene import is_scene_target, scene_target, scene_target_name
 from services.estimation.targets.target import Target
-from services.estimation.targets.tracking import TargetPose, TargetTracker, TrackingOptions, TrackState, track_targets
+from services.estimation.targets.tracking import TargetPose, TargetTracker, TrackingOptions, track_targets
 from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
-
-STATES = {TrackState.RECOGNISED: TrackingState.RECOGNISED, TrackState.TRACKING: TrackingState.TRACKING,
-          TrackState.LOST: TrackingState.LOST}
 
 
 def _as_tuple(value: Any) -> Any:
@@ -160,7 +158,7 @@ def as_pose(header: Header, found: TargetPose) -> Pose:
     if found.covariance is not None and np.all(np.isfinite(found.covariance)):
         covariance = tuple(float(v) for v in np.asarray(found.covariance).ravel())
     rms = float(found.rms_px) if np.isfinite(found.rms_px) else None
-    return Pose(header=header, child_frame_id=child, state=STATES[found.state],
+    return Pose(header=header, child_frame_id=child, state=found.state,
                 transform=transform_from_matrix(found.T_camera_target),
                 quality=PoseQuality(reprojection_rms_px=rms, inliers=found.inliers), covariance=covariance)
 
@@ -197,7 +195,7 @@ class _Frames:
         """A ``lost`` pose of every target, for ``reason``; the next frame starts every target afresh."""
         for tracker in self.trackers:
             tracker.reset()
-        return [TargetPose(TrackState.LOST, tracker.target.name, reason) for tracker in self.trackers]
+        return [TargetPose(TrackingState.LOST, tracker.target.name, reason) for tracker in self.trackers]
 
 
 class _Overlay:
@@ -244,8 +242,8 @@ def run(node: Node, params: Params) -> None:
                 found = frames_of.lost("unusable_frame")
                 node.report("unusable_frame", f"frame {image.header.seq}: {exc}", keys.image(params.camera))
         poses.publish([as_pose(image.header, pose) for pose in found])
-        if any(pose.reason == RecognitionState.NO_FEATURES for pose in found):
-            node.report(RecognitionState.NO_FEATURES.value, f"frame {image.header.seq}: no keypoints to recognise "
+        if any(pose.reason == RecognitionStatus.NO_FEATURES for pose in found):
+            node.report(RecognitionStatus.NO_FEATURES.value, f"frame {image.header.seq}: no keypoints to recognise "
                         "a target by", keys.image(params.camera))
         if overlay is not None:
             overlay.put(image, K, dist, found)

@@ -1,6 +1,6 @@
 """Recognition of an image target in one frame: matches, a robust homography, then the planar pose.
 
-Steps, each of which may end the attempt with the state saying why:
+Steps, each of which may end the attempt with the status saying why:
 
 1. Match the frame's descriptors to the target's, both k = 2 nearest neighbours and Lowe's ratio
    test (a match is kept when its distance is below ``ratio`` times the second-nearest's): binary
@@ -51,7 +51,7 @@ from services.geometry.camera import undistort_image, undistort_pixels
 __all__ = [
     "Recognition",
     "RecognitionOptions",
-    "RecognitionState",
+    "RecognitionStatus",
     "TargetRecognizer",
     "match_descriptors",
 ]
@@ -67,8 +67,9 @@ LSH_PROBE_LEVEL = 1
 finds nearly all of the brute-force search's ratio-tested matches."""
 
 
-class RecognitionState(StrEnum):
-    """The outcome of recognising a target in a frame; every value but ``recognised`` says why there is no pose."""
+class RecognitionStatus(StrEnum):
+    """The outcome of recognising a target in a frame; every value but ``recognised`` says why there is no
+    pose (the tracker's ``Pose.reason``)."""
 
     RECOGNISED = "recognised"
     NO_FEATURES = "no_features"
@@ -142,7 +143,7 @@ class RecognitionOptions:
 class Recognition:
     """One target in one frame.
 
-    ``state``: ``recognised`` or why not; ``target``: its name; ``matches``: matches that passed the
+    ``status``: ``recognised`` or why not; ``target``: its name; ``matches``: matches that passed the
     ratio test; ``inliers``: points the pose rests on. With a pose only (else None / empty):
     ``T_camera_target`` (4, 4); ``homography`` (3, 3) target-image pixel -> undistorted frame pixel;
     ``inlier_frame`` and ``inlier_target`` (M,) int, the inliers' indices into the frame's and the
@@ -151,7 +152,7 @@ class Recognition:
     (6, 6) over (tx, ty, tz, rx, ry, rz), target frame, metres and radians.
     """
 
-    state: RecognitionState
+    status: RecognitionStatus
     target: str
     matches: int = 0
     inliers: int = 0
@@ -165,7 +166,7 @@ class Recognition:
 
     @property
     def recognised(self) -> bool:
-        return self.state is RecognitionState.RECOGNISED
+        return self.status is RecognitionStatus.RECOGNISED
 
 
 def make_matcher(binary: bool, exact: bool = False) -> cv2.DescriptorMatcher:
@@ -234,10 +235,10 @@ class TargetRecognizer:
         descriptors = np.asarray(descriptors)
         if len(points) == 0 or is_binary(descriptors) != self.binary or descriptors.ndim != 2 \
                 or descriptors.shape[1] != self.target.descriptors.shape[1]:
-            return Recognition(RecognitionState.NO_FEATURES, name)
+            return Recognition(RecognitionStatus.NO_FEATURES, name)
         matches = match_descriptors(self.matcher, descriptors, self.target.descriptors, o.ratio, o.cross_check)
         if len(matches) < o.min_inliers:
-            return Recognition(RecognitionState.TOO_FEW_MATCHES, name, len(matches))
+            return Recognition(RecognitionStatus.TOO_FEW_MATCHES, name, len(matches))
         frame_rows, target_rows = matches[:, 0], matches[:, 1]
         pixels = np.asarray(points, dtype=np.float64).reshape(-1, 2)[frame_rows]
         if dist is not None and np.any(dist):
@@ -245,24 +246,24 @@ class TargetRecognizer:
         H, mask = cv2.findHomography(self.target_pixels[target_rows], pixels, o.method, o.threshold_px,
                                      maxIters=o.max_iterations, confidence=o.confidence)
         if H is None or mask is None:
-            return Recognition(RecognitionState.NO_HOMOGRAPHY, name, len(matches))
+            return Recognition(RecognitionStatus.NO_HOMOGRAPHY, name, len(matches))
         inliers = np.flatnonzero(mask.ravel())
         if len(inliers) < o.min_inliers:
-            return Recognition(RecognitionState.TOO_FEW_INLIERS, name, len(matches), len(inliers))
+            return Recognition(RecognitionStatus.TOO_FEW_INLIERS, name, len(matches), len(inliers))
         fit = fit_planar_pose(self.target.points[target_rows[inliers]], pixels[inliers], K, o.threshold_px)
         if fit is None:
-            return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
+            return Recognition(RecognitionStatus.NO_POSE, name, len(matches), len(inliers))
         inliers = inliers[fit.kept]
         if len(inliers) < o.min_inliers:
-            return Recognition(RecognitionState.TOO_FEW_INLIERS, name, len(matches), len(inliers))
+            return Recognition(RecognitionStatus.TOO_FEW_INLIERS, name, len(matches), len(inliers))
         if fit.rms_px > o.max_rms_px:
-            return Recognition(RecognitionState.REPROJECTION_TOO_HIGH, name, len(matches), len(inliers),
+            return Recognition(RecognitionStatus.REPROJECTION_TOO_HIGH, name, len(matches), len(inliers),
                                rms_px=fit.rms_px)
         covariance = fit_covariance(fit, o.sigma_px)
         if covariance is None:
-            return Recognition(RecognitionState.NO_POSE, name, len(matches), len(inliers))
+            return Recognition(RecognitionStatus.NO_POSE, name, len(matches), len(inliers))
         H, _ = cv2.findHomography(self.target_pixels[target_rows[inliers]], pixels[inliers], 0)
-        found = Recognition(RecognitionState.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
+        found = Recognition(RecognitionStatus.RECOGNISED, name, len(matches), len(inliers), fit.T_camera_target, H,
                             frame_rows[inliers], target_rows[inliers], pixels[inliers], fit.rms_px, covariance)
         if not o.refine or grey is None:
             return found
@@ -287,6 +288,6 @@ class TargetRecognizer:
         if covariance is None:
             return None
         rows = rows[fit.kept]
-        return Recognition(RecognitionState.RECOGNISED, found.target, found.matches, len(rows), fit.T_camera_target,
+        return Recognition(RecognitionStatus.RECOGNISED, found.target, found.matches, len(rows), fit.T_camera_target,
                            refined.homography, found.inlier_frame[rows], found.inlier_target[rows],
                            refined.pixels[rows], fit.rms_px, covariance)

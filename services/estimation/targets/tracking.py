@@ -1,7 +1,7 @@
 """Incremental tracking of an image target from frame to frame, falling back to recognition.
 
 A ``TargetTracker`` owns one target's state from frame to frame. Every frame it returns a
-``TargetPose`` whose state says where the pose came from:
+``TargetPose`` whose state (a ``TrackingState``) says where the pose came from:
 
 * ``tracking``: the points of the previous frame followed into this one. A constant-velocity model
   (``services.estimation.motion.ConstantVelocity``, with the camera frame in the role of its
@@ -16,7 +16,7 @@ A ``TargetTracker`` owns one target's state from frame to frame. Every frame it 
 * ``recognised``: there were no points to follow (first frame, after a loss) or following them
   failed (fewer than ``min_points`` survived the check or the pose, or its RMS exceeded
   ``max_rms_px``), and recognition (``services.estimation.targets.recognition``) found the target.
-* ``lost``: recognition did not find it either; ``reason`` is recognition's state.
+* ``lost``: recognition did not find it either; ``reason`` is recognition's status.
 
 Points are refilled from the target whenever fewer than ``refill_below`` are followed: the target's
 keypoints (its own pyramid's, level-0 image pixels) are projected with the frame's pose, and those in
@@ -40,10 +40,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
 
 import numpy as np
 
+from protocol.tracking_state import TrackingState
 from services.detection.keypoints.detector import KeypointParams
 from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions
 from services.estimation.targets.alignment import AlignmentOptions, TargetAligner
@@ -58,20 +58,11 @@ __all__ = [
     "FrameFeatures",
     "TargetPose",
     "TargetTracker",
-    "TrackState",
     "TrackingOptions",
     "track_targets",
 ]
 
 MIN_DEPTH_M = 1e-6
-
-
-class TrackState(StrEnum):
-    """Where a frame's pose came from, or that there is none."""
-
-    RECOGNISED = "recognised"
-    TRACKING = "tracking"
-    LOST = "lost"
 
 
 @dataclass(frozen=True)
@@ -131,14 +122,14 @@ class TargetPose:
     """One target in one frame.
 
     ``state``: ``recognised``, ``tracking`` or ``lost``; ``target``: its name; ``reason``: why it is
-    lost (recognition's state: ``too_few_matches``, ...), empty otherwise. With a pose only (else None /
+    lost (recognition's status: ``too_few_matches``, ...), empty otherwise. With a pose only (else None /
     empty): ``T_camera_target`` (4, 4); ``inliers``: points the pose rests on; ``rms_px``: their RMS
     residual length, undistorted pixels; ``covariance`` (6, 6) over (tx, ty, tz, rx, ry, rz), target
     frame, metres and radians; ``points`` (M, 3) float64 target frame and ``pixels`` (M, 2) float32 the
     frame's own (distorted) pixels of the points followed on from this frame.
     """
 
-    state: TrackState
+    state: TrackingState
     target: str
     reason: str = ""
     T_camera_target: np.ndarray | None = None
@@ -150,7 +141,7 @@ class TargetPose:
 
     @property
     def posed(self) -> bool:
-        return self.state is not TrackState.LOST
+        return self.state is not TrackingState.LOST
 
 
 class FrameFeatures:
@@ -227,12 +218,12 @@ class TargetTracker:
         points, descriptors = (features or FrameFeatures(grey, self.extract)).get()
         found = self.recognizer.recognise(points, descriptors, K, dist, grey)
         if not found.recognised or found.T_camera_target is None:
-            return TargetPose(TrackState.LOST, self.target.name, found.state.value)
+            return TargetPose(TrackingState.LOST, self.target.name, found.status.value)
         T = self._aligned(grey, K, dist, found.T_camera_target)
         self.motion.update(stamp_ns, T)
         tracks = self._refill(_Tracks(grey, *_no_points(), T), K, dist)
         self._tracks = tracks
-        return TargetPose(TrackState.RECOGNISED, self.target.name, "", T, found.inliers, found.rms_px,
+        return TargetPose(TrackingState.RECOGNISED, self.target.name, "", T, found.inliers, found.rms_px,
                           found.covariance, tracks.points, tracks.pixels)
 
     def _follow(self, tracks: _Tracks, grey: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
@@ -265,7 +256,7 @@ class TargetTracker:
         elif len(followed.ids) < o.refill_below:
             followed = self._refill(followed, K, dist)
         self._tracks = followed
-        return TargetPose(TrackState.TRACKING, self.target.name, "", T, int(fit.kept.sum()), fit.rms_px, covariance,
+        return TargetPose(TrackingState.TRACKING, self.target.name, "", T, int(fit.kept.sum()), fit.rms_px, covariance,
                           followed.points, followed.pixels)
 
     def _aligned(self, grey: np.ndarray, K: np.ndarray, dist: np.ndarray | None, T: np.ndarray) -> np.ndarray:
