@@ -69,7 +69,7 @@ class MappingProcess:
         self._process = context.Process(target=_serve, name="slam-mapping", daemon=True,
                                         args=(self._inbox, writer, np.asarray(K, np.float64), size, settings,
                                               slam_map.scale_factor, slam_map.levels))
-        self._process.start()
+        _start_deaf_to_ctrl_c(self._process)
         writer.close()  # the process holds the only writing end: its end is the pipe's
         self._pending: list[int] = []
         self._alive = True
@@ -197,6 +197,21 @@ class MappingProcess:
             self._alive = False
         elif kind in ("failed", "ended"):
             self._gone(message[1])
+
+
+def _start_deaf_to_ctrl_c(process: Any) -> None:
+    """Start ``process`` with SIGINT ignored from its first instruction on (an ignored signal stays ignored
+    across the spawn's exec, and Python then installs no KeyboardInterrupt handler), so a Ctrl-C to the whole
+    process group while it still imports NumPy and pycolmap leaves it be: its tracker ends it. Only the main
+    thread may set a handler; elsewhere the process ignores SIGINT from its first line (``_serve``) on."""
+    if threading.current_thread() is not threading.main_thread():
+        process.start()
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        process.start()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
