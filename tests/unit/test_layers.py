@@ -16,7 +16,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 OURS = ("protocol", "services")
-ALGORITHM_ROOMS = ("geometry", "calibration", "capture", "detection", "estimation", "slam")
+ALGORITHM_ROOMS = ("geometry", "calibration", "capture", "synthetic", "detection", "estimation", "slam")
 """Rooms of pure algorithms, but for their node modules (``node.py``, ``*_node.py``)."""
 BUS_SIDE = ("zenoh", "protocol", "services.bus", "services.runtime", "services.launcher", "services.client")
 
@@ -94,6 +94,19 @@ def test_algorithms_never_touch_the_bus_or_the_wire(algorithms):
         if module.rsplit(".", 1)[-1] == "node" or module.endswith("_node"):
             continue
         bad += [f"{module} -> {name}" for name in sorted(imported) if within(name, BUS_SIDE)]
+    assert bad == []
+
+
+def test_scenes_stand_on_geometry_and_the_marker_dictionaries_alone():
+    allowed = ("services.synthetic", "services.geometry", "services.detection.markers.detector")
+    assert offences("services.synthetic", allowed) == []
+
+
+@pytest.mark.parametrize("room_name", ["detection", "estimation", "slam", "recorder"])
+def test_no_tracker_nor_the_recorder_knows_sources_or_scenes(room_name):
+    """Trackers are told what a scene holds through their options (the job assembly writes its fixture files)."""
+    bad = [f"{m} -> {n}" for m, imported in modules().items() if within(m, (f"services.{room_name}",))
+           for n in sorted(imported) if within(n, ("services.synthetic", "services.capture"))]
     assert bad == []
 
 

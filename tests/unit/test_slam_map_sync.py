@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.slam.features import FrameFeatures
 from services.slam.map import SlamMap
 from services.slam.system import SlamState, SlamSystem
+from services.synthetic import make_scene
 
 
 def assert_same_map(copy: SlamMap, original: SlamMap) -> None:

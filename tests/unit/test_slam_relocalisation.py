@@ -15,11 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.matching import match_descriptors
 from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
 from services.slam.system import SlamState, SlamSystem
+from services.synthetic import make_scene
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
 MAPPED_FRAMES = 120

@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from services.capture.scenes import make_scene
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.slam.system import SlamState, SlamSystem
+from services.synthetic import make_scene
 
 
 def test_trajectory_follows_the_keyframes():
