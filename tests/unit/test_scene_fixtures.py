@@ -4,9 +4,12 @@ named ``synthetic:SCENE``."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from services.bus.session import BusConfig
 from services.estimation.bodies.file import load_bodies
 from services.estimation.targets.library import TargetLibrary
 from services.launcher.fixtures import fixture_folder, scene_settings, scene_target_library
@@ -107,3 +110,44 @@ def test_a_scene_target_that_cannot_be_made_is_refused_in_one_line(names, messag
 def test_a_scene_target_beside_a_library_is_refused():
     with pytest.raises(ValueError, match="a scene's target is tracked alone"):
         scene_target_library(["synthetic:planar_target"], library_given=True)
+
+
+
+def assembled(tracker: str, given: dict[str, str], scene: dict[str, str] | None = None) -> dict[str, dict]:
+    """The nodes' parameters of ``artrack run TRACKER`` with the flags ``given`` (option -> text) and
+    ``--scene-option``s ``scene``."""
+    from services.cli.run import SOURCE_SKIP
+    from services.launcher.assembly import JobRequest, assemble
+    from services.launcher.flags import flags_for
+    from services.launcher.kinds import kind
+    from services.launcher.tracker import Tracker
+
+    source = flags_for(kind("capture").params, SOURCE_SKIP)
+    own = Tracker.load(tracker).flags({flag.field: flag for flag in source})
+    by_option = {flag.option: flag for flag in [*source, *own]}
+    request = JobRequest(tracker=tracker, bus=lambda defaults: BusConfig(**defaults), flags=own, source_flags=source,
+                         source={by_option[o].key: [v] if o == "--source" else v for o, v in given.items()
+                                 if by_option[o] in source},
+                         options={by_option[o].key: v for o, v in given.items() if by_option[o] in own},
+                         scene=scene or {})
+    return {name: node.params for name, node in assemble(request)[1].nodes.items()}
+
+
+def test_the_job_assembly_gives_the_trackers_what_their_scene_settles_unless_given(caplog, tmp_path):
+    caplog.set_level("INFO", "artrack")
+    bodies = assembled("stereo", {"--source": "synthetic:ir_rig"})["bodies"]["bodies"]
+    assert bodies == str(fixture_folder("ir_rig", {}) / "bodies.yaml")
+    assert list(load_bodies(bodies)) == list(LAYOUTS)[:3]
+    assert f"using --bodies {bodies}, as synthetic:ir_rig renders it" in caplog.text
+    (tmp_path / "mine.yaml").write_text(Path(bodies).read_text())
+    given = assembled("stereo", {"--source": "synthetic:ir_rig", "--bodies": str(tmp_path / "mine.yaml")})
+    assert given["bodies"]["bodies"] == str(tmp_path / "mine.yaml")
+    caplog.clear()
+    marker = assembled("marker", {"--source": "synthetic:markers"})["marker-cam0"]
+    assert marker["marker_length"] == 0.05 and "dictionary" not in marker  # the default dictionary: nothing to tell
+    assert "using --marker-length 0.05" in caplog.text and "--dictionary" not in caplog.text
+    other = assembled("marker", {"--source": "synthetic:markers"}, {"dictionary": "DICT_5X5_50"})["marker-cam0"]
+    assert other["dictionary"] == "DICT_5X5_50"
+    features = assembled("features", {"--source": "synthetic:pattern", "--target": "synthetic:planar_target"})
+    assert list(features["features-cam0"]["target"]) == ["planar_target"]
+    assert features["features-cam0"]["targets"].endswith("/targets")
