@@ -16,7 +16,6 @@ import numpy as np
 
 from protocol.detections import Blobs
 from protocol.message import Header
-from services.capture.scenes.ir_rig import IrRigScene
 from services.detection.blobs.node import Params as BlobsParams
 from services.detection.blobs.node import as_message, detector
 from services.estimation.bodies.correspondence import triangulate_blobs
@@ -25,6 +24,7 @@ from services.estimation.bodies.rigid import match_bodies
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle, rotvec_from_matrix
+from services.synthetic.ir_rig import IrRigScene
 
 
 @dataclass(frozen=True)

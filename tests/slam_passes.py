@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import Similarity, absolute_trajectory_error, apply_similarity
 from services.geometry.rotation import rotation_angle
 from services.slam.system import FrameResult, SlamSystem
+from services.synthetic import make_scene
 from tests.accuracy.slam_sequences import Frames, sequence
 
 NANOSECONDS = 1_000_000_000

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import WAND_BODY, IrRigScene
 from services.geometry.camera import project_points
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import WAND_BODY, IrRigScene
 
 
 def wand_scene(camera_count: int, **options: object) -> IrRigScene:

@@ -47,7 +47,6 @@ from protocol.sensors import CameraInfo, Image
 from protocol.spatial import RIG_FRAME, StaticTransforms
 from services.bus.pubsub import Role
 from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
-from services.capture.scenes import scene_options
 from services.capture.sources import (
     FrameFault,
     Source,
@@ -64,6 +63,7 @@ from services.capture.sources import (
 from services.convert import camera_info, frame_transforms, rig_static_transforms
 from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import REPORT_EVERY_S, Node, NodeError
+from services.synthetic import scene_options
 
 SETTLE_S = 0.3
 """Pause after the first subscriber appears, so its own outputs reach their subscribers too."""

@@ -11,7 +11,7 @@
                             (or by file name when the folders have no times). A KITTI folder
                             ``image_<i>`` is calibrated by the ``P<i>`` line of the ``calib.txt``
                             beside it (``services.calibration.kitti``)
-``synthetic:SCENE``         a rendered scene with exact ground truth (services.capture.scenes)
+``synthetic:SCENE``         a rendered scene with exact ground truth (services.synthetic)
 ==========================  ==============================================================
 
 A source that cannot start (no device, missing or unreadable file, empty folder) raises
@@ -28,19 +28,23 @@ import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
+from services.calibration.image_folder import (
+    IMAGE_SUFFIXES,
+    ImageFolderError,
+    folder_entries,
+    is_image,
+    read_image,
+)
 from services.calibration.kitti import folder_camera
-from services.capture.scenes import make_scene
-from services.capture.scenes.base import Truth
 from services.geometry.camera import CameraModel
+from services.synthetic import make_scene
+from services.synthetic.base import Truth
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 MAX_CONSECUTIVE_FAULTS = 30
 
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET, before the first cv2.VideoCapture
@@ -56,7 +60,8 @@ class SourceFrame:
 
     ``time_ns``: the source's own time of the frame, int nanoseconds (epoch time for TUM lists
     and TUM file names, time from the start for videos, KITTI times and scenes), None when it
-    has none. Times written as decimal seconds in a folder are taken exactly (``seconds_to_ns``).
+    has none. Times written as decimal seconds in a folder are taken exactly
+    (``services.calibration.image_folder``).
     Images are (H, W) or (H, W, 3|4) uint8/uint16 as OpenCV reads them.
     """
 
@@ -98,15 +103,6 @@ class Source(ABC):
         """Release devices and files (idempotent)."""
 
 
-def _read_image(path: Path) -> np.ndarray | None:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.dtype not in (np.uint8, np.uint16) or image.ndim not in (2, 3):
-        return None
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    return image
-
-
 class ImageFolderSource(Source):
     """Image files of a folder, in order, with times when the folder says them."""
 
@@ -115,13 +111,13 @@ class ImageFolderSource(Source):
         self.folder = folder
         if not folder.is_dir():
             raise SourceError(f"{uri}: no such folder")
-        self.entries = _folder_entries(folder)
+        self.entries = _entries(uri, folder)
         if not self.entries:
             raise SourceError(f"{uri}: no image files in {folder} ({', '.join(sorted(IMAGE_SUFFIXES))})")
 
     def frames(self) -> Iterator[SourceFrame | FrameFault]:
         for index, (path, time_ns) in enumerate(self.entries):
-            image = _read_image(path)
+            image = read_image(path)
             if image is None:
                 yield FrameFault(index, f"cannot read {path}")
                 continue
@@ -137,7 +133,7 @@ class ImageFolderSource(Source):
     def first_image_size(self) -> tuple[int, int] | None:
         """``(width, height)`` of the first image that reads, None when none does."""
         for path, _ in self.entries:
-            image = _read_image(path)
+            image = read_image(path)
             if image is not None:
                 return image.shape[1], image.shape[0]
         return None
@@ -146,20 +142,16 @@ class ImageFolderSource(Source):
 def camera_folders(folder: Path) -> list[Path]:
     """The sub-folders of ``folder`` holding image files, in natural name order (cam2 before cam10),
     when ``folder`` itself holds no image files nor a TUM ``rgb.txt``; empty otherwise."""
-    if not folder.is_dir() or (folder / "rgb.txt").is_file() or any(_is_image(p) for p in folder.iterdir()):
+    if not folder.is_dir() or (folder / "rgb.txt").is_file() or any(is_image(p) for p in folder.iterdir()):
         return []
-    subfolders = [p for p in folder.iterdir() if p.is_dir() and any(_is_image(f) for f in p.iterdir())]
+    subfolders = [p for p in folder.iterdir() if p.is_dir() and any(is_image(f) for f in p.iterdir())]
     return sorted(subfolders, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
-
-
-def _is_image(path: Path) -> bool:
-    return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
 
 
 class CameraFoldersSource(Source):
     """A rig in one folder: a sub-folder of images per camera (named after it), one frame per instant.
 
-    Frames are paired by their time when every folder has times (``_folder_entries``), else by file
+    Frames are paired by their time when every folder has times (``folder_entries``), else by file
     name; SourceError (one line) when a folder has a frame the others lack, or when some folders have
     times and others not. An instant's ``time_ns`` is its shared time (None when paired by name).
     """
@@ -168,7 +160,7 @@ class CameraFoldersSource(Source):
         self.uri = uri
         self.folders = folders
         self.camera_names = tuple(folder.name for folder in folders)
-        entries = {folder.name: _folder_entries(folder) for folder in folders}
+        entries = {folder.name: _entries(uri, folder) for folder in folders}
         timed = {name: all(t is not None for _, t in rows) for name, rows in entries.items()}
         if len(set(timed.values())) > 1:
             with_times = ", ".join(name for name, has in timed.items() if has)
@@ -195,7 +187,7 @@ class CameraFoldersSource(Source):
 
     def frames(self) -> Iterator[SourceFrame | FrameFault]:
         for index, (time_ns, paths) in enumerate(self.instants):
-            images = {name: _read_image(path) for name, path in paths.items()}
+            images = {name: read_image(path) for name, path in paths.items()}
             unread = [str(path) for name, path in paths.items() if images[name] is None]
             if unread:
                 yield FrameFault(index, f"cannot read {', '.join(unread)}")
@@ -214,52 +206,17 @@ class CameraFoldersSource(Source):
         """``(width, height)`` of each camera's first image, None where it does not read."""
         sizes: list[tuple[int, int] | None] = []
         for name in self.camera_names:
-            image = _read_image(self.instants[0][1][name]) if self.instants else None
+            image = read_image(self.instants[0][1][name]) if self.instants else None
             sizes.append(None if image is None else (image.shape[1], image.shape[0]))
         return sizes
 
 
-def seconds_to_ns(text: str) -> int:
-    """Decimal seconds as written (``1341847980.722988``, ``1.036e-01``) -> int nanoseconds, exactly:
-    decimal arithmetic, no float on the way, rounded half to even below the nanosecond.
-    ValueError for text that is not a finite decimal number."""
+def _entries(uri: str, folder: Path) -> list[tuple[Path, int | None]]:
+    """``folder_entries`` of ``folder``; SourceError naming the list and the line when a time there is not one."""
     try:
-        seconds = Decimal(text.strip())
-    except InvalidOperation:
-        raise ValueError(f"{text!r} is not a time in seconds") from None
-    if not seconds.is_finite():
-        raise ValueError(f"{text!r} is not a time in seconds")
-    return int((seconds * 1_000_000_000).to_integral_value(rounding=ROUND_HALF_EVEN))
-
-
-def _folder_entries(folder: Path) -> list[tuple[Path, int | None]]:
-    """``(file, time_ns)`` per image: from rgb.txt (TUM), times.txt (KITTI), numeric names, or none.
-    Raises SourceError naming the list and the line when a time there is not a number."""
-    listing = folder / "rgb.txt"
-    if listing.is_file():
-        entries: list[tuple[Path, int | None]] = []
-        for number, line in enumerate(listing.read_text().splitlines(), 1):
-            parts = line.split()
-            if len(parts) >= 2 and not line.lstrip().startswith("#"):
-                entries.append((folder / parts[1], _listed_time(parts[0], listing, number)))
-        return entries
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    for times in (folder / "times.txt", folder.parent / "times.txt"):
-        if times.is_file():
-            values = [_listed_time(v, times, n) for n, v in enumerate(times.read_text().split(), 1)]
-            if len(values) == len(files):
-                return list(zip(files, values, strict=True))
-    if files and all(re.fullmatch(r"\d+\.\d+", p.stem) for p in files):
-        stamped = sorted((seconds_to_ns(p.stem), p) for p in files)
-        return [(p, time_ns) for time_ns, p in stamped]
-    return [(p, None) for p in files]
-
-
-def _listed_time(text: str, listing: Path, number: int) -> int:
-    try:
-        return seconds_to_ns(text)
-    except ValueError as exc:
-        raise SourceError(f"{listing}: entry {number}: {exc}") from None
+        return folder_entries(folder)
+    except ImageFolderError as exc:
+        raise SourceError(str(exc)) from None
 
 
 class VideoSource(Source):
@@ -357,21 +314,6 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
         except ValueError as exc:
             raise SourceError(f"{uri}: {exc}") from exc
     return rig_camera_names(own)
-
-
-def known_settings(uris: tuple[str, ...] | list[str], scene_options: dict) -> dict[str, tuple[Any, str]]:
-    """Node parameters the sources settle by what they show, by field: ``(value, the URI that says so)``
-    (``synthetic:markers``: its ``marker_length``). Devices, files and folders settle nothing."""
-    known: dict[str, tuple[Any, str]] = {}
-    for uri in uris:
-        scheme, rest = check_uri(uri)
-        if scheme == "synthetic":
-            try:
-                settings = make_scene(rest, **scene_options).known_settings()
-            except ValueError as exc:
-                raise SourceError(f"{uri}: {exc}") from exc
-            known.update({name: (value, uri) for name, value in settings.items()})
-    return known
 
 
 def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, int] | None]:

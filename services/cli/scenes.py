@@ -1,5 +1,5 @@
-"""``artrack scene export``: a synthetic scene written to files (images per camera, calibration, bodies,
-ground truth as TUM), see ``services.recorder.scene_export``."""
+"""``artrack scene export``: a synthetic scene written to files (images per camera, calibration, its fixtures,
+ground truth as TUM), see ``services.launcher.scene_export``."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ from pathlib import Path
 from services.cli.run import scene_option_texts
 
 EXPORT_HELP = ("write a synthetic scene's frames to files: a folder of images per camera (named by their time), "
-               "rig and bodies files, ground truth as TUM per body")
+               "rig, bodies, target and marker map files, ground truth as TUM per body")
 
 
 def cmd_scene_export(args: argparse.Namespace) -> int:
-    from services.capture.scenes import scene_options
-    from services.recorder.scene_export import export_scene
+    from services.launcher.scene_export import export_scene
+    from services.synthetic import scene_options
 
     scheme, _, name = args.scene.partition(":")
     if scheme != "synthetic" or not name:
@@ -24,12 +24,13 @@ def cmd_scene_export(args: argparse.Namespace) -> int:
     done = export_scene(name, args.out, args.frames, options)
     print(f"wrote {done.folder}: {done.frames} frames of {len(done.cameras)} camera(s) "
           f"({', '.join(f'{camera}/' for camera in done.cameras)}), {done.images} images")
-    for path in (done.rig_file, done.bodies_file):
+    fixtures = done.fixtures
+    for path in (fixtures.rig, fixtures.bodies, fixtures.targets, fixtures.marker_map):
         if path is not None:
             print(f"wrote {path}")
     for path, rows in done.truth.items():
         print(f"wrote {path}: {rows} poses")
-    for note in done.notes:
+    for note in fixtures.notes:
         print(note)
     return 0
 

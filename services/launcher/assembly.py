@@ -4,8 +4,10 @@ The command line turns argv into a ``JobRequest`` (the source's and the tracker'
 the files to write, the flow asked, and how to settle the bus over defaults); ``assemble`` turns it
 into the bus and the ``PipelineSpec`` that ``run_job`` runs or ``save_pipeline`` writes. A
 ``recording:`` source is replayed (on its own rig, or on the one the bus settings ask for); any other
-source is a capture node, and what its sources settle by what they show (a markers scene's marker
-length) fills the tracker's options that were not given.
+source is a capture node. A synthetic source's fixtures fill the tracker's options that were not
+given (``services.launcher.fixtures``): a markers scene's marker length and dictionary, the ``ir_rig``
+scene's bodies file, the ``planar_target`` scene's target in a library of its own; and a target named
+``synthetic:SCENE`` is that scene's, in its library. The trackers themselves know no scene.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from services.bus.session import BusConfig
-from services.capture.sources import known_settings
+from services.launcher.fixtures import scene_settings, scene_target_library
 from services.launcher.flags import Flag, explain
 from services.launcher.flow import FlowSettings
 from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job
@@ -58,7 +60,7 @@ def assemble(request: JobRequest) -> tuple[BusConfig, PipelineSpec]:
     uris = request.source.get("source", [])
     if not uris:
         raise JobError("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
-    options = request.options
+    options = _with_scene_targets(request.options, request.flags)
     if any(uri.startswith(RECORDING_SCHEME) for uri in uris):
         if len(uris) > 1 or len(request.source) > 1 or request.scene:
             raise JobError("a recording is the whole rig: give one --source recording:PATH and no other source "
@@ -71,7 +73,7 @@ def assemble(request: JobRequest) -> tuple[BusConfig, PipelineSpec]:
         except ValidationError as exc:
             raise ValueError(explain(exc, request.source_flags, "source")) from exc
         source = NodeSpec(kind=CAPTURE, **request.source, **({"scene": request.scene} if request.scene else {}))
-        options = _with_known_settings(options, request.flags, captured)
+        options = _with_scene_fixtures(options, request.flags, captured)
     spec = with_flow(build_job(Tracker.load(request.tracker), source, options, request.flags, request.record,
                                request.rerun), request.flow)
     return request.bus(spec.bus), spec
@@ -88,15 +90,39 @@ def with_flow(spec: PipelineSpec, given: Mapping[str, Any]) -> PipelineSpec:
     return spec.model_copy(update={"flow": flow})
 
 
-def _with_known_settings(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
-    """``options`` with what the capture's sources settle (a markers scene's marker length) for the
-    tracker's flags not given; each value taken said in one line."""
-    known = known_settings(capture.source, capture.scene)  # type: ignore[attr-defined]  # capture Params
+def _given(options: Mapping[str, Any], name: str) -> bool:
+    """Whether the tracker option ``name`` was given (under its field, or ``kind.field`` for a renamed flag)."""
+    return any(key.rpartition(".")[2] == name for key in options)
+
+
+def _with_scene_fixtures(options: dict[str, Any], flags: list[Flag], capture: BaseModel) -> dict[str, Any]:
+    """``options`` with what the capture's synthetic sources settle (``scene_settings``) for the tracker's flags,
+    where the tracker has a flag for every field of a setting and none was given; each value taken said in
+    one line, but for a value the option has by default (nothing to tell)."""
     taken = dict(options)
-    for flag in flags:
-        if flag.field in known and not any(key.rpartition(".")[2] == flag.field for key in options):
-            value, uri = known[flag.field]
-            taken[flag.key] = value
-            shown = " ".join(map(str, value)) if isinstance(value, tuple | list) else value
-            log.info("using %s %s, as %s renders it (give %s to override)", flag.option, shown, uri, flag.option)
+    for settled in scene_settings(capture.source, capture.scene):  # type: ignore[attr-defined]  # capture Params
+        chosen = [flag for flag in flags if flag.field in settled.fields]
+        if {flag.field for flag in chosen} != set(settled.fields) or any(_given(options, f) for f in settled.fields):
+            continue
+        values = settled.values()
+        for flag in chosen:
+            if flag.field in values and values[flag.field] != flag.info.default:
+                taken[flag.key] = value = values[flag.field]
+                shown = " ".join(map(str, value)) if isinstance(value, tuple | list) else value
+                log.info("using %s %s, as %s renders it (give %s to override)", flag.option, shown, settled.uri,
+                         flag.option)
     return taken
+
+
+def _with_scene_targets(options: dict[str, Any], flags: list[Flag]) -> dict[str, Any]:
+    """``options`` with a target named ``synthetic:SCENE[?...]`` made the scene's own, in a library of its own
+    (``scene_target_library``)."""
+    named = {flag.field: flag for flag in flags if flag.field in ("target", "targets")}
+    if set(named) != {"target", "targets"} or named["target"].key not in options:
+        return options
+    given = options[named["target"].key]
+    resolved = scene_target_library([given] if isinstance(given, str) else list(given),
+                                    named["targets"].key in options)
+    if resolved is None:
+        return options
+    return {**options, **{named[field].key: value for field, value in resolved.items()}}

@@ -37,8 +37,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.markers import MarkersScene
 from services.detection.markers.detector import REFINEMENTS, MarkerDetector
 from services.estimation.markers.map import map_from_poses, marker_corners
 from services.estimation.markers.pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, TargetPose
@@ -46,6 +44,8 @@ from services.geometry.camera import project_points
 from services.geometry.homography import homography_dlt, pose_from_homography
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
+from services.synthetic import make_scene
+from services.synthetic.markers import MarkersScene
 from tests.accuracy.charuco_photos import CHARUCO_PHOTOS, DATA_SET, OCCLUDED_PHOTO, photo_poses
 from tests.data import data_root
 

@@ -1,6 +1,6 @@
 """Sequences with ground truth for the monocular SLAM system, and one run of ``SlamSystem`` over one.
 
-* ``room``: the synthetic ``room`` scene, 640x480 at 30 fps (``services.capture.scenes``).
+* ``room``: the synthetic ``room`` scene, 640x480 at 30 fps (``services.synthetic``).
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import absolute_trajectory_error, associate
 from services.recorder.trajectories import read_kitti, read_tum
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
 from tests.data import data_root
 
 KITTI = "vo_kitti_odometry_seq06_frames000-050"

@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.detection.blobs.node import Params as BlobParams
 from services.detection.blobs.node import detector
 from services.estimation.bodies.correspondence import triangulate_blobs
@@ -35,6 +34,7 @@ from services.estimation.bodies.rigid import match_bodies
 from services.estimation.bodies.tracking import BodyTracker
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
+from services.synthetic.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 
 FRAMES = 60
 GHOSTS, NOISE_M = 10, 0.0002

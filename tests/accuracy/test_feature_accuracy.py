@@ -39,8 +39,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.base import SceneFrame
 from services.detection.keypoints.detector import KeypointParams
 from services.estimation.targets.alignment import TargetAligner
 from services.estimation.targets.features import feature_params, is_binary, make_extractor, to_grey
@@ -55,6 +53,8 @@ from services.estimation.targets.target import build_target
 from services.estimation.targets.tracking import TargetTracker
 from services.geometry.camera import intrinsics
 from services.geometry.evaluation import pose_error
+from services.synthetic import make_scene
+from services.synthetic.base import SceneFrame
 from tests.data import data_dir, data_root
 from tests.feature_baseline import SiftBaseline
 from tests.object_box import OUTLINE, SCENE_FOV_DEG, box_images, box_outline

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.detection.blobs.bright import BlobFlag, detect_ir_blobs
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
 
 INDICES = range(0, 3000, 10)
 ISOLATION_PX = 12.0

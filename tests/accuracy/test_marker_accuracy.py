@@ -31,12 +31,12 @@ IPPE_SQUARE per marker) on the same corners.
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.detection.markers.detector import DEFAULT_REFINEMENT
 from services.estimation.markers.map import marker_corners
 from services.geometry.camera import project_points
 from services.geometry.refine import pose_covariance, residuals_and_jacobian
 from services.geometry.se3 import transform_points
+from services.synthetic import make_scene
 from tests.accuracy.report import (
     NOISE_PX,
     WIDTH_RANGE,

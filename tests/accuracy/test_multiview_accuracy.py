@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import reproject
+from services.synthetic import make_scene
 
 SIGMA_PX = 0.05
 FRAMES = range(0, 600, 10)

@@ -18,10 +18,10 @@ import json
 
 import numpy as np
 
-from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.estimation.bodies.rigid import match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
+from services.synthetic.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 
 NOISE_M = 0.0002
 GHOSTS = 10

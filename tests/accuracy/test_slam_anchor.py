@@ -27,14 +27,14 @@ from typing import Any
 import numpy as np
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
-from services.capture.scenes.room import RoomScene
 from services.estimation.markers.offline import track_images
 from services.geometry.evaluation import absolute_trajectory_error
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.slam.anchor import AnchorSettings, AnchorStatus, MarkerAnchor, MarkerSighting
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
+from services.synthetic.room import RoomScene
 
 FRAMES = 300
 """The room's first 10 s: the marker whole in view in frames 45-121 and 191-264."""

@@ -33,10 +33,10 @@ import pytest
 
 from protocol.detections import Blobs
 from services.calibration.wand import Wand, calibrate_wand
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import LAYOUTS, IrRigScene
 from services.estimation.bodies.node import Params, pixels
 from services.geometry.se3 import invert
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import LAYOUTS, IrRigScene
 from tests.ir_tracking import Tracked, mean_mahalanobis, rendered_blobs, summary, track, whitened_rms
 from tests.wand_blobs import extrinsic_errors
 

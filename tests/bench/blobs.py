@@ -24,10 +24,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.capture.scenes import make_scene
 from services.detection.blobs.bright import IrBlobParams, detect_ir_blobs
 from services.detection.blobs.colour import HueModel, detect_colour_blobs
 from services.detection.blobs.scale_space import detect_log_blobs
+from services.synthetic import make_scene
 
 WIDTH, HEIGHT = 640, 480
 FRAMES, LOG_FRAMES, WARMUP = 300, 20, 5

@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from services.capture.scenes import make_scene
 from services.estimation.targets.features import make_extractor
 from services.estimation.targets.recognition import TargetRecognizer, make_matcher
 from services.estimation.targets.target import build_target
 from services.estimation.targets.tracking import TargetTracker
+from services.synthetic import make_scene
 from tests.bench.blobs import one_opencv_thread, per_frame_us
 from tests.feature_baseline import SiftBaseline
 

@@ -2,8 +2,8 @@
 process.
 
 The ``planar_target`` scene at 640x480, its first ``FRAMES`` frames rendered beforehand; its own target
-(``synthetic:planar_target``), the features node's default options, OpenCV's default threads (as the
-node runs).
+(``synthetic:planar_target``, in a library of its own as ``artrack run`` writes it), the features node's
+default options, OpenCV's default threads (as the node runs).
 
 * ``in_process``: each frame tracked in this process as the node tracks it (``features_node``'s
   trackers through ``track_targets``, the pose message built), back to back; ``in_process_paced``:
@@ -32,14 +32,16 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from functools import cache
 from typing import Any
 
 import numpy as np
 
 from protocol import Header, Image, TrackingState, decode, encode
-from services.capture.scenes import make_scene
 from services.estimation.targets.node import Params, as_pose, load_targets, make_trackers
 from services.estimation.targets.tracking import track_targets
+from services.launcher.fixtures import scene_target_library
+from services.synthetic import make_scene
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 
@@ -51,6 +53,14 @@ FRAMES = 300
 WARMUP = 10
 CODEC_RUNS = 200
 TARGET_MS = 1.5
+
+
+@cache
+def _target() -> dict[str, Any]:
+    """The features node's ``target`` and ``targets`` for the scene's own target."""
+    found = scene_target_library([TARGET], library_given=False)
+    assert found is not None
+    return found
 
 
 def _frames(count: int = FRAMES) -> tuple[list[np.ndarray], Any]:
@@ -68,7 +78,7 @@ def _p50_p99(values_ms: list[float]) -> dict[str, float]:
 def in_process(period_s: float = 0.0) -> dict[str, Any]:
     """Each frame tracked as the node does, one every ``period_s`` (0: back to back)."""
     frames, camera = _frames()
-    params = Params(target=(TARGET,))
+    params = Params(**_target())
     trackers = make_trackers(params, load_targets(params))
     times, posed = [], 0
     for seq, image in enumerate(at_rate(frames, period_s)):
@@ -84,7 +94,7 @@ def in_process(period_s: float = 0.0) -> dict[str, Any]:
 def pipeline() -> dict[str, Any]:
     """Source -> features node -> this client at ``FPS``: latency per frame, the node's own figures."""
     with LiveBus("features_probe") as live:
-        (node,) = live.nodes({"features": ("features", {"camera": "cam0", "target": [TARGET]})})
+        (node,) = live.nodes({"features": ("features", {"camera": "cam0", **_target()})})
         source = live.source(SCENE, FPS, FRAMES, FRAMES, width=WIDTH, height=HEIGHT)
         cpu_before = cpu_seconds(node.pid)
         sent = live.follow(source)
@@ -116,7 +126,7 @@ def codec() -> dict[str, float]:
     frames, camera = _frames(1)
     header = Header(stamp_ns=time.time_ns(), frame_id=camera.name, seq=0)
     payload = encode(Image(header=header, encoding="mono8", data=frames[0]))
-    params = Params(target=(TARGET,))
+    params = Params(**_target())
     pose = as_pose(header, track_targets(make_trackers(params, load_targets(params)), frames[0], camera.K,
                                          camera.dist, header.stamp_ns)[0])
     return {"image_decode_ms": _codec_ms(lambda: decode(payload)), "pose_encode_ms": _codec_ms(lambda: encode(pose))}

@@ -20,8 +20,8 @@ from protocol.message import Header
 from protocol.sensors import CameraInfo, Image
 from services.bus.pubsub import Publisher, Role
 from services.bus.session import BusConfig, open_session
-from services.capture.scenes import make_scene, scene_options
 from services.convert import camera_info
+from services.synthetic import make_scene, scene_options
 
 RENDERED = 240
 SETTLE_S = 0.5

@@ -19,9 +19,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.capture.scenes import make_scene
 from services.detection.grey import as_grey8
 from services.detection.keypoints.detector import METHODS, KeypointDetector, KeypointParams
+from services.synthetic import make_scene
 from tests.bench.blobs import WARMUP, one_opencv_thread, per_frame_us
 
 WIDTH, HEIGHT = 640, 480

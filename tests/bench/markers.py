@@ -44,13 +44,13 @@ import zenoh
 
 from services.bus.discovery import client_states, node_states
 from services.bus.session import BusConfig, open_session
-from services.capture.scenes import make_scene
 from services.client import PoseUpdate, connect
 from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers.pose import MarkerPoseEstimator
 from services.launcher.observe import wait_for_nodes
 from services.launcher.pipeline import node_command
 from services.launcher.router import router_config
+from services.synthetic import make_scene
 from tests.bench.link import at_rate, cpu_seconds, free_port, stop_processes
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -14,7 +14,7 @@ import json
 import time
 from typing import Any
 
-from services.capture.scenes import make_scene
+from services.synthetic import make_scene
 from tests.bench.blobs import one_opencv_thread
 
 WIDTH, HEIGHT = 640, 480

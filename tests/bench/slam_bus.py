@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from protocol import Header, TrackingState
-from services.capture.scenes import make_scene
 from services.slam.node import as_pose
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 

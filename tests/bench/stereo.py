@@ -45,7 +45,6 @@ import numpy as np
 
 from protocol import encode
 from protocol.message import Header
-from services.capture.scenes import make_scene
 from services.detection.blobs import node as blobs_node
 from services.estimation.bodies import node as rigid_bodies_node
 from services.estimation.bodies.correspondence import rig_geometry, triangulate_blobs
@@ -53,6 +52,7 @@ from services.estimation.bodies.file import save_bodies
 from services.estimation.bodies.rigid import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariance
 from services.geometry.triangulation import triangulate_many
+from services.synthetic import make_scene
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 

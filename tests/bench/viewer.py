@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from protocol import Header, Image, Keypoints, MarkerDetections, Message, Pose, Transform
-from services.capture.scenes import make_scene
+from services.synthetic import make_scene
 from services.viewer.recording import ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
 

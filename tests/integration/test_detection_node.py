@@ -9,10 +9,10 @@ import pytest
 from protocol import CameraInfo, GroundTruth
 from protocol.detections import MarkerDetections
 from services.bus.pubsub import Inbox, Role
-from services.capture.scenes.plane import rectangle_corners
 from services.convert import camera_model, matrix_from_transform
 from services.geometry.camera import project_points
 from services.geometry.se3 import transform_points
+from services.synthetic.plane import rectangle_corners
 
 from .support import START_S, collect, start_node, states, wait_live, wait_until
 

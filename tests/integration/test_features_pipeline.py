@@ -11,8 +11,9 @@ from protocol.poses import Pose
 from protocol.sensors import CameraInfo, Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
-from services.capture.scenes import make_scene
 from services.convert import camera_info
+from services.launcher.fixtures import write_fixtures
+from services.synthetic import make_scene
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import errors, recorded, truth_by_frame
 from tests.viewer_contents import RrdContents
@@ -38,7 +39,7 @@ def test_features_run_tracks_the_scenes_target_records_exports_views_and_replays
     job = procs.artrack("run", "features", "--source", "synthetic:planar_target", "--frames", str(FRAMES),
                         "--overlay", "--record", str(out), "--rerun", str(view), name="job")
     assert job.wait(4 * START_S) == 0, job.describe()
-    assert "using --target synthetic:planar_target" in job.stderr
+    assert "using --target planar_target, as synthetic:planar_target renders it" in job.stderr
     poses, table, dropped = scored(out)
     states_seen = [p.state for p in poses]
     assert states_seen[0] is TrackingState.RECOGNISED and set(states_seen[1:]) == {TrackingState.TRACKING}
@@ -78,15 +79,16 @@ def test_a_target_not_in_the_library_is_refused_before_anything_starts(procs, tm
 
 
 def test_every_encoding_is_recognised_and_a_featureless_frame_is_lost_counted_while_the_node_goes_on(
-        bus, procs, session):
+        bus, procs, session, tmp_path):
     scene = make_scene("planar_target")
+    library = write_fixtures(tmp_path, scene.fixtures(), ("target",)).targets
     camera = scene.cameras[0]
     keys = bus.keys
     poses = Inbox(session, keys.pose("cam0/target/planar_target"), Pose, Role.RESULT)
     frames = Publisher(session, keys.image("cam0"), Image, Role.RESULT)
     infos = Publisher(session, keys.camera_info("cam0"), CameraInfo, Role.RESULT)
     try:
-        node = start_node(procs, "features", "features", target=["synthetic:planar_target"], depth=10)
+        node = start_node(procs, "features", "features", target=["planar_target"], targets=str(library), depth=10)
         wait_live(session, keys, {"features"}, [node])
         wait_until(lambda: frames.matched() and infos.matched(), START_S, "the node to subscribe")
         infos.put(camera_info(Header(stamp_ns=1_000, frame_id="cam0"), camera))

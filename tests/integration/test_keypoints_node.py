@@ -8,10 +8,10 @@ import pytest
 from protocol import Image
 from protocol.detections import Keypoints
 from services.bus.pubsub import Inbox, Role
-from services.capture.scenes.texture import procedural_texture
 from services.detection.grey import as_grey8
 from services.detection.keypoints.detector import KeypointDetector
 from services.detection.keypoints.node import Params, settings
+from services.synthetic.texture import procedural_texture
 
 from .support import START_S, collect, start_node, states, wait_live, wait_until
 

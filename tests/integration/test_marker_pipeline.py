@@ -15,12 +15,12 @@ from protocol.poses import Pose
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
-from services.capture.scenes import make_scene
 from services.convert import matrix_from_transform
 from services.estimation.markers.map import grid_map
 from services.geometry.camera import project_points
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.viewer_contents import RrdContents
 

@@ -13,9 +13,9 @@ from protocol.sensors import Image
 from services.bus.pubsub import Inbox, Role
 from services.calibration.camera_info import write_camera_info
 from services.calibration.rig import Rig, write_rig
-from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.recorder.info import summarise
+from services.synthetic import make_scene
 from tests.integration.support import ROOT, START_S, collect
 from tests.viewer_contents import RrdContents
 

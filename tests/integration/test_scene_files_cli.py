@@ -8,12 +8,12 @@ from mcap.reader import make_reader
 
 from protocol.codec import decode
 from protocol.mocap import Points3D
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.estimation.bodies.file import load_bodies, save_bodies
 from services.estimation.bodies.rigid import pairwise_distances
 from services.geometry.se3 import invert
 from services.recorder.pairing import pair
 from services.recorder.trajectories import load_trajectory
+from services.synthetic.ir_rig import LAYOUTS
 from tests.integration.support import START_S
 
 FRAMES = 40

@@ -8,11 +8,11 @@ import pytest
 
 from protocol.poses import Pose
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
-from services.capture.scenes.room import RoomScene
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import absolute_trajectory_error
 from services.geometry.se3 import invert
+from services.synthetic import make_scene
+from services.synthetic.room import RoomScene
 from tests.integration.support import START_S
 from tests.integration.test_marker_pipeline import recorded
 

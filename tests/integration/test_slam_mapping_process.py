@@ -67,7 +67,7 @@ def test_ctrl_c_on_a_slam_job_ends_its_mapping_process_cleanly(procs):
 
 def test_a_killed_tracker_does_not_leave_its_mapping_process_behind(procs):
     script = ("import time\n"
-              "from services.capture.scenes import make_scene\n"
+              "from services.synthetic import make_scene\n"
               "from services.slam.system import SlamSystem\n"
               "system = SlamSystem(make_scene('room').cameras[0], mapping='process')\n"
               "print(system._mapper._process.pid, flush=True)\n"

@@ -11,8 +11,8 @@ from protocol.sensors import Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
-from services.capture.scenes import make_scene
 from services.slam.system import STEP_BACK_S
+from services.synthetic import make_scene
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 
 pytestmark = pytest.mark.integration

@@ -15,11 +15,11 @@ from protocol.sensors import CameraInfo, Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.camera_info import write_camera_info
-from services.capture.scenes import make_scene
 from services.convert import camera_info, camera_model, matrix_from_transform
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import score_trajectory
 from services.recorder.trajectories import read_kitti
+from services.synthetic import make_scene
 from tests.data import data_dir
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import recorded

@@ -6,11 +6,11 @@ import numpy as np
 
 from protocol import RIG_FRAME, StaticTransforms
 from services.bus.pubsub import Inbox, Role
-from services.capture.scenes.ir_rig import IrRigOptions, IrRigScene
 from services.client import BusSettings, Client
 from services.convert import frame_graph
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
+from services.synthetic.ir_rig import IrRigOptions, IrRigScene
 from tests.integration.support import START_S, collect, start_node, wait_live
 
 SCENE = {"camera_count": 2, "width": 320, "height": 240, "baseline": 0.25}

@@ -42,4 +42,6 @@ def test_a_missing_rig_file_is_refused_before_anything_starts(procs, tmp_path):
                     "--rig-file", str(tmp_path / "no-rig.yaml"))
     assert job.poll() == 2, job.describe()
     lines = [line for line in job.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "nodes.bodies: " in lines[0] and "no-rig.yaml: cannot read" in lines[0], job.stderr
+    # the scene's bodies file, said as the job takes it, then the refusal in one line
+    assert len(lines) == 2 and "using --bodies " in lines[0] and "as synthetic:ir_rig renders it" in lines[0]
+    assert "nodes.bodies: " in lines[1] and "no-rig.yaml: cannot read" in lines[1], job.stderr

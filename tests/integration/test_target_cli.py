@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
+from services.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import pytest
 
 from protocol import Header, MarkerDetections, Pose, Transform
 from services.bus.pubsub import Publisher, Role
-from services.capture.scenes import make_scene
+from services.synthetic import make_scene
 from tests.viewer_contents import RrdContents
 
 from .support import START_S, start_node, states, wait_live, wait_until

@@ -15,12 +15,12 @@ from protocol import Header, encode
 from protocol.sensors import Image
 from services.calibration.camera_info import camera_document
 from services.calibration.rig import read_rig
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import LFRAME_BODY
 from services.convert import camera_info
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.recorder.writing import RecordingWriter
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import LFRAME_BODY
 from tests.wand_blobs import extrinsic_errors
 
 pytestmark = pytest.mark.integration

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.cli import main
 from services.estimation.bodies.definition import body_frame
 from services.estimation.bodies.file import save_bodies
 from services.estimation.bodies.rigid import pairwise_distances
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import transform_points
+from services.synthetic.ir_rig import LAYOUTS
 
 
 def seen(spheres: np.ndarray, seed: int) -> np.ndarray:

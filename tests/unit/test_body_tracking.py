@@ -4,7 +4,6 @@ import numpy as np
 
 from protocol.message import Header
 from protocol.tracking_state import TrackingState
-from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.convert import matrix_from_transform
 from services.estimation.bodies.node import Params, predicted_poses
 from services.estimation.bodies.rigid import match_bodies
@@ -13,6 +12,7 @@ from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points
 from services.launcher.tracker import Tracker
+from services.synthetic.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 
 NOISE_M = 0.0002
 GHOSTS = 10

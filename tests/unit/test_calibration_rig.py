@@ -8,7 +8,7 @@ import yaml
 
 from services.calibration.camera_info import CalibrationError
 from services.calibration.rig import Rig, read_rig, write_rig
-from services.capture.scenes import make_scene
+from services.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

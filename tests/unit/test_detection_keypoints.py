@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from protocol import Header, decode, encode
-from services.capture.scenes.texture import procedural_texture
 from services.detection.keypoints.corners import find_corners, intensity_centroid_angles, pyramid
 from services.detection.keypoints.detector import METHODS, KeypointDetector, KeypointParams, detect_keypoints
 from services.detection.keypoints.harris import harris_response, min_eigenvalue
 from services.detection.keypoints.node import MIN_SIDE_PX, Params, UnusableFrame, as_message, frame_keypoints, settings
 from services.detection.keypoints.spread import cell_share, grid_cells, spread_anms, spread_grid, suppression_radii
+from services.synthetic.texture import procedural_texture
 
 WIDTH, HEIGHT = 640, 480
 DESCRIPTORS = {"orb": ("ORB", 32, np.uint8, "hamming"), "sift": ("SIFT", 128, np.float32, "l2"),

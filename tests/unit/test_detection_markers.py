@@ -4,11 +4,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.plane import rectangle_corners
 from services.detection.markers.detector import DICTIONARY_NAMES, MarkerDetector, aruco_dictionary, to_grey
 from services.geometry.camera import project_points
 from services.geometry.se3 import transform_points
+from services.synthetic import make_scene
+from services.synthetic.plane import rectangle_corners
 
 CELL_PX = 30
 

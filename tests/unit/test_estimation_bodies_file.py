@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import yaml
 
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.estimation.bodies.file import BodiesFileError, check_bodies, load_bodies, save_bodies
 from services.geometry.rotation import matrix_from_rotvec
+from services.synthetic.ir_rig import LAYOUTS
 
 LAYOUTS_FILE = Path(__file__).parents[2] / "pipelines" / "ir_rig_bodies.yaml"
 EQUILATERAL = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.05, 0.05 * np.sqrt(3), 0.0]])

@@ -6,7 +6,6 @@ import itertools
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.bodies.correspondence import (
     CorrespondenceOptions,
     gated_assignment,
@@ -15,6 +14,7 @@ from services.estimation.bodies.correspondence import (
 )
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import reproject
+from services.synthetic import make_scene
 
 
 def brute_force(cost: np.ndarray, gate: float) -> float:

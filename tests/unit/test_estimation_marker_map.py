@@ -4,7 +4,6 @@ markers scene, and one clear error per bad file."""
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.markers.map import (
     MarkerMapError,
     grid_map,
@@ -12,8 +11,11 @@ from services.estimation.markers.map import (
     map_from_poses,
     marker_corners,
     parse_marker_map,
+    save_marker_map,
 )
-from services.geometry.rotation import matrix_from_quaternion
+from services.geometry.rotation import matrix_from_quaternion, matrix_from_rotvec
+from services.geometry.se3 import make_transform
+from services.synthetic import make_scene
 
 DEFAULT_SCENE_GRID = """\
 name: board
@@ -38,6 +40,20 @@ def test_the_grid_file_is_the_default_markers_scene(tmp_path):
         assert marker.length == 0.05
         assert np.allclose(marker.T_map_marker, expected.markers[marker_id].T_map_marker, atol=1e-12)
         assert np.allclose(marker.corners(), scene.marker_corners[marker_id], atol=1e-12)
+
+
+def test_a_saved_map_reads_back_as_it_was(tmp_path):
+    poses = {7: make_transform(matrix_from_rotvec(np.array([0.3, -1.2, 2.9])), np.array([0.1, -0.2, 0.05])),
+             2: np.eye(4)}
+    saved = map_from_poses("table", poses, 0.08, "DICT_5X5_100")
+    save_marker_map(tmp_path / "table.yaml", saved)
+    loaded = load_marker_map(tmp_path / "table.yaml")
+    assert (loaded.name, loaded.dictionary, list(loaded.markers)) == ("table", "DICT_5X5_100", [7, 2])
+    for marker_id, marker in loaded.markers.items():
+        assert marker.length == 0.08
+        np.testing.assert_allclose(marker.T_map_marker, poses[marker_id], atol=1e-12)
+    with pytest.raises(MarkerMapError, match="id 60 does not exist in DICT_4X4_50"):
+        save_marker_map(tmp_path / "bad.yaml", map_from_poses("bad", {60: np.eye(4)}, 0.05, "DICT_4X4_50"))
 
 
 def test_grid_layout_runs_row_by_row_from_the_top_left():

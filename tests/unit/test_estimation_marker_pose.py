@@ -4,13 +4,13 @@ the planar ambiguity resolved by the anchored track, and marker maps (planar and
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.markers.map import MapMarker, MarkerMap, map_from_poses, marker_corners
 from services.estimation.markers.pose import METHODS, MarkerPoseEstimator, single_observation
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.planar_pnp import ippe_candidates
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
+from services.synthetic import make_scene
 
 K = intrinsics(640, 480, 56.0)
 L = 0.05

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from services.calibration.camera_info import write_camera_info
-from services.capture.scenes import make_scene
 from services.detection.markers.sheet import board_document
 from services.estimation.markers.map import map_from_poses, parse_marker_map
 from services.estimation.markers.offline import track_folder, track_images
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
+from services.synthetic import make_scene
 from tests.accuracy.charuco_photos import CALIBRATION, DATA_SET, DICTIONARY, MARKER_M, SQUARE_M, SQUARES, intrinsics
 from tests.data import data_dir
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.estimation.bodies.rigid import MatchOptions, body_candidates, match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points
+from services.synthetic.ir_rig import LAYOUTS
 
 POSES = {name: make_transform(matrix_from_rotvec(np.array([0.3 * k, -0.5, 0.2 + k])),
                                np.array([0.3 * k - 0.5, 0.1, 2.0 + 0.1 * k]))

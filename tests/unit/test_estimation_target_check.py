@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.targets.check import Trackability, check_image, repeated_fraction, spread
+from services.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

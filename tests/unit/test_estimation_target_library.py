@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.targets.features import feature_params
 from services.estimation.targets.library import (
     DamagedTargetError,
@@ -19,6 +18,7 @@ from services.estimation.targets.library import (
     UnknownTargetError,
     default_library_dir,
 )
+from services.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

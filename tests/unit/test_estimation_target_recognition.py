@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.targets.features import make_extractor
 from services.estimation.targets.recognition import (
     RecognitionOptions,
@@ -21,6 +20,7 @@ from services.estimation.targets.recognition import (
 from services.estimation.targets.target import build_target
 from services.geometry.camera import intrinsics, undistort_pixels
 from services.geometry.evaluation import pose_error
+from services.synthetic import make_scene
 from tests.object_box import HAND_CHECKED_TOP_LEFT, OUTLINE, SCENE_FOV_DEG, box_images, box_outline
 
 FRAMES = range(0, 600, 20)

@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
-from services.capture.scenes.texture import procedural_texture
 from services.estimation.targets.features import make_extractor
 from services.estimation.targets.recognition import TargetRecognizer
 from services.estimation.targets.target import build_target
@@ -22,6 +20,8 @@ from services.estimation.targets.tracking import (
     track_targets,
 )
 from services.geometry.evaluation import pose_error
+from services.synthetic import make_scene
+from services.synthetic.texture import procedural_texture
 
 FRAMES = range(0, 150, 2)
 FPS = 30.0

@@ -4,8 +4,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.plane import texel_from_plane
 from services.detection.keypoints.detector import KeypointDetector
 from services.estimation.targets.features import feature_params, keypoint_cap, make_extractor, to_grey
 from services.estimation.targets.target import (
@@ -16,6 +14,8 @@ from services.estimation.targets.target import (
     target_levels,
     target_points,
 )
+from services.synthetic import make_scene
+from services.synthetic.plane import texel_from_plane
 
 
 @pytest.fixture(scope="module")

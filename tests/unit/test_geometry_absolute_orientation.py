@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.geometry.absolute_orientation import (
     fit_rigid,
     least_squares_transform,
@@ -16,6 +15,7 @@ from services.geometry.absolute_orientation import (
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform, transform_points
+from services.synthetic.ir_rig import LAYOUTS
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:

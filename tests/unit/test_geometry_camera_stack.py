@@ -5,11 +5,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.triangulation import reproject, triangulate, triangulate_many
+from services.synthetic import make_scene
 
 SIGMA_PX = 0.1
 

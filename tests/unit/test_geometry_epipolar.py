@@ -5,11 +5,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.bodies.correspondence import fundamental_matrices
 from services.geometry.camera import project_points, undistort_pixels
 from services.geometry.epipolar import epipolar_distances, matched_epipolar_distances, sampson_distances, skew
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

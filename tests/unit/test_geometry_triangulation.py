@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import undistort_pixels
 from services.geometry.se3 import invert
 from services.geometry.triangulation import (
@@ -18,6 +17,7 @@ from services.geometry.triangulation import (
     triangulate_dlt,
     triangulate_midpoint,
 )
+from services.synthetic import make_scene
 
 SIGMA_PX = 0.05
 TRIALS = 400

@@ -24,7 +24,7 @@ from services.launcher.kinds import declared_kind
 
 ROOT = Path(__file__).resolve().parents[2]
 OURS = ("protocol", "services")
-ALGORITHM_ROOMS = ("geometry", "calibration", "capture", "detection", "estimation", "slam")
+ALGORITHM_ROOMS = ("geometry", "calibration", "capture", "synthetic", "detection", "estimation", "slam")
 """Rooms of pure algorithms, but for their node modules (those that declare ``KIND``)."""
 BUS_SIDE = ("zenoh", "protocol", "services.bus", "services.runtime", "services.launcher", "services.client")
 DOC = ROOT / "docs" / "architecture.md"
@@ -123,6 +123,19 @@ def test_algorithms_never_touch_the_bus_or_the_wire(algorithms):
 def test_the_vocabulary_algorithms_share_with_the_wire_imports_only_the_standard_library():
     for name in VOCABULARY:
         assert modules()[name] <= {"__future__", "__future__.annotations", "enum", "enum.StrEnum"}, name
+
+
+def test_scenes_stand_on_geometry_and_the_marker_dictionaries_alone():
+    allowed = ("services.synthetic", "services.geometry", "services.detection.markers.detector")
+    assert offences("services.synthetic", allowed) == []
+
+
+@pytest.mark.parametrize("room_name", ["detection", "estimation", "slam", "recorder"])
+def test_no_tracker_nor_the_recorder_knows_sources_or_scenes(room_name):
+    """Trackers are told what a scene holds through their options (the job assembly writes its fixture files)."""
+    bad = [f"{m} -> {n}" for m, imported in modules().items() if within(m, (f"services.{room_name}",))
+           for n in sorted(imported) if within(n, ("services.synthetic", "services.capture"))]
+    assert bad == []
 
 
 def test_the_bus_knows_nothing_of_nodes():

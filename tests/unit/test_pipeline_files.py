@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.cli import main
 from services.estimation.markers.map import load_marker_map
 from services.launcher.pipeline import read_pipeline
+from services.synthetic import make_scene
 
 PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
 

@@ -8,13 +8,13 @@ to print the figures (docs/feature-targets.md quotes them).
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.estimation.pose_filter import OneEuroOptions, OneEuroPoseFilter
 from services.estimation.targets.target import build_target
 from services.estimation.targets.tracking import TargetTracker
 from services.geometry.evaluation import pose_error
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform
+from services.synthetic import make_scene
 
 FPS = 30.0
 SETTLE = 10

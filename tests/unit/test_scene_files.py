@@ -1,4 +1,5 @@
-"""Scenes written to files and read back: per-camera image folders, rig, bodies and truth files."""
+"""Scenes written to files and read back: per-camera image folders, rig, bodies, target, marker map and truth
+files."""
 
 from pathlib import Path
 
@@ -7,13 +8,16 @@ import numpy as np
 import pytest
 
 from services.calibration.camera_info import read_camera_info
+from services.calibration.image_folder import seconds_to_ns
 from services.calibration.rig import read_rig
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import LAYOUTS
-from services.capture.sources import SourceError, SourceFrame, camera_names, frame_sizes, open_source, seconds_to_ns
+from services.capture.sources import SourceError, SourceFrame, camera_names, frame_sizes, open_source
 from services.estimation.bodies.file import load_bodies
-from services.recorder.scene_export import SceneExportError, export_scene, image_name
+from services.estimation.markers.map import load_marker_map
+from services.estimation.targets.library import TargetLibrary
+from services.launcher.scene_export import SceneExportError, export_scene, image_name
 from services.recorder.trajectories import read_tum
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import LAYOUTS
 
 FRAMES = 4
 SMALL = {"width": 160, "height": 120}
@@ -75,17 +79,34 @@ def test_the_capture_node_names_and_sizes_the_cameras_of_a_folder_of_folders(ir_
 
 def test_a_camera_scene_keeps_its_truth_per_camera_and_writes_no_rig(tmp_path):
     done = export_scene("markers", tmp_path / "m", 3, SMALL)
-    assert done.rig_file is None and done.bodies_file is None
+    assert done.fixtures.rig is None and done.fixtures.bodies is None and done.fixtures.targets is None
     assert (tmp_path / "m" / "cam0.yaml").is_file() and not (tmp_path / "m" / "rig.yaml").exists()
     scene = make_scene("markers", **SMALL)
+    board = load_marker_map(tmp_path / "m" / "marker_map.yaml")
+    assert done.fixtures.marker_map == tmp_path / "m" / "marker_map.yaml"
+    assert board.name == "board" and board.dictionary == "DICT_4X4_50" and list(board.markers) == list(range(6))
+    for marker_id, marker in board.markers.items():
+        assert marker.length == scene.marker_length
+        np.testing.assert_allclose(marker.T_map_marker, scene.marker_poses[marker_id], atol=1e-12)
     expected = {child.split("/")[-1] for i in range(3) for _, child, _ in scene.render(i).truth["cam0"]}
     assert expected and {p.stem for p in (tmp_path / "m" / "truth" / "cam0").iterdir()} == expected
     assert [f.index for f in frames_of(f"images:{tmp_path / 'm'}")] == [0, 1, 2]
 
 
+def test_a_target_scene_writes_its_target_as_a_library(tmp_path):
+    done = export_scene("planar_target", tmp_path / "t", 1, {"texture_px": 256, **SMALL})
+    scene = make_scene("planar_target", texture_px=256, **SMALL)
+    assert done.fixtures.targets == tmp_path / "t" / "targets" and done.fixtures.marker_map is None
+    library = TargetLibrary(done.fixtures.targets)
+    assert library.names() == ["planar_target"]
+    target = library.load("planar_target")
+    assert np.array_equal(target.image, scene.texture) and target.width_m == scene.size_m[0]
+
+
 def test_a_wand_scene_says_why_it_has_no_bodies_file(tmp_path):
     done = export_scene("ir_rig", tmp_path / "w", 1, {"motion": "wand", **SMALL})
-    assert done.bodies_file is None and len(done.notes) == 1 and "one line" in done.notes[0]
+    notes = done.fixtures.notes
+    assert done.fixtures.bodies is None and len(notes) == 1 and "one line" in notes[0]
     assert (tmp_path / "w" / "truth" / "calibration_wand.tum").is_file()
 
 

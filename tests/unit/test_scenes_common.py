@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from services.capture.scenes import SCENES, CameraModel, SceneFrame, make_scene
+from services.synthetic import SCENES, CameraModel, SceneFrame, make_scene
 
 NAMES = sorted(SCENES)
 SMALL = {"width": 160, "height": 120}

@@ -4,7 +4,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes.plane import PlaneTexture
 from services.geometry.camera import (
     clip_polygon_near,
     intrinsics,
@@ -16,6 +15,7 @@ from services.geometry.camera import (
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.geometry.trajectory import LookAtPath, RigidPath, SinePath
+from services.synthetic.plane import PlaneTexture
 
 K = intrinsics(640, 480, 60.0)
 DIST = np.array([-0.07, 0.015, 4e-4, -3e-4, 0.0])

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import BACKGROUND, LAYOUTS, LFRAME, LFRAME_BODY, SPHERE_PEAK, WAND_BODY
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import BACKGROUND, LAYOUTS, LFRAME, LFRAME_BODY, SPHERE_PEAK, WAND_BODY
 
 INDICES = range(0, 1500, 25)
 ISOLATION_PX = 12.0

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
 
 INDICES = range(0, 900, 45)
 BORDER_PX = 10
@@ -115,9 +115,11 @@ def test_other_dictionary_ids_and_length_render_detectably():
         assert set(np.ravel(ids).tolist()) == set(visible(frame)) and len(visible(frame)) > 0
 
 
-def test_the_markers_scene_settles_the_marker_length_its_trackers_take():
-    from services.capture.sources import known_settings
-
-    assert known_settings(("synthetic:markers",), {"marker_length": 0.1}) == {
-        "marker_length": (0.1, "synthetic:markers")}
-    assert known_settings(("synthetic:pattern", "camera:0"), {}) == {}
+def test_the_markers_scene_settles_the_side_and_dictionary_of_its_markers_and_gives_its_board():
+    scene = make_scene("markers", dictionary="DICT_5X5_50", ids=(3, 4), marker_length=0.1)
+    fixtures = scene.fixtures()
+    assert fixtures.settings == {"marker_length": 0.1, "dictionary": "DICT_5X5_50"}
+    board = fixtures.marker_map
+    assert board is not None and (board.name, board.dictionary, board.length) == ("board", "DICT_5X5_50", 0.1)
+    assert list(board.poses) == [3, 4] and all(np.array_equal(board.poses[i], scene.marker_poses[i]) for i in (3, 4))
+    assert fixtures.rig == scene.cameras and fixtures.bodies == {} and fixtures.target is None

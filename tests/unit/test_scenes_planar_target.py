@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import project_points
 from services.geometry.se3 import transform_points
+from services.synthetic import make_scene
 
 ECC_LEVEL = 1
 ECC_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-7)

@@ -4,12 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.compositing import render_faces
-from services.capture.scenes.room import BOXES, CHECKER_INNER, HEIGHT_M, LENGTH_M, WIDTH_M
 from services.detection.markers.detector import MarkerDetector
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
+from services.synthetic import make_scene
+from services.synthetic.compositing import render_faces
+from services.synthetic.room import BOXES, CHECKER_INNER, HEIGHT_M, LENGTH_M, WIDTH_M
 
 MARGIN_PX = 20
 
@@ -102,7 +102,7 @@ def test_faces_cover_the_view_with_at_most_a_few_seam_pixels(scene):
 
 
 def test_default_room_has_no_marker(scene):
-    assert scene.T_world_marker is None and scene.known_settings() == {}
+    assert scene.T_world_marker is None and scene.fixtures().settings == {}
     assert "marker" not in [face.name for face in scene.faces]
     assert [child for _, child, _ in scene.render(90).truth["cam0"]] == ["cam0"]
 
@@ -127,7 +127,7 @@ def test_marker_corners_match_ground_truth():
     assert seen >= 20 and errors < 0.15
     T_cam_marker = invert(scene.camera_pose(90)) @ scene.T_world_marker
     assert np.allclose(dict((c, T) for _, c, T in scene.render(90).truth["cam0"])["marker/7"], T_cam_marker)
-    assert scene.known_settings() == {"marker_length": 0.3, "dictionary": "DICT_4X4_50"}
+    assert scene.fixtures().settings == {"marker_length": 0.3, "dictionary": "DICT_4X4_50"}
 
 
 @pytest.mark.parametrize(("options", "message"), [

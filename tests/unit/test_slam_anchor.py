@@ -13,15 +13,15 @@ from functools import cache
 import numpy as np
 import pytest
 
-from services.capture.scenes import make_scene
-from services.capture.scenes.markers import inside_image
-from services.capture.scenes.room import RoomScene
 from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.camera import project_points
 from services.geometry.evaluation import Similarity, absolute_trajectory_error, apply_similarity
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.slam.anchor import AnchorSettings, AnchorStatus, MarkerAnchor, MarkerSighting, Refusal
+from services.synthetic import make_scene
+from services.synthetic.markers import inside_image
+from services.synthetic.room import RoomScene
 
 METRES_PER_UNIT = 2.5
 WORLD_FROM_MAP = Similarity(matrix_from_rotvec([0.3, -1.2, 0.5]), np.array([1.0, -2.0, 0.5]), METRES_PER_UNIT)

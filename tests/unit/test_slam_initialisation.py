@@ -8,12 +8,12 @@ import numpy as np
 import pycolmap
 import pytest
 
-from services.capture.scenes import make_scene
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.slam.initialisation import InitialisationModel, InitialisationStatus, initialise
 from services.slam.two_view import pose_std_deg
+from services.synthetic import make_scene
 
 NOISE_PX = 0.5
 POINTS_PER_M2 = 400

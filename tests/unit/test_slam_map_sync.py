@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
 from services.slam.features import FrameFeatures
 from services.slam.map import sync
 from services.slam.map.database import MapDatabase
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
 
 
 def assert_same_map(copy: MapDatabase, original: MapDatabase) -> None:

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
 from services.geometry.camera import CameraModel
 from services.geometry.epipolar import near_lines
 from services.geometry.evaluation import umeyama
@@ -22,6 +21,7 @@ from services.slam.frontend import Tracked, Tracker
 from services.slam.map.database import MapDatabase
 from services.slam.mapping import KeyframeDecision, LocalMapper, keyframe_decision, triangulation_checks
 from services.slam.system import SlamSettings, SlamSystem
+from services.synthetic import make_scene
 
 SETTINGS = SlamSettings()
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
 from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.matching import match_descriptors
 from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
 MAPPED_FRAMES = 120

@@ -3,10 +3,10 @@
 import numpy as np
 
 from protocol.tracking_state import TrackingState
-from services.capture.scenes import make_scene
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.slam.system import SlamSystem
+from services.synthetic import make_scene
 
 
 def test_trajectory_follows_the_keyframes():

@@ -7,15 +7,8 @@ import numpy as np
 import pytest
 
 from services.calibration.camera_info import CalibrationError, read_camera_info, write_camera_info
-from services.capture.sources import (
-    FrameFault,
-    SourceError,
-    SourceFrame,
-    check_source,
-    check_uri,
-    open_source,
-    seconds_to_ns,
-)
+from services.calibration.image_folder import seconds_to_ns
+from services.capture.sources import FrameFault, SourceError, SourceFrame, check_source, check_uri, open_source
 from services.geometry.camera import CameraModel, project_points
 from services.geometry.se3 import invert, transform_points
 from tests.data import data_dir

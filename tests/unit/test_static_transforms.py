@@ -7,11 +7,11 @@ import pytest
 from pydantic import ValidationError
 
 from protocol import RIG_FRAME, FrameTransform, Header, StaticTransforms, Transform, decode, encode
-from services.capture.scenes.ir_rig import IrRigOptions, IrRigScene
 from services.convert import frame_graph, rig_static_transforms, static_transforms
 from services.geometry.frames import FrameGraph, InconsistentCycleError
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
+from services.synthetic.ir_rig import IrRigOptions, IrRigScene
 
 HEADER = Header(stamp_ns=1_700_000_000_000_000_000, frame_id=RIG_FRAME)
 

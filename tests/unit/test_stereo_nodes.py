@@ -12,8 +12,6 @@ from protocol.detections import BLOB_CLIPPED, BLOB_MERGED, BLOB_OCCLUDED, Blobs
 from protocol.mocap import Points3D
 from protocol.poses import PoseQuality
 from services.calibration.rig import Rig, write_rig
-from services.capture.scenes import make_scene
-from services.capture.scenes.ir_rig import LAYOUTS
 from services.convert import matrix_from_transform
 from services.detection.blobs.bright import BlobFlag
 from services.detection.blobs.node import Params as BlobParams
@@ -31,6 +29,8 @@ from services.estimation.bodies.node import (
 from services.estimation.bodies.rigid import match_bodies
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.launcher.tracker import Tracker
+from services.synthetic import make_scene
+from services.synthetic.ir_rig import LAYOUTS
 
 
 def disc_image(dtype=np.uint8, scale: float = 1.0) -> np.ndarray:
@@ -122,7 +122,8 @@ def test_rig_and_bodies_files_are_checked_before_start(tmp_path):
         load(Params(cameras=("cam0", "cam1", "cam2"), rig_file=tmp_path / "rig.yaml"))
     rig, bodies = load(Params(rig_file=tmp_path / "rig.yaml"))
     assert rig is not None and rig.names == ("cam0", "cam1")
-    assert list(bodies) == list(LAYOUTS) and not check_bodies(bodies)
+    assert bodies == {}  # no bodies file: no body is looked for
+    assert not check_bodies(LAYOUTS)
     save_bodies(tmp_path / "bodies.yaml", {"wand": LAYOUTS["wand"]})
     assert list(load(Params(bodies=tmp_path / "bodies.yaml"))[1]) == ["wand"]
     (tmp_path / "bad.yaml").write_text("bodies: []\n")

@@ -6,9 +6,10 @@ a camera's blobs that find no partners are counted as unjoined in the node's sta
 (``NodeStats.synced``), never used. The rig (world = the rig frame) is the ``rig_file``
 (``services.calibration.rig``), else each camera's newest ``<camera>/camera_info``, whose
 ``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so).
-The bodies are the ``bodies`` file (``services.estimation.bodies.file``), else the ``ir_rig``
-scene's own (``services.capture.scenes.ir_rig.LAYOUTS``); what ``check_bodies`` finds doubtful
-about them is logged at start, one line each.
+The bodies are the ``bodies`` file (``services.estimation.bodies.file``; ``artrack run`` gives a
+synthetic ``ir_rig`` source's own); what ``check_bodies`` finds doubtful about them is logged at
+start, one line each. Without a file the node looks for no body: every point is published
+unlabelled (body -1), from which ``artrack bodies define`` makes bodies, and no pose.
 
 Per joined set (``services.estimation.bodies.correspondence``, ``services.estimation.bodies.rigid``):
 the blobs without flags (``flagged`` uses the flagged ones too) are put in correspondence and
@@ -86,7 +87,7 @@ class Params(BaseModel):
                                                                                "are joined")
     rig_file: Path | None = Field(default=None, description="rig YAML (docs/rig-file.md); default: the "
                                                             "cameras' CameraInfo with their T_rig_camera")
-    bodies: Path | None = Field(default=None, description="bodies YAML; default: the ir_rig scene's bodies")
+    bodies: Path | None = Field(default=None, description="bodies YAML; default: none, every point unlabelled")
     flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
     epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
     reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view, px")
@@ -136,7 +137,8 @@ class Params(BaseModel):
 
 
 def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
-    """The rig file's cameras (None without a file) and the bodies; ValueError (one line) when unusable."""
+    """The rig file's cameras (None without a file) and the bodies (none without a file); ValueError (one line)
+    when unusable."""
     rig = None
     if params.rig_file is not None:
         rig = read_rig(params.rig_file)
@@ -144,13 +146,7 @@ def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
         if missing:
             raise ValueError(f"{params.rig_file}: no camera {', '.join(missing)} in the rig (it has "
                              f"{', '.join(rig.names)})")
-    if params.bodies is not None:
-        bodies = load_bodies(params.bodies)
-    else:
-        from services.capture.scenes.ir_rig import LAYOUTS
-
-        bodies = dict(LAYOUTS)
-    return rig, bodies
+    return rig, {} if params.bodies is None else load_bodies(params.bodies)
 
 
 class Calibration:
@@ -281,6 +277,8 @@ def run(node: Node, params: Params) -> None:
         rig, bodies = load(params)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
+    if not bodies:
+        node.log.info("no bodies file (bodies): every point is published unlabelled, no pose")
     for warning in check_bodies(bodies, params.matching()):
         node.log.warning("bodies: %s", warning)
     keys = node.keys

@@ -15,6 +15,7 @@ from services.estimation.markers.map import (
     grid_map,
     load_marker_map,
     parse_marker_map,
+    save_marker_map,
 )
 from services.estimation.markers.offline import TrackedFrame, track_folder, track_images
 from services.estimation.markers.pose import FrameEstimate, MarkerPoseEstimator, SkipReason, TargetPose
@@ -35,6 +36,7 @@ __all__ = [
     "load_marker_map",
     "marker_detector",
     "parse_marker_map",
+    "save_marker_map",
     "track_folder",
     "track_images",
 ]

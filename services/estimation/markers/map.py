@@ -36,9 +36,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 from services.calibration.yaml_file import read_yaml
-from services.geometry.rotation import matrix_from_quaternion
+from services.geometry.rotation import matrix_from_quaternion, quaternion_from_matrix
 from services.geometry.se3 import make_transform, transform_points
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
@@ -106,6 +107,20 @@ def grid_map(name: str, columns: int, rows: int, length: float, separation: floa
 def load_marker_map(path: str | Path) -> MarkerMap:
     """The map described by the YAML file ``path``; MarkerMapError names the file, field and reason."""
     return parse_marker_map(read_yaml(path, MarkerMapError), str(path))
+
+
+def save_marker_map(path: str | Path, marker_map: MarkerMap) -> None:
+    """Write ``marker_map`` as a YAML file of the ``markers`` layout (each marker's id, length, position and
+    quaternion), checked as ``parse_marker_map`` checks a file; ``load_marker_map`` reads it back."""
+    document: dict[str, object] = {"name": marker_map.name}
+    if marker_map.dictionary is not None:
+        document["dictionary"] = marker_map.dictionary
+    document["markers"] = [{"id": marker.id, "length": marker.length,
+                            "position": marker.T_map_marker[:3, 3].tolist(),
+                            "quaternion": quaternion_from_matrix(marker.T_map_marker[:3, :3]).tolist()}
+                           for marker in marker_map.markers.values()]
+    parse_marker_map(document, str(path))
+    Path(path).write_text(yaml.safe_dump(document, sort_keys=False, default_flow_style=None))
 
 
 def parse_marker_map(data: object, source: str = "marker map") -> MarkerMap:

@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 
 from services.calibration.camera_info import read_camera_info
-from services.capture.sources import FrameFault, ImageFolderSource, SourceError
+from services.calibration.image_folder import IMAGE_SUFFIXES, folder_entries, read_image
 from services.detection.markers.detector import MarkerDetector, MarkerFound
 from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers.map import MarkerMap, load_marker_map
@@ -97,18 +97,19 @@ def track_folder(folder: str | Path, camera: CameraModel | str | Path, **options
     """Track markers in the image files of ``folder`` in name order (or the order of its TUM ``rgb.txt``, with its
     times), as ``artrack run marker --source images:FOLDER`` reads them; ``options`` as ``track_images``'.
     A file that cannot be read raises ValueError naming it."""
-    try:
-        source = ImageFolderSource(f"images:{folder}", Path(folder))
-    except SourceError as exc:
-        raise ValueError(str(exc)) from exc
-    frames = source.frames()
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"images:{folder}: no such folder")
+    entries = folder_entries(folder)
+    if not entries:
+        raise ValueError(f"images:{folder}: no image files in {folder} ({', '.join(sorted(IMAGE_SUFFIXES))})")
 
     def read() -> Iterator[tuple[int, np.ndarray, Path | None, float | None]]:
-        for frame in frames:
-            path, time_s = source.entries[frame.index]
-            if isinstance(frame, FrameFault):
-                raise ValueError(f"{path}: {frame.reason}")
-            yield frame.index, frame.images[source.camera_names[0]], path, time_s
+        for index, (path, time_s) in enumerate(entries):
+            image = read_image(path)
+            if image is None:
+                raise ValueError(f"{path}: cannot read {path}")
+            yield index, image, path, time_s
 
     return _track(read(), camera, options.pop("board", None), options.pop("method", DEFAULT_METHOD),
                   options.pop("corner_sigma_px", 0.5), options)

@@ -6,11 +6,9 @@ frames when only their size differs and refused when their aspect ratio does too
 ``services.calibration.fixed``).
 
 Targets: ``target`` names them, each a target of the library in ``targets`` (default
-``$XDG_DATA_HOME/artrack/targets``, see ``services.estimation.targets.library``) or a synthetic
-scene's own (``synthetic:planar_target``, built in this process from the scene's texture:
-``services.estimation.targets.scene``; ``artrack run`` settles it when the scene is the source).
-A name the library does not hold is refused before the node starts (``check``), in one line
-naming the library folder.
+``$XDG_DATA_HOME/artrack/targets``, see ``services.estimation.targets.library``; ``artrack run``
+gives a synthetic ``planar_target`` source's own, in a library of its own). A name the library
+does not hold is refused before the node starts (``check``), in one line naming the library folder.
 
 Per frame, one ``TargetTracker`` per target (``services.estimation.targets.tracking``), all
 through ``track_targets``, so the frame is made grey once and its keypoints are extracted at most
@@ -77,7 +75,6 @@ from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroPoseFilter
 from services.estimation.targets.library import TargetLibrary
 from services.estimation.targets.recognition import RecognitionOptions, RecognitionStatus
-from services.estimation.targets.scene import is_scene_target, scene_target, scene_target_name
 from services.estimation.targets.target import Target
 from services.estimation.targets.tracking import TargetPose, TargetTracker, TrackingOptions, track_targets
 from services.runtime.frame_calibration import FrameCalibration
@@ -96,8 +93,7 @@ class Params(BaseModel):
 
     camera: KeyName = "cam0"
     target: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
-        default=(), min_length=1, description="target names in the library, or synthetic:SCENE for a scene's own; "
-                                              "repeat for several")
+        default=(), min_length=1, description="target names in the library; repeat for several")
     targets: Path | None = Field(default=None, description="target library folder; default "
                                                            "$XDG_DATA_HOME/artrack/targets")
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
@@ -117,9 +113,9 @@ class Params(BaseModel):
 
 def load_targets(params: Params) -> list[Target]:
     """The targets ``params`` name, in order; ValueError (one line) for a name not in the library, a damaged
-    file, a scene URI that is not valid, or two targets of one name."""
+    file, or two targets of one name."""
     library = TargetLibrary(params.targets)
-    loaded = [scene_target(name) if is_scene_target(name) else library.load(name) for name in params.target]
+    loaded = [library.load(name) for name in params.target]
     _check_unique([target.name for target in loaded])
     return loaded
 
@@ -131,11 +127,10 @@ def _check_unique(names: Sequence[str]) -> None:
 
 
 def _check(params: Params) -> None:
-    """What ``load_targets`` would refuse, without building a target: library names must exist, scene URIs
-    must parse; the calibration file must read."""
+    """What ``load_targets`` would refuse, without reading a target: library names must exist; the calibration
+    file must read."""
     library = TargetLibrary(params.targets)
-    names = [scene_target_name(name) if is_scene_target(name) else library.existing(name).stem
-             for name in params.target]
+    names = [library.existing(name).stem for name in params.target]
     _check_unique(names)
     if params.calib is not None:
         read_camera_info(params.calib)

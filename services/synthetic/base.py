@@ -18,8 +18,9 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
-from services.capture.scenes.imaging import finish
 from services.geometry.camera import CameraModel
+from services.synthetic.fixtures import Fixtures
+from services.synthetic.imaging import finish
 
 NOISE_PURPOSE = 1
 """``scene_rng`` purposes below 100 are reserved for this module; scenes number theirs from 100."""
@@ -49,7 +50,7 @@ class Scene(Protocol):
 
     def render(self, index: int) -> SceneFrame: ...
 
-    def known_settings(self) -> dict[str, Any]: ...
+    def fixtures(self) -> Fixtures: ...
 
 
 @dataclass(frozen=True)
@@ -159,10 +160,9 @@ class SyntheticScene(ABC):
             raise ValueError(f"scene {self.name!r} takes {self.Options.__name__}, not {type(options).__name__}")
         self.options = options
 
-    def known_settings(self) -> dict[str, Any]:
-        """Node parameters the scene settles by what it renders (a markers scene: ``marker_length``),
-        by field name; a tracker's nodes take them unless told otherwise. None by default."""
-        return {}
+    def fixtures(self) -> Fixtures:
+        """What a tracker must be told to track the scene (``services.synthetic.fixtures``); here its rig alone."""
+        return Fixtures(self.name, self.cameras)
 
     def time_s(self, index: int) -> float:
         """Time of frame ``index`` in seconds."""

@@ -22,20 +22,20 @@ the camera and inside the image (as the ``markers`` scene gives it).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
-from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
-from services.capture.scenes.compositing import Face, render_faces
-from services.capture.scenes.markers import inside_image
-from services.capture.scenes.plane import PlaneTexture, rectangle_corners, texel_from_plane
-from services.capture.scenes.texture import procedural_texture
 from services.detection.markers.detector import DICTIONARY_NAMES, aruco_dictionary
 from services.geometry.camera import CameraModel, intrinsics, look_at, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.geometry.trajectory import SinePath
+from services.synthetic.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.synthetic.compositing import Face, render_faces
+from services.synthetic.fixtures import Fixtures
+from services.synthetic.markers import inside_image
+from services.synthetic.plane import PlaneTexture, rectangle_corners, texel_from_plane
+from services.synthetic.texture import procedural_texture
 
 HFOV_DEG = 64.0
 TEXELS_PER_M = 200
@@ -135,10 +135,11 @@ class RoomScene(SyntheticScene):
         self.cameras = (CameraModel("cam0", o.width, o.height, intrinsics(o.width, o.height, HFOV_DEG),
                                     np.zeros(5), np.eye(4)),)
 
-    def known_settings(self) -> dict[str, Any]:
-        """With the marker: its side and dictionary, as a marker tracker takes them."""
+    def fixtures(self) -> Fixtures:
+        """The rig and, with the marker, its side and dictionary, as a marker tracker takes them."""
         o = self.options
-        return {"marker_length": o.marker_length, "dictionary": o.marker_dictionary} if o.marker else {}
+        settings = {"marker_length": o.marker_length, "dictionary": o.marker_dictionary} if o.marker else {}
+        return Fixtures(self.name, self.cameras, settings=settings)
 
     def layout(self) -> list[tuple[str, np.ndarray, np.ndarray, tuple[float, float]]]:
         """(name, centre, normal of the visible side, (width, height)) of every face."""

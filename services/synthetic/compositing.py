@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.capture.scenes.plane import PlaneTexture
 from services.geometry.camera import clip_polygon_near
 from services.geometry.se3 import transform_points
+from services.synthetic.plane import PlaneTexture
 
 Z_NEAR_M = 0.05
 SUBPIXEL_BITS = 4

@@ -18,17 +18,17 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
-from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
-from services.capture.scenes.paths import plane_viewing_path
-from services.capture.scenes.plane import PlaneTexture, rectangle_corners
 from services.detection.markers.detector import DICTIONARY_NAMES, aruco_dictionary
 from services.geometry.camera import CameraModel, intrinsics, project_points
 from services.geometry.se3 import invert, make_transform, transform_points
+from services.synthetic.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.synthetic.fixtures import Fixtures, MarkerLayout
+from services.synthetic.paths import plane_viewing_path
+from services.synthetic.plane import PlaneTexture, rectangle_corners
 
 HFOV_DEG = 56.0
 CELL_TEXELS = 40
@@ -67,9 +67,13 @@ class MarkersScene(SyntheticScene):
     Options = MarkersOptions
     options: MarkersOptions
 
-    def known_settings(self) -> dict[str, Any]:
-        """The side of the markers it draws, metres (every marker has the same)."""
-        return {"marker_length": self.marker_length}
+    def fixtures(self) -> Fixtures:
+        """The board as a marker map (``board``: the board frame, ``marker_poses``) and the side and dictionary of
+        the markers it draws (every marker has the same side)."""
+        o = self.options
+        return Fixtures(self.name, self.cameras,
+                        marker_map=MarkerLayout("board", o.dictionary, self.marker_length, dict(self.marker_poses)),
+                        settings={"marker_length": self.marker_length, "dictionary": o.dictionary})
 
     def __init__(self, options: MarkersOptions | None = None):
         super().__init__(options)

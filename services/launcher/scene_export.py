@@ -8,8 +8,13 @@ Layout of the folder (``export_scene``)::
     DIR/cam0.yaml, DIR/cam1.yaml    each camera's calibration (camera_info YAML, for --calib)
     DIR/rig.yaml                    every camera's intrinsics and T_rig_camera (two or more cameras)
     DIR/bodies.yaml                 the scene's rigid bodies (scenes that have them: ir_rig)
+    DIR/targets/<name>.npz, .png    the scene's image target, a target library (planar_target)
+    DIR/marker_map.yaml             the scene's markers as a marker map (markers: its board)
     DIR/truth/<name>.tum            ground truth as TUM, one file per child frame
     DIR/scene.yaml                  the scene, its options and the frame count (to make it again)
+
+The rig, bodies, target and marker map are the scene's fixtures (``services.synthetic.fixtures``),
+written by ``services.launcher.fixtures.write_fixtures``.
 
 Truth files: a transform whose parent frame is the world (``ir_rig``'s ``T_world_body``, ``room``'s
 ``T_world_cam0``) goes to ``truth/<name>.tum``, ``<name>`` the last part of its child frame
@@ -29,11 +34,10 @@ import numpy as np
 import yaml
 
 from services.calibration.camera_info import write_camera_info
-from services.calibration.rig import Rig, write_rig
-from services.capture.scenes import make_scene
 from services.convert import transform_from_matrix
-from services.estimation.bodies.file import BodiesFileError, save_bodies
+from services.launcher.fixtures import FixtureFiles, write_fixtures
 from services.recorder.export import tum_line
+from services.synthetic import make_scene
 
 __all__ = ["SceneExport", "SceneExportError", "export_scene", "image_name", "truth_path"]
 
@@ -46,22 +50,21 @@ class SceneExportError(ValueError):
 
 @dataclass
 class SceneExport:
-    """What ``export_scene`` wrote: ``images`` per camera, ``truth`` rows per file, the calibration
-    and bodies files (None when not written, ``notes`` says why)."""
+    """What ``export_scene`` wrote: ``images`` per camera, ``truth`` rows per file, and ``fixtures``, the rig,
+    bodies, target library and marker map (None where the scene has none; ``fixtures.notes`` says why one it
+    has was not written)."""
 
     folder: Path
     cameras: tuple[str, ...]
     frames: int
+    fixtures: FixtureFiles
     images: int = 0
-    rig_file: Path | None = None
-    bodies_file: Path | None = None
     truth: dict[Path, int] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)
 
 
 def image_name(time_ns: int, suffix: str = ".png") -> str:
     """A frame's file name: its time in decimal seconds with nine digits (``0.033333333.png``), read
-    back exactly as int nanoseconds by the images source (``sources.seconds_to_ns``)."""
+    back exactly as int nanoseconds by the images source (``services.calibration.image_folder.seconds_to_ns``)."""
     return f"{time_ns // NS_PER_S}.{time_ns % NS_PER_S:09d}{suffix}"
 
 
@@ -86,20 +89,10 @@ def export_scene(scene_name: str, out: Path, frames: int, options: Mapping[str, 
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SceneExportError(f"{out}: exists and is not an empty folder (the export would mix with it)")
     cameras = tuple(camera.name for camera in scene.cameras)
-    done = SceneExport(out, cameras, frames)
+    done = SceneExport(out, cameras, frames, write_fixtures(out, scene.fixtures()))
     for camera in scene.cameras:
         (out / camera.name).mkdir(parents=True, exist_ok=True)
         write_camera_info(out / f"{camera.name}.yaml", camera)
-    if len(scene.cameras) >= 2:
-        done.rig_file = out / "rig.yaml"
-        write_rig(done.rig_file, Rig(scene_name, tuple(scene.cameras)))
-    bodies = getattr(scene, "bodies", None)
-    if bodies:
-        try:
-            save_bodies(out / "bodies.yaml", bodies)
-            done.bodies_file = out / "bodies.yaml"
-        except BodiesFileError as exc:
-            done.notes.append(f"no bodies file: {exc}")
     (out / "scene.yaml").write_text(yaml.safe_dump(
         {"scene": scene_name, "options": {k: _plain(v) for k, v in (options or {}).items()}, "frames": frames},
         sort_keys=False))

@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.capture.scenes.base import SyntheticScene, Truth, scene_rng
 from services.geometry.camera import CameraModel, intrinsics
+from services.synthetic.base import SyntheticScene, Truth, scene_rng
 
 PHASE_PURPOSE = 100
 SUBPIXEL_BITS = 4

@@ -13,35 +13,32 @@ holds its pose of frame 0 (the light still changes), to measure how much a still
 shakes. Ground truth:
 ``("cam0", "target", T_cam0_target)`` in every frame.
 
-The scene settles the ``target`` of a tracker (``known_settings``): itself, as the URI
-``synthetic:planar_target`` followed by ``?name=value&...`` for each option that shapes the target
-(``TARGET_OPTIONS``) and differs from its default, from which a target is built afresh
-(``services.estimation.targets.scene``).
+Its fixture (``fixtures``) is the printed target: the texture, ``target_width`` metres wide, named
+``planar_target``, in the scene's target frame, so a tracker's poses of it score against the truth as
+they are.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
-from services.capture.scenes.imaging import apply_gain, gaussian_blur
-from services.capture.scenes.paths import plane_viewing_path
-from services.capture.scenes.plane import PlaneTexture
-from services.capture.scenes.texture import procedural_texture
 from services.geometry.camera import CameraModel, intrinsics
 from services.geometry.se3 import invert
 from services.geometry.trajectory import SinePath
+from services.synthetic.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.synthetic.fixtures import Fixtures, ImageTarget
+from services.synthetic.imaging import apply_gain, gaussian_blur
+from services.synthetic.paths import plane_viewing_path
+from services.synthetic.plane import PlaneTexture
+from services.synthetic.texture import procedural_texture
 
 HFOV_DEG = 56.0
 OUTSIDE_GREY = 110
 PATH_PURPOSE, TEXTURE_PURPOSE, LIGHT_PURPOSE = 100, 101, 102
 LIGHT_PERIOD_RANGE_S = (6.0, 15.0)
 MOTIONS = ("sway", "static")
-TARGET_OPTIONS = ("seed", "target_width", "target_height", "texture_px")
-"""The options that shape the target's texture and size (and so its target's URI)."""
 
 
 @dataclass(frozen=True)
@@ -96,12 +93,9 @@ class PlanarTargetScene(SyntheticScene):
         K = intrinsics(o.width, o.height, HFOV_DEG)
         self.cameras = (CameraModel("cam0", o.width, o.height, K, np.zeros(5), np.eye(4)),)
 
-    def known_settings(self) -> dict[str, Any]:
-        """``target``: the URI of the scene's own target (see the module docstring)."""
-        default = PlanarTargetOptions()
-        given = [f"{name}={getattr(self.options, name)}" for name in TARGET_OPTIONS
-                 if getattr(self.options, name) != getattr(default, name)]
-        return {"target": (f"synthetic:{self.name}" + (f"?{'&'.join(given)}" if given else ""),)}
+    def fixtures(self) -> Fixtures:
+        """The rig and the printed target: the texture, ``target_width`` wide, named after the scene."""
+        return Fixtures(self.name, self.cameras, target=ImageTarget(self.name, self.texture, self.size_m[0]))
 
     def camera_pose(self, index: int) -> np.ndarray:
         """(4, 4) ``T_target_cam0`` of frame ``index`` (of frame 0 for ``motion=static``)."""

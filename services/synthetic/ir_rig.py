@@ -33,11 +33,12 @@ from functools import cached_property
 
 import numpy as np
 
-from services.capture.scenes.base import SceneOptions, SyntheticScene, Truth, scene_rng
 from services.geometry.camera import CameraModel, intrinsics, look_at, pixel_rays, project_points
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, transform_points
 from services.geometry.trajectory import RigidPath, SinePath
+from services.synthetic.base import SceneOptions, SyntheticScene, Truth, scene_rng
+from services.synthetic.fixtures import Fixtures
 
 LAYOUTS: dict[str, np.ndarray] = {
     "wand": np.array([[-0.065, -0.089, 0.0], [-0.012, 0.046, 0.0], [0.077, 0.043, 0.0]]),
@@ -134,6 +135,10 @@ class IrRigScene(SyntheticScene):
         else:
             self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
             self.paths = self.body_paths(rng)
+
+    def fixtures(self) -> Fixtures:
+        """The rig and the bodies the scene shows (``bodies``)."""
+        return Fixtures(self.name, self.cameras, bodies=dict(self.bodies))
 
     def body_paths(self, rng: np.random.Generator) -> dict[str, RigidPath]:
         """The bodies' paths, side by side about ``BODY_DEPTH_M`` in front of the bar."""
