@@ -119,11 +119,11 @@ def test_the_mapping_thread_is_waited_for_until_its_keyframes_are_mapped(monkeyp
         mapper.enqueue(0)
         mapper.enqueue(1)
         assert not mapper.idle and not mapper.wait_idle(0.05)
-        threading.Timer(0.3, release.set).start()
         started, cpu = time.monotonic(), time.thread_time()
+        threading.Timer(0.3, release.set).start()
         assert mapper.wait_idle(30.0)
-        # woken when the last keyframe is mapped, without spinning meanwhile
-        assert time.monotonic() - started >= 0.25 and time.thread_time() - cpu < 0.05
+        # woken when the last keyframe is mapped (never before the release), without spinning meanwhile
+        assert time.monotonic() - started >= 0.3 and time.thread_time() - cpu < 0.05
         assert mapper.idle and mapped == [True, True]
     finally:
         release.set()
