@@ -25,6 +25,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pytest
 
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.detection.blobs_node import Params as BlobParams
@@ -35,6 +36,8 @@ from services.estimation.rigid_bodies import match_bodies
 from services.estimation.rigid_bodies_node import point_arrays
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
+
+pytestmark = pytest.mark.slow
 
 FRAMES = 60
 GHOSTS, NOISE_M = 10, 0.0002

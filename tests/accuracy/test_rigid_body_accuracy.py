@@ -17,11 +17,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from services.capture.scenes.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
 from services.estimation.rigid_bodies import match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
+
+pytestmark = pytest.mark.slow
 
 NOISE_M = 0.0002
 GHOSTS = 10

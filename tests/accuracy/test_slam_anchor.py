@@ -25,6 +25,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+import pytest
 
 from services.capture.scenes import make_scene
 from services.capture.scenes.room import RoomScene
@@ -34,6 +35,8 @@ from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.slam.anchor import AnchorSettings, AnchorStatus, MarkerAnchor, MarkerSighting
 from services.slam.system import SlamState, SlamSystem
+
+pytestmark = pytest.mark.slow
 
 FRAMES = 300
 """The room's first 10 s: the marker whole in view in frames 45-121 and 191-264."""

@@ -19,6 +19,8 @@ from services.recorder.info import summarise
 from tests.integration.support import ROOT, START_S, collect
 from tests.viewer_contents import RrdContents
 
+pytestmark = pytest.mark.integration
+
 RECORDINGS = ROOT / "recordings"
 
 

@@ -22,6 +22,8 @@ from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
 from services.slam.system import SlamState, SlamSystem
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
+pytestmark = pytest.mark.slow
+
 MAPPED_FRAMES = 120
 JUMPS = {1310: 92, 820: 54}
 """Frame far away in time -> the mapped frame nearest to it."""

@@ -1,11 +1,14 @@
 """``SlamSystem.trajectory``: every tracked frame's pose through its reference keyframe's current pose."""
 
 import numpy as np
+import pytest
 
 from services.capture.scenes import make_scene
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.slam.system import SlamState, SlamSystem
+
+pytestmark = pytest.mark.slow
 
 
 def test_trajectory_follows_the_keyframes():
