@@ -12,7 +12,8 @@ Integration tests never touch the default local router on 7447. Each test gets
   at teardown SIGTERMs then SIGKILLs every group and fails the test when any process that
   carries the test's marker is still alive.
 
-Zenoh and the project are imported inside the fixtures so unit tests pay nothing for them.
+The project is imported inside the fixtures so unit tests pay nothing for it; Zenoh is imported
+once by ``tiers`` (below), to guard against it.
 
 Tiers (markers declared in pyproject.toml; ``make test-fast`` leaves both out, ``make test`` runs all):
 
