@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint deploy-check clean
+.PHONY: demo test test-fast bench lint deploy-check clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,9 +18,14 @@ demo: $(STAMP)
 	$(BIN)/artrack demo
 
 # Three workers on two cores: most integration tests wait on the processes they start (measured: the
-# suite took 13 min on two workers, 8.3 min on three).
+# suite took 13 min on two workers, 8.3 min on three). `make test` runs every test (CI does);
+# `make test-fast` only the unit tests: no process, no Zenoh session, no whole sequence (markers in
+# pyproject.toml, held by tests/conftest.py).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 3
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -n 3 -m "not integration and not slow"
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.bench $(BENCH)

@@ -12,12 +12,24 @@ Integration tests never touch the default local router on 7447. Each test gets
   at teardown SIGTERMs then SIGKILLs every group and fails the test when any process that
   carries the test's marker is still alive.
 
-Zenoh and the project are imported inside the fixtures so unit tests pay nothing for them.
+The project is imported inside the fixtures so unit tests pay nothing for it; Zenoh is imported
+once by ``tiers`` (below), to guard against it.
+
+Tiers (markers declared in pyproject.toml; ``make test-fast`` leaves both out, ``make test`` runs all):
+
+* ``integration``: starts processes or opens a Zenoh session. Every test under tests/integration
+  carries it; any other test that does either must too.
+* ``slow``: runs a tracker, SLAM or a calibration over a whole sequence of frames. Every test under
+  tests/accuracy carries it.
+
+``tiers`` (autouse) holds this: a test under those folders without its marker fails, and a test
+without ``integration`` fails as soon as it starts a process or opens a Zenoh session.
 """
 
 from __future__ import annotations
 
 import contextlib
+import multiprocessing.process
 import os
 import signal
 import socket
@@ -31,6 +43,37 @@ from pathlib import Path
 import pytest
 
 STOP_GRACE_S = 5.0
+TESTS = Path(__file__).resolve().parent
+FOLDER_MARKERS = {"integration": "integration", "accuracy": "slow"}
+"""The marker every test under ``tests/<folder>`` carries."""
+PROCESS_STARTS = ((subprocess.Popen, "__init__"), (multiprocessing.process.BaseProcess, "start"), (os, "fork"),
+                  (os, "posix_spawn"), (os, "posix_spawnp"), (os, "system"))
+"""Every way a test starts a process: subprocess, multiprocessing, and the os calls beneath them."""
+
+
+@pytest.fixture(autouse=True)
+def tiers(request, monkeypatch):
+    """Hold the tiers (module docstring): fail a test under tests/integration or tests/accuracy without its
+    folder's marker, and a test without ``integration`` that starts a process or opens a Zenoh session."""
+    path = request.node.path
+    folder = path.relative_to(TESTS).parts[0] if path.is_relative_to(TESTS) else ""
+    marker = FOLDER_MARKERS.get(folder)
+    if marker is not None and request.node.get_closest_marker(marker) is None:
+        pytest.fail(f"every test under tests/{folder} is marked {marker}: "
+                    f"`pytestmark = pytest.mark.{marker}` in {path.name}")
+    if request.node.get_closest_marker("integration") is not None:
+        return
+    import zenoh
+
+    def refuse(what: str):
+        def refused(*args, **kwargs):
+            pytest.fail(f"{request.node.nodeid} {what} but is not marked integration (`pytestmark = "
+                        f"pytest.mark.integration`, or `@pytest.mark.integration` on the test)")
+        return refused
+
+    for owner, name in PROCESS_STARTS:
+        monkeypatch.setattr(owner, name, refuse(f"starts a process ({owner.__name__}.{name})"))
+    monkeypatch.setattr(zenoh, "open", refuse("opens a Zenoh session"))
 
 
 def free_port() -> int:

@@ -1,11 +1,15 @@
-"""OpenCV's per-frame recipe for a known planar image, as its tutorials teach it: the reference that
-the natural-feature tracker is compared with.
+"""OpenCV's per-frame recipe for a known planar image, as its tutorials teach it: the references that
+the natural-feature tracker is compared with, with either of two features.
 
-SIFT keypoints and descriptors (``cv2.SIFT_create``), brute-force L2 matching (``cv2.BFMatcher``:
-exact, so the figures do not depend on FLANN's random trees) with k = 2 and Lowe's ratio test at
-``RATIO``, ``cv2.findHomography`` with ``cv2.USAC_MAGSAC``; for a pose, ``cv2.solvePnP`` with
-``SOLVEPNP_IPPE`` on the homography's inliers, their points on the target plane in metres. No pyramid
-of the reference image, no refinement beyond OpenCV's, no state from frame to frame.
+* ``SiftBaseline``: SIFT keypoints and descriptors (``cv2.SIFT_create``), brute-force L2 matching;
+* ``OrbBaseline``: ORB keypoints and descriptors at OpenCV's defaults (``cv2.ORB_create``: 500
+  keypoints, 8 levels), brute-force Hamming matching: the fastest of OpenCV's stock recipes.
+
+Either way: brute-force matching (``cv2.BFMatcher``: exact, so the figures do not depend on FLANN's
+random trees) with k = 2 and Lowe's ratio test at ``RATIO``, ``cv2.findHomography`` with
+``cv2.USAC_MAGSAC``; for a pose, ``cv2.solvePnP`` with ``SOLVEPNP_IPPE`` on the homography's inliers,
+their points on the target plane in metres. No pyramid of the reference image beyond the detector's
+own, no refinement beyond OpenCV's, no state from frame to frame.
 
 Pixels: the centre of the top-left pixel at (0, 0). Target frame: origin at the image's centre, x
 right, y up, z towards the viewer (``services.estimation.targets.target``). Poses ``T_camera_target`` (4, 4),
@@ -29,27 +33,29 @@ MIN_MATCHES = 4
 
 @dataclass(frozen=True)
 class Reference:
-    """SIFT features of a reference image: ``points`` (N, 2) float32 pixels, ``descriptors`` (N, 128)
-    float32, ``size_px`` (width, height)."""
+    """Features of a reference image: ``points`` (N, 2) float32 pixels, ``descriptors`` (N, D) as the
+    detector gives them (SIFT: 128 float32; ORB: 32 uint8), ``size_px`` (width, height)."""
 
     points: np.ndarray
     descriptors: np.ndarray
     size_px: tuple[int, int]
 
 
-class SiftBaseline:
-    """The tutorial recipe against one reference image (grey, (H, W) uint8), described once."""
+class Baseline:
+    """The tutorial recipe against one reference image (grey, (H, W) uint8), described once by
+    ``detector`` (an OpenCV ``Feature2D``) and matched by brute force under ``norm``."""
 
-    def __init__(self, reference: np.ndarray):
-        self.sift = cv2.SIFT_create()
-        self.matcher = cv2.BFMatcher(cv2.NORM_L2)
+    def __init__(self, reference: np.ndarray, detector: cv2.Feature2D, norm: int):
+        self.detector = detector
+        self.matcher = cv2.BFMatcher(norm)
         self.reference = self._describe(reference)
 
     def _describe(self, grey: np.ndarray) -> Reference:
-        keypoints, descriptors = self.sift.detectAndCompute(grey, None)
+        keypoints, descriptors = self.detector.detectAndCompute(grey, None)
         points = np.float32([k.pt for k in keypoints]).reshape(-1, 2)
         if descriptors is None:
-            descriptors = np.zeros((0, 128), np.float32)
+            dtype = np.uint8 if self.detector.descriptorType() == cv2.CV_8U else np.float32
+            descriptors = np.zeros((0, self.detector.descriptorSize()), dtype)
         return Reference(points, descriptors, (grey.shape[1], grey.shape[0]))
 
     def homography(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -87,3 +93,17 @@ class SiftBaseline:
         T[:3, :3] = cv2.Rodrigues(rvec)[0]
         T[:3, 3] = tvec.ravel()
         return T
+
+
+class SiftBaseline(Baseline):
+    """The recipe with SIFT (``cv2.SIFT_create()``) and L2 matching."""
+
+    def __init__(self, reference: np.ndarray):
+        super().__init__(reference, cv2.SIFT_create(), cv2.NORM_L2)
+
+
+class OrbBaseline(Baseline):
+    """The recipe with ORB at OpenCV's defaults (``cv2.ORB_create()``) and Hamming matching."""
+
+    def __init__(self, reference: np.ndarray):
+        super().__init__(reference, cv2.ORB_create(), cv2.NORM_HAMMING)

@@ -25,6 +25,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pytest
 
 from services.detection.blobs.node import Params as BlobParams
 from services.detection.blobs.node import detector
@@ -35,6 +36,8 @@ from services.estimation.bodies.tracking import BodyTracker
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
 from services.synthetic.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
+
+pytestmark = pytest.mark.slow
 
 FRAMES = 60
 GHOSTS, NOISE_M = 10, 0.0002

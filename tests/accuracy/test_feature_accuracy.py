@@ -59,6 +59,8 @@ from tests.data import data_dir, data_root
 from tests.feature_baseline import SiftBaseline
 from tests.object_box import OUTLINE, SCENE_FOV_DEG, box_images, box_outline
 
+pytestmark = pytest.mark.slow
+
 SEEDS = (0, 1)
 FRAMES = range(0, 240, 3)
 FPS = 30.0

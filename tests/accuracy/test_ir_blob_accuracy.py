@@ -17,6 +17,8 @@ from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 from services.synthetic import make_scene
 
+pytestmark = pytest.mark.slow
+
 INDICES = range(0, 3000, 10)
 ISOLATION_PX = 12.0
 EDGE_PX = 6.0

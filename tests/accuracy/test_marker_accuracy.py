@@ -2,9 +2,13 @@
 markers spanning 5-30 % of the image width), ours side by side with OpenCV alone.
 
 Requirement: median rotation error <= 0.5 deg and median translation error <= 1 % of the
-distance, the LM refinement strictly better than the raw homography pose, and the published
-poses at least as accurate as OpenCV alone (ArucoDetector subpixel corners + solvePnP
-IPPE_SQUARE per marker) on the same corners.
+distance, the LM refinement strictly better than the raw homography pose, and on the same
+corners the published single-marker poses at least as accurate as OpenCV alone (ArucoDetector
+subpixel corners + solvePnP IPPE_SQUARE per marker). The board's pose is held to within
+``SAME_OPTIMUM`` of OpenCV's (cv2.solvePnP's iterative method on all its corners), not to at least
+as accurate: both minimise the same reprojection error and stop at the same optimum, apart by the
+iterations' stopping rules (ours 0.05 % and 0.13 % above OpenCV's median rotation error on the
+projected and the rendered views, translation the same to 0.001 %).
 
 * Rendered frames, ArucoDetector corners: the thresholds and the comparison with OpenCV hold
   for single markers and the board. ArucoDetector's corners sit slightly inside the true ones,
@@ -48,8 +52,12 @@ from tests.accuracy.report import (
     rendered_images,
 )
 
+pytestmark = pytest.mark.slow
+
 MAX_ROTATION_DEG = 0.5
 MAX_TRANSLATION_PCT = 1.0
+SAME_OPTIMUM = 1.01
+"""A board's median errors over OpenCV's at most: the same optimum, reached to within 1 %."""
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +138,7 @@ def test_projected_board(projected):
     assert median(ours, "rotation_deg") <= MAX_ROTATION_DEG
     assert median(ours, "translation_pct") <= MAX_TRANSLATION_PCT
     for key in ("rotation_deg", "translation_pct"):
-        assert median(ours, key) <= 1.01 * median(errors["opencv"], key), key
+        assert median(ours, key) <= SAME_OPTIMUM * median(errors["opencv"], key), key
         assert median(ours, key) < median(errors["ippe"], key), key
 
 
@@ -161,7 +169,7 @@ def test_rendered_board(rendered):
     assert median(ours, "rotation_deg") <= MAX_ROTATION_DEG
     assert median(ours, "translation_pct") <= MAX_TRANSLATION_PCT
     for key in ("rotation_deg", "translation_pct"):
-        assert median(ours, key) <= 1.01 * median(errors["opencv"], key), key
+        assert median(ours, key) <= SAME_OPTIMUM * median(errors["opencv"], key), key
 
 
 def test_default_refinement_corners_are_unbiased(scene, rendered, rendered_default):

@@ -34,6 +34,8 @@ from tests.accuracy.charuco_photos import (
 )
 from tests.data import data_dir
 
+pytestmark = pytest.mark.slow
+
 CHARUCO_MARKERS = 17
 """A 5x7 ChArUco board has a marker in 17 of its 35 squares."""
 

@@ -32,6 +32,8 @@ from tests.accuracy.charuco_photos import (
 )
 from tests.data import data_dir
 
+pytestmark = pytest.mark.slow
+
 PHOTOS = (*CHARUCO_PHOTOS, OCCLUDED_PHOTO)
 MAX_ROTATION_GAP_DEG = 0.02
 MAX_TRANSLATION_GAP_MM = 0.05

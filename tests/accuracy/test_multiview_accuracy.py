@@ -19,6 +19,8 @@ from services.geometry.se3 import transform_points
 from services.geometry.triangulation import reproject
 from services.synthetic import make_scene
 
+pytestmark = pytest.mark.slow
+
 SIGMA_PX = 0.05
 FRAMES = range(0, 600, 10)
 SIZE = (1280, 1024)

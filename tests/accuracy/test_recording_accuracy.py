@@ -17,7 +17,7 @@ from tests.accuracy.harness import score_recording
 from tests.data import REPO_ROOT
 from tests.integration.support import START_S
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 SESSION = REPO_ROOT / "recordings" / "markers.mcap"
 MARKERS = range(6)

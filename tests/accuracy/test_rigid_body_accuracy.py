@@ -17,11 +17,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from services.estimation.bodies.rigid import match_bodies
 from services.geometry.evaluation import pose_error
 from services.geometry.se3 import transform_points
 from services.synthetic.ir_rig import LAYOUTS, IrRigOptions, IrRigScene
+
+pytestmark = pytest.mark.slow
 
 NOISE_M = 0.0002
 GHOSTS = 10

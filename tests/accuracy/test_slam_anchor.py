@@ -25,6 +25,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+import pytest
 
 from protocol.tracking_state import TrackingState
 from services.estimation.markers.offline import track_images
@@ -35,6 +36,8 @@ from services.slam.anchor import AnchorSettings, AnchorStatus, MarkerAnchor, Mar
 from services.slam.system import SlamSystem
 from services.synthetic import make_scene
 from services.synthetic.room import RoomScene
+
+pytestmark = pytest.mark.slow
 
 FRAMES = 300
 """The room's first 10 s: the marker whole in view in frames 45-121 and 191-264."""

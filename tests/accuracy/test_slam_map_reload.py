@@ -28,6 +28,8 @@ from tests.accuracy.slam_sequences import KITTI, TUM
 from tests.data import data_dir
 from tests.slam_passes import SlamPass, first_frames, room_scene, run_frames, run_pass
 
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
 SEQUENCES = {"room": (150, None), "tum": (20, TUM), "kitti": (51, KITTI)}
 """Name -> (frames, data set or None for the synthetic scene)."""
 MARGIN_M = 0.005

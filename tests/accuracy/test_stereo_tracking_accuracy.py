@@ -40,6 +40,8 @@ from services.synthetic.ir_rig import LAYOUTS, IrRigScene
 from tests.ir_tracking import Tracked, mean_mahalanobis, rendered_blobs, summary, track, whitened_rms
 from tests.wand_blobs import extrinsic_errors
 
+pytestmark = pytest.mark.slow
+
 FRAMES = range(0, 3000, 25)
 """120 frames 0.83 s apart: 100 s of the scene's motion, 200 occlusion windows of which 120 are seen."""
 WAND_FRAMES = range(0, 1000, 5)

@@ -14,6 +14,8 @@ import pytest
 from services.calibration.wand import Wand, calibrate_wand
 from tests.wand_blobs import extrinsic_errors, wand_blobs, wand_scene
 
+pytestmark = pytest.mark.slow
+
 SIGMA_PX = 0.1
 FRAMES = range(0, 1500, 5)
 

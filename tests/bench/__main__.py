@@ -16,8 +16,8 @@ viewer, marker tracking (the live pipeline against the same work in one process)
 pipeline with client apps subscribed against none (``apps``), the marker estimators'
 accuracy against ground truth, blob detection per frame (``blobs``), keypoint detection per frame
 (``keypoints``), image-target recognition and tracking per frame on one core against OpenCV's
-per-frame recipe (``features``), the same frames' poses over the bus against in process
-(``features_bus``) and stereo tracking's stages
+per-frame recipes, SIFT and ORB, speed and accuracy (``features``), the same frames' poses over the
+bus against in process (``features_bus``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``), SLAM's bundle
 adjustment and pose refinement on synthetic problems (``slam``), SLAM's tracking per frame and local
 mapping per keyframe on one core, mapping in a process, on a thread and inline (``slam_tracking``), and the SLAM

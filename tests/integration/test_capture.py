@@ -2,12 +2,15 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from protocol import CameraInfo, GroundTruth, Image
 from services.bus.pubsub import Inbox, Role
 from services.calibration.camera_info import write_camera_info
 from services.geometry.camera import CameraModel
 from tests.integration.support import START_S, collect, start_node, wait_live
+
+pytestmark = pytest.mark.integration
 
 
 def test_image_folder_with_calibration_flows_in_order(bus, procs, session, tmp_path):

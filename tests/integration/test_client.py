@@ -20,6 +20,8 @@ from services.bus.pubsub import Inbox, Publisher, Role
 from services.client import BusError, BusSettings, Client, connect
 from tests.integration.support import START_S, collect, start_node, wait_live, wait_until
 
+pytestmark = pytest.mark.integration
+
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "track_marker.py"
 LENGTH = 0.05

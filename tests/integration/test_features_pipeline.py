@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from protocol.message import Header
 from protocol.poses import Pose
@@ -17,6 +18,8 @@ from services.synthetic import make_scene
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.integration.test_marker_pipeline import errors, recorded, truth_by_frame
 from tests.viewer_contents import RrdContents
+
+pytestmark = pytest.mark.integration
 
 FRAMES = 30
 KEY = "pose/cam0/target/planar_target"

@@ -18,6 +18,8 @@ from services.runtime.flow import Credits, FlowPlan
 from services.runtime.node import Node
 from tests.integration.support import START_S, wait_until
 
+pytestmark = pytest.mark.integration
+
 HELD_S = 0.5
 
 

@@ -14,6 +14,8 @@ from services.recorder.info import summarise
 from services.recorder.reading import Scan
 from tests.integration.support import ROOT, START_S, states, wait_until
 
+pytestmark = pytest.mark.integration
+
 ENDLESS = 100_000
 """Frames of a finite source that outlives every test."""
 

@@ -12,6 +12,8 @@ from mcap.reader import make_reader
 from tests.integration.support import START_S
 from tests.load import busy
 
+pytestmark = pytest.mark.integration
+
 LOSSLESS = "every frame accounted for"
 STREAMS_LEFT_OUT = ("/image", "/camera_info", "/truth", "/timings")
 """Inputs (the same by construction) and stage timings (wall-clock durations) are not compared."""

@@ -24,6 +24,8 @@ from services.synthetic import make_scene
 from tests.integration.support import START_S, collect, start_node, states, wait_live, wait_until
 from tests.viewer_contents import RrdContents
 
+pytestmark = pytest.mark.integration
+
 LENGTH = 0.05
 BOARD = {"name": "board", "dictionary": "DICT_4X4_50",
          "grid": {"columns": 3, "rows": 2, "length": LENGTH, "separation": LENGTH, "first_id": 0}}

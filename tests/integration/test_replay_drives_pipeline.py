@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
+
 from .support import START_S, live_names, start_node, states, wait_until
 from .test_recorder_bus import channels, recorder_stats, stop
+
+pytestmark = pytest.mark.integration
 
 FRAMES = 24
 

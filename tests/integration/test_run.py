@@ -19,6 +19,8 @@ from services.synthetic import make_scene
 from tests.integration.support import ROOT, START_S, collect
 from tests.viewer_contents import RrdContents
 
+pytestmark = pytest.mark.integration
+
 RECORDINGS = ROOT / "recordings"
 
 

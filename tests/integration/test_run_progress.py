@@ -7,8 +7,12 @@ import re
 import signal
 from collections import Counter
 
+import pytest
+
 from tests.integration.support import START_S, wait_until
 from tests.integration.test_marker_pipeline import recorded
+
+pytestmark = pytest.mark.integration
 
 PATTERN = ("--source", "synthetic:pattern", "--scene-option", "width=64", "--scene-option", "height=64")
 

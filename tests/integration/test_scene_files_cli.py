@@ -4,6 +4,7 @@ exported truth, and `artrack bodies define` taking a body the tracker did not kn
 import json
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from protocol.codec import decode
@@ -15,6 +16,8 @@ from services.recorder.pairing import pair
 from services.recorder.trajectories import load_trajectory
 from services.synthetic.ir_rig import LAYOUTS
 from tests.integration.support import START_S
+
+pytestmark = pytest.mark.integration
 
 FRAMES = 40
 

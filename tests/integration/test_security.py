@@ -23,7 +23,8 @@ from tests.conftest import free_port
 from tests.integration.busprobe import make_message
 from tests.integration.support import START_S, wait_live, wait_until
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command is not installed")
+pytestmark = [pytest.mark.integration,
+              pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command is not installed")]
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "secure"
 TRACKER, DASHBOARD = "tracker.artrack.lan", "dashboard.artrack.lan"
@@ -134,6 +135,29 @@ def collect_keys(session, key: str) -> list[str]:
     return seen
 
 
+def answer_queries(session, key: str, seen: list[str]) -> None:
+    """Answer queries on ``key`` from ``session``, each one noted in ``seen`` as ``query KEY``."""
+
+    def on_query(query) -> None:
+        seen.append(f"query {query.key_expr}")
+        query.reply(query.key_expr, b"")
+
+    session.declare_queryable(key, on_query)
+
+
+def ask_after_the_puts(app, key: str, seen: list[str]) -> None:
+    """Query ``key`` from ``app`` until a query reaches the session answering it (``answer_queries`` into
+    ``seen``). The router deals with an app's messages in the order they came and forwards them in that
+    order, so once a query made after the app's puts has come through, every one of those puts has come
+    through before it or was dropped."""
+
+    def reached() -> bool:
+        app.session.get(key)
+        return f"query {key}" in seen
+
+    wait_until(reached, START_S, f"the app's query on {key}")
+
+
 def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, pki):
     endpoint = start_router(procs, pki, "--users", str(pki.users), "--acl", str(pki.acl))
     pipeline_file = EXAMPLE.parents[1] / "pipelines" / "marker.toml"
@@ -143,6 +167,8 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
     try:
         wait_live(pipeline, bus.keys, {"capture", "marker-cam0"}, (up,))
         seen = collect_keys(pipeline, bus.keys.everything())
+        probe = bus.keys.state("probe")
+        answer_queries(pipeline, probe, seen)
         credentials = Security(root_ca=pki.ca, user="dashboard", password_file=pki.password_file("dashboard"))
         with connect(mode="client", connect=endpoint, rig=bus.rig, app="dashboard", security=credentials) as app:
             with app.poses("cam0/**", idle_timeout_s=START_S) as stream:
@@ -160,7 +186,7 @@ def test_app_role_reads_a_secure_pipeline_but_cannot_write_into_it(bus, procs, p
                 other.put(genuine, b"genuine")
                 time.sleep(0.05)
             wait_until(lambda: genuine in seen, START_S, "the pipeline user's put")
-            time.sleep(0.5)
+            ask_after_the_puts(app, probe, seen)
             assert not [key for key in seen if key.startswith("forged")], "an app's put reached the pipeline"
         listed = procs.run("list", "--mode", "client", "--connect", endpoint, "--rig", bus.rig, "--tls-ca", str(pki.ca),
                            "--user", "tracker", "--password-file", str(pki.password_file("tracker")))
@@ -183,6 +209,8 @@ def test_mutual_tls_names_the_app_by_its_certificate(bus, procs, pki):
     other = settings(endpoint, bus, **tracker_tls).open()
     try:
         seen = collect_keys(pipeline, bus.keys.everything())
+        probe = bus.keys.state("probe")
+        answer_queries(pipeline, probe, seen)
         app_tls = Security(root_ca=pki.ca, cert=pki.cert(DASHBOARD), key=pki.key(DASHBOARD), mutual=True)
         with connect(mode="client", connect=endpoint, rig=bus.rig, security=app_tls) as app:
             pose_reaches(pipeline, bus.keys.pose("cam0/marker/2"), app, "cam0/marker/2")
@@ -192,7 +220,7 @@ def test_mutual_tls_names_the_app_by_its_certificate(bus, procs, pki):
                 other.put(bus.keys.pose("cam0/genuine"), b"genuine")
                 time.sleep(0.05)
             wait_until(lambda: bus.keys.pose("cam0/genuine") in seen, START_S, "the pipeline certificate's put")
-            time.sleep(0.5)
+            ask_after_the_puts(app, probe, seen)
             assert f"forged {forged}" not in seen, "an app's put reached the pipeline"
     finally:
         other.close()

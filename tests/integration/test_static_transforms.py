@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from protocol import RIG_FRAME, StaticTransforms
 from services.bus.pubsub import Inbox, Role
@@ -12,6 +13,8 @@ from services.geometry.rotation import rotation_angle
 from services.geometry.se3 import invert
 from services.synthetic.ir_rig import IrRigOptions, IrRigScene
 from tests.integration.support import START_S, collect, start_node, wait_live
+
+pytestmark = pytest.mark.integration
 
 SCENE = {"camera_count": 2, "width": 320, "height": 240, "baseline": 0.25}
 

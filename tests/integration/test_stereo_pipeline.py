@@ -2,8 +2,12 @@
 
 import json
 
+import pytest
+
 from tests.integration.support import START_S
 from tests.viewer_contents import RrdContents
+
+pytestmark = pytest.mark.integration
 
 FRAMES = 40
 

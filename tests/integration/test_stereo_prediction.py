@@ -2,7 +2,11 @@
 
 import json
 
+import pytest
+
 from tests.integration.support import START_S
+
+pytestmark = pytest.mark.integration
 
 FRAMES = 40
 

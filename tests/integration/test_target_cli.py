@@ -7,6 +7,8 @@ import pytest
 
 from services.synthetic import make_scene
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture(scope="module")
 def texture():

@@ -74,6 +74,7 @@ def principal_point_bound_deg(stereo) -> float:
     return float(np.degrees(3 * np.linalg.norm(np.concatenate(turns))))
 
 
+@pytest.mark.slow
 def test_the_rig_is_recovered(stereo):
     assert len(stereo.pairs) == PAIRS and stereo.rejected == ()
     offset_m, angle_deg = pose_errors(invert(stereo.T_second_first))
@@ -104,6 +105,7 @@ def test_corners_fall_on_one_row_after_rectification(stereo):
     assert held_out_errors is not None and np.sqrt(np.mean(held_out_errors ** 2)) < 0.3
 
 
+@pytest.mark.slow
 def test_refined_intrinsics_keep_the_rig(rendered):
     refined = calibrate_stereo(*rendered, BOARD, refine_intrinsics=True)
     offset_m, angle_deg = pose_errors(invert(refined.T_second_first))
@@ -141,6 +143,7 @@ def test_unequal_counts_are_refused(rendered):
         calibrate_stereo(left, right[:-1], BOARD)
 
 
+@pytest.mark.slow
 def test_a_camera_that_never_sees_the_board_is_refused(rendered):
     left, right = rendered
     blank = [(name, np.full(SIZE[::-1], 200, np.uint8)) for name, _ in right]
@@ -148,6 +151,7 @@ def test_a_camera_that_never_sees_the_board_is_refused(rendered):
         calibrate_stereo(left, blank, BOARD)
 
 
+@pytest.mark.slow
 def test_pairs_without_the_board_in_both_views_are_rejected(rendered):
     left, right = rendered
     blank = np.full(SIZE[::-1], 200, np.uint8)

@@ -54,6 +54,7 @@ def errors(recognizer, frames, K, dist=None, distort=None):
     return np.array(rotation), np.array(translation)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("feature", ["orb", "sift"])
 def test_the_scene_target_is_recognised_in_every_frame_within_the_bars(scene, frames, feature):
     recognizer = TargetRecognizer(build_target("poster", scene.texture, scene.size_m[0], feature))

@@ -72,6 +72,7 @@ def summary(name, rotation, translation, seconds):
             f"{1e3 * np.median(seconds):.1f} ms a frame")
 
 
+@pytest.mark.slow
 def test_tracking_is_never_lost_and_at_least_as_accurate_as_recognition_alone(scene, frames, target):
     K = scene.cameras[0].K
     poses, tracked_s = track(TargetTracker(target), frames, K)
@@ -100,6 +101,7 @@ def test_tracking_is_never_lost_and_at_least_as_accurate_as_recognition_alone(sc
     assert all(p.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(p.covariance) > 0) for p in poses)
 
 
+@pytest.mark.slow
 def test_alignment_refines_the_tracked_pose(scene, frames, target):
     K = scene.cameras[0].K
     some = frames[:40]

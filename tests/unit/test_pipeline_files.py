@@ -4,7 +4,6 @@ import shlex
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from services.cli import main
 from services.estimation.markers.map import load_marker_map
@@ -14,10 +13,18 @@ from services.synthetic import make_scene
 PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
 
 
-@pytest.mark.parametrize("path", sorted(PIPELINES.glob("*.toml")), ids=lambda p: p.name)
-def test_every_bundled_pipeline_file_validates(path):
-    spec = read_pipeline(path)
-    assert spec.nodes and all(node.kind for node in spec.nodes.values())
+WIRING = {
+    "echo.toml": {"cam": (), "echo": ("cam",)},
+    "marker.toml": {"capture": (), "marker-cam0": ("capture",)},
+    "marker_board.toml": {"cam": (), "markers": ("cam",), "pose": ("cam", "markers")},
+}
+"""Each bundled pipeline file: the nodes each of its nodes reads from (its flow plan's upstream)."""
+
+
+def test_every_bundled_pipeline_file_wires_its_nodes_to_one_another():
+    wiring = {path.name: {name: plan.upstream for name, plan in read_pipeline(path).flow_plans().items()}
+              for path in sorted(PIPELINES.glob("*.toml"))}
+    assert wiring == WIRING
 
 
 def test_the_bundled_board_is_the_markers_scene_board():

@@ -54,6 +54,7 @@ def median_errors(poses, truth):
     return np.degrees(np.median(errors[:, 0])), 1e3 * np.median(errors[:, 1])
 
 
+@pytest.mark.slow
 def test_the_filter_stills_a_static_target():
     raw, filtered, _ = tracked("static", 60)
     before, after = jitter(raw[SETTLE:]), jitter(filtered[SETTLE:])
@@ -62,6 +63,7 @@ def test_the_filter_stills_a_static_target():
     assert after[0] < before[0] / 2.5 and after[1] < before[1] / 2
 
 
+@pytest.mark.slow
 def test_the_filter_does_not_lag_on_motion():
     """What the filter adds to the error on motion is under 2 % of a frame's motion: it trails by
     less than a fiftieth of a frame (a plain low-pass at its 0.5 Hz cut-off would trail by about ten)."""

@@ -130,6 +130,7 @@ def test_noisy_sightings_give_scale_within_half_a_percent(seed):
     assert anchor.anchor.baseline_m > 0.8 and anchor.anchor.breadth_m > 0.3
 
 
+@pytest.mark.slow
 def test_rays_are_more_accurate_than_camera_centres():
     figures = {}
     for method in ("rays", "centres"):

@@ -81,6 +81,7 @@ def assert_tracked_well(run: Run, first: int) -> None:
             assert errors[place] < MAX_ERROR_M, (place, errors[place])
 
 
+@pytest.mark.slow
 def test_textureless_frames_before_the_map_wait_then_the_map_starts(scene):
     system = SlamSystem(scene.cameras[0], mapping="inline")
     run = Run([], [])
@@ -94,6 +95,7 @@ def test_textureless_frames_before_the_map_wait_then_the_map_starts(scene):
     system.close()
 
 
+@pytest.mark.slow
 def test_textureless_and_noise_frames_are_lost_then_relocalised(scene):
     system, run = mapped(scene)
     noise = np.random.default_rng(5).integers(0, 256, (480, 640), np.uint8)
@@ -114,6 +116,7 @@ def stamp_of(scene, index: int) -> int:
     return next(room_frames(scene, [index]))[0]
 
 
+@pytest.mark.slow
 def test_a_frame_of_elsewhere_in_the_sequence_then_the_sequence_goes_on(scene):
     """Frame 1310 (43 s on, near frame 92: outside the mapped stretch) comes at frame 60's stamp."""
     system, run = mapped(scene)
@@ -127,6 +130,7 @@ def test_a_frame_of_elsewhere_in_the_sequence_then_the_sequence_goes_on(scene):
     system.close()
 
 
+@pytest.mark.slow
 def test_a_frame_stamped_far_ahead_then_the_sequence_goes_on_and_keeps_making_keyframes(scene):
     """Frame 1310 (43 s on, near frame 92) with its own stamp becomes a keyframe, then frames 60 on come:
     the sequence stepped back by 41 s, more than ``STEP_BACK_S``, so they are tracked, not skipped, and
@@ -141,6 +145,7 @@ def test_a_frame_stamped_far_ahead_then_the_sequence_goes_on_and_keeps_making_ke
     system.close()
 
 
+@pytest.mark.slow
 def test_frames_out_of_order_are_skipped_and_a_step_far_back_is_tracked(scene, caplog):
     system, run = mapped(scene)
     with caplog.at_level(logging.WARNING, logger="services.slam.system"):
@@ -167,6 +172,7 @@ def formats(grey: np.ndarray) -> list[np.ndarray]:
     return [grey, bgr, np.dstack([bgr, np.full_like(grey, 255)]), mono16, np.repeat(mono16[:, :, None], 3, axis=2)]
 
 
+@pytest.mark.slow
 def test_grey_colour_and_16_bit_frames_track_alike_and_unusable_ones_are_skipped(scene, caplog):
     system = SlamSystem(scene.cameras[0], mapping="inline")
     run = Run([], [])
@@ -197,6 +203,7 @@ def test_a_camera_matrix_slam_cannot_use_is_refused_in_one_line(scene, entry, va
         SlamSystem(dataclasses.replace(scene.cameras[0], K=K), mapping="inline")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fx_scale, principal_shift", [(1.3, (0, 0)), (0.7, (0, 0)), (1.0, (60, -45))])
 def test_a_wrong_camera_matrix_is_reported_on_every_tracked_frame_after_the_check(scene, caplog, fx_scale,
                                                                                    principal_shift):

@@ -25,6 +25,7 @@ def assert_same_map(copy: MapDatabase, original: MapDatabase) -> None:
         assert (other.min_distance, other.max_distance) == (point.min_distance, point.max_distance)
 
 
+@pytest.mark.slow
 def test_a_copy_fed_the_changes_after_every_frame_stays_the_map():
     """Every change the tracker and the mapper make to a map (keyframes, triangulation, fusion, culling,
     bundle adjustment) reaches a copy restored from its snapshot and fed ``take_changes`` after each frame."""

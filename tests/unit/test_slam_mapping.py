@@ -93,6 +93,7 @@ def track_room(camera: CameraModel, frames: int, wait_for_mapping: bool) -> tupl
     return results, timings, mapper
 
 
+@pytest.mark.slow
 def test_a_keyframe_decision_waits_for_a_busy_mapper_when_asked(room_camera):
     waited, waited_timings, mapper = track_room(room_camera, 45, wait_for_mapping=True)
     asked = [i for i, timings in enumerate(waited_timings) if "mapping_wait" in timings]
@@ -222,7 +223,8 @@ def test_bad_frames_are_reported_not_raised(room_camera):
     assert (blank.state, blank.reason) == (TrackingState.INITIALISING, "no_texture")
 
 
-@pytest.mark.parametrize("mapping", ["thread", "process"])
+@pytest.mark.slow
+@pytest.mark.parametrize("mapping", ["thread", pytest.param("process", marks=pytest.mark.integration)])
 def test_room_tracked_while_mapping_apart(room_camera, mapping):
     """Every frame fed, as in a lossless run, whose keyframe decisions wait for the mapper
     (``wait_for_mapping``): a loaded machine, whose mapper is busy longer, makes no fewer keyframes."""
@@ -251,6 +253,7 @@ def test_room_tracked_while_mapping_apart(room_camera, mapping):
     np.testing.assert_allclose(keyframes[0][2], np.eye(4), atol=1e-9)
 
 
+@pytest.mark.slow
 def test_lost_on_blank_frames_then_relocalised(room_camera):
     scene = make_scene("room")
     system = SlamSystem(room_camera, mapping="inline")

@@ -23,6 +23,8 @@ from services.slam.system import SlamSystem
 from services.synthetic import make_scene
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
 
+pytestmark = pytest.mark.slow
+
 MAPPED_FRAMES = 120
 JUMPS = {1310: 92, 820: 54}
 """Frame far away in time -> the mapped frame nearest to it."""

@@ -1,12 +1,15 @@
 """``SlamSystem.trajectory``: every tracked frame's pose through its reference keyframe's current pose."""
 
 import numpy as np
+import pytest
 
 from protocol.tracking_state import TrackingState
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import invert, make_transform
 from services.slam.system import SlamSystem
 from services.synthetic import make_scene
+
+pytestmark = pytest.mark.slow
 
 
 def test_trajectory_follows_the_keyframes():

@@ -8,6 +8,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from services.launcher.supervisor import ProcessSpec, Supervisor, SupervisorSettings, reason_of
 from services.runtime.restarts import RESTART_ENV
 
@@ -21,6 +23,7 @@ def _until_settled(supervisor: Supervisor) -> None:
     supervisor.run(stop, poll_s=0.01)
 
 
+@pytest.mark.integration
 def test_the_last_stderr_line_is_the_reason_a_child_exited(capfd):
     code = "import sys; print('starting', file=sys.stderr); print('no camera 7', file=sys.stderr); sys.exit(2)"
     supervisor = Supervisor([_child("cam", code, restart=False)])
@@ -31,6 +34,7 @@ def test_the_last_stderr_line_is_the_reason_a_child_exited(capfd):
     assert "starting\nno camera 7\n" in capfd.readouterr().err  # passed on, not swallowed
 
 
+@pytest.mark.integration
 def test_a_zenoh_log_line_after_the_childs_own_is_passed_on_but_is_not_the_reason(capfd):
     zenoh_line = "\\x1b[2m2026-11-26T23:12Z\\x1b[0m \\x1b[31mERROR\\x1b[0m zenoh::net::protocol::gossip: unknown link"
     code = f"import sys; print('no camera 7', file=sys.stderr); print('{zenoh_line}', file=sys.stderr); sys.exit(2)"
@@ -51,6 +55,7 @@ def test_log_lines_are_reduced_to_their_message():
     assert reason_of("plain words") == "plain words"
 
 
+@pytest.mark.integration
 def test_children_learn_their_restart_number_and_a_spent_budget_says_the_cause_was_the_same(tmp_path: Path):
     seen = tmp_path / "restarts"
     code = (f"import os, sys; open({str(seen)!r}, 'a').write(os.environ[{RESTART_ENV!r}] + ' '); "
@@ -64,6 +69,7 @@ def test_children_learn_their_restart_number_and_a_spent_budget_says_the_cause_w
                                          "allows; each time: disk full")
 
 
+@pytest.mark.integration
 def test_a_child_that_cannot_do_its_job_is_failed_at_once_and_says_why(tmp_path: Path):
     seen = tmp_path / "starts"
     code = (f"import sys; open({str(seen)!r}, 'a').write('start '); "
@@ -79,6 +85,7 @@ def test_a_child_that_cannot_do_its_job_is_failed_at_once_and_says_why(tmp_path:
                                          "no camera 7")
 
 
+@pytest.mark.integration
 def test_a_killed_child_is_said_to_be_killed_whatever_it_wrote_last():
     code = "import os, signal, sys; print('recording', file=sys.stderr, flush=True); os.kill(os.getpid(), 9)"
     supervisor = Supervisor([_child("rec", code, restart=False)])
