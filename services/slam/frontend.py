@@ -21,9 +21,11 @@ Then, for each frame (as ORB-SLAM does):
 With ``localisation_only`` the map stays as it is: frames are tracked, no keyframe is made.
 
 The keyframe decision (``mapping.keyframe_decision``) may hang on whether the mapper is idle, which
-depends on the machine's load when mapping runs apart. With ``wait_for_mapping`` the tracker then
-waits for the mapper to be idle (at most ``MAPPING_WAIT_S``, a warning when that passes), so that a
-run fed every frame does not make fewer keyframes on a busy machine than on an idle one.
+depends on the machine's load when mapping runs apart. With ``wait_for_mapping`` the tracker waits
+for the mapper instead (at most ``MAPPING_WAIT_S``, a warning when that passes): after each keyframe
+it makes, until that keyframe is mapped and its changes are in, so each frame is tracked against the
+map inline mapping would give it and a run fed every frame gives the same poses on a busy machine as
+on an idle one.
 
 Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
 """
@@ -227,6 +229,8 @@ class Tracker:
         with stage_timer(timings, "keyframe"):
             if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
                 keyframe_id = self._insert_keyframe(frame)
+                if self.wait_for_mapping:
+                    self._wait_for_mapper(frame, timings)
         return Tracked(TrackingState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
     def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,

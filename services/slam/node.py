@@ -30,10 +30,10 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   that ``initialising`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
   ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
 
-Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): a
-keyframe decision that hangs on the mapper being idle waits for it (``SlamSystem``'s ``wait_for_mapping``;
-the source waits for the node meanwhile), so that a loaded machine, whose mapper is busy longer, does not
-make fewer keyframes and lose the track. A real-time run never waits: a busy mapper means no keyframe yet.
+Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): each
+new keyframe is mapped before the next frame is tracked (``SlamSystem``'s ``wait_for_mapping``; the source
+waits for the node meanwhile), so the poses are those of inline mapping, the same on a loaded machine as on
+an idle one. A real-time run never waits: a busy mapper means no keyframe yet.
 
 Map files (``services.slam.map.file``): with ``map`` every new system starts from that file's map
 (relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last

@@ -5,8 +5,8 @@ It ties together the feature extraction (``features``), the tracker (``frontend`
 default, ``mapping_process``), on a thread (``"thread"``) or inline (``"inline"``: each keyframe
 mapped before ``process`` returns; deterministic). Mapping apart, a keyframe decision that hangs on
 the mapper being idle takes it as busy when it is (real time: tracking never waits), or with
-``wait_for_mapping`` waits for it (``frontend``): a run fed every frame then makes no fewer
-keyframes on a loaded machine.
+``wait_for_mapping`` each new keyframe is mapped before the next frame is tracked (``frontend``): a
+run fed every frame then gives inline mapping's poses, whatever the load.
 A map saved by an earlier run (``map.file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.
@@ -102,9 +102,9 @@ class SlamSystem:
     ``map_path``: a map file to start from (``map.file.load_map``; ``MapFileError`` when it does not
     fit this camera or these settings' pyramid; ValueError for a camera matrix without positive focal
     lengths or with its principal point outside the image). ``localisation_only``: never change the map.
-    ``save_path``: where ``close`` saves the map (None: not saved). ``wait_for_mapping``: a keyframe
-    decision that hangs on the mapper being idle waits for it (for runs fed every frame, whose frames
-    may wait; off: real time, the decision takes a busy mapper as busy)."""
+    ``save_path``: where ``close`` saves the map (None: not saved). ``wait_for_mapping``: each new
+    keyframe is mapped before the next frame is tracked (for runs fed every frame, whose frames may wait:
+    inline mapping's poses, whatever the load; off: real time, the decision takes a busy mapper as busy)."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings | None = None, *, mapping: str = "process",
                  map_path: str | os.PathLike[str] | None = None, localisation_only: bool = False,

@@ -5,10 +5,9 @@
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
 The system runs as users run it, its local mapping in a process of its own (``mapping="process"``,
-the default) unless told otherwise, fed the frames back to back as a lossless run feeds it: its
-keyframe decisions wait for a busy mapper (``wait_for_mapping``). Where the tracker outruns the
-mapping process (KITTI, TUM: docs/slam.md, known limits) a run's figures still depend on the load;
-inline (``mapping="inline"``) they do not. Scoring: ATE RMSE after a Sim(3) alignment
+the default) unless told otherwise, fed the frames back to back as a lossless run feeds it: each new
+keyframe is mapped before the next frame is tracked (``wait_for_mapping``), so the figures are those of
+inline mapping (``mapping="inline"``) and do not depend on the load. Scoring: ATE RMSE after a Sim(3) alignment
 (``services.geometry.evaluation``) of every frame given a pose, against the ground truth of the same
 frame. ``python -m tests.accuracy.slam_sequences
 [room|room@<seed>|kitti|tum ...] [--mapping=process|thread|inline]`` prints the figures.

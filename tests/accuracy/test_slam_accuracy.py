@@ -3,12 +3,9 @@ tracked from the first tracked one on, none lost (``tests/accuracy/slam_sequence
 sequences; its ``__main__`` prints the figures).
 
 Every sequence runs as users run SLAM: local mapping in a process of its own, the frames fed back to
-back as a lossless run feeds them (keyframe decisions wait for the mapper). The room meets its bars
-so. KITTI and TUM do not: the tracker outruns the mapping process, a keyframe's new points reaching it
-after the frames that needed them (docs/slam.md, known limits; KITTI lost 42 of 51 frames, TUM 10 of
-19, a count that depends on the load). Those runs are expected to fail (``OUTRUN``), their bars
-unchanged; the same bars hold with inline mapping (each keyframe mapped before the next frame), the
-algorithms' own accuracy.
+back as a lossless run feeds them (each new keyframe mapped before the next frame is tracked, so the
+figures do not depend on the load). The same figures come from mapping inline, held by
+``test_the_mapping_process_tracks_as_inline_mapping_does``.
 
 Two trajectories are scored. The final one (``SlamSystem.trajectory``: each tracked frame through its
 reference keyframe's bundle-adjusted pose, what SLAM benchmarks score and what a user exports at the
@@ -36,22 +33,21 @@ def check(result: SlamRun, final_bar_m: float, online_bar_m: float) -> None:
     assert result.ate_m <= online_bar_m, result.line()
 
 
-OUTRUN = pytest.mark.xfail(raises=AssertionError, strict=False, reason=(
-    "fed back to back, the tracker outruns the mapping process and loses the map (docs/slam.md, known limits)"))
-"""A mapping process that new keyframes' points reach too late for the frames that follow."""
-MAPPINGS = [pytest.param("process", marks=OUTRUN), "inline"]
-
-
 def test_room_trajectory_within_one_percent_of_its_length():
     result = run(room())
     check(result, 0.01 * result.length_m, 0.01 * result.length_m)
 
 
-@pytest.mark.parametrize("mapping", MAPPINGS)
-def test_kitti_06_trajectory_within_5_cm(mapping):
-    check(run(kitti(data_dir(KITTI)), mapping), 0.05, 0.08)
+def test_kitti_06_trajectory_within_5_cm():
+    check(run(kitti(data_dir(KITTI))), 0.05, 0.08)
 
 
-@pytest.mark.parametrize("mapping", MAPPINGS)
-def test_tum_long_office_1hz_trajectory_within_2_cm(mapping):
-    check(run(tum(data_dir(TUM)), mapping), 0.02, 0.025)
+def test_tum_long_office_1hz_trajectory_within_2_cm():
+    check(run(tum(data_dir(TUM))), 0.02, 0.025)
+
+
+def test_the_mapping_process_tracks_as_inline_mapping_does():
+    apart, inline = run(tum(data_dir(TUM)), "process"), run(tum(data_dir(TUM)), "inline")
+    assert apart.states == inline.states
+    assert apart.final_ate_m == pytest.approx(inline.final_ate_m, abs=1e-9)
+    assert apart.ate_m == pytest.approx(inline.ate_m, abs=1e-9)
