@@ -12,6 +12,7 @@ and the shape given::
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,9 +21,33 @@ from numpy.typing import DTypeLike
 __all__ = ["check_shape"]
 
 
+@dataclass(frozen=True)
+class _Shape:
+    """A parsed shape: ``sizes`` as written, whether a ``*`` leads, the sizes fixed (axis from the end ->
+    size) and the axes a recurring name ties together (pairs of axes from the end)."""
+
+    leading: bool
+    sizes: tuple[int | str, ...]
+    fixed: tuple[tuple[int, int], ...]
+    tied: tuple[tuple[int, int], ...]
+
+    def fits(self, actual: tuple[int, ...]) -> bool:
+        if len(actual) < len(self.sizes) or (len(actual) > len(self.sizes) and not self.leading):
+            return False
+        for axis, size in self.fixed:
+            if actual[axis] != size:
+                return False
+        return not self.tied or all(actual[a] == actual[b] for a, b in self.tied)
+
+    def __str__(self) -> str:
+        """As a tuple is printed: ``(N, 3)``, ``(N,)``, ``(*, 3, 3)``."""
+        parts = ["*"] * self.leading + [str(size) for size in self.sizes]
+        return f"({parts[0]},)" if len(parts) == 1 else "(" + ", ".join(parts) + ")"
+
+
 @functools.cache
-def _parse(shape: str) -> tuple[bool, tuple[int | str, ...]]:
-    """``(leading *, sizes)`` of a written shape; ValueError for a malformed one."""
+def _parse(shape: str) -> _Shape:
+    """The parsed ``shape``; ValueError for a malformed one."""
     tokens = [token.strip() for token in shape.split(",")] if shape.strip() else []
     leading = bool(tokens) and tokens[0] == "*"
     sizes: list[int | str] = []
@@ -33,31 +58,20 @@ def _parse(shape: str) -> tuple[bool, tuple[int | str, ...]]:
             sizes.append(token)
         else:
             raise ValueError(f"shape {shape!r}: {token!r} is neither a size nor a name (a leading * only)")
-    return leading, tuple(sizes)
-
-
-def _written(leading: bool, sizes: tuple[int | str, ...]) -> str:
-    """A shape as a tuple is printed: ``(N, 3)``, ``(N,)``, ``(*, 3, 3)``."""
-    parts = ["*"] * leading + [str(size) for size in sizes]
-    return f"({parts[0]},)" if len(parts) == 1 else "(" + ", ".join(parts) + ")"
+    axes = [axis - len(sizes) for axis in range(len(sizes))]
+    first: dict[str, int] = {}
+    tied = [(first.setdefault(size, axis), axis) for axis, size in zip(axes, sizes, strict=True)
+            if isinstance(size, str) and first.setdefault(size, axis) != axis]
+    fixed = [(axis, size) for axis, size in zip(axes, sizes, strict=True) if isinstance(size, int)]
+    return _Shape(leading, tuple(sizes), tuple(fixed), tuple(tied))
 
 
 def check_shape(array: Any, shape: str, name: str = "array", dtype: DTypeLike | None = None) -> np.ndarray:
     """``array`` as a numpy array (``np.asarray``, of ``dtype`` when given) once its shape is ``shape``
     (see the module docstring); ValueError naming ``name``, the expected and the actual shape otherwise."""
-    found = np.asarray(array, dtype=dtype)
-    leading, sizes = _parse(shape)
-    if not _fits(leading, sizes, found.shape):
-        raise ValueError(f"{name} must have shape {_written(leading, sizes)}, got {found.shape}")
+    found = array if type(array) is np.ndarray and (dtype is None or array.dtype == dtype) \
+        else np.asarray(array, dtype=dtype)
+    expected = _parse(shape)
+    if found.shape != expected.sizes and not expected.fits(found.shape):
+        raise ValueError(f"{name} must have shape {expected}, got {found.shape}")
     return found
-
-
-def _fits(leading: bool, sizes: tuple[int | str, ...], actual: tuple[int, ...]) -> bool:
-    if len(actual) < len(sizes) or (len(actual) > len(sizes) and not leading):
-        return False
-    bound: dict[str, int] = {}
-    for size, given in zip(sizes, actual[len(actual) - len(sizes):], strict=True):
-        expected = size if isinstance(size, int) else bound.setdefault(size, given)
-        if given != expected:
-            return False
-    return True

@@ -50,6 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.detection.keypoints.corners import PATCH_PX, corner_keypoints, find_corners, pyramid
 from services.detection.keypoints.spread import spread_anms, spread_grid
+from services.geometry.shapes import check_shape
 
 __all__ = ["EDGE_PX", "METHODS", "TEBLID_SCALE", "KeypointDetector", "KeypointParams", "Keypoints", "detect_keypoints",
            "orb_image_points", "teblid_available"]
@@ -92,15 +93,10 @@ class Keypoints:
     norm: Norm
 
     def __post_init__(self) -> None:
-        n = len(self.points)
-        if np.shape(self.points) != (n, 2):
-            raise ValueError(f"points must be (N, 2), not {np.shape(self.points)}")
+        n = len(check_shape(self.points, "N,2", "points"))
         for field in fields(self)[1:5]:
-            if np.shape(getattr(self, field.name)) != (n,):
-                shape = np.shape(getattr(self, field.name))
-                raise ValueError(f"{field.name} must be ({n},) like the points, not {shape}")
-        if self.descriptors.ndim != 2 or len(self.descriptors) != n:
-            raise ValueError(f"descriptors must be ({n}, D), not {self.descriptors.shape}")
+            check_shape(getattr(self, field.name), f"{n}", field.name)
+        check_shape(self.descriptors, f"{n},D", "descriptors")
 
     def __len__(self) -> int:
         return len(self.points)
