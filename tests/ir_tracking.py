@@ -19,7 +19,7 @@ from protocol.message import Header
 from services.detection.blobs.node import Params as BlobsParams
 from services.detection.blobs.node import as_message, detector
 from services.estimation.bodies.correspondence import triangulate_blobs
-from services.estimation.bodies.node import Params, pixels
+from services.estimation.bodies.node import Params, PointNoise, pixels
 from services.estimation.bodies.rigid import match_bodies
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
@@ -80,16 +80,16 @@ def track(scene: IrRigScene, indices: Sequence[int], blobs: Sequence[Sequence[Bl
     which the truth is expressed in (default: identity, the scene's own rig)."""
     cameras = list(scene.cameras if cameras is None else cameras)
     params = params or Params(cameras=tuple(c.name for c in cameras))
-    correspondence, matching, noise = params.correspondence(), params.matching(), params.point_noise()
+    noise = PointNoise(params.correspondence)
     out = []
     for index, frame in zip(indices, blobs, strict=True):
-        found = triangulate_blobs(cameras, [pixels(b, params.flagged) for b in frame], correspondence)
+        found = triangulate_blobs(cameras, [pixels(b, params.flagged) for b in frame], params.correspondence)
         if not found:
             continue
         points, covariances = noise.arrays(found)
         truth = {name: T_world_body if T_frame_world is None else T_frame_world @ T_world_body
                  for name, T_world_body in scene.body_poses(index).items()}
-        for name, match in match_bodies(scene.bodies, points, covariances, matching).bodies.items():
+        for name, match in match_bodies(scene.bodies, points, covariances, params.match).bodies.items():
             fit = match.fit
             assert fit.covariance is not None
             out.append(Tracked(index, name, fit.T_world_body, truth[name],

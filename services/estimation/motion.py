@@ -19,8 +19,8 @@ extrapolation, ``(1 + r)^2 S_1 + r^2 S_0`` with ``r = tau / dt`` (the fits taken
 what an unmodelled acceleration adds: ``(tau^2 / 2)^2`` times the squared ``angular_acceleration``
 (rad/s^2) on each rotation axis and the squared ``acceleration`` (m/s^2) on each translation axis.
 
-A pose newer than ``max_gap_ns`` after the previous one starts the model afresh (the old velocity
-says nothing any more), and no prediction is made more than ``max_gap_ns`` after the newest pose.
+A pose newer than ``max_gap_s`` after the previous one starts the model afresh (the old velocity
+says nothing any more), and no prediction is made more than ``max_gap_s`` after the newest pose.
 """
 
 from __future__ import annotations
@@ -28,32 +28,36 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import check_transform, make_transform
+from services.geometry.shapes import check_shape
 
 __all__ = ["DEFAULT_MOTION", "MotionOptions", "Prediction", "ConstantVelocity"]
 
 NS_PER_S = 1_000_000_000
 
 
-@dataclass(frozen=True)
-class MotionOptions:
-    """``max_gap_ns``: longest time (ns) between two poses of one motion, and from the newest pose to a
-    prediction; ``acceleration``: m/s^2 and ``angular_acceleration``: rad/s^2, the spread (one sigma, per
-    axis) of the accelerations the model ignores, which grows a prediction's covariance."""
+class MotionOptions(BaseModel):
+    """How long a motion holds, and the accelerations it ignores (see the module docstring)."""
 
-    max_gap_ns: int = 200_000_000
-    acceleration: float = 5.0
-    angular_acceleration: float = 20.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if isinstance(self.max_gap_ns, bool) or not isinstance(self.max_gap_ns, int) or self.max_gap_ns <= 0:
-            raise ValueError(f"max_gap_ns must be an integer > 0 (nanoseconds), got {self.max_gap_ns!r}")
-        for name in ("acceleration", "angular_acceleration"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    max_gap_s: float = Field(default=0.2, gt=0, allow_inf_nan=False,
+                             description="longest time between two poses of one motion, and from the newest pose "
+                                         "to a prediction, s: a motion older than that is forgotten")
+    acceleration: float = Field(default=5.0, ge=0, allow_inf_nan=False,
+                                description="spread (one sigma, per axis) of the linear accelerations the model "
+                                            "ignores, which grows a prediction's covariance, m/s^2")
+    angular_acceleration: float = Field(default=20.0, ge=0, allow_inf_nan=False,
+                                        description="spread (one sigma, per axis) of the angular accelerations the "
+                                                    "model ignores, rad/s^2")
+
+    @property
+    def max_gap_ns(self) -> int:
+        """``max_gap_s`` in nanoseconds (at least 1)."""
+        return max(1, round(self.max_gap_s * NS_PER_S))
 
 
 DEFAULT_MOTION = MotionOptions()
@@ -95,13 +99,11 @@ class ConstantVelocity:
     def update(self, stamp_ns: int, T_world_body: np.ndarray, covariance: np.ndarray | None = None) -> None:
         """Take a fitted pose ``T_world_body`` (4, 4) at ``stamp_ns`` with its (6, 6) covariance (or None: zero).
 
-        A stamp not after the newest one is refused (ValueError); one more than ``max_gap_ns`` after it
+        A stamp not after the newest one is refused (ValueError); one more than ``max_gap_s`` after it
         starts the model afresh.
         """
         T = check_transform(T_world_body, "T_world_body")
-        sigma = np.zeros((6, 6)) if covariance is None else np.asarray(covariance, dtype=np.float64)
-        if sigma.shape != (6, 6):
-            raise ValueError(f"covariance must be (6, 6), got shape {sigma.shape}")
+        sigma = np.zeros((6, 6)) if covariance is None else check_shape(covariance, "6,6", "covariance", np.float64)
         if self._samples:
             newest = self._samples[-1].stamp_ns
             if stamp_ns <= newest:
@@ -123,7 +125,7 @@ class ConstantVelocity:
         return omega, v
 
     def predict(self, stamp_ns: int) -> Prediction | None:
-        """The pose at ``stamp_ns``, None before two poses are known or more than ``max_gap_ns`` after the newest."""
+        """The pose at ``stamp_ns``, None before two poses are known or more than ``max_gap_s`` after the newest."""
         if not self.ready:
             return None
         old, new = self._samples

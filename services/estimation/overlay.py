@@ -37,6 +37,7 @@ import numpy as np
 
 from services.geometry.camera import UNDISTORT_CRITERIA
 from services.geometry.se3 import transform_points
+from services.geometry.shapes import check_shape
 
 CUBE_COLOR = (255, 0, 255)
 AXIS_COLORS = ((0, 0, 255), (0, 255, 0), (255, 0, 0))
@@ -78,17 +79,17 @@ def draw_overlay(image: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
     """
     canvas = to_bgr8(image)
     height, width = canvas.shape[:2]
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"K must be a finite (3, 3) matrix, got shape {K.shape}")
+    K = check_shape(K, "3,3", "K", np.float64)
+    if not np.all(np.isfinite(K)):
+        raise ValueError("K must be finite")
     dist = np.zeros(5) if dist is None or np.size(dist) == 0 else np.asarray(dist, dtype=np.float64).ravel()
     thickness = thickness if thickness is not None else max(1, round(min(height, width) / 240))
     bounds = view_bounds(K, dist, width, height)
     for target in targets:
         T, size_m, label, outline = OverlayTarget(*target)
-        T = np.asarray(T, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ValueError(f"T_camera_target must be a finite (4, 4) matrix, got shape {T.shape}")
+        T = check_shape(T, "4,4", "T_camera_target", np.float64)
+        if not np.all(np.isfinite(T)):
+            raise ValueError("T_camera_target must be finite")
         if not (np.isfinite(size_m) and size_m > 0):
             raise ValueError(f"size_m must be a positive length in metres, got {size_m!r}")
         shape = cube_edges(size_m) if outline is None else rectangle_edges(*outline)

@@ -17,16 +17,16 @@ On a pose ``T_camera_target`` (4, 4):
   from ``R_hat`` towards ``R`` by ``alpha``. Working on the step rather than on the rotation's own vector
   keeps the filter free of the vector's wrap at pi and of the choice of origin.
 
-The first pose passes unchanged; so does one more than ``max_gap_ns`` after the previous (a target
+The first pose passes unchanged; so does one more than ``max_gap_s`` after the previous (a target
 seen again after a loss starts afresh).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import check_transform, make_transform
@@ -36,35 +36,28 @@ __all__ = ["OneEuroOptions", "OneEuroPoseFilter"]
 NS_PER_S = 1_000_000_000
 
 
-@dataclass(frozen=True)
-class OneEuroOptions:
-    """``min_cutoff_hz`` and ``beta`` (s/m): the translation's cutoff at rest and its rise with speed;
-    ``rotation_min_cutoff_hz`` and ``rotation_beta`` (s/rad): the rotation's; ``derivative_cutoff_hz``:
-    the cutoff of the speeds; ``max_gap_ns``: a longer pause between poses restarts the filter.
+class OneEuroOptions(BaseModel):
+    """The One Euro filter's cutoffs and speed coefficients.
 
     The defaults suit the tracker's poses of a target a few tenths of a metre away: a still target's pose
     moves by about 0.01 mm and 0.01 deg a frame, a hand-held one by millimetres and tenths of a degree,
     so the cutoff stays near ``min_cutoff_hz`` for the first and far above the motion for the second
     (docs/feature-targets.md has the figures). A noisier estimator needs smaller betas."""
 
-    min_cutoff_hz: float = 0.5
-    beta: float = 10000.0
-    rotation_min_cutoff_hz: float = 0.5
-    rotation_beta: float = 500.0
-    derivative_cutoff_hz: float = 3.0
-    max_gap_ns: int = 200_000_000
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        for name in ("min_cutoff_hz", "rotation_min_cutoff_hz", "derivative_cutoff_hz"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        for name in ("beta", "rotation_beta"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if self.max_gap_ns <= 0:
-            raise ValueError(f"max_gap_ns must be > 0, got {self.max_gap_ns}")
+    min_cutoff_hz: float = Field(default=0.5, gt=0, allow_inf_nan=False, description="the translation's cutoff "
+                                                                                      "at rest, Hz")
+    beta: float = Field(default=10000.0, ge=0, allow_inf_nan=False, description="the translation cutoff's rise "
+                                                                                "with speed, s/m")
+    rotation_min_cutoff_hz: float = Field(default=0.5, gt=0, allow_inf_nan=False, description="the rotation's "
+                                                                                               "cutoff at rest, Hz")
+    rotation_beta: float = Field(default=500.0, ge=0, allow_inf_nan=False, description="the rotation cutoff's rise "
+                                                                                       "with speed, s/rad")
+    derivative_cutoff_hz: float = Field(default=3.0, gt=0, allow_inf_nan=False, description="the cutoff of the "
+                                                                                            "speeds, Hz")
+    max_gap_s: float = Field(default=0.2, gt=0, allow_inf_nan=False, description="a longer pause between poses "
+                                                                                 "restarts the filter, s")
 
 
 def smoothing(cutoff_hz: float | np.ndarray, dt: float) -> float | np.ndarray:
@@ -94,7 +87,7 @@ class OneEuroPoseFilter:
         o = self.options
         if self._stamp_ns is not None and stamp_ns <= self._stamp_ns:
             raise ValueError(f"stamp {stamp_ns} ns is not after the previous pose's, {self._stamp_ns} ns")
-        if self._stamp_ns is None or stamp_ns - self._stamp_ns > o.max_gap_ns:
+        if self._stamp_ns is None or stamp_ns - self._stamp_ns > round(o.max_gap_s * NS_PER_S):
             self.reset()
             self._stamp_ns, self._R, self._t = int(stamp_ns), T[:3, :3].copy(), T[:3, 3].copy()
             return T.copy()

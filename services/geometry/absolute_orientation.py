@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry.se3 import make_transform
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "METHODS",
@@ -47,11 +48,9 @@ squared longest side; the centred points' second singular value to their first).
 
 def _matched(points_body: np.ndarray, points_world: np.ndarray, least: int) -> tuple[np.ndarray, np.ndarray]:
     """Both point sets as (N, 3) float64 arrays of the same length N >= ``least``; ValueError otherwise."""
-    body = np.asarray(points_body, dtype=np.float64)
-    world = np.asarray(points_world, dtype=np.float64)
+    body = check_shape(points_body, "N,3", "points_body", np.float64)
+    world = check_shape(points_world, "N,3", "points_world", np.float64)
     for name, array in (("points_body", body), ("points_world", world)):
-        if array.ndim != 2 or array.shape[1] != 3:
-            raise ValueError(f"{name} must be (N, 3) points, got shape {array.shape}")
         if not np.all(np.isfinite(array)):
             raise ValueError(f"{name} must be finite, got NaN or infinity")
     if len(body) != len(world):
@@ -71,7 +70,8 @@ def umeyama_alignment(source: np.ndarray, target: np.ndarray,
     cross-covariance with the reflection removed. Points on one line leave the rotation about that
     line free; with ``with_scale`` the source points must not all coincide (ValueError).
     """
-    src, dst = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    src = check_shape(source, "N,3", "source", np.float64)
+    dst = check_shape(target, f"{len(src)},3", "target", np.float64)
     mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
     src_c, dst_c = src - mu_src, dst - mu_dst
     U, D, Vt = np.linalg.svd(dst_c.T @ src_c / len(src))
@@ -106,10 +106,10 @@ def least_squares_transforms(points_body: np.ndarray, points_world: np.ndarray,
     the pairs each set is made of (default all; at least 3 per set; the others may hold any finite value).
     One batched SVD of the cross-covariances, the reflection removed as ``umeyama_alignment`` does.
     """
-    body, world = np.asarray(points_body, dtype=np.float64), np.asarray(points_world, dtype=np.float64)
-    if body.ndim != 3 or body.shape != world.shape or body.shape[2] != 3:
-        raise ValueError(f"least_squares_transforms needs two (P, N, 3) arrays, got {body.shape} and {world.shape}")
-    weight = np.ones(body.shape[:2]) if used is None else np.asarray(used, dtype=np.float64)
+    body = check_shape(points_body, "P,N,3", "points_body", np.float64)
+    sets, points = body.shape[:2]
+    world = check_shape(points_world, f"{sets},{points},3", "points_world", np.float64)
+    weight = np.ones((sets, points)) if used is None else check_shape(used, f"{sets},{points}", "used", np.float64)
     count = weight.sum(axis=1)
     if np.any(count < 3):
         raise ValueError("least_squares_transforms needs at least 3 matched points per set")
@@ -159,7 +159,8 @@ def pose_jacobians(T_world_body: np.ndarray, points_body: np.ndarray) -> np.ndar
     The pose perturbation is ``(dtheta, dt)``: ``R = exp([dtheta]x) R_hat`` and ``t = t_hat + dt``,
     both in the world frame (see ``fit_rigid``), so the block is ``[-[R_hat b_i]x, I]``.
     """
-    rotated = np.asarray(points_body, dtype=np.float64) @ np.asarray(T_world_body)[:3, :3].T
+    rotated = (check_shape(points_body, "N,3", "points_body", np.float64)
+               @ check_shape(T_world_body, "4,4", "T_world_body")[:3, :3].T)
     J = np.zeros((len(rotated), 3, 6))
     x, y, z = rotated[:, 0], rotated[:, 1], rotated[:, 2]
     J[:, 0, 1], J[:, 0, 2] = z, -y
@@ -178,9 +179,7 @@ def pose_covariance(T_world_body: np.ndarray, points_body: np.ndarray, covarianc
     when every ``Sigma_i`` is the same isotropic matrix. Order and frame as in ``fit_rigid``.
     """
     J = pose_jacobians(T_world_body, points_body)
-    sigma = np.asarray(covariances, dtype=np.float64)
-    if sigma.shape != (len(J), 3, 3):
-        raise ValueError(f"covariances must be ({len(J)}, 3, 3), one per point, got shape {sigma.shape}")
+    sigma = check_shape(covariances, f"{len(J)},3,3", "covariances", np.float64)
     H = np.einsum("nki,nkj->ij", J, J)
     B = np.einsum("nki,nkl,nlj->ij", J, sigma, J)
     H_inv = np.linalg.inv(H)
@@ -232,8 +231,8 @@ def fit_rigid(points_body: np.ndarray, points_world: np.ndarray, covariances: np
 def child_frame_covariance(covariance: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
     """A ``RigidFit`` covariance ((6, 6), world-frame ``(dtheta, dt)``) as ``Pose.covariance`` wants it:
     (6, 6) over ``(tx, ty, tz, rx, ry, rz)`` in the body frame (``T_true = T_est exp(xi)``)."""
-    R_t = np.asarray(T_world_body, np.float64)[:3, :3].T
+    R_t = check_shape(T_world_body, "4,4", "T_world_body", np.float64)[:3, :3].T
     A = np.zeros((6, 6))
     A[:3, 3:] = R_t
     A[3:, :3] = R_t
-    return A @ np.asarray(covariance, np.float64) @ A.T
+    return A @ check_shape(covariance, "6,6", "covariance", np.float64) @ A.T

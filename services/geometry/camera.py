@@ -13,6 +13,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from services.geometry.shapes import check_shape
+
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
 
 
@@ -39,11 +41,13 @@ def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
 
 
 def project_points(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
-    """(N, 2) float64 pixels of (N, 3) points in the camera frame (cv2.projectPoints, with distortion).
+    """(N, 2) float64 pixels of (N, 3) points in the camera frame (or one (3,) point) by the (3, 3) ``K``
+    (cv2.projectPoints, with distortion).
 
     Points must lie in front of the camera (z > 0); behind it the result is meaningless.
     """
-    points_cam = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    points_cam = check_shape(points_cam, "*,3", "points_cam", np.float64).reshape(-1, 3)
+    K = check_shape(K, "3,3", "K")
     if len(points_cam) == 0:
         return np.zeros((0, 2))
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
@@ -54,9 +58,9 @@ def project_points(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray | Non
 def plane_homography(K: np.ndarray, T_cam_plane: np.ndarray) -> np.ndarray:
     """(3, 3) homography taking plane points (x, y, 1) (metres, z = 0 in the plane frame) to pixels.
 
-    ``H = K [r1 r2 t]`` with ``T_cam_plane = [r1 r2 r3 t]``; undistorted pinhole only.
+    ``H = K [r1 r2 t]`` with ``T_cam_plane = [r1 r2 r3 t]`` ((3, 3) and (4, 4)); undistorted pinhole only.
     """
-    return K @ T_cam_plane[:3, [0, 1, 3]]
+    return check_shape(K, "3,3", "K") @ check_shape(T_cam_plane, "4,4", "T_cam_plane")[:3, [0, 1, 3]]
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -65,7 +69,8 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     The camera's z axis points at the target and its y axis (image down) is as close to
     ``-up`` as the viewing direction allows. ``up`` must not be parallel to the view.
     """
-    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    eye, target, up = (check_shape(a, "3", name, np.float64) for a, name in ((eye, "eye"), (target, "target"),
+                                                                           (up, "up")))
     z = target - eye
     z /= np.linalg.norm(z)
     x = np.cross(z, up)
@@ -79,7 +84,9 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 def pixel_rays(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(height, width, 3) float32 unit rays, camera frame, of every pixel centre, through the distortion."""
+    """(height, width, 3) float32 unit rays, camera frame, of every pixel centre of the (3, 3) ``K``, through the
+    distortion."""
+    K = check_shape(K, "3,3", "K")
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     pixels = np.stack([u.ravel(), v.ravel()], axis=1)
     normalised = cv2.undistortPoints(pixels, K, np.asarray(dist, dtype=np.float64),
@@ -94,7 +101,7 @@ def clip_polygon_near(polygon_cam: np.ndarray, z_near: float) -> np.ndarray:
 
     Sutherland-Hodgman against the plane z = z_near; returns (M, 3), M = 0 when nothing is left.
     """
-    polygon_cam = np.asarray(polygon_cam, dtype=np.float64)
+    polygon_cam = check_shape(polygon_cam, "N,3", "polygon_cam", np.float64)
     kept = []
     for i, current in enumerate(polygon_cam):
         previous = polygon_cam[i - 1]
@@ -108,8 +115,10 @@ def clip_polygon_near(polygon_cam: np.ndarray, z_near: float) -> np.ndarray:
 
 
 def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N, 2) ideal pinhole pixels (same ``K``, no distortion) of (N, 2) observed pixels (cv2.undistortPoints)."""
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    """(N, 2) ideal pinhole pixels (same (3, 3) ``K``, no distortion) of (N, 2) observed pixels (or one (2,) pixel)
+    (cv2.undistortPoints)."""
+    pixels = check_shape(pixels, "*,2", "pixels", np.float64).reshape(-1, 2)
+    K = check_shape(K, "3,3", "K")
     if len(pixels) == 0:
         return np.zeros((0, 2))
     return cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.asarray(dist, dtype=np.float64), P=K,
@@ -121,7 +130,7 @@ def undistort_image(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.nd
     the distortion-free pinhole ``K`` sees it: what ``cv2.undistort`` gives, but the remap tables are
     made once per camera and image size rather than on every call."""
     h, w = image.shape[:2]
-    K_key = tuple(np.asarray(K, dtype=np.float64).ravel().tolist())
+    K_key = tuple(check_shape(K, "3,3", "K", np.float64).ravel().tolist())
     dist_key = tuple(np.asarray(dist, dtype=np.float64).ravel().tolist())
     map_xy, map_fraction = _undistort_maps(K_key, dist_key, w, h)
     return cv2.remap(image, map_xy, map_fraction, cv2.INTER_LINEAR)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.geometry.camera import CameraModel
+from services.geometry.shapes import check_shape
 
 __all__ = ["CameraStack"]
 
@@ -53,12 +54,12 @@ class CameraStack:
 
     def to_cameras(self, points_world: np.ndarray) -> np.ndarray:
         """(N, C, 3) each camera's frame coordinates of (N, 3) world points."""
-        points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        points_world = check_shape(points_world, "*,3", "points_world", np.float64).reshape(-1, 3)
         return np.einsum("cij,nj->nci", self.R_camera_world, points_world) + self.t_camera_world
 
     def depths(self, points_world: np.ndarray) -> np.ndarray:
         """(N, C) depth (camera z, m) of (N, 3) world points in each camera."""
-        points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        points_world = check_shape(points_world, "*,3", "points_world", np.float64).reshape(-1, 3)
         return points_world @ self.R_camera_world[:, 2, :].T + self.t_camera_world[:, 2]
 
     def project(self, points_world: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from services.geometry.homography import DegenerateError, normalising_transform
+from services.geometry.shapes import check_shape
 
 __all__ = ["eight_point_fundamental", "essential_from_fundamental"]
 
@@ -25,7 +26,8 @@ def eight_point_fundamental(pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.nd
     rank-2 matrix in the Frobenius norm) and the normalisation undone. DegenerateError when the
     points do not determine F (fewer than eight, or a two-dimensional null space).
     """
-    a, b = (np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in (pixels_a, pixels_b))
+    a = check_shape(pixels_a, "N,2", "pixels_a", np.float64)
+    b = check_shape(pixels_b, "N,2", "pixels_b", np.float64)
     if len(a) != len(b) or len(a) < 8:
         raise DegenerateError(f"need N >= 8 matching (N, 2) points, got {len(a)} and {len(b)}")
     T_a, T_b = normalising_transform(a), normalising_transform(b)
@@ -48,6 +50,7 @@ def essential_from_fundamental(F_b_a: np.ndarray, K_a: np.ndarray, K_b: np.ndarr
     ``E_b_a`` relates normalised image points: ``y_b^T E_b_a y_a = 0`` with ``y = K^-1 x``; up to
     scale and sign it is ``[t]x R`` of ``T_b_a``.
     """
-    E = np.asarray(K_b, dtype=np.float64).T @ np.asarray(F_b_a, dtype=np.float64) @ np.asarray(K_a, dtype=np.float64)
+    E = (check_shape(K_b, "3,3", "K_b", np.float64).T @ check_shape(F_b_a, "3,3", "F_b_a", np.float64)
+         @ check_shape(K_a, "3,3", "K_a", np.float64))
     U, _, Vt = np.linalg.svd(E)
     return U @ np.diag([1.0, 1.0, 0.0]) @ Vt

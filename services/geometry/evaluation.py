@@ -26,6 +26,7 @@ import numpy as np
 
 from services.geometry.absolute_orientation import umeyama_alignment
 from services.geometry.rotation import rotation_angle, rotation_angles
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "ALIGNMENTS",
@@ -62,7 +63,7 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     The rotation error is the angle of ``R_est^T R_true``; the translation error is the distance
     between the two origins of frame b expressed in frame a.
     """
-    T_est, T_true = np.asarray(T_est, dtype=np.float64), np.asarray(T_true, dtype=np.float64)
+    T_est, T_true = check_shape(T_est, "4,4", "T_est", np.float64), check_shape(T_true, "4,4", "T_true", np.float64)
     return rotation_angle(T_est[:3, :3], T_true[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
 
 
@@ -88,8 +89,8 @@ class Similarity:
         return M
 
     def apply(self, points: np.ndarray) -> np.ndarray:
-        """(N, 3) points mapped: ``s R p + t``."""
-        return self.s * np.asarray(points, dtype=np.float64) @ self.R.T + self.t
+        """(N, 3) points (or one (3,) point) mapped: ``s R p + t``."""
+        return self.s * check_shape(points, "*,3", "points", np.float64) @ self.R.T + self.t
 
 
 def _positions(name: str, array: np.ndarray) -> np.ndarray:
@@ -103,10 +104,7 @@ def _positions(name: str, array: np.ndarray) -> np.ndarray:
 
 
 def _poses(name: str, array: np.ndarray) -> np.ndarray:
-    array = np.asarray(array, dtype=np.float64)
-    if array.ndim != 3 or array.shape[1:] != (4, 4):
-        raise ValueError(f"{name} must be (N, 4, 4) poses, got shape {array.shape}")
-    return array
+    return check_shape(array, "N,4,4", name, np.float64)
 
 
 def _same_length(est: np.ndarray, gt: np.ndarray) -> None:
@@ -267,9 +265,9 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt_ns: int) -> np.
     with ``|a_i - b_j| <= max_dt_ns``, the closest pair is taken first, then the closest of the pairs whose
     stamps are both still free, and so on (ties: lower i, then lower j), as TUM's ``associate.py`` does.
     """
-    a, b = np.asarray(stamps_a), np.asarray(stamps_b)
-    if a.ndim != 1 or b.ndim != 1 or not (np.issubdtype(a.dtype, np.integer) and np.issubdtype(b.dtype, np.integer)):
-        raise ValueError(f"stamps must be 1-D int nanoseconds, got {a.dtype} {a.shape} and {b.dtype} {b.shape}")
+    a, b = check_shape(stamps_a, "N", "stamps_a"), check_shape(stamps_b, "M", "stamps_b")
+    if not (np.issubdtype(a.dtype, np.integer) and np.issubdtype(b.dtype, np.integer)):
+        raise ValueError(f"stamps must be int nanoseconds, got {a.dtype} and {b.dtype}")
     if max_dt_ns < 0:
         raise ValueError(f"max_dt_ns must be >= 0, got {max_dt_ns}")
     a, b = a.astype(np.int64), b.astype(np.int64)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from services.geometry.rotation import nearest_rotation
+from services.geometry.shapes import check_shape
 
 
 class DegenerateError(ValueError):
@@ -18,7 +19,7 @@ class DegenerateError(ValueError):
 
 def normalising_transform(points: np.ndarray) -> np.ndarray:
     """(d+1, d+1) similarity moving (N, d) ``points`` to mean 0 and RMS distance sqrt(d) from it (Hartley)."""
-    points = np.asarray(points, dtype=np.float64)
+    points = check_shape(points, "N,D", "points", np.float64)
     d = points.shape[1]
     centre = points.mean(axis=0)
     rms = np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1)))
@@ -37,9 +38,10 @@ def homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     (right singular vector of the smallest singular value), and the result denormalised.
     Raises DegenerateError when the system has no unique solution (e.g. three collinear of four).
     """
-    src, dst = np.asarray(src, dtype=np.float64), np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2 or len(src) < 4:
-        raise DegenerateError(f"need N >= 4 matching (N, 2) points, got {src.shape} and {dst.shape}")
+    src = check_shape(src, "N,2", "src", np.float64)
+    dst = check_shape(dst, f"{len(src)},2", "dst", np.float64)
+    if len(src) < 4:
+        raise DegenerateError(f"need N >= 4 matching points, got {len(src)}")
     T_src, T_dst = normalising_transform(src), normalising_transform(dst)
     a = src @ T_src[:2, :2].T + T_src[:2, 2]
     b = dst @ T_dst[:2, :2].T + T_dst[:2, 2]
@@ -65,7 +67,7 @@ def pose_from_homography(H: np.ndarray, K: np.ndarray) -> np.ndarray:
     R is projected onto the nearest rotation (SVD), and the sign is chosen so the plane lies
     in front of the camera (t_z > 0).
     """
-    M = np.linalg.solve(np.asarray(K, dtype=np.float64), np.asarray(H, dtype=np.float64))
+    M = np.linalg.solve(check_shape(K, "3,3", "K", np.float64), check_shape(H, "3,3", "H", np.float64))
     scale = (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1])) / 2
     if scale < 1e-12:
         raise DegenerateError("the homography has no rotation part")
@@ -81,11 +83,13 @@ def pose_from_homography(H: np.ndarray, K: np.ndarray) -> np.ndarray:
 def transfer_errors(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """(N, 2) transfer distances of N matches ``src[i]``, ``dst[i]`` (both (N, 2)) under ``dst ~ H src``:
     column 0 ``|src - H^-1 dst|``, column 1 ``|dst - H src|``; inf where a point maps to infinity."""
-    H = np.asarray(H, dtype=np.float64)
+    H = check_shape(H, "3,3", "H", np.float64)
+    src = check_shape(src, "N,2", "src", np.float64)
+    dst = check_shape(dst, f"{len(src)},2", "dst", np.float64)
     columns = []
     for M, start, end in ((np.linalg.inv(H), dst, src), (H, src, dst)):
-        mapped = np.hstack([np.asarray(start, dtype=np.float64).reshape(-1, 2), np.ones((len(start), 1))]) @ M.T
+        mapped = np.hstack([start, np.ones((len(start), 1))]) @ M.T
         with np.errstate(divide="ignore", invalid="ignore"):
-            distance = np.linalg.norm(mapped[:, :2] / mapped[:, 2:] - np.asarray(end, dtype=np.float64), axis=1)
+            distance = np.linalg.norm(mapped[:, :2] / mapped[:, 2:] - end, axis=1)
         columns.append(np.where(np.isfinite(distance), distance, np.inf))
     return np.column_stack(columns)

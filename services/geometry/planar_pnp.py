@@ -28,6 +28,7 @@ import numpy as np
 from services.geometry.homography import DegenerateError, homography_dlt, pose_from_homography
 from services.geometry.refine import residuals_and_jacobians
 from services.geometry.se3 import invert, make_transform, transform_points
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "PLANARITY", "Candidate", "Patch", "PlanarView", "homography_pose", "in_plane", "ippe_candidates",
@@ -58,6 +59,9 @@ class PlanarView:
     points: np.ndarray
     pixels: np.ndarray
     patches: tuple[Patch, ...]
+
+    def __post_init__(self) -> None:
+        check_shape(self.pixels, f"{len(check_shape(self.points, 'M,3', 'points'))},2", "pixels")
 
 
 @dataclass(frozen=True)
@@ -96,6 +100,9 @@ def in_plane(view: PlanarView, T_target_plane: np.ndarray) -> np.ndarray:
 def reprojection_rms(T: np.ndarray, points: np.ndarray, pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(P,) RMS residual length (pixels) of P poses ``T_camera_target`` (P, 4, 4), each scored on its (P, M, 3)
     target-frame points against (P, M, 2) undistorted pixels; inf where a point is behind the camera."""
+    T, K = check_shape(T, "P,4,4", "T"), check_shape(K, "3,3", "K")
+    points = check_shape(points, f"{len(T)},M,3", "points")
+    pixels = check_shape(pixels, f"{len(T)},{points.shape[1]},2", "pixels")
     p = points @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
     positive = p[..., 2] > 0
     residuals = p[..., :2] / np.where(positive, p[..., 2], 1.0)[..., None] @ K[:2, :2].T + K[:2, 2] - pixels
@@ -108,8 +115,9 @@ def ippe_candidates(views: Sequence[PlanarView], K: np.ndarray) -> list[list[Can
 
     Coplanar points: OpenCV's two IPPE solutions in the plane frame. Otherwise each patch's
     solutions composed with ``T_target_patch^-1``, of which only the best over all points is kept.
-    All candidates of all views are scored in one batch.
+    All candidates of all views are scored in one batch. ``K``: (3, 3).
     """
+    K = check_shape(K, "3,3", "K")
     rotations, translations, frames, owners = [], [], [], []
     coplanar: list[bool | None] = []
     for i, view in enumerate(views):
@@ -162,7 +170,10 @@ def ippe_solutions(view: PlanarView, K: np.ndarray) -> tuple[list[tuple[np.ndarr
 def solve_ippe(points: np.ndarray, pixels: np.ndarray, K: np.ndarray,
                flags: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(rvec, tvec)`` solutions ((3, 1) each, ``T_camera_plane``) of cv2.solvePnPGeneric for (M, 3) plane
-    points (z = 0) and (M, 2) undistorted pixels; DegenerateError when OpenCV refuses the points."""
+    points (z = 0) and (M, 2) undistorted pixels by the (3, 3) ``K``; DegenerateError when OpenCV refuses the
+    points."""
+    points = check_shape(points, "M,3", "points")
+    pixels, K = check_shape(pixels, f"{len(points)},2", "pixels"), check_shape(K, "3,3", "K")
     try:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(points, pixels, K, None, flags=flags)
     except cv2.error as error:
@@ -172,7 +183,8 @@ def solve_ippe(points: np.ndarray, pixels: np.ndarray, K: np.ndarray,
 
 def normals_at(T: np.ndarray, views: Sequence[PlanarView], K: np.ndarray) -> np.ndarray:
     """(P, 6, 6) ``J^T J`` of the residual Jacobian of P poses ``T_camera_target`` (P, 4, 4), each on its
-    view (all of one point count)."""
+    view (all of one point count), by the (3, 3) ``K``."""
+    T, K = check_shape(T, f"{len(views)},4,4", "T"), check_shape(K, "3,3", "K")
     _, J = residuals_and_jacobians(T, np.array([v.points for v in views]), np.array([v.pixels for v in views]), K)
     return J.transpose(0, 2, 1) @ J
 

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from services.geometry.homography import DegenerateError
+from services.geometry.shapes import check_shape
 
 INITIAL_DAMPING = 1e-3
 MIN_DAMPING = 1e-12
@@ -81,9 +82,9 @@ def residuals_and_jacobian(T: np.ndarray, points_obj: np.ndarray, pixels: np.nda
     ``points_obj``: (N, 3) object frame; ``pixels``: (N, 2); ``K``: (3, 3). Points need z > 0.
     The one-pose case of ``residuals_and_jacobians``.
     """
-    r, J = residuals_and_jacobians(np.asarray(T, dtype=np.float64)[None],
-                                   np.asarray(points_obj, dtype=np.float64).reshape(1, -1, 3),
-                                   np.asarray(pixels, dtype=np.float64).reshape(1, -1, 2), K)
+    points_obj = check_shape(points_obj, "N,3", "points_obj", np.float64)
+    r, J = residuals_and_jacobians(check_shape(T, "4,4", "T", np.float64)[None], points_obj[None],
+                                   check_shape(pixels, f"{len(points_obj)},2", "pixels", np.float64)[None], K)
     return r[0], J[0]
 
 
@@ -93,8 +94,10 @@ def residuals_and_jacobians(T: np.ndarray, points_obj: np.ndarray, pixels: np.nd
     (object frame) and (B, N, 2) ``pixels``: (B, 2N) residuals ``project(T @ X) - pixels``
     (u0, v0, u1, v1, ...) and their (B, 2N, 6) Jacobians with respect to ``delta``. Points need z > 0.
     """
-    K = np.asarray(K, dtype=np.float64)
-    augmented, _ = augmented_rows(np.asarray(T, dtype=np.float64), point_basis(points_obj), pixels, K)
+    T, K = check_shape(T, "B,4,4", "T", np.float64), check_shape(K, "3,3", "K", np.float64)
+    points_obj = check_shape(points_obj, f"{len(T)},N,3", "points_obj")
+    pixels = check_shape(pixels, f"{len(T)},{points_obj.shape[1]},2", "pixels")
+    augmented, _ = augmented_rows(T, point_basis(points_obj), pixels, K)
     flat = augmented.reshape(len(augmented), -1, 7)
     return -flat[..., 6], flat[..., :6].copy()
 
@@ -146,9 +149,9 @@ def refine_pose(T: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, K: np
     The method is ``refine_poses``'s. Raises ValueError when a point lies behind the camera at
     the start, DegenerateError when the points do not constrain the pose (e.g. all at one point).
     """
-    points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    result = refine_poses(np.asarray(T, dtype=np.float64)[None], points_obj[None], pixels[None], K,
+    points_obj = check_shape(points_obj, "N,3", "points_obj", np.float64)
+    pixels = check_shape(pixels, "N,2", "pixels", np.float64)
+    result = refine_poses(check_shape(T, "4,4", "T", np.float64)[None], points_obj[None], pixels[None], K,
                           max_iterations, tolerance)
     if result.degenerate[0]:
         raise DegenerateError("the points do not constrain all six pose parameters")
@@ -170,14 +173,14 @@ def refine_poses(T: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, K: n
     Raises ValueError when a point lies behind the camera at a start, DegenerateError unless
     the shapes give N >= 3 points.
     """
-    T = np.array(T, dtype=np.float64).reshape(-1, 4, 4)
+    T = np.array(check_shape(T, "*,4,4", "T"), dtype=np.float64).reshape(-1, 4, 4)
     count = len(T)
     pixels = np.asarray(pixels, dtype=np.float64).reshape(count, -1, 2)
     basis = point_basis(np.asarray(points_obj, dtype=np.float64).reshape(count, -1, 3))
     n = basis.shape[1]
     if pixels.shape[1] != n or n < 3:
         raise DegenerateError(f"need N >= 3 matching points, got {n} and {pixels.shape[1]}")
-    K = np.asarray(K, dtype=np.float64)
+    K = check_shape(K, "3,3", "K", np.float64)
     augmented, front = augmented_rows(T, basis, pixels, K)
     if not np.all(front):
         raise ValueError("a point lies behind the camera at the initial pose")

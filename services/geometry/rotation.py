@@ -12,6 +12,8 @@ import math
 import cv2
 import numpy as np
 
+from services.geometry.shapes import check_shape
+
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion (x, y, z, w), w >= 0, of the (3, 3) rotation ``R``.
@@ -20,7 +22,7 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     so the result stays accurate near 180 degrees. Worked on Python floats: nine numbers do
     not repay numpy's per-call cost, paid once per published pose (docs/benchmarks.md).
     """
-    R = np.asarray(R, dtype=np.float64).tolist()
+    R = check_shape(R, "3,3", "R", np.float64).tolist()
     trace = R[0][0] + R[1][1] + R[2][2]
     squares = [1 + 2 * R[0][0] - trace, 1 + 2 * R[1][1] - trace, 1 + 2 * R[2][2] - trace, 1 + trace]
     i = max(range(4), key=squares.__getitem__)
@@ -40,7 +42,8 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """(3, 3) rotation of the quaternion ``q`` = (x, y, z, w) (normalised first)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    q = check_shape(q, "4", "q", np.float64)
+    x, y, z, w = q / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -49,8 +52,9 @@ def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of a rotation vector (axis * angle, radians), via cv2.Rodrigues."""
-    return cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]
+    """(3, 3) rotation of a rotation vector (axis * angle, radians) of 3 values ((3,), or OpenCV's (3, 1)), via
+    cv2.Rodrigues."""
+    return cv2.Rodrigues(check_shape(np.ravel(rotvec), "3", "rotvec", np.float64).reshape(3, 1))[0]
 
 
 def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -74,9 +78,7 @@ def rotation_angles(R: np.ndarray) -> np.ndarray:
     an angle ``d`` from 0 or from pi only to about 1e-8 rad: ``cos = +-(1 - d^2 / 2)`` rounds ``d``
     below that away.
     """
-    R = np.asarray(R, dtype=np.float64)
-    if R.ndim < 2 or R.shape[-2:] != (3, 3):
-        raise ValueError(f"R must be (..., 3, 3) rotations, got shape {R.shape}")
+    R = check_shape(R, "*,3,3", "R", np.float64)
     cos = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
     vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
     return np.arctan2(np.linalg.norm(vee, axis=-1) / 2, cos)
@@ -84,11 +86,12 @@ def rotation_angles(R: np.ndarray) -> np.ndarray:
 
 def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (radians, in [0, pi]) of the rotation taking ``R_b`` to ``R_a`` (see ``rotation_angles``)."""
-    return float(rotation_angles(np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)))
+    R_a, R_b = check_shape(R_a, "3,3", "R_a", np.float64), check_shape(R_b, "3,3", "R_b", np.float64)
+    return float(rotation_angles(R_a.T @ R_b))
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
     """The proper rotation closest to the (3, 3) matrix ``M`` in the Frobenius norm (SVD)."""
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    U, _, Vt = np.linalg.svd(check_shape(M, "3,3", "M", np.float64))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     return U @ D @ Vt

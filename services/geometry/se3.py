@@ -9,35 +9,39 @@ from __future__ import annotations
 import numpy as np
 
 from services.geometry.rotation import matrix_from_quaternion, quaternion_from_matrix
+from services.geometry.shapes import check_shape
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(4, 4) transform from a (3, 3) rotation and a (3,) translation."""
+    """(4, 4) transform from a (3, 3) rotation and a translation of 3 values ((3,), or OpenCV's (3, 1))."""
     T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(t, dtype=np.float64).ravel()
+    T[:3, :3] = check_shape(R, "3,3", "R")
+    T[:3, 3] = check_shape(np.ravel(t), "3", "t", np.float64)
     return T
 
 
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid (4, 4) transform, without a general matrix inverse."""
+    T = check_shape(T, "4,4", "T")
     R, t = T[:3, :3], T[:3, 3]
     return make_transform(R.T, -R.T @ t)
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply ``T_a_b`` to (N, 3) points in frame b; returns (N, 3) points in frame a."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    """Apply ``T_a_b`` (4, 4) to (N, 3) points in frame b (or one (3,) point); returns (N, 3) points in frame a."""
+    T = check_shape(T, "4,4", "T")
+    points = check_shape(points, "*,3", "points", np.float64).reshape(-1, 3)
     return points @ T[:3, :3].T + T[:3, 3]
 
 
 def to_quaternion_translation(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(q, t)``: (4,) quaternion (x, y, z, w) and (3,) translation of a (4, 4) transform."""
+    T = check_shape(T, "4,4", "T")
     return quaternion_from_matrix(T[:3, :3]), T[:3, 3].copy()
 
 
 def from_quaternion_translation(q: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(4, 4) transform from a quaternion (x, y, z, w) and a (3,) translation."""
+    """(4, 4) transform from a (4,) quaternion (x, y, z, w) and a (3,) translation."""
     return make_transform(matrix_from_quaternion(q), t)
 
 
@@ -48,9 +52,7 @@ def check_transform(T: np.ndarray, name: str = "T", tolerance: float = 1e-6) -> 
     (each within ``tolerance``), and last row ``(0, 0, 0, 1)``. A reflection (det -1), a scaled
     or sheared block, or a projective last row is refused.
     """
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"{name} must be a (4, 4) rigid transform, got shape {T.shape}")
+    T = check_shape(T, "4,4", name, np.float64)
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{name} must be finite, got NaN or infinity")
     if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:

@@ -19,6 +19,7 @@ import numpy as np
 from services.geometry.camera import CameraModel, undistort_pixels
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
+from services.geometry.shapes import check_shape
 
 __all__ = ["TriangulatedPoint", "Triangulation", "projection_matrix", "triangulate_dlt", "triangulate_dlt_many",
            "triangulate_midpoint", "meet_in_front", "camera_rays", "reproject", "refine_point", "refine_points",
@@ -50,8 +51,10 @@ class TriangulatedPoint:
 
 
 def projection_matrix(K: np.ndarray, T_camera_world: np.ndarray) -> np.ndarray:
-    """(3, 4) ``P = K [R | t]`` taking homogeneous world points to homogeneous ideal pixels."""
-    return np.asarray(K, dtype=np.float64) @ np.asarray(T_camera_world, dtype=np.float64)[:3, :]
+    """(3, 4) ``P = K [R | t]`` of the (3, 3) ``K`` and (4, 4) ``T_camera_world``, taking homogeneous world points
+    to homogeneous ideal pixels."""
+    return (check_shape(K, "3,3", "K", np.float64)
+            @ check_shape(T_camera_world, "4,4", "T_camera_world", np.float64)[:3, :])
 
 
 def triangulate_dlt(projections: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -61,11 +64,10 @@ def triangulate_dlt(projections: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     rows are scaled to unit norm so that no camera dominates by its scale. A point at infinity
     (homogeneous w = 0) gives ValueError.
     """
-    projections = np.asarray(projections, dtype=np.float64).reshape(-1, 3, 4)
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    if len(projections) < 2 or len(projections) != len(pixels):
-        raise ValueError(f"triangulate_dlt needs (V, 3, 4) projections and (V, 2) pixels with V >= 2, got "
-                         f"{projections.shape} and {pixels.shape}")
+    projections = check_shape(projections, "V,3,4", "projections", np.float64)
+    pixels = check_shape(pixels, f"{len(projections)},2", "pixels", np.float64)
+    if len(projections) < 2:
+        raise ValueError(f"triangulate_dlt needs V >= 2 views, got {len(projections)}")
     point = triangulate_dlt_many(projections, pixels[None], np.ones((1, len(pixels)), bool))[0]
     if not np.all(np.isfinite(point)):
         raise ValueError("triangulate_dlt: the rays are parallel (point at infinity)")
@@ -79,7 +81,9 @@ def triangulate_dlt_many(projections: np.ndarray, pixels: np.ndarray, seen: np.n
     ``projections``: (C, 3, 4) of C cameras; ``pixels``: (N, C, 2) ideal pinhole pixels (any value
     where unseen); ``seen``: (N, C) bool. One batched SVD for all points.
     """
-    pixels = np.asarray(pixels, dtype=np.float64)
+    projections = check_shape(projections, "C,3,4", "projections")
+    pixels = check_shape(pixels, f"N,{len(projections)},2", "pixels", np.float64)
+    seen = check_shape(seen, f"{len(pixels)},{len(projections)}", "seen")
     rows = np.concatenate([pixels[..., :1] * projections[:, 2] - projections[:, 0],
                            pixels[..., 1:] * projections[:, 2] - projections[:, 1]], axis=1)
     norms = np.maximum(np.linalg.norm(rows, axis=2, keepdims=True), 1e-300)
@@ -98,8 +102,8 @@ def triangulate_midpoint(origins: np.ndarray, directions: np.ndarray) -> np.ndar
     ``origins``, ``directions``: (2, 3), world frame (directions need not be unit). Parallel rays
     give ValueError.
     """
-    o = np.asarray(origins, dtype=np.float64).reshape(2, 3)
-    d = np.asarray(directions, dtype=np.float64).reshape(2, 3)
+    o = check_shape(origins, "2,3", "origins", np.float64)
+    d = check_shape(directions, "2,3", "directions", np.float64)
     A = np.array([[d[0] @ d[0], -d[0] @ d[1]], [d[0] @ d[1], -d[1] @ d[1]]])
     b = np.array([d[0] @ (o[1] - o[0]), d[1] @ (o[1] - o[0])])
     if abs(np.linalg.det(A)) < 1e-12 * (d[0] @ d[0]) * (d[1] @ d[1]):
@@ -119,7 +123,7 @@ def camera_rays(camera: CameraModel, pixels: np.ndarray) -> tuple[np.ndarray, np
 
 def reproject(camera: CameraModel, points_world: np.ndarray) -> np.ndarray:
     """(N, 2) observed pixels (through the distortion) of (N, 3) world points; (N,) depths <= 0 give NaN."""
-    points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    points_world = check_shape(points_world, "*,3", "points_world", np.float64).reshape(-1, 3)
     if len(points_world) == 0:
         return np.zeros((0, 2))
     T_camera_world = invert(camera.T_rig_camera)
@@ -140,8 +144,8 @@ def refine_point(cameras: Sequence[CameraModel], pixels: np.ndarray, point: np.n
     jacobian (2V, 3) of the residuals with respect to the point, px/m)``. A step that does not
     lower the error ends the iterations.
     """
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(1, -1, 2)
-    start = np.asarray(point, dtype=np.float64).reshape(1, 3)
+    pixels = check_shape(pixels, f"{len(cameras)},2", "pixels", np.float64)[None]
+    start = check_shape(point, "3", "point", np.float64)[None]
     refined, residuals, jacobians = refine_points(CameraStack.of(cameras), pixels, np.ones(pixels.shape[:2], bool),
                                                   start, iterations)
     return refined[0], residuals[0], jacobians[0].reshape(-1, 3)
@@ -157,8 +161,9 @@ def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, poin
     jacobians zero where unseen. Each point stops on its own: at a step that does not lower its
     error, or at a step under ``STEP_TOLERANCE_M`` (not taken, which saves evaluating it).
     """
-    pixels = np.asarray(pixels, dtype=np.float64)
-    points = np.array(points, dtype=np.float64).reshape(-1, 3)
+    pixels = check_shape(pixels, f"N,{len(stack)},2", "pixels", np.float64)
+    seen = check_shape(seen, f"{len(pixels)},{len(stack)}", "seen")
+    points = np.array(check_shape(points, f"{len(pixels)},3", "points"), dtype=np.float64)
 
     def evaluate(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         projected, jacobian = stack.project_with_jacobians(X)
@@ -220,8 +225,8 @@ def triangulate_many(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, s
     bool, at least two per point; ``ideal``: the same pixels undistorted when already known;
     ``start``: (N, 3) their DLT points (``triangulate_dlt_many``) when already known.
     """
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, len(stack), 2)
-    seen = np.asarray(seen, dtype=bool).reshape(-1, len(stack))
+    pixels = check_shape(pixels, f"N,{len(stack)},2", "pixels", np.float64)
+    seen = check_shape(seen, f"{len(pixels)},{len(stack)}", "seen", bool)
     if len(pixels) == 0:
         return Triangulation(np.zeros((0, 3)), np.zeros((0, len(stack), 2)), np.zeros(0), np.zeros((0, 3, 3)))
     if start is None:
@@ -249,7 +254,7 @@ def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: fl
     DLT on the undistorted pixels, then ``refine_point``; covariance ``(J^T J)^-1 sigma_px^2``
     for pixel noise of ``sigma_px`` per coordinate. The indices are carried into the result
     (default: 0..V-1 and zeros). Rays that meet at infinity give ValueError."""
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(1, -1, 2)
+    pixels = check_shape(pixels, f"{len(cameras)},2", "pixels", np.float64)[None]
     found = triangulate_many(CameraStack.of(cameras), pixels, np.ones(pixels.shape[:2], bool), sigma_px)
     if not np.all(np.isfinite(found.points[0])):
         raise ValueError("triangulate: the rays are parallel (point at infinity)")
@@ -271,6 +276,8 @@ def meet_in_front(K: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, pixels_a: np.
     each ray to the closest points have the signs of ``(c x v).(u x v) = (c.u)(v.v) - (c.v)(u.v)``
     and ``(c x u).(u x v) = (c.u)(u.v) - (c.v)(u.u)`` (the Binet-Cauchy identity): per pair only
     ``u.v`` is computed, the rest once per pixel."""
+    K, T_a, T_b = check_shape(K, "3,3", "K"), check_shape(T_a, "4,4", "T_a"), check_shape(T_b, "4,4", "T_b")
+    pixels_a, pixels_b = check_shape(pixels_a, "N,2", "pixels_a"), check_shape(pixels_b, "N,2", "pixels_b")
     K_inv = np.linalg.inv(K)
     rays_a = (np.hstack([pixels_a, np.ones((len(pixels_a), 1))]) @ K_inv.T) @ T_a[:3, :3]
     rays_b = (np.hstack([pixels_b, np.ones((len(pixels_b), 1))]) @ K_inv.T) @ T_b[:3, :3]

@@ -1,12 +1,14 @@
 """Command-line flags generated from node parameter models, values parsed by the fields' types.
 
-Each field becomes ``--field-name``: a bool a ``--x/--no-x`` switch, a tuple a repeatable
-list (``--source a --source b`` or ``--cameras a b``), a ``Literal`` a choice, a dict repeated
-``KEY=VALUE`` pairs; the rest take one value. argparse only collects text: the model's own
+Each flat parameter (``services.runtime.params``: a field of the model, or a field of an option
+model it holds, under the prefix that field declares) becomes ``--name``: a bool a ``--x/--no-x``
+switch, a tuple a repeatable list (``--source a --source b`` or ``--cameras a b``), a ``Literal`` a
+choice, a dict repeated ``KEY=VALUE`` pairs; the rest take one value. argparse only collects text: the model's own
 validation converts it by the field's declared type, so ``--fps 30`` is a float because the
 field is one, never because the text looks like a number. A dict whose values have no
 declared type (``dict[str, Any]``) takes JSON values. Validation errors are reported against
-the flag, not the field.
+the flag, not the field. A flag's help is its field's description (after the label of the option
+model it belongs to), its type and the default the node runs with.
 """
 
 from __future__ import annotations
@@ -20,15 +22,20 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
+from services.runtime.params import flat_fields
+
 
 @dataclass(frozen=True)
 class Flag:
-    """One generated flag: ``--option`` sets ``field`` of the models it was made from."""
+    """One generated flag: ``--option`` sets the flat parameter ``field`` of the models it was made from, declared
+    by ``info``, whose node runs with ``default``; ``label`` names the option model it belongs to."""
 
     field: str
     option: str
     info: FieldInfo
     owner: str = ""
+    default: Any = None
+    label: str = ""
 
     @property
     def key(self) -> str:
@@ -70,13 +77,15 @@ def type_name(annotation: Any) -> str:
 
 
 def flags_for(model: type[BaseModel], skip: set[str] | frozenset[str] = frozenset(), owner: str = "") -> list[Flag]:
-    """A flag per field of ``model`` but those in ``skip``; with an ``owner`` (a kind), ``--<owner>-<field>``.
+    """A flag per flat parameter of ``model`` but those in ``skip``; with an ``owner`` (a kind),
+    ``--<owner>-<name>``.
 
-    A model may name some flags itself in a class variable ``FLAGS`` (field -> option name without
-    dashes), for a shorter option than the field's name (``--flush`` for ``flush_s``)."""
+    A model may name some flags itself in a class variable ``FLAGS`` (flat name -> option name without
+    dashes), for a shorter option than the parameter's name (``--flush`` for ``flush_s``)."""
     names: dict[str, str] = getattr(model, "FLAGS", {})
-    return [Flag(name, "--" + (f"{owner}_{name}" if owner else names.get(name, name)).replace("_", "-"), info, owner)
-            for name, info in model.model_fields.items() if name not in skip]
+    return [Flag(name, "--" + (f"{owner}_{name}" if owner else names.get(name, name)).replace("_", "-"), flat.info,
+                 owner, flat.default, flat.label)
+            for name, flat in flat_fields(model).items() if name not in skip]
 
 
 def add_flags(group: argparse._ArgumentGroup, flags: list[Flag]) -> None:
@@ -84,10 +93,12 @@ def add_flags(group: argparse._ArgumentGroup, flags: list[Flag]) -> None:
     for flag in flags:
         annotation = _bare(flag.info.annotation)
         origin = get_origin(annotation)
-        default = flag.info.get_default(call_default_factory=True)
+        default = flag.default
         written = " ".join(map(str, default)) if isinstance(default, tuple) else default
         shown = "" if default in (None, (), {}, "") else f"; default {written}"
-        text = f"{flag.info.description or flag.field.replace('_', ' ')} ({type_name(flag.info.annotation)}{shown})"
+        label = f"{flag.label}: " if flag.label else ""
+        text = (f"{label}{flag.info.description or flag.field.replace('_', ' ')} "
+                f"({type_name(flag.info.annotation)}{shown})")
         if annotation is bool:
             group.add_argument(flag.option, dest=flag.dest, action=argparse.BooleanOptionalAction, default=None,
                                help=text)

@@ -50,6 +50,7 @@ from services.launcher.flow import FlowSettings, plans
 from services.launcher.kinds import kind
 from services.launcher.supervisor import ProcessSpec, SupervisorSettings
 from services.runtime.flow import FlowPlan
+from services.runtime.params import flat_dump
 
 RESERVED = ("kind", "restart", "inputs", "outputs")
 """Keys of a node table that are not parameters of its kind."""
@@ -211,7 +212,7 @@ def to_toml(spec: PipelineSpec, header: str = "") -> str:
         document["flow"] = flow
     document["nodes"] = {}
     for name, node in spec.nodes.items():
-        params = kind(node.kind).validate(node.params).model_dump(mode="json", exclude_unset=True, exclude_none=True)
+        params = flat_dump(kind(node.kind).validate(node.params), mode="json", exclude_unset=True, exclude_none=True)
         table: dict[str, Any] = {"kind": node.kind, **({} if node.restart else {"restart": False}), **params}
         for field in ("inputs", "outputs"):
             if getattr(node, field) is not None:

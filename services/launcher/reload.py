@@ -24,6 +24,7 @@ from protocol.message import Header
 from protocol.system import ConfigAnswer, ConfigChange
 from services.bus.discovery import first_answers
 from services.launcher.pipeline import PipelineSpec
+from services.runtime.params import flat_fields
 from services.runtime.reconfig import reloadable
 
 
@@ -67,7 +68,8 @@ def plan_reload(running: PipelineSpec, wanted: PipelineSpec,
         before, after = old.params, new.params
         cls = params_of(new.kind)
         allowed = reloadable(cls)
-        changed = {k: after[k] if k in after else cls.model_fields[k].get_default(call_default_factory=True)
+        defaults = flat_fields(cls)
+        changed = {k: after[k] if k in after else defaults[k].default
                    for k in before.keys() | after.keys() if before.get(k) != after.get(k)}
         for key in sorted(changed.keys() - allowed):
             plan.refused.append(f"node {name}: field {key} is not reloadable ({new.kind}): needs a restart")

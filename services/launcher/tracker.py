@@ -15,8 +15,8 @@ A tracker is a TOML file ``trackers/NAME.toml`` in any package the launcher sear
 
 A template lists the nodes downstream of the source; the source node (capture or replay)
 and the recorder and viewer are added by the job. Its flags are generated from the
-parameter models of its node kinds (``services.launcher.flags``): every field but those the
-template binds to ``{camera}``. A field shared by several kinds is one flag when its type is
+parameter models of its node kinds (``services.launcher.flags``): every flat parameter but those
+the template binds to ``{camera}``. A field shared by several kinds is one flag when its type is
 the same in all of them; a flag set on the command line applies to every node having that field.
 """
 
@@ -32,6 +32,7 @@ from pydantic import BaseModel, ValidationError
 from services.launcher.flags import Flag, explain, flags_for
 from services.launcher.kinds import catalogue, kind
 from services.launcher.pipeline import NodeSpec, PipelineError
+from services.runtime.params import flat_fields
 
 CAMERA = "{camera}"
 CAMERAS = "{cameras}"
@@ -105,7 +106,7 @@ class Tracker:
                                           v.replace(CAMERA, camera) if camera and isinstance(v, str) else v
                                           for k, v in table.items()}
                 node_kind = kind(values["kind"])
-                fields = node_kind.params.model_fields
+                fields = flat_fields(node_kind.params)
                 for key, value in options.items():
                     owner, _, field = key.rpartition(".")
                     if field in fields and owner in ("", node_kind.name) and field not in values:

@@ -1,11 +1,12 @@
 """Changing node parameters while the nodes run.
 
-A node kind declares the fields of its ``Params`` that may change live in a class variable,
-``RELOADABLE: ClassVar[frozenset[str]]`` (thresholds, rates); any other field needs a
-restart. A node that honours live changes wraps its params in ``LiveParams`` (through
-``Node.configurable``), which answers ``ConfigChange`` requests on ``keys.config(name)``.
-A change is all or nothing: one unknown, non-reloadable or invalid field refuses the whole
-request, with a reason per field, and leaves the node as it was.
+A node kind declares the parameters of its ``Params`` that may change live in a class variable,
+``RELOADABLE: ClassVar[frozenset[str]]`` (thresholds, rates), by their flat names
+(``services.runtime.params``); any other parameter needs a restart. A node that honours live
+changes wraps its params in ``LiveParams`` (through ``Node.configurable``), which answers
+``ConfigChange`` requests on ``keys.config(name)``. A change is all or nothing: one unknown,
+non-reloadable or invalid field refuses the whole request, with a reason per field, and leaves the
+node as it was.
 The launcher's side (asking a node for a change, planning a pipeline reload) is
 ``services.launcher.reload``.
 """
@@ -23,6 +24,7 @@ from pydantic import BaseModel, ValidationError
 
 from protocol.message import Header
 from protocol.system import ConfigAnswer, ConfigChange
+from services.runtime.params import flat_dump, flat_fields
 
 P = TypeVar("P", bound=BaseModel)
 
@@ -44,12 +46,12 @@ def changed_params(params: P, values: dict[str, Any]) -> P:
     """``params`` with ``values`` applied, validated by its model; raises Refused naming each bad field."""
     cls = type(params)
     allowed = reloadable(cls)
-    refused = {name: ("no such parameter" if name not in cls.model_fields else "not reloadable: needs a restart")
+    refused = {name: ("no such parameter" if name not in flat_fields(cls) else "not reloadable: needs a restart")
                for name in values if name not in allowed}
     if refused:
         raise Refused(refused)
     try:
-        return cls.model_validate({**params.model_dump(exclude_unset=True), **values})
+        return cls.model_validate({**flat_dump(params, exclude_unset=True), **values})
     except ValidationError as exc:
         raise Refused({".".join(str(p) for p in problem["loc"]) or "(params)": problem["msg"]
                        for problem in exc.errors()}) from exc
@@ -80,7 +82,7 @@ class LiveParams(Generic[P]):
 
     def reloadable_values(self) -> dict[str, str]:
         """Every reloadable field's current value, as JSON text."""
-        dumped = self.value.model_dump(mode="json")
+        dumped = flat_dump(self.value, mode="json")
         return {name: json.dumps(dumped[name]) for name in sorted(reloadable(type(self.value)))}
 
     def answer(self, node: str, change: ConfigChange) -> ConfigAnswer:
@@ -90,11 +92,11 @@ class LiveParams(Generic[P]):
         (``artrack config --set`` sends what was typed as text; the node knows the field's type).
         """
         values, bad = {}, {}
-        fields = type(self.value).model_fields
+        fields = flat_fields(type(self.value))
         for name, text in change.values.items():
             try:
                 value = json.loads(text)
-                if isinstance(value, str) and name in fields and _container(fields[name].annotation):
+                if isinstance(value, str) and name in fields and _container(fields[name].info.annotation):
                     value = json.loads(value)
                 values[name] = value
             except json.JSONDecodeError as exc:

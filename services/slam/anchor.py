@@ -67,49 +67,49 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.spatial.transform import Rotation
 
 from services.geometry.absolute_orientation import umeyama_alignment
 from services.geometry.evaluation import Similarity, apply_similarity
+from services.geometry.shapes import check_shape
 
 __all__ = ["Anchor", "AnchorMethod", "AnchorSettings", "AnchorStatus", "MarkerAnchor", "MarkerSighting", "Refusal"]
 
 AnchorMethod = Literal["rays", "centres"]
-METHODS: tuple[str, ...] = get_args(AnchorMethod)
 
 
-@dataclass(frozen=True)
-class AnchorSettings:
+class AnchorSettings(BaseModel):
     """Thresholds of ``MarkerAnchor`` (see the module docstring); none depends on the sequence."""
 
-    method: AnchorMethod = "rays"
-    max_rms_px: float = 1.0
-    max_relative_std: float = 0.03
-    max_rotation_deg: float = 5.0
-    outlier_factor: float = 4.0
-    min_outlier_m: float = 0.02
-    pose_std_m: float = 0.005
-    min_frames: int = 20
-    min_baseline_m: float = 0.3
-    min_breadth_m: float = 0.2
-    max_frames: int = 900
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"anchor method {self.method!r}: must be one of {', '.join(METHODS)}")
-        positive = ("max_rms_px", "max_relative_std", "max_rotation_deg", "outlier_factor", "min_outlier_m",
-                    "pose_std_m")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"anchor setting {name}={getattr(self, name)!r}: must be > 0")
-        if not (self.min_baseline_m >= 0 and self.min_breadth_m >= 0):
-            raise ValueError("anchor settings min_baseline_m and min_breadth_m must be >= 0")
-        if not 3 <= self.min_frames <= self.max_frames:
-            raise ValueError(f"anchor settings need 3 <= min_frames <= max_frames, got {self.min_frames} and "
-                             f"{self.max_frames}")
+    method: AnchorMethod = Field(default="rays", description="rays (the marker's position from every frame, "
+                                                             "averaged) or centres (Umeyama on the camera centres)")
+    max_rms_px: float = Field(default=1.0, gt=0, description="largest corner residual RMS of a sighting, px")
+    max_relative_std: float = Field(default=0.03, gt=0, description="largest predicted position error of a "
+                                                                    "sighting, as a share of the marker's distance")
+    max_rotation_deg: float = Field(default=5.0, gt=0, description="largest angle between a sighting's marker "
+                                                                   "orientation and the fit's, deg")
+    outlier_factor: float = Field(default=4.0, gt=0, description="a sighting whose residual exceeds this many "
+                                                                 "median residuals is an outlier")
+    min_outlier_m: float = Field(default=0.02, gt=0, description="least residual of an outlier, m")
+    pose_std_m: float = Field(default=0.005, gt=0, description="standard deviation of a SLAM pose's position, "
+                                                               "m (map units scaled)")
+    min_frames: int = Field(default=20, ge=3, description="inliers an anchor needs")
+    min_baseline_m: float = Field(default=0.3, ge=0, description="least spread of the inliers' camera centres, m")
+    min_breadth_m: float = Field(default=0.2, ge=0, description="centres: least spread of the camera centres "
+                                                                "across their main direction, m")
+    max_frames: int = Field(default=900, ge=3, description="newest accepted sightings each fit is made over")
+
+    @model_validator(mode="after")
+    def _a_frame_range(self) -> AnchorSettings:
+        if self.min_frames > self.max_frames:
+            raise ValueError(f"need min_frames <= max_frames, got {self.min_frames} and {self.max_frames}")
+        return self
 
 
 @dataclass(frozen=True)
@@ -221,14 +221,9 @@ class MarkerAnchor:
     def add(self, T_map_camera: np.ndarray, sighting: MarkerSighting) -> Refusal | None:
         """Keep the pair and refit, or say why not. ``T_map_camera``: (4, 4) SLAM pose of the frame the
         marker was seen in (map units). Arrays of the wrong shape raise ValueError."""
-        T_map_camera = np.asarray(T_map_camera, dtype=np.float64)
-        T_camera_marker = np.asarray(sighting.T_camera_marker, dtype=np.float64)
-        covariance = np.asarray(sighting.covariance, dtype=np.float64)
-        for name, array, shape in (("T_map_camera", T_map_camera, (4, 4)),
-                                   ("T_camera_marker", T_camera_marker, (4, 4)), ("covariance", covariance, (6, 6))):
-            if array.shape != shape:
-                raise ValueError(f"{name} must be {shape}, got shape {array.shape}")
-        covariance = covariance[:3, :3]
+        T_map_camera = check_shape(T_map_camera, "4,4", "T_map_camera", np.float64)
+        T_camera_marker = check_shape(sighting.T_camera_marker, "4,4", "T_camera_marker", np.float64)
+        covariance = check_shape(sighting.covariance, "6,6", "covariance", np.float64)[:3, :3]
         if not (np.all(np.isfinite(T_map_camera)) and np.all(np.isfinite(T_camera_marker))
                 and np.all(np.isfinite(covariance)) and np.isfinite(sighting.rms_px)
                 and np.allclose(covariance, covariance.T) and np.linalg.eigvalsh(covariance)[0] >= 0):

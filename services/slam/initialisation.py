@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.geometry.camera import undistort_pixels
 from services.slam.two_view import (
@@ -85,34 +86,38 @@ class InitialisationModel(StrEnum):
     HOMOGRAPHY = "homography"
 
 
-@dataclass(frozen=True)
-class InitialisationSettings:
-    """``threshold_px``: USAC inlier bound (epipolar distance, homography transfer error), px;
-    ``confidence``: USAC's; ``sigma_px``: the matches' pixel noise the models are scored with;
-    ``min_matches``: least matches and least model inliers; ``planar_ratio``: the homography is the
-    model when its support exceeds this fraction of both supports (ORB-SLAM's 0.45);
-    ``min_parallax_deg``: least median triangulation angle, degrees; ``min_in_front``: least fraction
-    of the inliers in front of both cameras; ``ambiguity_ratio``: a homography decomposition is taken
-    only when the second best has at most this fraction of its points in front;
-    ``max_rms_px``: largest reprojection error (RMS over both views) of a kept point, px;
-    ``max_rotation_std_deg``: largest predicted standard deviation of an essential pose's rotation
-    (``two_view.pose_std_deg`` with ``sigma_px``), degrees: two of them make the 1 deg an initial
-    map may be off. The translation direction's is not bounded: at the shortest baselines that
-    initialise it is 2 to 5 deg, and tracking, not the first pose, settles it; ``min_support_gain``:
-    pycolmap's pose replaces USAC's when its support is larger by more than this many standard
-    deviations of the per-match differences."""
+class InitialisationSettings(BaseModel):
+    """The thresholds of two-view initialisation (see the module docstring).
 
-    threshold_px: float = 1.0
-    confidence: float = 0.999
-    sigma_px: float = 1.0
-    min_matches: int = 50
-    planar_ratio: float = 0.45
-    min_parallax_deg: float = 1.0
-    min_in_front: float = 0.9
-    ambiguity_ratio: float = 0.75
-    max_rms_px: float = 2.0
-    max_rotation_std_deg: float = 0.5
-    min_support_gain: float = 1.0
+    ``planar_ratio`` 0.45 is ORB-SLAM's. ``max_rotation_std_deg``: two of them make the 1 deg an initial
+    map may be off; the translation direction's is not bounded: at the shortest baselines that initialise
+    it is 2 to 5 deg, and tracking, not the first pose, settles it."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    threshold_px: float = Field(default=1.0, gt=0, description="USAC inlier bound (epipolar distance, homography "
+                                                               "transfer error), px")
+    confidence: float = Field(default=0.999, gt=0, lt=1, description="USAC's confidence")
+    sigma_px: float = Field(default=1.0, gt=0, description="the matches' pixel noise the models are scored with")
+    min_matches: int = Field(default=50, ge=5, description="least matches and least model inliers")
+    planar_ratio: float = Field(default=0.45, gt=0, lt=1, description="the homography is the model when its "
+                                                                      "support exceeds this fraction of both "
+                                                                      "supports")
+    min_parallax_deg: float = Field(default=1.0, ge=0, description="least median triangulation angle, deg")
+    min_in_front: float = Field(default=0.9, ge=0, le=1, description="least fraction of the inliers in front of "
+                                                                     "both cameras")
+    ambiguity_ratio: float = Field(default=0.75, ge=0, le=1, description="a homography decomposition is taken only "
+                                                                         "when the second best has at most this "
+                                                                         "fraction of its points in front")
+    max_rms_px: float = Field(default=2.0, gt=0, description="largest reprojection error (RMS over both views) of "
+                                                             "a kept point, px")
+    max_rotation_std_deg: float = Field(default=0.5, gt=0, description="largest predicted standard deviation of an "
+                                                                       "essential pose's rotation "
+                                                                       "(two_view.pose_std_deg), deg")
+    min_support_gain: float = Field(default=1.0, ge=0, description="pycolmap's pose replaces USAC's when its "
+                                                                   "support is larger by more than this many "
+                                                                   "standard deviations of the per-match "
+                                                                   "differences")
 
 
 @dataclass(frozen=True)

@@ -25,10 +25,14 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
 * ``pose/slam/<camera>/anchored``, with ``anchor_marker`` set (off by default): every frame the system
   processed, the camera in the anchor marker's frame, in metres: ``T_marker/<id>_<camera>`` (header
   ``frame_id`` ``marker/<id>``). The node detects and poses that marker in each tracked frame itself
-  (``dictionary``, ``marker_length``; the marker tracker's detector and estimator) and fits the map's
-  scale and pose to its sightings (``services.slam.anchor``); state ``tracking`` once anchored, before
+  (``dictionary``, ``marker_length`` and the rest of the marker detector's options; the marker tracker's
+  detector and estimator) and fits the map's scale and pose to its sightings (``services.slam.anchor``, with
+  the ``anchor_*`` settings); state ``tracking`` once anchored, before
   that ``initialising`` with the anchor's status as ``reason`` (``too_few_frames``, ``short_baseline``,
   ...), ``lost`` with the system's reason when the frame has no pose. A new map starts a new anchor.
+
+The SLAM system's settings (``services.slam.settings``) are the node's too, under their own names
+(``max_keypoints``, ``min_tracked``, ...).
 
 Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): each
 new keyframe is mapped before the next frame is tracked (``SlamSystem``'s ``wait_for_mapping``; the source
@@ -55,11 +59,11 @@ the frames above. A frame stamped further back (a source started over), or a new
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from protocol.keys import KeyName
 from protocol.maps import Keyframes, PointCloud
@@ -74,21 +78,22 @@ from services.calibration.camera_info import read_camera_info
 from services.calibration.fixed import FixedCalibration, check_own_calibration
 from services.convert import camera_model, transform_from_matrix
 from services.detection.grey import as_grey
-from services.detection.markers.settings import DEFAULT_DICTIONARY, DetectorSettings
+from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers.pose import MarkerPoseEstimator
 from services.geometry.camera import CameraModel
 from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
-from services.slam.anchor import MarkerAnchor, MarkerSighting
+from services.runtime.params import Flat, NodeParams
+from services.slam.anchor import AnchorSettings, MarkerAnchor, MarkerSighting
 from services.slam.map.file import MapFileError, read_header
+from services.slam.settings import SlamSettings
 from services.slam.system import STEP_BACK_S, FrameResult, SlamSystem
 
 
-class Params(BaseModel):
-    """Which camera, where its calibration comes from, and what of the map is published how often."""
-
-    model_config = ConfigDict(extra="forbid")
+class Params(NodeParams):
+    """Which camera, where its calibration comes from, what of the map is published how often, the anchor
+    marker and the SLAM system's settings."""
 
     camera: KeyName = "cam0"
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
@@ -111,9 +116,9 @@ class Params(BaseModel):
     anchor_marker: int | None = Field(default=None, ge=0, description="id of a marker of known side whose "
                                       "sightings give the map metres and the marker's frame "
                                       "(pose/slam/<camera>/anchored); default: off")
-    marker_length: float | None = Field(default=None, gt=0.0, allow_inf_nan=False,
-                                        description="the anchor marker's side, metres (> 0)")
-    dictionary: str = Field(default=DEFAULT_DICTIONARY, description="the anchor marker's cv2.aruco dictionary")
+    marker: Annotated[DetectorSettings, Flat(label="anchor marker")] = DetectorSettings()
+    anchor: Annotated[AnchorSettings, Flat("anchor_", label="anchor")] = AnchorSettings()
+    slam: Annotated[SlamSettings, Flat()] = SlamSettings()
 
 
 def _check(params: Params) -> None:
@@ -138,12 +143,12 @@ class _Anchoring:
     """The anchor marker posed in each tracked frame, and the map -> marker anchor its sightings give."""
 
     def __init__(self, params: Params):
-        if params.marker_length is None:
+        if params.marker.marker_length is None:
             raise ValueError("anchor_marker needs the marker's side: marker_length (metres) is not set")
         self.target = f"marker/{params.anchor_marker}"
-        self.detector = DetectorSettings(dictionary=params.dictionary, marker_length=params.marker_length).detector()
+        self.detector = params.marker.detector()
         self.estimator = MarkerPoseEstimator()
-        self.anchor = MarkerAnchor()
+        self.anchor = MarkerAnchor(params.anchor)
 
     def to_marker(self, camera: CameraModel, grey: np.ndarray, T_map_camera: np.ndarray) -> np.ndarray | None:
         """The frame's ``T_marker_camera`` (4, 4), metres, once anchored (after adding this frame's sighting)."""
@@ -226,7 +231,7 @@ class _CameraSlam:
     def _new_system(self, camera: CameraModel) -> SlamSystem:
         params = self._params
         try:
-            system = SlamSystem(camera, mapping=params.mapping, map_path=params.map,
+            system = SlamSystem(camera, params.slam, mapping=params.mapping, map_path=params.map,
                                 localisation_only=params.localisation_only, wait_for_mapping=self._node.flow.lossless)
         except MapFileError as error:
             self._node.log.error("%s: no poses for %s with this calibration", error, params.camera)

@@ -38,6 +38,7 @@ import pycolmap
 
 from services.geometry.refine import augmented_rows, damped_steps, increments, normal_equations, point_basis
 from services.geometry.se3 import check_transform
+from services.geometry.shapes import check_shape
 
 __all__ = ["CHI2_2DOF_95", "HUBER_PX", "BundleProblem", "BundleResult", "PoseRefinement", "bundle_adjust",
            "refine_pose", "reprojection_errors"]
@@ -142,9 +143,9 @@ def _rms(errors: np.ndarray) -> float:
 
 
 def _check_K(K: np.ndarray) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"K must be a finite (3, 3) matrix, got shape {K.shape}")
+    K = check_shape(K, "3,3", "K", np.float64)
+    if not np.all(np.isfinite(K)):
+        raise ValueError("K must be finite")
     if np.any(K[[0, 1, 2, 2, 2], [1, 0, 0, 1, 2]] != (0, 0, 0, 0, 1)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError("K must be a zero-skew pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     return K
@@ -153,9 +154,9 @@ def _check_K(K: np.ndarray) -> np.ndarray:
 def _check_sigmas(sigmas: np.ndarray | None, count: int) -> np.ndarray:
     if sigmas is None:
         return np.ones(count)
-    sigmas = np.asarray(sigmas, dtype=np.float64)
-    if sigmas.shape != (count,) or not np.all(np.isfinite(sigmas) & (sigmas > 0)):
-        raise ValueError(f"sigmas must be ({count},) positive finite pixels, got shape {sigmas.shape}")
+    sigmas = check_shape(sigmas, f"{count}", "sigmas", np.float64)
+    if not np.all(np.isfinite(sigmas) & (sigmas > 0)):
+        raise ValueError("sigmas must be positive finite pixels")
     return sigmas
 
 
@@ -169,9 +170,8 @@ def _stacked_points(points: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarr
         positions = np.full((len(keys), 3), np.nan)
     if not np.all(np.isfinite(positions)):
         for key, X in points.items():
-            X = np.asarray(X, dtype=np.float64)
-            if X.shape != (3,) or not np.all(np.isfinite(X)):
-                raise ValueError(f"points[{key}] must be (3,) finite, got shape {X.shape}")
+            if not np.all(np.isfinite(check_shape(X, "3", f"points[{key}]", np.float64))):
+                raise ValueError(f"points[{key}] must be finite")
     return keys, positions
 
 
@@ -190,13 +190,13 @@ def _check_problem(problem: BundleProblem) -> _Observations:
     _check_K(problem.K)
     frame_ids = np.asarray(problem.frame_ids)
     point_ids = np.asarray(problem.point_ids)
-    pixels = np.asarray(problem.pixels, dtype=np.float64)
+    pixels = check_shape(problem.pixels, "M,2", "pixels", np.float64)
     count = len(pixels)
-    if pixels.ndim != 2 or pixels.shape[1] != 2 or count == 0 or not np.all(np.isfinite(pixels)):
-        raise ValueError(f"pixels must be (M, 2) finite with M >= 1, got shape {pixels.shape}")
+    if count == 0 or not np.all(np.isfinite(pixels)):
+        raise ValueError(f"pixels must be finite with M >= 1, got {count} rows")
     for name, ids in (("frame_ids", frame_ids), ("point_ids", point_ids)):
-        if ids.shape != (count,) or not np.issubdtype(ids.dtype, np.integer):
-            raise ValueError(f"{name} must be ({count},) integers like pixels, got shape {ids.shape} {ids.dtype}")
+        if not np.issubdtype(check_shape(ids, f"{count}", name).dtype, np.integer):
+            raise ValueError(f"{name} must be integers, got {ids.dtype}")
     sigmas = _check_sigmas(problem.sigmas, count)
     for key, T in problem.poses.items():
         check_transform(T, f"poses[{key}]")
@@ -411,12 +411,12 @@ def refine_pose(K: np.ndarray, T_camera_world: np.ndarray, points_world: np.ndar
     """
     K = _check_K(K)
     T = check_transform(T_camera_world, "T_camera_world")
-    points = np.asarray(points_world, dtype=np.float64)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 3 or not np.all(np.isfinite(points)):
-        raise ValueError(f"points_world must be (N, 3) finite with N >= 3, got shape {points.shape}")
-    if pixels.shape != points.shape[:1] + (2,) or not np.all(np.isfinite(pixels)):
-        raise ValueError(f"pixels must be ({len(points)}, 2) finite like points_world, got shape {pixels.shape}")
+    points = check_shape(points_world, "N,3", "points_world", np.float64)
+    pixels = check_shape(pixels, f"{len(points)},2", "pixels", np.float64)
+    if len(points) < 3 or not np.all(np.isfinite(points)):
+        raise ValueError(f"points_world must be finite with N >= 3, got {len(points)} points")
+    if not np.all(np.isfinite(pixels)):
+        raise ValueError("pixels must be finite")
     sigmas = _check_sigmas(sigmas, len(points))
     if rounds < 1 or max_iterations < 1 or not huber_px > 0:
         raise ValueError(f"rounds and max_iterations must be >= 1 and huber_px > 0, got {rounds}, "

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = ["SlamSettings"]
 
 
-@dataclass(frozen=True)
-class SlamSettings:
+class SlamSettings(BaseModel):
     """Features: ``max_keypoints`` ORB keypoints spread over a grid, a pyramid of ``levels`` levels
     each ``scale_factor`` smaller, FAST threshold ``fast_threshold`` (grey levels).
 
@@ -45,38 +44,62 @@ class SlamSettings:
     ``reloc_window_px`` (per level scale).
     """
 
-    max_keypoints: int = 1500
-    levels: int = 8
-    scale_factor: float = 1.2
-    fast_threshold: int = 20
-    match_max_distance: int = 64
-    match_ratio: float = 0.8
-    init_window_px: float = 100.0
-    init_ratio: float = 0.9
-    reference_max_age: int = 30
-    init_min_points: int = 80
-    projection_max_distance: int = 100
-    motion_window_px: float = 15.0
-    motion_ratio: float = 0.9
-    min_motion_matches: int = 20
-    min_motion_inliers: int = 10
-    pnp_threshold_px: float = 4.0
-    pnp_min_inliers: int = 20
-    local_keyframes: int = 20
-    local_window_px: float = 4.0
-    local_ratio: float = 0.8
-    min_tracked: int = 30
-    keyframe_ratio: float = 0.9
-    min_keyframe_gap_s: float = 0.5
-    max_keyframe_gap_s: float = 1.0
-    triangulation_neighbours: int = 10
-    triangulation_max_distance: int = 50
-    triangulation_ratio: float = 0.8
-    min_parallax_deg: float = 1.0
-    cull_found_ratio: float = 0.25
-    cull_min_observations: int = 3
-    ba_window: int = 10
-    ba_iterations: int = 10
-    reloc_candidates: int = 5
-    reloc_min_inliers: int = 50
-    reloc_window_px: float = 10.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    max_keypoints: int = Field(default=1500, ge=1, description="ORB keypoints per frame, spread over a grid")
+    levels: int = Field(default=8, ge=1, le=32, description="levels of the ORB pyramid")
+    scale_factor: float = Field(default=1.2, gt=1, le=4, description="scale between pyramid levels")
+    fast_threshold: int = Field(default=20, ge=1, le=255, description="ORB's FAST threshold, grey levels")
+    match_max_distance: int = Field(default=64, ge=0, le=256, description="largest descriptor distance of an "
+                                                                           "initialisation or relocalisation match, "
+                                                                           "bits")
+    match_ratio: float = Field(default=0.8, gt=0, le=1, description="ratio test of matches with the local map and "
+                                                                    "of relocalisation")
+    init_window_px: float = Field(default=100.0, gt=0, description="initialisation: search window around a "
+                                                                   "reference keypoint, px")
+    init_ratio: float = Field(default=0.9, gt=0, le=1, description="initialisation: ratio test")
+    reference_max_age: int = Field(default=30, ge=1, description="initialisation: frames before the reference "
+                                                                 "frame is replaced")
+    init_min_points: int = Field(default=80, ge=1, description="initialisation: points a first map needs")
+    projection_max_distance: int = Field(default=100, ge=0, le=256, description="largest descriptor distance of a "
+                                                                                "match found by projection, bits")
+    motion_window_px: float = Field(default=15.0, gt=0, description="tracking: search window around the "
+                                                                    "constant-velocity prediction, px per level "
+                                                                    "scale")
+    motion_ratio: float = Field(default=0.9, gt=0, le=1, description="tracking: ratio test of the search by "
+                                                                     "projection")
+    min_motion_matches: int = Field(default=20, ge=1, description="tracking: inliers that keep the motion's "
+                                                                  "refined pose (fewer: the window is doubled)")
+    min_motion_inliers: int = Field(default=10, ge=1, description="tracking: inliers the motion's pose needs "
+                                                                  "when PnP fails")
+    pnp_threshold_px: float = Field(default=4.0, gt=0, description="tracking: PnP RANSAC's inlier threshold, px")
+    pnp_min_inliers: int = Field(default=20, ge=1, description="tracking: inliers a PnP pose needs")
+    local_keyframes: int = Field(default=20, ge=1, description="keyframes of the local map searched")
+    local_window_px: float = Field(default=4.0, gt=0, description="search window of the local map around the "
+                                                                  "pose, px per level scale")
+    local_ratio: float = Field(default=0.8, gt=0, le=1, description="ratio test of the local map's search")
+    min_tracked: int = Field(default=30, ge=1, description="inliers under which a frame is lost")
+    keyframe_ratio: float = Field(default=0.9, gt=0, le=1, description="a frame tracking under this share of its "
+                                                                       "reference keyframe's well-seen points may "
+                                                                       "become a keyframe")
+    min_keyframe_gap_s: float = Field(default=0.5, ge=0, description="least time between keyframes with the "
+                                                                     "mapper idle, s")
+    max_keyframe_gap_s: float = Field(default=1.0, ge=0, description="time after which a frame becomes a "
+                                                                     "keyframe anyway, s")
+    triangulation_neighbours: int = Field(default=10, ge=1, description="best covisible keyframes new points are "
+                                                                        "triangulated with")
+    triangulation_max_distance: int = Field(default=50, ge=0, le=256, description="largest descriptor distance of "
+                                                                                  "a triangulated match, bits")
+    triangulation_ratio: float = Field(default=0.8, gt=0, le=1, description="ratio test of triangulated matches")
+    min_parallax_deg: float = Field(default=1.0, ge=0, description="least angle between the rays of a new "
+                                                                   "point, deg")
+    cull_found_ratio: float = Field(default=0.25, ge=0, le=1, description="a new point found in under this share "
+                                                                          "of the frames it was visible in is "
+                                                                          "culled")
+    cull_min_observations: int = Field(default=3, ge=1, description="keyframes a new point must be observed by")
+    ba_window: int = Field(default=10, ge=2, description="keyframes of a local bundle adjustment")
+    ba_iterations: int = Field(default=10, ge=1, description="iterations of a local bundle adjustment")
+    reloc_candidates: int = Field(default=5, ge=1, description="relocalisation: keyframes tried, ranked by votes")
+    reloc_min_inliers: int = Field(default=50, ge=1, description="relocalisation: inliers a pose needs")
+    reloc_window_px: float = Field(default=10.0, gt=0, description="relocalisation: search window, px per level "
+                                                                   "scale")

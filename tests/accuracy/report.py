@@ -39,7 +39,7 @@ import numpy as np
 
 from services.detection.markers.detector import REFINEMENTS, MarkerDetector
 from services.estimation.markers.map import map_from_poses, marker_corners
-from services.estimation.markers.pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, TargetPose
+from services.estimation.markers.pose import DEFAULT_METHOD, METHODS, MarkerPoseEstimator, MarkerPoseOptions, TargetPose
 from services.geometry.camera import project_points
 from services.geometry.homography import homography_dlt, pose_from_homography
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
@@ -165,7 +165,7 @@ def evaluate(frames: list[Frame], K: np.ndarray, length: float) -> dict[str, dic
     poses = baseline_poses(views, K, length)
     flags = {name: [False] * len(views) for name in poses}
     for method in METHODS:
-        estimator = MarkerPoseEstimator(method=method)
+        estimator = MarkerPoseEstimator(MarkerPoseOptions(method=method))
         poses[method], flags[method] = [], []
         for frame in frames:
             found = estimate(estimator, frame, K, length)
@@ -192,7 +192,7 @@ def evaluate_board(frames: list[Frame], scene: MarkersScene) -> dict[str, dict[s
         poses["opencv"].append(make_transform(matrix_from_rotvec(rvec), tvec))
     flags = {"opencv": [False] * len(frames)}
     for method in METHODS:
-        estimator = MarkerPoseEstimator(method=method, marker_map=board)
+        estimator = MarkerPoseEstimator(MarkerPoseOptions(method=method), marker_map=board)
         found = [estimate(estimator, frame, K, length).get("board") for frame in frames]
         poses[method] = [np.full((4, 4), np.nan) if pose is None else pose.T for pose in found]
         flags[method] = [pose is not None and pose.ambiguous for pose in found]

@@ -27,7 +27,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import xml.etree.ElementTree as ElementTree
@@ -79,7 +78,7 @@ PAIRS = ("graf_1_3", *(f"churchill_1_{k}" for k in range(2, 7)))
 
 
 def detector(name: str) -> KeypointParams:
-    return dataclasses.replace(feature_params(DEFAULT_DETECTOR), **DETECTORS[name])
+    return feature_params(DEFAULT_DETECTOR).model_copy(update=DETECTORS[name])
 
 
 def pose_errors(T: np.ndarray | None, frame: SceneFrame) -> tuple[float, float]:

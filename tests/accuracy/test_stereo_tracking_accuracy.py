@@ -50,7 +50,7 @@ GHOST_MM, GHOST_DEG = 2.0, 3.0
 HONEST_SIGMA_PX = 0.012
 """Centroid error per axis of the blob detector on the scene's noiseless images (its 0.017 px RMS
 distance over sqrt(2), tests/accuracy/test_ir_blob_accuracy.py)."""
-DEFAULT_SIGMA_PX, DEFAULT_GATE_RMS = Params().sigma_px, Params().gate_rms
+DEFAULT_SIGMA_PX, DEFAULT_GATE_RMS = Params().correspondence.sigma_px, Params().match.gate_rms
 
 
 @cache

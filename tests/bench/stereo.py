@@ -75,7 +75,8 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
     instants = [scene.render(i) for i in range(INSTANTS)]
     detect = blobs_node.detector(blobs_node.Params())
     node = rigid_bodies_node.Params(cameras=tuple(names))
-    correspondence, matching_options, noise = node.correspondence(), node.matching(), node.point_noise()
+    correspondence, matching_options = node.correspondence, node.match
+    noise = rigid_bodies_node.PointNoise(correspondence)
     bodies, stack = scene.bodies, rig_geometry(scene.cameras).stack
     times: dict[str, list[float]] = defaultdict(list)
     for instant in at_rate(instants, period_s):
@@ -94,7 +95,7 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
         for message in messages:
             encode(message)
         t4 = time.perf_counter()
-        alone_triangulation = _triangulation_alone(stack, found, found_blobs, correspondence.sigma_px)
+        alone_triangulation = _triangulation_alone(stack, found, found_blobs, correspondence.covariance_sigma_px)
         alone_fit = _fit_alone(bodies, points, covariances, matching)
         times["blobs"].append(t1 - t0)
         times["correspondence"].append(t2 - t1 - alone_triangulation)

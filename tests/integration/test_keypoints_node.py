@@ -10,7 +10,7 @@ from protocol.detections import Keypoints
 from services.bus.pubsub import Inbox, Role
 from services.detection.grey import as_grey8
 from services.detection.keypoints.detector import KeypointDetector
-from services.detection.keypoints.node import Params, settings
+from services.detection.keypoints.node import Params
 from services.synthetic.texture import procedural_texture
 
 from .support import START_S, collect, start_node, states, wait_live, wait_until
@@ -38,7 +38,7 @@ def test_scene_frames_yield_the_keypoints_found_in_process(bus, procs, session):
         images.close()
 
     assert [m.header.seq for m in messages] == list(range(FRAMES))
-    detector = KeypointDetector(settings(Params(**params)))
+    detector = KeypointDetector(Params(**params).keypoints)
     for message in messages:
         frame = frames[message.header.seq]
         expected = detector.detect(as_grey8(frame.data))

@@ -136,5 +136,5 @@ def test_prediction_is_off_by_default_and_a_flag_of_the_stereo_tracker():
     assert params.predict is False
     options = {flag.option for flag in Tracker.load("stereo").flags({})}
     assert {"--predict", "--predict-gate", "--predict-gap-s"} <= options
-    tracking = Params(predict=True, predict_gate=0.02, predict_gap_s=0.25).tracking()
+    tracking = Params(predict=True, predict_gate=0.02, predict_gap_s=0.25).tracking
     assert tracking.gate == 0.02 and tracking.motion.max_gap_ns == 250_000_000

@@ -80,21 +80,22 @@ def test_live_params_answer_is_all_or_nothing_and_apply_may_refuse():
     built = []
 
     def apply(new: MarkerParams) -> None:
-        built.append(new.detector())  # a bad aruco parameter raises ValueError here
+        built.append(new.detection.detector())  # a bad aruco parameter raises ValueError here
 
     live = LiveParams(MarkerParams(marker_length=0.05), apply)
     change = ConfigChange(header=Header(stamp_ns=1), values={"parameters": '{"minMarkerPerimeterRate": 0.2}'})
     answer = live.answer("markers", change)
     assert answer.applied == change.values and answer.refused == {} and len(built) == 1
-    assert live.value.parameters == {"minMarkerPerimeterRate": 0.2} and live.value.marker_length == 0.05
+    detection = live.value.detection
+    assert detection.parameters == {"minMarkerPerimeterRate": 0.2} and detection.marker_length == 0.05
     assert json.loads(answer.params["parameters"]) == {"minMarkerPerimeterRate": 0.2}
 
     bad = live.answer("markers", ConfigChange(header=Header(stamp_ns=2), values={"parameters": '{"noSuch": 1}'}))
     assert bad.applied == {} and "noSuch" in bad.refused["parameters"]
-    assert live.value.parameters == {"minMarkerPerimeterRate": 0.2}, "a refused change must leave the params"
+    assert live.value.detection.parameters == {"minMarkerPerimeterRate": 0.2}, "a refused change must leave the params"
     mixed = live.answer("markers", ConfigChange(header=Header(stamp_ns=3),
                                                 values={"marker_length": "0.1", "camera": '"cam1"'}))
-    assert mixed.refused == {"camera": "not reloadable: needs a restart"} and live.value.marker_length == 0.05
+    assert mixed.refused == {"camera": "not reloadable: needs a restart"} and live.value.detection.marker_length == 0.05
     not_json = live.answer("markers", ConfigChange(header=Header(stamp_ns=4), values={"marker_length": "0,1"}))
     assert "not JSON" in not_json.refused["marker_length"]
 
@@ -106,8 +107,9 @@ def test_values_given_as_text_are_converted_by_the_fields_types():
     answer = live.answer("m", ConfigChange(header=Header(stamp_ns=1),
                                            values={k: json.dumps(v) for k, v in text.items()}))
     assert answer.refused == {}, answer.refused
-    assert (live.value.marker_length, live.value.refinement) == (0.06, "subpix")
-    assert (live.value.lengths, live.value.parameters) == ({3: 0.1}, {"minMarkerPerimeterRate": 0.05})
+    detection = live.value.detection
+    assert (detection.marker_length, detection.refinement) == (0.06, "subpix")
+    assert (detection.lengths, detection.parameters) == ({3: 0.1}, {"minMarkerPerimeterRate": 0.05})
     bad = live.answer("m", ConfigChange(header=Header(stamp_ns=1), values={"lengths": json.dumps("{3: x")}))
     assert "lengths" in bad.refused and "not JSON" in bad.refused["lengths"]
 

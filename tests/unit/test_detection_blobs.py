@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detection.blobs.bright import BlobFlag, Blobs, IrBlobParams, detect_ir_blobs
+from services.detection.blobs.bright import BlobFlag, Blobs, IrBlobParams, ShapeParams, detect_ir_blobs
 from tests.blob_images import disc_image
 
 BACKGROUND = 12
@@ -105,9 +105,9 @@ def test_a_disc_over_the_border_is_clipped():
 def test_filters_drop_small_large_and_streaky_components():
     image = disc_image([(30.0, 30.0, 0.7), (80.0, 30.0, 4.0), (80.0, 80.0, 12.0)], background=BACKGROUND)
     cv2.line(image, (10, 100), (60, 100), 240, 1)
-    blobs = detect_ir_blobs(image, IrBlobParams(min_area=3, max_radius=10.0, min_circularity=0.3))
+    blobs = detect_ir_blobs(image, IrBlobParams(max_radius=10.0), ShapeParams(min_area=3, min_circularity=0.3))
     assert len(blobs) == 1 and blobs.centroids[0] == pytest.approx((80.0, 30.0), abs=0.02)
-    assert len(detect_ir_blobs(image, IrBlobParams(min_circularity=0.0))) == 3
+    assert len(detect_ir_blobs(image, shape=ShapeParams(min_circularity=0.0))) == 3
 
 
 def test_mono16_images_give_the_same_blobs_at_the_same_threshold_scale():
@@ -127,8 +127,10 @@ def test_bad_input_is_refused_with_a_reason():
     with pytest.raises(ValueError, match="mono8 or mono16"):
         detect_ir_blobs(np.zeros((48, 64, 3), np.uint8))
     with pytest.raises(ValueError, match="min_roundness"):
-        IrBlobParams(min_roundness=1.5)
+        ShapeParams(min_roundness=1.5)
     with pytest.raises(ValueError, match="area range"):
-        IrBlobParams(min_area=50, max_area=10)
-    with pytest.raises(ValueError, match="radius must be"):
+        ShapeParams(min_area=50, max_area=10)
+    with pytest.raises(ValueError, match="radius range"):
+        IrBlobParams(min_radius=5, max_radius=2)
+    with pytest.raises(ValueError, match=r"radius must have shape \(2,\), got \(3,\)"):
         Blobs(np.zeros((2, 2)), np.zeros(2), np.zeros(3), np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2, np.uint8))

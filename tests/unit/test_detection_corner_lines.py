@@ -80,8 +80,8 @@ def test_a_quad_without_edges_keeps_its_corners():
 
 
 @pytest.mark.parametrize(("image", "corners", "message"), [
-    (np.zeros((10, 10), np.uint8), np.zeros((1, 3, 2)), "corners must be"),
-    (np.zeros((10, 10, 3), np.uint8), np.zeros((1, 4, 2)), "image must be"),
+    (np.zeros((10, 10), np.uint8), np.zeros((1, 3, 2)), r"corners must have shape \(N, 4, 2\), got \(1, 3, 2\)"),
+    (np.zeros((10, 10, 3), np.uint8), np.zeros((1, 4, 2)), r"image must have shape \(H, W\), got \(10, 10, 3\)"),
     (np.zeros((10, 10), np.uint8), np.full((1, 4, 2), np.nan), "corners must be finite"),
 ])
 def test_bad_shapes_are_named(image, corners, message):

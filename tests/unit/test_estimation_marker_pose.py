@@ -1,11 +1,13 @@
 """Marker pose estimator: exact poses by every method, distortion, failures counted by reason,
 the planar ambiguity resolved by the anchored track, and marker maps (planar and not)."""
 
+from typing import Any
+
 import numpy as np
 import pytest
 
 from services.estimation.markers.map import MapMarker, MarkerMap, map_from_poses, marker_corners
-from services.estimation.markers.pose import METHODS, MarkerPoseEstimator, single_observation
+from services.estimation.markers.pose import METHODS, MarkerPoseEstimator, MarkerPoseOptions, single_observation
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.planar_pnp import ippe_candidates
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
@@ -14,6 +16,11 @@ from services.synthetic import make_scene
 
 K = intrinsics(640, 480, 56.0)
 L = 0.05
+
+
+def make_estimator(marker_map: MarkerMap | None = None, **options: Any) -> MarkerPoseEstimator:
+    """An estimator with ``options`` (``MarkerPoseOptions`` fields)."""
+    return MarkerPoseEstimator(MarkerPoseOptions(**options), marker_map)
 
 
 def corners_of(T_cam_marker: np.ndarray, length: float = L, dist: np.ndarray | None = None) -> np.ndarray:
@@ -32,7 +39,7 @@ POSES = [pose([0.3, -0.2, 0.1], [0.02, -0.01, 0.4]), pose([-0.6, 0.4, 2.0], [-0.
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("T", POSES)
 def test_every_method_recovers_an_exact_pose(method, T):
-    result = MarkerPoseEstimator(method=method).estimate([7], corners_of(T)[None], [L], K)
+    result = make_estimator(method=method).estimate([7], corners_of(T)[None], [L], K)
     assert not result.failures
     (found,) = result.poses
     assert found.target == "marker/7" and found.marker_ids == (7,) and found.points == 4
@@ -64,7 +71,7 @@ def test_distorted_corners_are_undistorted_first():
 @pytest.mark.parametrize("method", METHODS)
 def test_degenerate_corners_give_no_pose_and_a_reason(name, corners, method):
     good = corners_of(POSES[0])
-    result = MarkerPoseEstimator(method=method).estimate([1, 2], np.array([corners, good], dtype=float), L, K)
+    result = make_estimator(method=method).estimate([1, 2], np.array([corners, good], dtype=float), L, K)
     assert [p.target for p in result.poses] == ["marker/2"]
     assert result.failures == {"degenerate_corners": 1}
 
@@ -84,15 +91,15 @@ def test_an_empty_frame_gives_nothing():
 
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="method"):
-        MarkerPoseEstimator(method="pnp")
-    with pytest.raises(ValueError, match="K must be"):
+        make_estimator(method="pnp")
+    with pytest.raises(ValueError, match=r"K must have shape \(3, 3\), got \(4, 4\)"):
         MarkerPoseEstimator().estimate([1], corners_of(POSES[0])[None], L, np.eye(4))
 
 
 def test_covariance_follows_the_corner_sigma():
     corners = corners_of(POSES[1])[None]
-    half = MarkerPoseEstimator(corner_sigma_px=0.5).estimate([1], corners, L, K).poses[0].covariance
-    one = MarkerPoseEstimator(corner_sigma_px=1.0).estimate([1], corners, L, K).poses[0].covariance
+    half = make_estimator(corner_sigma_px=0.5).estimate([1], corners, L, K).poses[0].covariance
+    one = make_estimator(corner_sigma_px=1.0).estimate([1], corners, L, K).poses[0].covariance
     assert np.allclose(one, 4 * half)
 
 
@@ -124,11 +131,11 @@ def error_deg(estimator: MarkerPoseEstimator, corners: np.ndarray) -> tuple[floa
 @pytest.mark.parametrize("method", METHODS)
 def test_an_ambiguous_view_follows_the_anchored_track(method):
     noisy = ambiguous_view(lower_error_is_wrong=True)
-    fresh_error, fresh_flag = error_deg(MarkerPoseEstimator(method=method), noisy)
-    tracked = MarkerPoseEstimator(method=method)
+    fresh_error, fresh_flag = error_deg(make_estimator(method=method), noisy)
+    tracked = make_estimator(method=method)
     assert not tracked.estimate([0], corners_of(TILTED)[None], L, K).poses[0].ambiguous
     tracked_error, tracked_flag = error_deg(tracked, noisy)
-    stale = MarkerPoseEstimator(method=method, prior_max_age=2)
+    stale = make_estimator(method=method, prior_max_age=2)
     stale.estimate([0], corners_of(TILTED)[None], L, K)
     for _ in range(2):
         stale.estimate([], np.zeros((0, 4, 2)), [], K)
@@ -143,10 +150,10 @@ def test_an_unanchored_track_is_not_followed(method):
     """A guess (the lower error of an ambiguous first view, here the wrong flip) must not decide the
     next ambiguous view, whose lower-error candidate is the right one."""
     wrong_first, right_next = ambiguous_view(lower_error_is_wrong=True), ambiguous_view(lower_error_is_wrong=False)
-    estimator = MarkerPoseEstimator(method=method)
+    estimator = make_estimator(method=method)
     first_error, _ = error_deg(estimator, wrong_first)
     next_error, next_flag = error_deg(estimator, right_next)
-    fresh_error, _ = error_deg(MarkerPoseEstimator(method=method), right_next)
+    fresh_error, _ = error_deg(make_estimator(method=method), right_next)
     assert next_flag and first_error > 5.0
     assert next_error == pytest.approx(fresh_error) and next_error < first_error - 5.0
 
@@ -165,7 +172,7 @@ def test_a_board_gives_one_pose_from_all_its_markers(scene, method, index):
     T_cam_loose = T_cam_board @ make_transform(np.eye(3), [0.0, -0.2, 0.0])
     corners = np.array([corners_of(T_cam_board @ board.markers[i].T_map_marker) for i in board.markers]
                        + [corners_of(T_cam_loose, 0.04)])
-    result = MarkerPoseEstimator(method=method, marker_map=board).estimate(ids, corners, [0.0] * 6 + [0.04], K)
+    result = make_estimator(method=method, marker_map=board).estimate(ids, corners, [0.0] * 6 + [0.04], K)
     found = {p.target: p for p in result.poses}
     assert sorted(found) == ["board", "marker/9"] and not result.failures
     assert np.allclose(found["board"].T, T_cam_board, atol=1e-7)
@@ -178,7 +185,7 @@ def test_a_board_seen_through_one_marker(scene, method):
     board = map_from_poses("board", scene.marker_poses, scene.marker_length)
     T_cam_board = invert(scene.camera_pose(100))
     corners = corners_of(T_cam_board @ board.markers[4].T_map_marker)[None]
-    (found,) = MarkerPoseEstimator(method=method, marker_map=board).estimate([4], corners, 0.0, K).poses
+    (found,) = make_estimator(method=method, marker_map=board).estimate([4], corners, 0.0, K).poses
     assert found.target == "board" and found.points == 4
     assert np.allclose(found.T, T_cam_board, atol=1e-7)
 
@@ -192,7 +199,7 @@ def test_a_non_planar_map(method):
     T_cam_markers = [T_cam_box @ m.T_map_marker for m in box.markers.values()]
     assert all(T[:3, 2] @ -T[:3, 3] > 0.1 for T in T_cam_markers)  # both face the camera
     corners = np.array([corners_of(T, 0.08) for T in T_cam_markers])
-    (found,) = MarkerPoseEstimator(method=method, marker_map=box).estimate([1, 2], corners, 0.0, K).poses
+    (found,) = make_estimator(method=method, marker_map=box).estimate([1, 2], corners, 0.0, K).poses
     assert found.target == "box" and found.points == 8 and not found.ambiguous
     assert np.allclose(found.T, T_cam_box, atol=1e-7)
 
@@ -205,11 +212,11 @@ def test_a_frame_of_markers_gives_each_the_pose_it_gets_alone(method):
     corners = [corners_of(T) + rng.normal(0, 0.5, (4, 2)) for T in POSES]
     corners += [ambiguous_view(lower_error_is_wrong=True), [[100, 100], [150, 100], [200, 100], [250, 100]]]
     ids, sides = [3, 1, 4, 0, 5], [L, L, L, L, L]
-    together = MarkerPoseEstimator(method=method).estimate(ids, np.array(corners), sides, K)
+    together = make_estimator(method=method).estimate(ids, np.array(corners), sides, K)
     assert together.failures == {"degenerate_corners": 1}
     assert [p.target for p in together.poses] == ["marker/3", "marker/1", "marker/4", "marker/0"]
     for pose, marker_id, marker_corners_px in zip(together.poses, ids, corners, strict=False):
-        (alone,) = MarkerPoseEstimator(method=method).estimate([marker_id], marker_corners_px[None], L, K).poses
+        (alone,) = make_estimator(method=method).estimate([marker_id], marker_corners_px[None], L, K).poses
         assert np.array_equal(pose.T, alone.T) and pose.rms_px == alone.rms_px
         assert pose.ambiguous == alone.ambiguous and np.array_equal(pose.covariance, alone.covariance)
     assert together.poses[3].ambiguous
@@ -218,5 +225,5 @@ def test_a_frame_of_markers_gives_each_the_pose_it_gets_alone(method):
 @pytest.mark.parametrize("method", ["lm", "ippe+lm"])
 def test_an_iteration_limit_too_low_fails_every_marker_as_not_converged(method):
     corners = np.array([corners_of(T) for T in POSES]) + np.random.default_rng(5).normal(0, 0.5, (3, 4, 2))
-    result = MarkerPoseEstimator(method=method, max_iterations=1).estimate([1, 2, 3], corners, L, K)
+    result = make_estimator(method=method, max_iterations=1).estimate([1, 2, 3], corners, L, K)
     assert result.poses == [] and result.failures == {"not_converged": 3}

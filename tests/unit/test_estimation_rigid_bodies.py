@@ -103,11 +103,11 @@ def test_covariances_give_each_fit_a_covariance():
 
 
 @pytest.mark.parametrize(("call", "message"), [
-    (lambda: match_bodies(LAYOUTS, np.zeros((4, 2))), r"points_world must be \(M, 3\)"),
-    (lambda: match_bodies(LAYOUTS, np.zeros((4, 3)), np.zeros((3, 3, 3))), "one per point"),
+    (lambda: match_bodies(LAYOUTS, np.zeros((4, 2))), r"points_world must have shape \(M, 3\), got \(4, 2\)"),
+    (lambda: match_bodies(LAYOUTS, np.zeros((4, 3)), np.zeros((3, 3, 3))), r"covariances must have shape \(4, 3, 3\)"),
     (lambda: match_bodies({"a": np.eye(2, 3)}, np.zeros((4, 3))), "at least 3 spheres"),
-    (lambda: MatchOptions(gate_rms=0.0), "gate_rms must be a finite number > 0"),
-    (lambda: MatchOptions(max_candidates=0), "max_candidates must be an integer >= 1"),
+    (lambda: MatchOptions(gate_rms=0.0), "gate_rms\n  Input should be greater than 0"),
+    (lambda: MatchOptions(max_candidates=0), "max_candidates\n  Input should be greater than or equal to 1"),
 ])
 def test_bad_input_is_refused_with_a_reason(call, message):
     with pytest.raises(ValueError, match=message):

@@ -153,8 +153,9 @@ def test_several_targets_share_one_extraction_a_frame(scene, frames, target):
     assert features.get() is features.get() and len(calls) == 7
 
 
-@pytest.mark.parametrize("options", [{"window_px": 4}, {"min_points": 3}, {"refill_below": 1000},
-                                     {"forward_backward_px": 0}, {"anchor_every": -1}, {"levels": 9}])
+@pytest.mark.parametrize("options", [{"measure": {"window_px": 4}}, {"measure": {"window_px": 14}}, {"min_points": 3},
+                                     {"refill_below": 1000}, {"measure": {"forward_backward_px": 0}},
+                                     {"anchor_every": -1}, {"measure": {"levels": 9}}])
 def test_bad_options_are_refused(options):
     with pytest.raises(ValueError):
         TrackingOptions(**options)

@@ -205,8 +205,10 @@ def test_associate_matches_the_rule_spelled_out_over_every_pair(seed):
 
 
 def test_associate_refuses_stamps_that_are_not_int_nanoseconds():
-    with pytest.raises(ValueError, match="1-D int nanoseconds"):
+    with pytest.raises(ValueError, match="stamps must be int nanoseconds, got float64"):
         associate(np.array([0.5]), np.array([1]), 10)
+    with pytest.raises(ValueError, match=r"stamps_b must have shape \(M,\), got \(1, 1\)"):
+        associate(np.array([1]), np.array([[1]]), 10)
     with pytest.raises(ValueError, match="max_dt_ns must be >= 0"):
         associate(np.array([1]), np.array([1]), -1)
 

@@ -66,13 +66,13 @@ def test_mirrored_points_still_give_a_proper_rotation():
 
 
 @pytest.mark.parametrize(("body", "world", "kwargs", "message"), [
-    (np.zeros((3, 2)), np.zeros((3, 3)), {}, r"points_body must be \(N, 3\)"),
+    (np.zeros((3, 2)), np.zeros((3, 3)), {}, r"points_body must have shape \(N, 3\), got \(3, 2\)"),
     (np.eye(3), np.eye(4, 3), {}, "matched row by row"),
     (np.eye(3)[:2], np.eye(3)[:2], {}, "at least 3"),
     ([[0, 0, 0], [1, 0, 0], [2, 0, 0]], np.eye(3), {}, "one line"),
     (np.eye(3), np.eye(3), {"method": "dlt"}, "unknown absolute orientation method"),
     (np.eye(4, 3), np.eye(4, 3), {"method": "three_point"}, "exactly 3"),
-    (np.eye(3), np.eye(3), {"covariances": np.zeros((2, 3, 3))}, "one per point"),
+    (np.eye(3), np.eye(3), {"covariances": np.zeros((2, 3, 3))}, r"covariances must have shape \(3, 3, 3\)"),
 ])
 def test_bad_input_is_refused_with_a_reason(body, world, kwargs, message):
     with pytest.raises(ValueError, match=message):

@@ -204,9 +204,9 @@ def not_finite() -> np.ndarray:
 
 
 @pytest.mark.parametrize(("matrix", "says"), [
-    (np.eye(3), r"T_rig_cam0 must be a \(4, 4\) rigid transform, got shape \(3, 3\)"),
-    (np.eye(4)[:3], r"must be a \(4, 4\) rigid transform, got shape \(3, 4\)"),
-    (np.eye(4).ravel(), r"got shape \(16,\)"),
+    (np.eye(3), r"T_rig_cam0 must have shape \(4, 4\), got \(3, 3\)"),
+    (np.eye(4)[:3], r"must have shape \(4, 4\), got \(3, 4\)"),
+    (np.eye(4).ravel(), r"got \(16,\)"),
     (reflection(), r"T_rig_cam0\[:3, :3\] must be a proper rotation \(det \+1\), got det -1"),
     (scaled(), r"must be orthonormal \(R\^T R = I\), off by 3"),
     (projective(), r"must have last row \(0, 0, 0, 1\), got \(0.0, 0.0, 0.1, 1.0\)"),

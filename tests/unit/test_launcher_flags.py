@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import pytest
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.launcher.flags import add_flags, explain, flags_for, given_values, type_name
 from services.launcher.kinds import DiscoveryError, catalogue, kind, search_roots
-from services.launcher.pipeline import PipelineError
+from services.launcher.pipeline import PipelineError, PipelineSpec, read_pipeline, to_toml
 from services.launcher.tracker import Tracker
+from services.runtime.params import Flat, NodeParams
 
 
 class Sample(BaseModel):
@@ -71,6 +72,51 @@ def test_a_refused_value_is_named_by_its_flag():
 def test_skipped_fields_get_no_flag():
     _, flags = parse([], frozenset({"rate", "names"}))
     assert {"--rate", "--names"}.isdisjoint(f.option for f in flags)
+
+
+class Gates(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    gate_rms: float = Field(default=0.001, gt=0, description="largest residual RMS, m")
+    bridge: int = 1
+
+
+class Composed(NodeParams):
+    rate: float = 1.0
+    match: Annotated[Gates, Flat(names={"bridge": "match_bridge"}, label="match")] = Gates()
+    follow: Annotated[Gates, Flat("follow_", names={"bridge": "bridge"})] = Gates()
+
+
+def test_nested_option_models_give_prefixed_flags_with_their_description_and_default():
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    flags = flags_for(Composed)
+    add_flags(parser.add_argument_group("composed"), flags)
+    assert [f.option for f in flags] == ["--rate", "--gate-rms", "--match-bridge", "--follow-gate-rms", "--bridge"]
+    assert "match: largest residual RMS, m (float; default 0.001)" in " ".join(parser.format_help().split())
+    values = given_values(parser.parse_args(["--follow-gate-rms", "0.01", "--bridge", "2"]), flags)
+    assert values == {"follow_gate_rms": "0.01", "bridge": "2"}
+    model = Composed.model_validate(values)
+    assert (model.follow, model.match) == (Gates(gate_rms=0.01, bridge=2), Gates())
+    with pytest.raises(ValidationError) as caught:
+        Composed.model_validate({"follow_gate_rms": "-1"})
+    assert explain(caught.value, flags, "composed") == "--follow-gate-rms: Input should be greater than 0"
+
+
+def test_the_stereo_trackers_flags_set_its_nodes_option_models_and_save_as_flat_keys(tmp_path):
+    stereo = Tracker.load("stereo")
+    flags = stereo.flags({})
+    nodes = stereo.expand(["cam0", "cam1"], {"gate_rms": "0.002", "predict_gap_s": "0.5", "min_sigma": "2"}, flags)
+    assert nodes["bodies"].params == {"cameras": ["cam0", "cam1"], "gate_rms": "0.002", "predict_gap_s": "0.5"}
+    bodies = kind("rigid_bodies").validate(nodes["bodies"].params)
+    assert bodies.match.gate_rms == 0.002 and bodies.tracking.motion.max_gap_s == 0.5  # type: ignore[attr-defined]
+    assert kind("blobs").validate(nodes["blobs-cam1"].params).log.min_sigma == 2.0  # type: ignore[attr-defined]
+    path = tmp_path / "stereo.toml"
+    path.write_text(to_toml(PipelineSpec(nodes=nodes)))
+    assert 'gate_rms = 0.002\npredict_gap_s = 0.5' in path.read_text()
+    assert read_pipeline(path).nodes["bodies"].params == {"cameras": ["cam0", "cam1"], "gate_rms": 0.002,
+                                                          "predict_gap_s": 0.5}
+    with pytest.raises(ValueError, match="--predict-gap-s: Input should be greater than 0"):
+        stereo.expand(["cam0", "cam1"], {"predict_gap_s": "0"}, flags)
 
 
 @pytest.mark.parametrize(("annotation", "expected"), [(float, "float"), (Path | None, "path"),

@@ -101,7 +101,7 @@ def test_the_first_pose_passes_and_a_gap_restarts():
 
 
 @pytest.mark.parametrize("options", [{"min_cutoff_hz": 0.0}, {"beta": -1.0}, {"derivative_cutoff_hz": float("nan")},
-                                     {"max_gap_ns": 0}])
+                                     {"max_gap_s": 0}])
 def test_bad_options_are_refused(options):
     with pytest.raises(ValueError):
         OneEuroOptions(**options)

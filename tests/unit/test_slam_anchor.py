@@ -211,9 +211,9 @@ def test_bad_sightings_are_refused():
     assert anchor.add(T_map_camera, MarkerSighting(good.T_camera_marker, good.rms_px, False,
                                                    -good.covariance)) == Refusal.INVALID
     assert len(anchor) == 0
-    with pytest.raises(ValueError, match=r"T_map_camera must be \(4, 4\), got shape \(3, 4\)"):
+    with pytest.raises(ValueError, match=r"T_map_camera must have shape \(4, 4\), got \(3, 4\)"):
         anchor.add(T_map_camera[:3], good)
-    with pytest.raises(ValueError, match=r"covariance must be \(6, 6\)"):
+    with pytest.raises(ValueError, match=r"covariance must have shape \(6, 6\)"):
         anchor.add(T_map_camera, MarkerSighting(good.T_camera_marker, good.rms_px, False, np.eye(3)))
     assert anchor.add(T_map_camera, good) is None and len(anchor) == 1
 
@@ -251,9 +251,9 @@ def test_refits_over_the_newest_pairs():
 
 
 @pytest.mark.parametrize(("settings", "message"), [
-    ({"method": "median"}, "anchor method 'median'"),
-    ({"max_rms_px": 0.0}, "max_rms_px=0.0"),
-    ({"min_frames": 2}, "min_frames <= max_frames"),
+    ({"method": "median"}, "method\n  Input should be 'rays' or 'centres'"),
+    ({"max_rms_px": 0.0}, "max_rms_px\n  Input should be greater than 0"),
+    ({"min_frames": 2}, "min_frames\n  Input should be greater than or equal to 3"),
     ({"min_frames": 50, "max_frames": 40}, "min_frames <= max_frames"),
     ({"min_baseline_m": -1.0}, "min_baseline_m"),
     ({"min_breadth_m": -1.0}, "min_breadth_m"),

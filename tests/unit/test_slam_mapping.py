@@ -2,7 +2,6 @@
 points, new points between two keyframes, and ``SlamSystem``'s behaviour on bad frames and with its
 mapping thread or process."""
 
-import dataclasses
 import threading
 import time
 
@@ -229,7 +228,7 @@ def test_room_tracked_while_mapping_apart(room_camera, mapping):
     """Every frame fed, as in a lossless run, whose keyframe decisions wait for the mapper
     (``wait_for_mapping``): a loaded machine, whose mapper is busy longer, makes no fewer keyframes."""
     scene = make_scene("room")
-    system = SlamSystem(room_camera, dataclasses.replace(SETTINGS, max_keypoints=1000), mapping=mapping,
+    system = SlamSystem(room_camera, SETTINGS.model_copy(update={"max_keypoints": 1000}), mapping=mapping,
                         wait_for_mapping=True)
     try:
         frames = [scene.render(i) for i in range(90)]

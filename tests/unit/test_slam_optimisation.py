@@ -131,8 +131,9 @@ def broken(problem: BundleProblem, name: str) -> BundleProblem:
 
 
 @pytest.mark.parametrize(("name", "message"), [
-    ("K", "K must be"), ("skew", "zero-skew"), ("pixels", "pixels must be"), ("nan", "pixels must be"),
-    ("frame_ids", "frame_ids must be"), ("float_ids", "point_ids must be"), ("sigmas", "sigmas must be"),
+    ("K", "K must have shape"), ("skew", "zero-skew"), ("pixels", "pixels must have shape"),
+    ("nan", "pixels must be finite"), ("frame_ids", "frame_ids must have shape"), ("float_ids", "point_ids must be"),
+    ("sigmas", "sigmas must be"),
     ("pose", r"poses\[2\]"), ("point", r"points\[0\]"), ("unknown_frame", "frame_ids names ids with no pose: \\[99\\]"),
     ("unknown_point", "point_ids names ids with no point"), ("unknown_fixed", "fixed names ids with no pose"),
     ("all_fixed", "no free pose"), ("none_fixed", "no observed keyframe is fixed"),
@@ -177,8 +178,9 @@ def test_refine_pose_one_round_matches_scipy():
 
 
 @pytest.mark.parametrize(("change", "message"), [
-    ({"points_world": np.zeros((5, 2))}, "points_world must be"), ({"pixels": np.zeros((3, 2))}, "pixels must be"),
-    ({"sigmas": np.zeros(1000)}, "sigmas must be"), ({"T_camera_world": np.eye(3)}, "T_camera_world must be"),
+    ({"points_world": np.zeros((5, 2))}, "points_world must have shape"),
+    ({"pixels": np.zeros((3, 2))}, "pixels must have shape"), ({"sigmas": np.zeros(1000)}, "sigmas must be"),
+    ({"T_camera_world": np.eye(3)}, "T_camera_world must have shape"),
     ({"K": np.ones((3, 3))}, "zero-skew pinhole"),
 ])
 def test_refine_pose_bad_input_raises(change, message):

@@ -5,7 +5,7 @@ Every detector returns ``Blobs`` (``bright``): centres (N, 2) in pixels and thei
 from __future__ import annotations
 
 from services.detection.blobs.bright import BlobFlag, Blobs, IrBlobParams, ShapeParams, detect_ir_blobs
-from services.detection.blobs.colour import ColourBlobParams, HueModel, detect_colour_blobs
+from services.detection.blobs.colour import ColourBlobParams, HueModel, HueWindow, detect_colour_blobs
 from services.detection.blobs.scale_space import LogBlobParams, detect_log_blobs
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     "Blobs",
     "ColourBlobParams",
     "HueModel",
+    "HueWindow",
     "IrBlobParams",
     "LogBlobParams",
     "ShapeParams",

@@ -35,6 +35,9 @@ from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from services.geometry.shapes import check_shape
 
 __all__ = ["BlobFlag", "Blobs", "IrBlobParams", "ShapeParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
 
@@ -76,13 +79,9 @@ class Blobs:
     flags: np.ndarray
 
     def __post_init__(self) -> None:
-        n = len(self.centroids)
-        if np.shape(self.centroids) != (n, 2):
-            raise ValueError(f"centroids must be (N, 2), not {np.shape(self.centroids)}")
+        n = len(check_shape(self.centroids, "N,2", "centroids"))
         for field in fields(self)[1:]:
-            if np.shape(getattr(self, field.name)) != (n,):
-                raise ValueError(f"{field.name} must be ({n},) like the centroids, "
-                                 f"not {np.shape(getattr(self, field.name))}")
+            check_shape(getattr(self, field.name), f"{n}", field.name)
 
     def __len__(self) -> int:
         return len(self.centroids)
@@ -107,57 +106,46 @@ class Blobs:
         return self.select(self.flags == 0)
 
 
-@dataclass(frozen=True)
-class ShapeParams:
-    """Filters and flags every method that measures its blobs' pixels shares: components of
-    ``min_area`` to ``max_area`` px^2 with at least ``min_circularity`` are kept; a blob with a
-    roundness below ``min_roundness`` is flagged, MERGED when it has a waist of ``waist_depth``."""
+class ShapeParams(BaseModel):
+    """Filters and flags every method that measures its blobs' pixels shares (IR and colour blobs)."""
 
-    min_area: float = 3.0
-    max_area: float = 10000.0
-    min_circularity: float = 0.3
-    min_roundness: float = 0.8
-    waist_depth: float = 0.05
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        check_settings(self, ("min_area", "max_area"), ("min_circularity", "min_roundness", "waist_depth"))
+    min_area: float = Field(default=3.0, ge=0, description="smallest blob kept, px^2")
+    max_area: float = Field(default=10000.0, gt=0, description="largest blob kept, px^2")
+    min_circularity: float = Field(default=0.3, ge=0, le=1, description="least circularity of a blob kept, "
+                                                                        "4 pi area / perimeter^2")
+    min_roundness: float = Field(default=0.8, ge=0, le=1, description="below this roundness a blob is flagged "
+                                                                      "(merged or occluded)")
+    waist_depth: float = Field(default=0.05, ge=0, le=1, description="a flagged blob whose weight dips this much "
+                                                                     "between two heavier parts is merged")
+
+    @model_validator(mode="after")
+    def _an_area_range(self) -> ShapeParams:
         if self.min_area > self.max_area:
             raise ValueError(f"area range [{self.min_area}, {self.max_area}] is empty")
+        return self
 
 
-@dataclass(frozen=True)
-class IrBlobParams(ShapeParams):
-    """Settings of ``detect_ir_blobs`` (see the module docstring), beside ``ShapeParams``'s.
+class IrBlobParams(BaseModel):
+    """Settings of ``detect_ir_blobs`` (see the module docstring), beside ``ShapeParams``'s."""
 
-    ``threshold``: grey level a blob's pixels exceed; ``background``: grey level subtracted
-    from the weights (None: estimated per image, the median of a pixel grid);
-    ``min_radius``/``max_radius``: px; ``min_solidity``: below it a blob is flagged.
-    """
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    threshold: float = 60.0
-    background: float | None = None
-    min_radius: float = 0.0
-    max_radius: float = math.inf
-    min_solidity: float = 0.85
+    threshold: float = Field(default=60.0, ge=0, description="grey level blobs exceed")
+    background: float | None = Field(default=None, ge=0, description="grey level subtracted from the centroid "
+                                                                      "weights; default: estimated per image (the "
+                                                                      "median of a pixel grid)")
+    min_radius: float = Field(default=0.0, ge=0, description="smallest blob radius kept, px")
+    max_radius: float = Field(default=math.inf, ge=0, description="largest blob radius kept, px")
+    min_solidity: float = Field(default=0.85, ge=0, le=1, description="below this solidity (area over its convex "
+                                                                      "hull's) a blob is flagged")
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_settings(self, ("threshold", "min_radius", "max_radius"), ("min_solidity",))
-        if self.background is not None and not self.background >= 0.0:
-            raise ValueError(f"background must be a grey level >= 0 or None, not {self.background!r}")
+    @model_validator(mode="after")
+    def _a_radius_range(self) -> IrBlobParams:
         if self.min_radius > self.max_radius:
             raise ValueError(f"radius range [{self.min_radius}, {self.max_radius}] is empty")
-
-
-def check_settings(settings: object, non_negative: Sequence[str], fractions: Sequence[str]) -> None:
-    """ValueError naming the first attribute of ``settings`` among ``non_negative`` that is not a number
-    >= 0, or among ``fractions`` that is not within [0, 1]."""
-    for name in non_negative:
-        if not getattr(settings, name) >= 0.0:
-            raise ValueError(f"{name} must be a number >= 0, not {getattr(settings, name)!r}")
-    for name in fractions:
-        if not 0.0 <= getattr(settings, name) <= 1.0:
-            raise ValueError(f"{name} must be within [0, 1], not {getattr(settings, name)!r}")
+        return self
 
 
 def check_mono(image: np.ndarray) -> np.ndarray:
@@ -168,10 +156,12 @@ def check_mono(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Blobs:
-    """Bright blobs of ``image`` ((H, W) uint8 or uint16 grey levels), in the order found."""
+def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape: ShapeParams | None = None) -> Blobs:
+    """Bright blobs of ``image`` ((H, W) uint8 or uint16 grey levels, the scale of ``params.threshold``), in the
+    order found."""
     image = check_mono(image)
     params = params or IrBlobParams()
+    shape = shape or ShapeParams()
     height, width = image.shape
     binary = cv2.compare(image, params.threshold, cv2.CMP_GT)  # type: ignore[call-overload]
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -180,7 +170,7 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Bl
     rows = []
     for contour in contours:
         x, y, w, h = cv2.boundingRect(contour)
-        if w * h < params.min_area:
+        if w * h < shape.min_area:
             continue
         x0, y0 = max(x - WINDOW_PAD, 0), max(y - WINDOW_PAD, 0)
         x1, y1 = min(x + w + WINDOW_PAD, width), min(y + h + WINDOW_PAD, height)
@@ -188,12 +178,12 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Bl
         cv2.drawContours(mask, [contour], 0, 255, cv2.FILLED, offset=(-x0, -y0))
         area = float(cv2.countNonZero(mask))
         radius = math.sqrt(area / math.pi)
-        if not (params.min_area <= area <= params.max_area and params.min_radius <= radius <= params.max_radius):
+        if not (shape.min_area <= area <= shape.max_area and params.min_radius <= radius <= params.max_radius):
             continue
         perimeter = cv2.arcLength(contour, True)
         polygon_area = cv2.contourArea(contour)
         circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
-        if circularity < params.min_circularity:
+        if circularity < shape.min_circularity:
             continue
         rim = cv2.subtract(cv2.dilate(mask, _GROW), cv2.subtract(binary[y0:y1, x0:x1], mask))
         weights = np.zeros(mask.shape, np.float32)
@@ -206,8 +196,8 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None) -> Bl
         centroid, axis, roundness = moment_shape(moments)
         hull_area = cv2.contourArea(cv2.convexHull(contour))
         solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
-        flags = shape_flags(weights, centroid, axis, roundness < params.min_roundness
-                            or solidity < params.min_solidity, params.waist_depth)
+        flags = shape_flags(weights, centroid, axis, roundness < shape.min_roundness
+                            or solidity < params.min_solidity, shape.waist_depth)
         if x == 0 or y == 0 or x + w == width or y + h == height:
             flags |= BlobFlag.CLIPPED
         rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity,

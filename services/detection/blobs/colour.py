@@ -28,10 +28,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
-from services.detection.blobs.bright import BlobFlag, Blobs, ShapeParams, check_settings, moment_shape, shape_flags
+from services.detection.blobs.bright import BlobFlag, Blobs, ShapeParams, moment_shape, shape_flags
 
-__all__ = ["ColourBlobParams", "HueModel", "colour_mask", "crack_perimeters", "detect_colour_blobs", "to_hsv"]
+__all__ = ["ColourBlobParams", "HueModel", "HueWindow", "colour_mask", "crack_perimeters", "detect_colour_blobs",
+           "to_hsv"]
 
 SATURATION_FLOOR = 40.0
 VALUE_FLOOR = 40.0
@@ -81,17 +83,28 @@ class HueModel:
         return cls(math.degrees(mean), math.degrees(spread), float(floors[0]), float(floors[1]))
 
 
-@dataclass(frozen=True)
-class ColourBlobParams(ShapeParams):
-    """Settings of ``colour_mask`` and ``detect_colour_blobs``, beside ``ShapeParams``'s:
-    ``width`` (spreads) and ``min_half_width_deg`` of the hue window."""
+class ColourBlobParams(BaseModel):
+    """Settings of ``colour_mask`` and ``detect_colour_blobs``, beside ``ShapeParams``'s: the hue window."""
 
-    width: float = 3.0
-    min_half_width_deg: float = 5.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_settings(self, ("width", "min_half_width_deg"), ())
+    width: float = Field(default=3.0, gt=0, description="half-width of the hue window, in spreads of the colour")
+    min_half_width_deg: float = Field(default=5.0, ge=0, description="least half-width of the hue window, deg")
+
+
+class HueWindow(BaseModel):
+    """A marker colour given by hand rather than learnt from a sample (``HueModel.from_sample``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    hue_deg: float = Field(default=0.0, ge=0, lt=360, description="the markers' hue, degrees")
+    hue_width_deg: float = Field(default=8.0, gt=0, le=180, description="half-width of the hue window, deg")
+    min_saturation: float = Field(default=80.0, ge=0, le=255, description="least saturation, 0..255")
+    min_value: float = Field(default=60.0, ge=0, le=255, description="least value, 0..255")
+
+    def model(self, params: ColourBlobParams) -> HueModel:
+        """The ``HueModel`` whose window under ``params`` is ``hue_deg`` +- ``hue_width_deg``."""
+        return HueModel(self.hue_deg, self.hue_width_deg / params.width, self.min_saturation, self.min_value)
 
 
 def hue_table(model: HueModel, params: ColourBlobParams) -> np.ndarray:
@@ -121,9 +134,11 @@ def crack_perimeters(labels: np.ndarray, count: int) -> np.ndarray:
     return sides * CRACK_TO_LENGTH
 
 
-def detect_colour_blobs(image: np.ndarray, model: HueModel, params: ColourBlobParams | None = None) -> Blobs:
+def detect_colour_blobs(image: np.ndarray, model: HueModel, params: ColourBlobParams | None = None,
+                        shape: ShapeParams | None = None) -> Blobs:
     """Blobs of the model's colour in ``image`` (bgr8 (H, W, 3)), largest first."""
     params = params or ColourBlobParams()
+    shape = shape or ShapeParams()
     mask = colour_mask(image, model, params).view(np.uint8)
     count, labels, stats, centres = cv2.connectedComponentsWithStats(mask, connectivity=8)
     perimeters = crack_perimeters(labels, count)
@@ -132,11 +147,11 @@ def detect_colour_blobs(image: np.ndarray, model: HueModel, params: ColourBlobPa
     for label in np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable") + 1:
         x, y, w, h, area = (int(v) for v in stats[label])
         circularity = min(4.0 * math.pi * area / perimeters[label] ** 2, 1.0)
-        if not (params.min_area <= area <= params.max_area and circularity >= params.min_circularity):
+        if not (shape.min_area <= area <= shape.max_area and circularity >= shape.min_circularity):
             continue
         weights = (labels[y:y + h, x:x + w] == label).astype(np.float32)
         centroid, axis, roundness = moment_shape(cv2.moments(weights))
-        flags = shape_flags(weights, centroid, axis, roundness < params.min_roundness, params.waist_depth)
+        flags = shape_flags(weights, centroid, axis, roundness < shape.min_roundness, shape.waist_depth)
         if x == 0 or y == 0 or x + w == width or y + h == height:
             flags |= BlobFlag.CLIPPED
         rows.append((*centres[label], area, math.sqrt(area / math.pi), perimeters[label], circularity,

@@ -26,11 +26,11 @@ the disc crosses the image border.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Literal
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.detection.blobs.bright import BlobFlag, Blobs
 
@@ -41,34 +41,28 @@ DISC_RESPONSE = 2.0 / math.e
 _NEIGHBOURS = np.ones((3, 3), np.uint8)
 
 
-@dataclass(frozen=True)
-class LogBlobParams:
-    """Settings of ``detect_log_blobs`` (see the module docstring): scales from ``min_sigma`` to
-    ``max_sigma`` px in ``scales`` geometric steps; ``threshold``: least |response| (contrast
-    units, 0 to 1); ``polarity``: bright blobs, dark blobs or both; ``overlap``: in [0, 1];
-    ``edge_ratio``: the largest ratio of principal curvatures a blob may have."""
+class LogBlobParams(BaseModel):
+    """Settings of ``detect_log_blobs`` (see the module docstring)."""
 
-    min_sigma: float = 1.0
-    max_sigma: float = 10.0
-    scales: int = 12
-    threshold: float = 0.05
-    polarity: Literal["bright", "dark", "both"] = "bright"
-    overlap: float = 0.5
-    edge_ratio: float = 10.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if not 0.3 <= self.min_sigma <= self.max_sigma:
-            raise ValueError(f"need 0.3 <= min_sigma <= max_sigma, not {self.min_sigma} and {self.max_sigma}")
-        if not (isinstance(self.scales, int) and self.scales >= 3):
-            raise ValueError(f"scales must be an integer >= 3, not {self.scales!r}")
-        if not self.threshold > 0.0:
-            raise ValueError(f"threshold must be > 0, not {self.threshold!r}")
-        if self.polarity not in ("bright", "dark", "both"):
-            raise ValueError(f"polarity must be bright, dark or both, not {self.polarity!r}")
-        if not 0.0 <= self.overlap <= 1.0:
-            raise ValueError(f"overlap must be within [0, 1], not {self.overlap!r}")
-        if not self.edge_ratio > 1.0:
-            raise ValueError(f"edge_ratio must be > 1, not {self.edge_ratio!r}")
+    min_sigma: float = Field(default=1.0, ge=0.3, description="smallest scale, px")
+    max_sigma: float = Field(default=10.0, ge=0.3, description="largest scale, px")
+    scales: int = Field(default=12, ge=3, description="scales from min_sigma to max_sigma, in geometric steps")
+    threshold: float = Field(default=0.05, gt=0, le=1, description="least response (contrast, 0 to 1)")
+    polarity: Literal["bright", "dark", "both"] = Field(default="bright", description="bright blobs, dark blobs "
+                                                                                      "or both")
+    overlap: float = Field(default=0.5, ge=0, le=1, description="a blob whose disc covers more than this share of "
+                                                                "a stronger one's (the smaller disc's area) is "
+                                                                "dropped")
+    edge_ratio: float = Field(default=10.0, gt=1, description="the largest ratio of principal curvatures a blob "
+                                                              "may have (more: an edge or a ridge)")
+
+    @model_validator(mode="after")
+    def _a_scale_range(self) -> LogBlobParams:
+        if self.min_sigma > self.max_sigma:
+            raise ValueError(f"need min_sigma <= max_sigma, not {self.min_sigma} and {self.max_sigma}")
+        return self
 
     def sigmas(self) -> np.ndarray:
         """(S,) float64 scales, px."""

@@ -45,9 +45,11 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.detection.keypoints.corners import PATCH_PX, corner_keypoints, find_corners, pyramid
 from services.detection.keypoints.spread import spread_anms, spread_grid
+from services.geometry.shapes import check_shape
 
 __all__ = ["EDGE_PX", "METHODS", "TEBLID_SCALE", "KeypointDetector", "KeypointParams", "Keypoints", "detect_keypoints",
            "orb_image_points", "teblid_available"]
@@ -90,15 +92,10 @@ class Keypoints:
     norm: Norm
 
     def __post_init__(self) -> None:
-        n = len(self.points)
-        if np.shape(self.points) != (n, 2):
-            raise ValueError(f"points must be (N, 2), not {np.shape(self.points)}")
+        n = len(check_shape(self.points, "N,2", "points"))
         for field in fields(self)[1:5]:
-            if np.shape(getattr(self, field.name)) != (n,):
-                shape = np.shape(getattr(self, field.name))
-                raise ValueError(f"{field.name} must be ({n},) like the points, not {shape}")
-        if self.descriptors.ndim != 2 or len(self.descriptors) != n:
-            raise ValueError(f"descriptors must be ({n}, D), not {self.descriptors.shape}")
+            check_shape(getattr(self, field.name), f"{n}", field.name)
+        check_shape(self.descriptors, f"{n},D", "descriptors")
 
     def __len__(self) -> int:
         return len(self.points)
@@ -109,49 +106,37 @@ class Keypoints:
         return cv2.NORM_HAMMING if self.norm == "hamming" else cv2.NORM_L2
 
 
-@dataclass(frozen=True)
-class KeypointParams:
-    """Which detector, which descriptor, how many keypoints and how they are spread.
+class KeypointParams(BaseModel):
+    """Which detector, which descriptor, how many keypoints and how they are spread (see the module docstring).
 
-    ``max_count``: the cap; ``spread``: ``grid`` (cells of ``cell_px``), ``anms`` (with
-    ``anms_robustness``) or ``none``; ``candidates``: how many keypoints per kept one the
-    detector is asked for when spreading. ``levels``, ``scale_factor``: the pyramid of ``orb``,
-    ``harris`` and ``shi_tomasi``. Thresholds: ``fast_threshold`` (orb, grey levels),
-    ``contrast_threshold`` (sift), ``akaze_threshold`` (akaze), ``corner_quality`` (harris and
-    shi_tomasi, a fraction of the level's largest response); ``harris_k`` and ``block_size``
-    (the window of the corners' structure tensor, px).
+    The detector is asked for ``candidates`` keypoints per kept one when spreading; ``levels`` and
+    ``scale_factor`` make the pyramid of ``orb``, ``harris`` and ``shi_tomasi``; each threshold is one
+    method's (named in its description).
     """
 
-    method: Method = "orb"
-    descriptor: Descriptor = "native"
-    max_count: int = 1000
-    spread: Spread = "grid"
-    cell_px: int = 64
-    candidates: float = 3.0
-    anms_robustness: float = 0.9
-    levels: int = 8
-    scale_factor: float = 1.2
-    fast_threshold: int = 20
-    contrast_threshold: float = 0.04
-    akaze_threshold: float = 0.001
-    corner_quality: float = 0.01
-    harris_k: float = 0.04
-    block_size: int = 3
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"unknown keypoint method {self.method!r} (choose from {', '.join(METHODS)})")
-        if self.descriptor not in ("native", "teblid"):
-            raise ValueError(f"unknown descriptor {self.descriptor!r} (native or teblid)")
-        if self.spread not in ("grid", "anms", "none"):
-            raise ValueError(f"unknown spread {self.spread!r} (grid, anms or none)")
-        checks = {"max_count >= 1": self.max_count >= 1, "cell_px >= 8": self.cell_px >= 8,
-                  "candidates >= 1": self.candidates >= 1, "0 < anms_robustness <= 1": 0 < self.anms_robustness <= 1,
-                  "levels >= 1": self.levels >= 1, "scale_factor > 1": self.scale_factor > 1,
-                  "0 <= corner_quality < 1": 0 <= self.corner_quality < 1, "block_size >= 2": self.block_size >= 2}
-        broken = [rule for rule, holds in checks.items() if not holds]
-        if broken:
-            raise ValueError(f"keypoint parameters must have {', '.join(broken)}")
+    method: Method = Field(default="orb", description="orb, sift, akaze, harris or shi_tomasi")
+    descriptor: Descriptor = Field(default="native", description="native (the method's own; ORB for corners) "
+                                                                  "or teblid")
+    max_count: int = Field(default=1000, ge=1, le=100000, description="most keypoints kept a frame")
+    spread: Spread = Field(default="grid", description="grid (bucketing), anms or none")
+    cell_px: int = Field(default=64, ge=8, description="grid: cell side, px")
+    candidates: float = Field(default=3.0, ge=1, description="keypoints the detector is asked for per kept one "
+                                                              "when spreading")
+    anms_robustness: float = Field(default=0.9, gt=0, le=1, description="anms: a keypoint's suppression radius reaches "
+                                                                        "the nearest one stronger than its "
+                                                                        "response over this")
+    levels: int = Field(default=8, ge=1, le=32, description="orb, harris, shi_tomasi: pyramid levels")
+    scale_factor: float = Field(default=1.2, gt=1, le=4, description="orb, harris, shi_tomasi: scale between levels")
+    fast_threshold: int = Field(default=20, ge=1, le=255, description="orb: FAST threshold, grey levels")
+    contrast_threshold: float = Field(default=0.04, gt=0, description="sift: least contrast of a keypoint")
+    akaze_threshold: float = Field(default=0.001, gt=0, description="akaze: least detector response")
+    corner_quality: float = Field(default=0.01, ge=0, lt=1,
+                                  description="harris, shi_tomasi: least response, fraction of the level's largest")
+    harris_k: float = Field(default=0.04, gt=0, description="harris: k of the response det - k trace^2")
+    block_size: int = Field(default=3, ge=2, description="harris, shi_tomasi: window of the corners' structure "
+                                                         "tensor, px")
 
     @property
     def descriptor_type(self) -> str:
@@ -197,7 +182,8 @@ class KeypointDetector:
     without the contrib modules).
     """
 
-    def __init__(self, params: KeypointParams = KeypointParams()):
+    def __init__(self, params: KeypointParams | None = None):
+        params = params or KeypointParams()
         self.params = params
         self._corners = params.method in ("harris", "shi_tomasi")
         native = _feature2d(params)
@@ -284,6 +270,6 @@ def _responses(keypoints: Sequence[cv2.KeyPoint]) -> np.ndarray:
     return np.array([k.response for k in keypoints], np.float32)
 
 
-def detect_keypoints(grey: np.ndarray, params: KeypointParams = KeypointParams()) -> Keypoints:
+def detect_keypoints(grey: np.ndarray, params: KeypointParams | None = None) -> Keypoints:
     """The keypoints of an (H, W) uint8 image (builds a ``KeypointDetector``; keep one to detect in many images)."""
     return KeypointDetector(params).detect(grey)

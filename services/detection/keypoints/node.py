@@ -15,53 +15,33 @@ another is searched (``depth``).
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from protocol.detections import Keypoints
 from protocol.keys import KeyName
 from protocol.message import Header
 from services.bus.pubsub import Role
 from services.detection.grey import as_grey8
-from services.detection.keypoints.detector import EDGE_PX, Descriptor, KeypointDetector, KeypointParams, Method, Spread
+from services.detection.keypoints.detector import EDGE_PX, KeypointDetector, KeypointParams
 from services.detection.keypoints.detector import Keypoints as FoundKeypoints
 from services.runtime.frame_detection import UnusableFrame, detect_frames
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+from services.runtime.params import Flat, NodeParams
 
 MIN_SIDE_PX = 2 * EDGE_PX + 1
 """The shortest frame side searched: the smallest that leaves a pixel inside ORB's border on both sides."""
 
 
-class Params(BaseModel):
+class Params(NodeParams):
     """Which camera, which detector and descriptor, how many keypoints, their spread and thresholds."""
 
-    model_config = ConfigDict(extra="forbid")
-
     camera: KeyName = "cam0"
-    method: Method = Field(default="orb", description="orb, sift, akaze, harris or shi_tomasi")
-    descriptor: Descriptor = Field(default="native", description="native (the method's own; ORB for corners) "
-                                                                  "or teblid")
-    max_count: int = Field(default=1000, ge=1, le=100000, description="most keypoints kept a frame")
-    spread: Spread = Field(default="grid", description="grid (bucketing), anms or none")
-    cell_px: int = Field(default=64, ge=8, description="grid: cell side, px")
-    levels: int = Field(default=8, ge=1, le=32, description="orb, harris, shi_tomasi: pyramid levels")
-    scale_factor: float = Field(default=1.2, gt=1, le=4, description="orb, harris, shi_tomasi: scale between levels")
-    fast_threshold: int = Field(default=20, ge=1, le=255, description="orb: FAST threshold, grey levels")
-    contrast_threshold: float = Field(default=0.04, gt=0, description="sift: least contrast of a keypoint")
-    akaze_threshold: float = Field(default=0.001, gt=0, description="akaze: least detector response")
-    corner_quality: float = Field(default=0.01, ge=0, lt=1,
-                                  description="harris, shi_tomasi: least response, fraction of the level's largest")
+    keypoints: Annotated[KeypointParams, Flat()] = KeypointParams()
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy")
-
-
-def settings(params: Params) -> KeypointParams:
-    """The algorithm's settings for the node's ``params``."""
-    return KeypointParams(method=params.method, descriptor=params.descriptor, max_count=params.max_count,
-                          spread=params.spread, cell_px=params.cell_px, levels=params.levels,
-                          scale_factor=params.scale_factor, fast_threshold=params.fast_threshold,
-                          contrast_threshold=params.contrast_threshold, akaze_threshold=params.akaze_threshold,
-                          corner_quality=params.corner_quality)
 
 
 def frame_keypoints(keypoints: KeypointDetector, data: np.ndarray) -> FoundKeypoints:
@@ -81,7 +61,7 @@ def as_message(header: Header, found: FoundKeypoints) -> Keypoints:
 
 def run(node: Node, params: Params) -> None:
     try:
-        keypoints = KeypointDetector(settings(params))
+        keypoints = KeypointDetector(params.keypoints)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     out = node.publisher(node.keys.keypoints(params.camera), Keypoints, Role.RESULT)
@@ -91,7 +71,7 @@ def run(node: Node, params: Params) -> None:
 
 
 def _check(params: Params) -> None:
-    KeypointDetector(settings(params))
+    KeypointDetector(params.keypoints)
 
 
 KIND = NodeKind(name="keypoints", summary="keypoints and descriptors (ORB, SIFT, AKAZE, Harris, Shi-Tomasi) of a "

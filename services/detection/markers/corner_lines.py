@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from services.geometry.camera import UNDISTORT_CRITERIA, project_points
+from services.geometry.shapes import check_shape
 
 __all__ = ["SAMPLES", "STEPS", "fit_lines", "refine_corners"]
 
@@ -72,14 +73,10 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np
     that distortion bends still meet where they should. Returns (N, 4, 2) float32 px of
     ``image``; a quad that cannot be refined keeps its input.
     """
-    corners = np.asarray(corners, dtype=np.float64)
-    if corners.ndim != 3 or corners.shape[1:] != (4, 2):
-        raise ValueError(f"corners must be (N, 4, 2), got {corners.shape}")
+    corners = check_shape(corners, "N,4,2", "corners", np.float64)
     if not np.isfinite(corners).all():
         raise ValueError("corners must be finite")
-    image = np.asarray(image)
-    if image.ndim != 2:
-        raise ValueError(f"image must be (H, W) grey, got shape {image.shape}")
+    image = check_shape(image, "H,W", "image")
     search = np.broadcast_to(np.asarray(search_px, dtype=np.float64), (len(corners),)).copy()
     if len(corners) == 0:
         return corners.astype(np.float32)

@@ -10,7 +10,7 @@ the meaning of each setting are in ``services.detection.markers.detector``.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 from pydantic import Field
 
@@ -23,14 +23,16 @@ from services.detection.markers.detector import MarkerFound
 from services.detection.markers.settings import DetectorSettings
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+from services.runtime.params import Flat, NodeParams
 
 
-class Params(DetectorSettings):
+class Params(NodeParams):
     """Which camera to watch, which markers to look for, and how; the detector's tuning (side
     lengths, refinement, ``parameters`` thresholds) may change while it runs."""
 
     RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING
 
+    detection: Annotated[DetectorSettings, Flat()] = DetectorSettings()
     camera: KeyName = "cam0"
     depth: int = Field(default=2, ge=1, le=1000,
                        description="frames queued while busy; 1 = always the newest only, more rides out stalls")
@@ -38,15 +40,15 @@ class Params(DetectorSettings):
 
 def run(node: Node, params: Params) -> None:
     try:
-        markers = params.detector()
+        markers = params.detection.detector()
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     current = {"detector": markers}
-    node.configurable(params, lambda new: current.update(detector=new.detector()))
+    node.configurable(params, lambda new: current.update(detector=new.detection.detector()))
     frames = node.inbox(node.keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     out = node.publisher(node.keys.markers(params.camera), MarkerDetections, Role.RESULT)
     for image in node.inputs(frames):
-        out.put(as_message(image.header, params.dictionary, current["detector"].detect(image.data)))
+        out.put(as_message(image.header, params.detection.dictionary, current["detector"].detect(image.data)))
 
 
 def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDetections:
@@ -56,7 +58,7 @@ def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDet
 
 
 def _check(params: Params) -> None:
-    params.detector()
+    params.detection.detector()
 
 
 KIND = NodeKind(name="markers", summary="detects ArUco/AprilTag markers in a camera's frames",

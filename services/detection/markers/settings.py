@@ -1,4 +1,4 @@
-"""Marker detector settings as nodes take them (pydantic), shared by every node that detects markers."""
+"""The marker detector's options, shared by every node that detects markers."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ DEFAULT_DICTIONARY = "DICT_4X4_50"
 class DetectorSettings(BaseModel):
     """Which markers to look for and how (see ``MarkerDetector``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     TUNING: ClassVar[frozenset[str]] = frozenset({"marker_length", "lengths", "refinement", "parameters"})
     """The fields a running detector may take new values of (all but the dictionary)."""

@@ -32,8 +32,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.optimize import linear_sum_assignment
 
 from services.geometry.camera import CameraModel, undistort_pixels
@@ -46,19 +48,28 @@ __all__ = ["CorrespondenceOptions", "RigGeometry", "gated_assignment", "unambigu
            "rig_geometry", "triangulate_blobs"]
 
 
-@dataclass(frozen=True)
-class CorrespondenceOptions:
-    """``epipolar_gate_px``: largest epipolar distance of a pair; ``reprojection_gate_px``: largest
-    reprojection error of a view (and RMS of a point); ``sigma_px``: centroid noise, per
-    coordinate, for the covariances; ``ambiguity``: a pair is left unmade when the best
-    assignment without it costs less than this much more (in units of the epipolar gate);
-    ``min_views``: fewest views of a point kept (2; 3 refuses points no third camera confirms)."""
+class CorrespondenceOptions(BaseModel):
+    """How blobs are put in correspondence and triangulated (see the module docstring)."""
 
-    epipolar_gate_px: float = 1.5
-    reprojection_gate_px: float = 2.0
-    sigma_px: float = 0.1
-    ambiguity: float = 0.2
-    min_views: int = 2
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
+    reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view (and "
+                                                                       "RMS of a point), px")
+    sigma_px: PositiveFloat | Literal["auto"] = Field(
+        default="auto", description="centroid noise of the covariances, px; auto: estimated from the points' "
+                                    "reprojection residuals over the last sets")
+    ambiguity: float = Field(default=0.2, ge=0, description="a pair is left unmade when the best assignment "
+                                                            "without it costs less than this much more (in units "
+                                                            "of the epipolar gate)")
+    min_views: int = Field(default=2, ge=2, description="fewest cameras that must see a point (3 refuses points no "
+                                                        "third camera confirms)")
+
+    @property
+    def covariance_sigma_px(self) -> float:
+        """The centroid noise, per coordinate, the points' covariances are made for: ``sigma_px``, or 1 px
+        with ``auto`` (for the caller to scale by its estimate, ``centroid_noise.CentroidNoise``)."""
+        return 1.0 if self.sigma_px == "auto" else self.sigma_px
 
 
 def gated_assignment(cost: np.ndarray, gate: float) -> list[tuple[int, int]]:
@@ -145,7 +156,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         for row, views in enumerate(clusters):
             for c, i in views:
                 pixels[row, c], undistorted[row, c], seen[row, c] = blobs[c][i], ideal[c][i], True
-        found = triangulate_many(stack, pixels, seen, options.sigma_px, undistorted, start)
+        found = triangulate_many(stack, pixels, seen, options.covariance_sigma_px, undistorted, start)
         return [TriangulatedPoint(found.points[row], float(found.rms_px[row]), found.covariances[row],
                                   tuple(c for c, _ in views), tuple(i for _, i in views))
                 for row, views in enumerate(clusters)]

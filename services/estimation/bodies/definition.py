@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.geometry.shapes import check_shape
+
 __all__ = ["body_frame"]
 
 
@@ -22,9 +24,9 @@ def body_frame(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (4, 4), the body frame's pose in the world at the time the points were seen. ValueError for
     fewer than three points or points that are not (N, 3) finite numbers.
     """
-    points = np.asarray(points_world, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
-        raise ValueError(f"points_world must be (N, 3) finite numbers, got shape {points.shape}")
+    points = check_shape(points_world, "N,3", "points_world", np.float64)
+    if not np.isfinite(points).all():
+        raise ValueError("points_world must be finite numbers")
     if len(points) < 3:
         raise ValueError(f"a rigid body needs at least 3 spheres, got {len(points)}")
     centroid = points.mean(axis=0)

@@ -42,10 +42,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator
+from pydantic import Field, field_validator
 
 from protocol.detections import Blobs
 from protocol.keys import KeyName
@@ -58,18 +58,19 @@ from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
 from services.convert import camera_model, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
+from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
+from services.estimation.bodies.tracking import BodyTracker, TrackingOptions
 from services.estimation.markers.tracking import TargetTracks
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import TriangulatedPoint
 from services.runtime.kind import FrameSizes, NodeKind
 from services.runtime.node import Node, NodeError
+from services.runtime.params import Flat, NodeParams
 
 if TYPE_CHECKING:
-    from services.estimation.bodies.correspondence import CorrespondenceOptions
-    from services.estimation.bodies.tracking import TrackingOptions
     from services.estimation.motion import Prediction
 
 WORLD = "world"
@@ -78,10 +79,8 @@ FIRST_INFO_WAIT_S = 0.5
 INFO_DEPTH = 100
 
 
-class Params(BaseModel):
-    """The rig's cameras, its calibration and bodies, and the gates of correspondence and matching."""
-
-    model_config = ConfigDict(extra="forbid")
+class Params(NodeParams):
+    """The rig's cameras, its calibration and bodies, and the options of correspondence, matching and tracking."""
 
     cameras: tuple[KeyName, ...] = Field(default=("cam0", "cam1"), description="the rig's cameras, whose blobs "
                                                                                "are joined")
@@ -89,23 +88,14 @@ class Params(BaseModel):
                                                             "cameras' CameraInfo with their T_rig_camera")
     bodies: Path | None = Field(default=None, description="bodies YAML; default: none, every point unlabelled")
     flagged: bool = Field(default=False, description="also triangulate blobs flagged merged, occluded or clipped")
-    epipolar_gate_px: float = Field(default=1.5, gt=0, description="largest epipolar distance of a pair, px")
-    reprojection_gate_px: float = Field(default=2.0, gt=0, description="largest reprojection error of a view, px")
-    sigma_px: PositiveFloat | Literal["auto"] = Field(
-        default="auto", description="centroid noise of the covariances, px; auto: estimated from the points' "
-                                    "reprojection residuals over the last sets")
-    min_views: int = Field(default=2, ge=2, description="fewest cameras that must see a point")
-    distance_tolerance: float = Field(default=0.003, gt=0, description="sphere distance tolerance of matching, m")
-    gate_rms: float = Field(default=0.001, gt=0, description="largest residual RMS of a body's fit, m: a few "
-                                                              "times the fits' RMS (0.1-0.3 mm), under what a "
-                                                              "wrong point within distance_tolerance gives")
+    correspondence: Annotated[CorrespondenceOptions, Flat()] = CorrespondenceOptions()
+    match: Annotated[MatchOptions, Flat()] = MatchOptions()
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
     predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
                                                      "matched near it first, one missing set bridged")
-    predict_gate: float = Field(default=0.015, gt=0, description="farthest a point may lie from a sphere's "
-                                                                  "predicted position, m")
-    predict_gap_s: float = Field(default=0.2, gt=0, description="longest time without a fit before a body's "
-                                                                "motion is forgotten, s")
+    tracking: Annotated[TrackingOptions, Flat("predict_", names={
+        "motion_max_gap_s": "predict_gap_s", "motion_acceleration": "predict_acceleration",
+        "motion_angular_acceleration": "predict_angular_acceleration"}, label="predict")] = TrackingOptions()
 
     @field_validator("cameras")
     @classmethod
@@ -113,27 +103,6 @@ class Params(BaseModel):
         if len(cameras) < 2 or len(set(cameras)) != len(cameras):
             raise ValueError(f"triangulating needs two or more distinct cameras, got {', '.join(cameras) or 'none'}")
         return cameras
-
-    def correspondence(self) -> CorrespondenceOptions:
-        from services.estimation.bodies.correspondence import CorrespondenceOptions
-
-        return CorrespondenceOptions(epipolar_gate_px=self.epipolar_gate_px,
-                                     reprojection_gate_px=self.reprojection_gate_px,
-                                     sigma_px=1.0 if self.sigma_px == "auto" else self.sigma_px,
-                                     min_views=self.min_views)
-
-    def point_noise(self) -> PointNoise:
-        return PointNoise(None if self.sigma_px == "auto" else self.sigma_px)
-
-    def matching(self) -> MatchOptions:
-        return MatchOptions(distance_tolerance=self.distance_tolerance, gate_rms=self.gate_rms)
-
-    def tracking(self) -> TrackingOptions:
-        from services.estimation.bodies.tracking import TrackingOptions
-        from services.estimation.motion import MotionOptions
-
-        return TrackingOptions(gate=self.predict_gate,
-                               motion=MotionOptions(max_gap_ns=max(1, round(self.predict_gap_s * 1e9))))
 
 
 def load(params: Params) -> tuple[Rig | None, dict[str, np.ndarray]]:
@@ -200,10 +169,10 @@ def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray
 
 class PointNoise:
     """The points' covariances under the centroid noise: ``sigma_px`` fixed (the points triangulated with it),
-    or None: estimated by a ``CentroidNoise`` from each set's residuals (the points triangulated with 1 px)."""
+    or ``auto``: estimated by a ``CentroidNoise`` from each set's residuals (the points triangulated with 1 px)."""
 
-    def __init__(self, sigma_px: float | None):
-        self.noise = CentroidNoise() if sigma_px is None else None
+    def __init__(self, options: CorrespondenceOptions):
+        self.noise = CentroidNoise() if options.sigma_px == "auto" else None
 
     def arrays(self, found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
         """``point_arrays`` of one set's points, their covariances scaled by the estimate once it has taken
@@ -271,15 +240,13 @@ class PosePublishers:
 
 
 def run(node: Node, params: Params) -> None:
-    from services.estimation.bodies.correspondence import triangulate_blobs  # scipy.optimize: only where it runs
-
     try:
         rig, bodies = load(params)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     if not bodies:
         node.log.info("no bodies file (bodies): every point is published unlabelled, no pose")
-    for warning in check_bodies(bodies, params.matching()):
+    for warning in check_bodies(bodies, params.match):
         node.log.warning("bodies: %s", warning)
     keys = node.keys
     infos = {} if rig is not None else {
@@ -290,12 +257,10 @@ def run(node: Node, params: Params) -> None:
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
     poses = PosePublishers(node)
     names = list(bodies)
-    correspondence, matching_options, noise = params.correspondence(), params.matching(), params.point_noise()
+    noise = PointNoise(params.correspondence)
     tracker = None
     if params.predict:
-        from services.estimation.bodies.tracking import BodyTracker
-
-        tracker = BodyTracker(bodies, matching_options, params.tracking())
+        tracker = BodyTracker(bodies, params.match, params.tracking)
     for joined in sets:
         first = joined[params.cameras[0]]
         header = first.header.model_copy(update={"frame_id": WORLD})
@@ -305,10 +270,10 @@ def run(node: Node, params: Params) -> None:
                         "nothing triangulated", keys.camera_info(calibration.missing()[0]))
             continue
         found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
-                                  correspondence)
+                                  params.correspondence)
         points, covariances = noise.arrays(found)
         if tracker is None:
-            matching = match_bodies(bodies, points, covariances, matching_options) if len(found) else Matching()
+            matching = match_bodies(bodies, points, covariances, params.match) if len(found) else Matching()
             poses.put(header, body_poses(header, matching))
         else:
             tracked = tracker.step(header.stamp_ns, points, covariances)

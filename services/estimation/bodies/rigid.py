@@ -26,6 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.geometry.absolute_orientation import (
     COLLINEAR_TOLERANCE,
@@ -33,6 +34,7 @@ from services.geometry.absolute_orientation import (
     least_squares_transforms,
     pose_covariance,
 )
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "DEFAULT_OPTIONS",
@@ -47,26 +49,21 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class MatchOptions:
-    """``distance_tolerance``: largest difference (m) between a measured and a body's pairwise distance;
-    ``gate_rms``: largest residual RMS (m) of a body's rigid fit; ``allow_missing``: a body of four or more
-    spheres may be matched with one sphere hidden; ``max_candidates``: assignments kept per body (the
-    best: most spheres, then least residual) for the global choice."""
+class MatchOptions(BaseModel):
+    """How bodies are found among the points (see the module docstring)."""
 
-    distance_tolerance: float = 0.003
-    gate_rms: float = 0.002
-    allow_missing: bool = True
-    max_candidates: int = 32
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        for name in ("distance_tolerance", "gate_rms"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite number > 0 (metres), got {value!r}")
-        if isinstance(self.max_candidates, bool) or not isinstance(self.max_candidates, int) \
-                or self.max_candidates < 1:
-            raise ValueError(f"max_candidates must be an integer >= 1, got {self.max_candidates!r}")
+    distance_tolerance: float = Field(default=0.003, gt=0, allow_inf_nan=False,
+                                      description="sphere distance tolerance of matching, m: largest difference "
+                                                  "between a measured and a body's pairwise distance")
+    gate_rms: float = Field(default=0.001, gt=0, allow_inf_nan=False,
+                            description="largest residual RMS of a body's fit, m: a few times the fits' RMS "
+                                        "(0.1-0.3 mm), under what a wrong point within distance_tolerance gives")
+    allow_missing: bool = Field(default=True, description="a body of four or more spheres may be matched with one "
+                                                          "sphere hidden")
+    max_candidates: int = Field(default=32, ge=1, description="assignments kept per body (the best: most spheres, "
+                                                              "then least residual) for the global choice")
 
 
 DEFAULT_OPTIONS = MatchOptions()
@@ -116,9 +113,7 @@ class Matching:
 
 def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
     """``points`` as an (M, 3) float64 array of finite values, else ValueError naming ``name``."""
-    array = np.asarray(points, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} must be (M, 3) points, got shape {array.shape}")
+    array = check_shape(points, "M,3", name, np.float64)
     if not np.all(np.isfinite(array)):
         raise ValueError(f"{name} must be finite, got NaN or infinity")
     return array
@@ -248,10 +243,7 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
     """
     points = check_points(points_world, "points_world")
     if covariances is not None:
-        covariances = np.asarray(covariances, dtype=np.float64)
-        if covariances.shape != (len(points), 3, 3):
-            raise ValueError(f"covariances must be ({len(points)}, 3, 3), one per point, got shape "
-                             f"{covariances.shape}")
+        covariances = check_shape(covariances, f"{len(points)},3,3", "covariances", np.float64)
     distances = pairwise_distances(points)
     names = list(bodies)
     options_per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []

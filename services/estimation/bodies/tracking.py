@@ -24,6 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.estimation.bodies.correspondence import gated_assignment
 from services.estimation.bodies.rigid import (
@@ -37,28 +38,21 @@ from services.estimation.bodies.rigid import (
 from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions, Prediction
 from services.geometry.absolute_orientation import RigidFit, fit_rigid
 from services.geometry.se3 import transform_points
+from services.geometry.shapes import check_shape
 
 __all__ = ["DEFAULT_TRACKING", "BodyTracker", "Tracked", "TrackingOptions", "match_with_prediction"]
 
 
-@dataclass(frozen=True)
-class TrackingOptions:
-    """``gate``: farthest a point may lie from a sphere's predicted position, m; ``min_spheres``: fewest
-    spheres a predicted body is fitted with (>= 3); ``bridge``: instants in a row a body missing is given
-    its predicted pose; ``motion``: the motion model's options."""
+class TrackingOptions(BaseModel):
+    """How bodies are followed from instant to instant (see the module docstring)."""
 
-    gate: float = 0.015
-    min_spheres: int = 3
-    bridge: int = 1
-    motion: MotionOptions = DEFAULT_MOTION
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if not (isinstance(self.gate, int | float) and np.isfinite(self.gate) and self.gate > 0):
-            raise ValueError(f"gate must be a finite number > 0 (metres), got {self.gate!r}")
-        for name, least in (("min_spheres", 3), ("bridge", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    gate: float = Field(default=0.015, gt=0, allow_inf_nan=False,
+                        description="farthest a point may lie from a sphere's predicted position, m")
+    min_spheres: int = Field(default=3, ge=3, description="fewest spheres a predicted body is fitted with")
+    bridge: int = Field(default=1, ge=0, description="instants in a row a body missing is given its predicted pose")
+    motion: MotionOptions = Field(default=DEFAULT_MOTION, description="the constant-velocity model's options")
 
 
 DEFAULT_TRACKING = TrackingOptions()
@@ -75,9 +69,8 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
     ``covariances``: (M, 3, 3) float64 point covariances (m^2) or None. Each point goes to one body at most.
     """
     points = check_points(points_world, "points_world")
-    if covariances is not None and np.shape(covariances) != (len(points), 3, 3):
-        raise ValueError(f"covariances must be ({len(points)}, 3, 3), one per point, got {np.shape(covariances)}")
-    covariances = None if covariances is None else np.asarray(covariances, dtype=np.float64)
+    if covariances is not None:
+        covariances = check_shape(covariances, f"{len(points)},3,3", "covariances", np.float64)
     names = list(bodies)
     predicted = [name for name in names if name in predictions]
     found: dict[str, BodyMatch] = {}

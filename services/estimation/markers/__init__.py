@@ -18,7 +18,13 @@ from services.estimation.markers.map import (
     save_marker_map,
 )
 from services.estimation.markers.offline import TrackedFrame, track_folder, track_images
-from services.estimation.markers.pose import FrameEstimate, MarkerPoseEstimator, SkipReason, TargetPose
+from services.estimation.markers.pose import (
+    FrameEstimate,
+    MarkerPoseEstimator,
+    MarkerPoseOptions,
+    SkipReason,
+    TargetPose,
+)
 from services.estimation.markers.tracking import TargetTracks, marker_detector
 
 __all__ = [
@@ -28,6 +34,7 @@ __all__ = [
     "MarkerMap",
     "MarkerMapError",
     "MarkerPoseEstimator",
+    "MarkerPoseOptions",
     "SkipReason",
     "TargetPose",
     "TargetTracks",

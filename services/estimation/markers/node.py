@@ -37,10 +37,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from protocol.detections import MarkerDetections
 from protocol.keys import KeyName
@@ -55,28 +55,28 @@ from services.detection.markers.detector import MarkerDetector
 from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers.map import MarkerMap, load_marker_map
-from services.estimation.markers.pose import DEFAULT_METHOD, FrameEstimate, MarkerPoseEstimator, Method
+from services.estimation.markers.pose import FrameEstimate, MarkerPoseEstimator, MarkerPoseOptions
 from services.estimation.markers.tracking import TargetTracks, marker_detector
 from services.estimation.overlay import OverlayTarget, board_cube_size, draw_overlay, to_bgr8
 from services.geometry.camera import CameraModel
 from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+from services.runtime.params import Flat, NodeParams
 
 
-class Params(DetectorSettings):
+class Params(NodeParams):
     """Which camera, where its markers come from, and how poses are estimated; the detector's
     tuning and ``corner_sigma_px`` may change while the node runs."""
 
-    model_config = ConfigDict(extra="forbid")
     RELOADABLE: ClassVar[frozenset[str]] = DetectorSettings.TUNING | {"corner_sigma_px"}
 
+    detection: Annotated[DetectorSettings, Flat()] = DetectorSettings()
     camera: KeyName = "cam0"
     input: Literal["images", "detections"] = Field(
         default="images", description="detect here from images, or take a markers node's detections")
     board: Path | None = Field(default=None, description="board / marker map YAML: one pose for all its markers")
-    method: Method = DEFAULT_METHOD
-    corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
+    pose: Annotated[MarkerPoseOptions, Flat()] = MarkerPoseOptions()
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (images input; as the "
                                                              "markers node's: one waits, more are dropped)")
@@ -152,12 +152,13 @@ class _Overlay:
 def _prepare(params: Params) -> tuple[MarkerMap | None, FixedCalibration | None, MarkerDetector | None]:
     """The board, fixed calibration and detector ``params`` name; ValueError (one line) when one cannot be
     had, or when detecting here with no side length at all (every marker would fail to give a pose)."""
-    if params.input == "images" and params.marker_length is None and not params.lengths and params.board is None:
+    detection = params.detection
+    if params.input == "images" and detection.marker_length is None and not detection.lengths and params.board is None:
         raise ValueError("no marker side length, so no pose could be given: marker_length is needed (artrack run: "
                          "--marker-length METRES, > 0), or lengths of single ids, or a board")
     board = load_marker_map(params.board) if params.board else None
     fixed = FixedCalibration.read(params.calib) if params.calib else None
-    detector = marker_detector(params, board) if params.input == "images" else None
+    detector = marker_detector(detection, board) if params.input == "images" else None
     return board, fixed, detector
 
 
@@ -170,16 +171,16 @@ def run(node: Node, params: Params) -> None:
         board, fixed, detector = _prepare(params)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
-    estimator = MarkerPoseEstimator(method=params.method, marker_map=board, corner_sigma_px=params.corner_sigma_px)
+    estimator = MarkerPoseEstimator(params.pose, board)
     live: dict[str, MarkerDetector] = {} if detector is None else {"detector": detector}
 
     def apply(new: Params) -> None:
         """Put a live change to work: the covariance's corner noise, and the detector's tuning."""
-        if detector is None and new.tuning() != params.tuning():
+        if detector is None and new.detection.tuning() != params.detection.tuning():
             raise ValueError("this node takes a markers node's detections: change that node's detector")
         if detector is not None:
-            live["detector"] = marker_detector(new, board)
-        estimator.corner_sigma_px = new.corner_sigma_px
+            live["detector"] = marker_detector(new.detection, board)
+        estimator.options = new.pose
 
     node.configurable(params, apply)
     keys = node.keys
@@ -192,7 +193,7 @@ def run(node: Node, params: Params) -> None:
                                                             Role.RESULT)))
     else:
         frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
-        found = _detected(node, frames, live, params.dictionary_name(board.dictionary if board else None),
+        found = _detected(node, frames, live, params.detection.dictionary_name(board.dictionary if board else None),
                           node.publisher(keys.markers(params.camera), MarkerDetections), calibration)
     for image, detections in found:
         camera = calibration.current()

@@ -15,7 +15,8 @@ refinement), ``MarkerPoseEstimator`` (its ambiguity tracking carries from frame 
 frames in order) and ``marker_tracking.TargetTracks`` for the ``lost`` poses. Options are the
 node's: the detector settings (``dictionary``, ``marker_length``, ``lengths``, ``refinement``,
 ``parameters``, see ``services.detection.markers.settings``), ``board`` (a marker map YAML, as
-``artrack markers print --board`` writes, or a ``MarkerMap``), ``method`` and ``corner_sigma_px``.
+``artrack markers print --board`` writes, or a ``MarkerMap``) and the estimator's options
+(``method``, ``corner_sigma_px``, ..., see ``pose.MarkerPoseOptions``).
 
 Per frame a ``TrackedFrame``: the detections and, per target (``marker/<id>`` or the board's
 name), a ``TargetPose``: state ``tracking`` with ``T_camera_target`` (4, 4), the reprojection
@@ -39,7 +40,7 @@ from services.calibration.image_folder import IMAGE_SUFFIXES, folder_entries, re
 from services.detection.markers.detector import MarkerDetector, MarkerFound
 from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers.map import MarkerMap, load_marker_map
-from services.estimation.markers.pose import DEFAULT_METHOD, MarkerPoseEstimator, Method
+from services.estimation.markers.pose import MarkerPoseEstimator, MarkerPoseOptions
 from services.estimation.markers.tracking import TargetTracks, marker_detector
 from services.geometry.camera import CameraModel
 
@@ -84,13 +85,12 @@ def _board(board: MarkerMap | str | Path | None) -> MarkerMap | None:
 
 
 def track_images(images: Iterable[np.ndarray], camera: CameraModel | str | Path, *,
-                 board: MarkerMap | str | Path | None = None, method: Method = DEFAULT_METHOD,
-                 corner_sigma_px: float = 0.5, **detector: Any) -> Iterator[TrackedFrame]:
+                 board: MarkerMap | str | Path | None = None, **options: Any) -> Iterator[TrackedFrame]:
     """Track markers in ``images`` (each (H, W) or (H, W, 3|4) uint8 / (H, W) uint16, in order), seen by
-    ``camera`` (a CameraModel or a ROS camera_info YAML path). ``detector``: DetectorSettings fields.
-    Bad options raise ValueError before the first image is read."""
-    return _track(((n, image, None, None) for n, image in enumerate(images)), camera, board, method,
-                  corner_sigma_px, detector)
+    ``camera`` (a CameraModel or a ROS camera_info YAML path). ``options``: fields of ``DetectorSettings``
+    and of ``MarkerPoseOptions`` (``method``, ``corner_sigma_px``, ...). Bad options raise ValueError
+    before the first image is read."""
+    return _track(((n, image, None, None) for n, image in enumerate(images)), camera, board, options)
 
 
 def track_folder(folder: str | Path, camera: CameraModel | str | Path, **options: Any) -> Iterator[TrackedFrame]:
@@ -111,18 +111,18 @@ def track_folder(folder: str | Path, camera: CameraModel | str | Path, **options
                 raise ValueError(f"{path}: cannot read {path}")
             yield index, image, path, time_s
 
-    return _track(read(), camera, options.pop("board", None), options.pop("method", DEFAULT_METHOD),
-                  options.pop("corner_sigma_px", 0.5), options)
+    return _track(read(), camera, options.pop("board", None), options)
 
 
 def _track(frames: Iterable[tuple[int, np.ndarray, Path | None, float | None]], camera: CameraModel | str | Path,
-           board: MarkerMap | str | Path | None, method: Method, corner_sigma_px: float,
-           detector: dict[str, Any]) -> Iterator[TrackedFrame]:
+           board: MarkerMap | str | Path | None, options: dict[str, Any]) -> Iterator[TrackedFrame]:
     """Set everything up now (so bad options fail at the call), then track lazily."""
     model = _camera(camera)
     marker_map = _board(board)
-    markers = marker_detector(DetectorSettings.model_validate(detector), marker_map)
-    estimator = MarkerPoseEstimator(method=method, marker_map=marker_map, corner_sigma_px=corner_sigma_px)
+    pose = {name: options[name] for name in MarkerPoseOptions.model_fields if name in options}
+    detection = {name: value for name, value in options.items() if name not in pose}
+    markers = marker_detector(DetectorSettings.model_validate(detection), marker_map)
+    estimator = MarkerPoseEstimator(MarkerPoseOptions.model_validate(pose), marker_map)
     return _frames(frames, model, markers, estimator)
 
 

@@ -57,6 +57,7 @@ from typing import Literal, get_args
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.estimation.markers.ambiguity import AmbiguityTracker
 from services.estimation.markers.map import MarkerMap, marker_corners
@@ -73,6 +74,7 @@ from services.geometry.planar_pnp import (
     reprojection_rms,
 )
 from services.geometry.refine import pose_covariances, refine_poses
+from services.geometry.shapes import check_shape
 
 Method = Literal["lm", "ippe", "ippe+lm"]
 METHODS: tuple[Method, ...] = get_args(Method)
@@ -140,22 +142,33 @@ class Observation(PlanarView):
     marker_ids: tuple[int, ...]
 
 
-class MarkerPoseEstimator:
-    """Marker and marker-map poses of one camera; keeps each target's last pose to resolve ambiguities."""
+class MarkerPoseOptions(BaseModel):
+    """How ``MarkerPoseEstimator`` makes poses (see the module docstring)."""
 
-    def __init__(self, method: str = DEFAULT_METHOD, marker_map: MarkerMap | None = None,
-                 corner_sigma_px: float = 0.5, ambiguity_ratio: float = 2.0, prior_max_age: int = 5,
-                 max_iterations: int = 100):
-        if method not in METHODS:
-            raise ValueError(f"method {method!r}: must be one of {', '.join(METHODS)}")
-        if not (corner_sigma_px > 0 and max_iterations >= 1):
-            raise ValueError(f"need corner_sigma_px > 0 and max_iterations >= 1, got {corner_sigma_px} and "
-                             f"{max_iterations}")
-        self.method = method
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    method: Method = Field(default=DEFAULT_METHOD, description="lm (homography, then Levenberg-Marquardt), ippe "
+                                                               "(OpenCV's IPPE_SQUARE) or ippe+lm (IPPE refined "
+                                                               "by Levenberg-Marquardt)")
+    corner_sigma_px: float = Field(default=0.5, gt=0, description="corner noise assumed by the covariance, px")
+    ambiguity_ratio: float = Field(default=2.0, ge=1, description="a pose is ambiguous when the other planar "
+                                                                  "candidate's error is within this factor of its "
+                                                                  "own")
+    prior_max_age: int = Field(default=5, ge=0, description="frames a target's last pose is kept to choose "
+                                                            "between its candidates")
+    max_iterations: int = Field(default=100, ge=1, description="Levenberg-Marquardt iterations at most")
+
+
+class MarkerPoseEstimator:
+    """Marker and marker-map poses of one camera; keeps each target's last pose to resolve ambiguities.
+
+    ``options`` may be replaced between frames (a live change of ``corner_sigma_px``, say); the ambiguity
+    tracker keeps the ``ambiguity_ratio`` and ``prior_max_age`` it was made with."""
+
+    def __init__(self, options: MarkerPoseOptions | None = None, marker_map: MarkerMap | None = None):
+        self.options = options or MarkerPoseOptions()
         self.marker_map = marker_map
-        self.corner_sigma_px = corner_sigma_px
-        self.max_iterations = max_iterations
-        self.ambiguity = AmbiguityTracker(ambiguity_ratio, prior_max_age)
+        self.ambiguity = AmbiguityTracker(self.options.ambiguity_ratio, self.options.prior_max_age)
 
     def reset(self) -> None:
         """Forget every target's previous pose."""
@@ -170,9 +183,7 @@ class MarkerPoseEstimator:
         ``side_lengths``: (N,) metres (or one number for all; 0 = unknown); ``K``: (3, 3);
         ``dist``: OpenCV distortion coefficients or None.
         """
-        K = np.asarray(K, dtype=np.float64)
-        if K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {K.shape}")
+        K = check_shape(K, "3,3", "K", np.float64)
         self.ambiguity.next_frame()
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         corners = np.asarray(corners, dtype=np.float64).reshape(len(ids), 4, 2)
@@ -225,18 +236,18 @@ class MarkerPoseEstimator:
             else:
                 ambiguous[i] = self.ambiguity.is_ambiguous(candidates)
                 found[i] = candidates if ambiguous[i] else candidates[:1]
-        if self.method != "ippe":
+        if self.options.method != "ippe":
             found = self._refine(observations, found, ambiguous, K, reasons)
         chosen = {i: self.ambiguity.choose(observations[i].target, candidates, ambiguous[i])
                   for i, candidates in found.items()}
         if not chosen:
             return [reasons[i] for i in range(len(observations))]
         picked = [candidate for candidate, _ in chosen.values()]
-        if self.method == "ippe":
+        if self.options.method == "ippe":
             normals = normals_at(np.array([c.T for c in picked]), [observations[i] for i in chosen], K)
         else:
             normals = np.array([c.normal for c in picked])
-        covariances, regular = pose_covariances(normals, self.corner_sigma_px)
+        covariances, regular = pose_covariances(normals, self.options.corner_sigma_px)
         poses: dict[int, TargetPose] = {}
         for k, (i, (candidate, anchored)) in enumerate(chosen.items()):
             observation = observations[i]
@@ -256,7 +267,7 @@ class MarkerPoseEstimator:
         starts: list[tuple[int, np.ndarray]] = []
         for i, candidates in found.items():
             observation = observations[i]
-            if self.method == "lm" and not ambiguous[i] and (plane := plane_frame(observation)) is not None:
+            if self.options.method == "lm" and not ambiguous[i] and (plane := plane_frame(observation)) is not None:
                 try:
                     T_homography = homography_pose(observation, plane, K)
                 except DegenerateError:
@@ -271,7 +282,7 @@ class MarkerPoseEstimator:
             return {}
         rows = [i for i, _ in starts]
         result = refine_poses(np.array([T for _, T in starts]), np.array([observations[i].points for i in rows]),
-                              np.array([observations[i].pixels for i in rows]), K, self.max_iterations)
+                              np.array([observations[i].pixels for i in rows]), K, self.options.max_iterations)
         refined: dict[int, list[Candidate]] = {}
         for k, i in enumerate(rows):
             if result.degenerate[k]:

@@ -23,10 +23,10 @@ moves a point of the visible target by more than ``max_shift_px`` (it has left t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.estimation.targets.pose import fit_planar_pose
 from services.estimation.targets.target import Target, target_points
@@ -39,27 +39,28 @@ GRID = 8
 MIN_LEVEL_SIDE = 32
 
 
-@dataclass(frozen=True)
-class AlignmentOptions:
-    """``iterations`` and ``epsilon``: ECC's stopping test; ``smoothing``: side of the gaussian ECC blurs
-    both images with (odd, pixels; 1 = none); ``margin_px``: frame pixels this far inside the target's
-    outline are left out; ``min_correlation``: the least correlation of an accepted alignment;
-    ``max_shift_px``: the largest move of a visible target point (of an 8 x 8 grid) it may make."""
+class AlignmentOptions(BaseModel):
+    """ECC's stopping test and what of the target and the frame it compares."""
 
-    iterations: int = 30
-    epsilon: float = 1e-5
-    smoothing: int = 3
-    margin_px: float = 4.0
-    min_correlation: float = 0.6
-    max_shift_px: float = 4.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if self.iterations < 1 or not self.epsilon > 0:
-            raise ValueError(f"need iterations >= 1 and epsilon > 0, got {self.iterations}, {self.epsilon}")
-        if self.smoothing < 1 or self.smoothing % 2 == 0:
-            raise ValueError(f"smoothing must be an odd number >= 1, got {self.smoothing}")
-        if not (self.margin_px >= 0 and self.max_shift_px > 0 and -1 <= self.min_correlation <= 1):
-            raise ValueError("need margin_px >= 0, max_shift_px > 0 and min_correlation in [-1, 1]")
+    iterations: int = Field(default=30, ge=1, description="ECC's iterations at most")
+    epsilon: float = Field(default=1e-5, gt=0, description="ECC stops once the correlation gains less than this")
+    smoothing: int = Field(default=3, ge=1, description="side of the gaussian ECC blurs both images with (odd), px; "
+                                                        "1: none")
+    margin_px: float = Field(default=4.0, ge=0, description="frame pixels this far inside the target's outline "
+                                                            "are left out")
+    min_correlation: float = Field(default=0.6, ge=-1, le=1, description="least correlation of an accepted "
+                                                                         "alignment")
+    max_shift_px: float = Field(default=4.0, gt=0, description="largest move of a visible target point (of an 8 x 8 "
+                                                               "grid) an alignment may make, px")
+
+    @field_validator("smoothing")
+    @classmethod
+    def _odd(cls, smoothing: int) -> int:
+        if smoothing % 2 == 0:
+            raise ValueError(f"smoothing must be odd, got {smoothing}")
+        return smoothing
 
 
 class TargetAligner:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Literal, get_args
 
 import numpy as np
@@ -98,7 +97,7 @@ def make_extractor(feature: str | KeypointParams = DEFAULT_FEATURE) -> Extractor
     def extract(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cap = keypoint_cap(params, grey.shape)
         if cap not in detectors:
-            detectors[cap] = KeypointDetector(replace(params, max_count=cap))
+            detectors[cap] = KeypointDetector(params.model_copy(update={"max_count": cap}))
         found = detectors[cap].detect(grey)
         return found.points, found.descriptors
 

@@ -29,11 +29,12 @@ import math
 import os
 import re
 import zipfile
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+from pydantic import ValidationError
 
 from services.detection.keypoints.detector import KeypointDetector, KeypointParams
 from services.estimation.targets.features import DEFAULT_FEATURE, Extractor
@@ -133,7 +134,7 @@ def write_target(target: Target, path: Path, source: str = "") -> None:
     """Write ``target`` to ``path`` (``<name>.npz``) and its image beside it (``<name>.png``), each through
     a temporary file renamed into place."""
     image_path = path.with_suffix(".png")
-    header = {"format": FORMAT, "version": VERSION, "name": target.name, "detector": asdict(target.detector),
+    header = {"format": FORMAT, "version": VERSION, "name": target.name, "detector": target.detector.model_dump(),
               "width_m": target.width_m, "image_size": list(target.size_px), "image": image_path.name,
               "source": source}
     partial_image = image_path.with_name(f".{image_path.name}.partial.png")
@@ -179,9 +180,10 @@ def read_detector(path: Path, settings: object) -> KeypointParams:
     if not isinstance(settings, dict):
         raise DamagedTargetError(f"target file {path}: header has no detector settings")
     try:
-        return KeypointParams(**settings)
-    except (TypeError, ValueError) as error:
-        raise DamagedTargetError(f"target file {path}: detector settings {settings!r}: {error}") from error
+        return KeypointParams.model_validate(settings)
+    except ValidationError as error:
+        problems = "; ".join(f"{'.'.join(map(str, p['loc']))}: {p['msg']}" for p in error.errors())
+        raise DamagedTargetError(f"target file {path}: detector settings {settings!r}: {problems}") from error
 
 
 def read_target(path: str | Path) -> Target:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.estimation.targets.alignment import TargetAligner
 
@@ -37,23 +38,23 @@ LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 MIN_STD = 1e-6
 
 
-@dataclass(frozen=True)
-class MeasureOptions:
-    """``window_px``: side of the Lucas-Kanade window (odd, pixels); ``levels``: pyramid levels above the
-    frame's own (coarse to fine; each doubles the reach); ``forward_backward_px``: the largest distance
-    between a point and where following it forward and back brings it."""
+class MeasureOptions(BaseModel):
+    """The Lucas-Kanade settings of following and measuring points."""
 
-    window_px: int = 13
-    levels: int = 3
-    forward_backward_px: float = 0.5
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        if self.window_px < 5 or self.window_px % 2 == 0:
-            raise ValueError(f"window_px must be an odd number >= 5, got {self.window_px}")
-        if not 0 <= self.levels <= 8:
-            raise ValueError(f"levels must be in [0, 8], got {self.levels}")
-        if not self.forward_backward_px > 0:
-            raise ValueError(f"forward_backward_px must be > 0, got {self.forward_backward_px}")
+    window_px: int = Field(default=13, ge=5, description="side of the Lucas-Kanade window (odd), px")
+    levels: int = Field(default=3, ge=0, le=8, description="pyramid levels above the frame's own (coarse to fine; "
+                                                           "each doubles the reach)")
+    forward_backward_px: float = Field(default=0.5, gt=0, description="largest distance between a point and where "
+                                                                      "following it forward and back brings it, px")
+
+    @field_validator("window_px")
+    @classmethod
+    def _odd(cls, window_px: int) -> int:
+        if window_px % 2 == 0:
+            raise ValueError(f"window_px must be odd, got {window_px}")
+        return window_px
 
 
 @dataclass(frozen=True)

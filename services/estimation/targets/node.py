@@ -38,9 +38,10 @@ target's own detector settings (``Target.detector``), which a separate node woul
 told to match. The ``keypoints`` node stays a kind of its own, for viewers and other consumers.
 
 Options: ``filter`` smooths each target's pose with the One Euro filter
-(``services.estimation.pose_filter``; the covariance stays the measurement's), ``align`` refines
-it by direct alignment (ECC), ``min_inliers`` / ``max_rms_px`` gate recognition,
-``track_min_points`` / ``track_max_rms_px`` gate tracking, ``anchor_every`` sets how often
+(``services.estimation.pose_filter``, its options ``filter_*``; the covariance stays the
+measurement's), ``align`` refines it by direct alignment (ECC), ``min_inliers`` / ``max_rms_px``
+gate recognition (``RecognitionOptions``, under their own names), ``track_min_points`` /
+``track_max_rms_px`` gate tracking (``TrackingOptions``, ``track_*``), ``anchor_every`` sets how often
 followed points are measured afresh against the target. Frames are latest-wins (``depth``).
 A frame whose stamp is not after the previous one (a source started over) starts every target
 afresh.
@@ -59,7 +60,7 @@ from typing import Annotated, Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BeforeValidator, Field
 
 from protocol.keys import KeyName
 from protocol.message import Header
@@ -72,7 +73,7 @@ from services.calibration.fixed import FixedCalibration, check_own_calibration
 from services.convert import camera_model, transform_from_matrix
 from services.estimation.markers.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
-from services.estimation.pose_filter import OneEuroPoseFilter
+from services.estimation.pose_filter import OneEuroOptions, OneEuroPoseFilter
 from services.estimation.targets.library import TargetLibrary
 from services.estimation.targets.recognition import RecognitionOptions, RecognitionStatus
 from services.estimation.targets.target import Target
@@ -80,16 +81,15 @@ from services.estimation.targets.tracking import TargetPose, TargetTracker, Trac
 from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
+from services.runtime.params import Flat, NodeParams
 
 
 def _as_tuple(value: Any) -> Any:
     return (value,) if isinstance(value, str) else value
 
 
-class Params(BaseModel):
+class Params(NodeParams):
     """Which camera and targets, where the targets and calibration come from, and how poses are made."""
-
-    model_config = ConfigDict(extra="forbid")
 
     camera: KeyName = "cam0"
     target: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
@@ -97,14 +97,13 @@ class Params(BaseModel):
     targets: Path | None = Field(default=None, description="target library folder; default "
                                                            "$XDG_DATA_HOME/artrack/targets")
     calib: Path | None = Field(default=None, description="ROS camera_info YAML; default: the camera's CameraInfo")
-    min_inliers: int = Field(default=15, ge=4, description="points a recognised pose needs")
-    max_rms_px: float = Field(default=1.5, gt=0, description="largest reprojection RMS of a recognised pose, px")
-    track_min_points: int = Field(default=30, ge=4, le=150, description="points a tracked pose needs")
-    track_max_rms_px: float = Field(default=1.0, gt=0, description="largest reprojection RMS of a tracked pose, px")
-    anchor_every: int = Field(default=2, ge=0, description="measure followed points afresh against the target "
-                                                           "every this many tracked frames (0: never)")
-    align: bool = Field(default=False, description="refine each pose by direct alignment of the target image (ECC)")
+    recognition: Annotated[RecognitionOptions, Flat(names={
+        "method": "usac_method", "measure_window_px": "refine_window_px", "measure_levels": "refine_levels",
+        "measure_forward_backward_px": "refine_forward_backward_px"}, label="recognition")] = RecognitionOptions()
+    tracking: Annotated[TrackingOptions, Flat("track_", names={"anchor_every": "anchor_every", "align": "align"},
+                                              label="tracking")] = TrackingOptions()
     filter: bool = Field(default=False, description="smooth each pose with the One Euro filter")
+    smoothing: Annotated[OneEuroOptions, Flat("filter_", label="filter")] = OneEuroOptions()
     depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (one waits, more are "
                                                              "dropped)")
     overlay: bool = Field(default=False, description="publish the frames with each posed target's outline and "
@@ -138,10 +137,7 @@ def _check(params: Params) -> None:
 
 def make_trackers(params: Params, targets: Sequence[Target]) -> list[TargetTracker]:
     """One tracker per target with the options of ``params``."""
-    tracking = TrackingOptions(min_points=params.track_min_points, max_rms_px=params.track_max_rms_px,
-                               anchor_every=params.anchor_every, align=params.align)
-    recognition = RecognitionOptions(min_inliers=params.min_inliers, max_rms_px=params.max_rms_px)
-    return [TargetTracker(target, tracking, recognition) for target in targets]
+    return [TargetTracker(target, params.tracking, params.recognition) for target in targets]
 
 
 def as_pose(header: Header, found: TargetPose) -> Pose:
@@ -161,9 +157,9 @@ def as_pose(header: Header, found: TargetPose) -> Pose:
 class _Frames:
     """The trackers and filters of one camera, fed frame after frame (stamps increasing)."""
 
-    def __init__(self, trackers: list[TargetTracker], smooth: bool):
+    def __init__(self, trackers: list[TargetTracker], smoothing: OneEuroOptions | None):
         self.trackers = trackers
-        self.filters = {t.target.name: OneEuroPoseFilter() for t in trackers} if smooth else {}
+        self.filters = {} if smoothing is None else {t.target.name: OneEuroPoseFilter(smoothing) for t in trackers}
         self._last_stamp: int | None = None
 
     def track(self, image: np.ndarray, K: np.ndarray, dist: np.ndarray | None, stamp_ns: int) -> list[TargetPose]:
@@ -213,7 +209,7 @@ def run(node: Node, params: Params) -> None:
     try:
         targets = load_targets(params)
         fixed = FixedCalibration.read(params.calib) if params.calib else None
-        frames_of = _Frames(make_trackers(params, targets), params.filter)
+        frames_of = _Frames(make_trackers(params, targets), params.smoothing if params.filter else None)
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     node.log.info("tracking %s on %s", ", ".join(t.name for t in targets), params.camera)

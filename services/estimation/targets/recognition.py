@@ -40,6 +40,7 @@ from enum import StrEnum
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.estimation.targets.alignment import TargetAligner
 from services.estimation.targets.features import Extractor, is_binary, make_extractor, to_grey
@@ -47,6 +48,7 @@ from services.estimation.targets.measure import MeasureOptions, refine_homograph
 from services.estimation.targets.pose import fit_covariance, fit_planar_pose
 from services.estimation.targets.target import Target
 from services.geometry.camera import undistort_image, undistort_pixels
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "Recognition",
@@ -86,57 +88,42 @@ class RecognitionStatus(StrEnum):
     """The pose's RMS residual exceeds ``max_rms_px``."""
 
 
-@dataclass(frozen=True)
-class RecognitionOptions:
-    """``ratio``: Lowe's ratio test (0.8, Lowe's own value for SIFT; ORB's Hamming distances pass it
-    alike). ``cross_check``: keep only mutual best matches. ``method``: the USAC flag of
-    ``cv2.findHomography``. ``threshold_px``: the homography's inlier threshold and the residual beyond
-    which a point leaves the pose, undistorted pixels (3: keypoints of coarse pyramid levels are
-    placed to about a pixel). ``min_inliers``: points a pose needs (15: a frame without the target
-    gives at most a handful of chance inliers, docs/feature-targets.md). ``max_rms_px``: the largest
-    RMS residual of a published pose (1.5: a true pose stays well under a pixel, a wrong one agreeing
-    with 15 chance matches does not). ``sigma_px``: per-axis pixel noise of the covariance; None
-    estimates it from the residuals. ``max_iterations``: of the robust estimator. ``index_above``: a
-    binary target with more descriptors than this is matched through a hashing index (several times
-    faster than brute force on a 5000-descriptor poster, nearly all of its matches); a smaller one by exact
-    Hamming brute force, which costs little there and misses no match a small target can ill spare.
-    ``refine``: measure the inliers against the target image and fit the homography and pose again on
-    them (step 5 of the module's docstring; off by default: refined, recognition alone is about as accurate
-    as tracking, whose bar is to be at least as accurate, docs/accuracy.md); ``measure``: that
-    measurement's Lucas-Kanade settings; ``refine_threshold_px``: the refit's inlier threshold, undistorted
-    pixels; ``refine_points``: inliers measured at most (evenly through their order)."""
+class RecognitionOptions(BaseModel):
+    """How a target is recognised from scratch (see the module docstring).
 
-    ratio: float = 0.8
-    cross_check: bool = False
-    method: int = cv2.USAC_MAGSAC
-    threshold_px: float = 3.0
-    min_inliers: int = 15
-    max_rms_px: float = 1.5
-    sigma_px: float | None = None
-    confidence: float = 0.999
-    max_iterations: int = 2000
-    index_above: int = 2000
-    refine: bool = False
-    measure: MeasureOptions = field(default_factory=MeasureOptions)
-    refine_threshold_px: float = 1.0
-    refine_points: int = 100
+    ``ratio`` 0.8 is Lowe's own value for SIFT; ORB's Hamming distances pass it alike. ``threshold_px`` 3:
+    keypoints of coarse pyramid levels are placed to about a pixel. ``min_inliers`` 15: a frame without the
+    target gives at most a handful of chance inliers (docs/feature-targets.md). ``max_rms_px`` 1.5: a true
+    pose stays well under a pixel, a wrong one agreeing with 15 chance matches does not. ``index_above``: the
+    hashing index is three times faster than brute force on a 5000-descriptor poster and finds 97 % of its
+    matches; a smaller target is matched by exact Hamming brute force, which costs little there and misses no
+    match a small target can ill spare. ``refine`` is off by default: refined, recognition alone is about as
+    accurate as tracking, whose bar is to be at least as accurate (docs/accuracy.md)."""
 
-    def __post_init__(self) -> None:
-        if not 0 < self.ratio <= 1:
-            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
-        if not (self.threshold_px > 0 and self.max_rms_px > 0):
-            raise ValueError(f"threshold_px and max_rms_px must be > 0, got {self.threshold_px}, {self.max_rms_px}")
-        if self.min_inliers < 4:
-            raise ValueError(f"min_inliers must be >= 4 (a homography needs four points), got {self.min_inliers}")
-        if self.sigma_px is not None and not self.sigma_px > 0:
-            raise ValueError(f"sigma_px must be > 0 or None, got {self.sigma_px}")
-        if not (0 < self.confidence < 1 and self.max_iterations >= 1):
-            raise ValueError(f"need 0 < confidence < 1 and max_iterations >= 1, got {self.confidence}, "
-                             f"{self.max_iterations}")
-        if self.index_above < 0:
-            raise ValueError(f"index_above must be >= 0, got {self.index_above}")
-        if not self.refine_threshold_px > 0:
-            raise ValueError(f"refine_threshold_px must be > 0, got {self.refine_threshold_px}")
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    ratio: float = Field(default=0.8, gt=0, le=1, description="Lowe's ratio test of the matches")
+    cross_check: bool = Field(default=False, description="keep only mutual best matches")
+    method: int = Field(default=cv2.USAC_MAGSAC, description="the USAC flag of cv2.findHomography (cv2.USAC_*)")
+    threshold_px: float = Field(default=3.0, gt=0, description="the homography's inlier threshold and the residual "
+                                                               "beyond which a point leaves the pose, undistorted px")
+    min_inliers: int = Field(default=15, ge=4, description="points a recognised pose needs")
+    max_rms_px: float = Field(default=1.5, gt=0, description="largest reprojection RMS of a recognised pose, px")
+    sigma_px: float | None = Field(default=None, gt=0, description="per-axis pixel noise of the covariance, px; "
+                                                                   "default: estimated from the residuals")
+    confidence: float = Field(default=0.999, gt=0, lt=1, description="the robust estimator's confidence")
+    max_iterations: int = Field(default=2000, ge=1, description="the robust estimator's iterations at most")
+    index_above: int = Field(default=2000, ge=0, description="a binary target with more descriptors than this is "
+                                                             "matched through a hashing index, a smaller one by "
+                                                             "brute force")
+    refine: bool = Field(default=False, description="measure the inliers against the target image and fit the "
+                                                    "homography and pose again on them")
+    measure: MeasureOptions = Field(default=MeasureOptions(), description="Lucas-Kanade settings of refine's "
+                                                                          "measurement")
+    refine_threshold_px: float = Field(default=1.0, gt=0, description="refine: the refit's inlier threshold, "
+                                                                      "undistorted px")
+    refine_points: int = Field(default=100, ge=1, description="refine: inliers measured at most (evenly through "
+                                                              "their order)")
 
 
 @dataclass(frozen=True)
@@ -228,9 +215,7 @@ class TargetRecognizer:
         ``descriptors`` (of the target's kind), seen by the camera ``K`` (3, 3) with OpenCV distortion
         coefficients ``dist`` (None: none); ``grey``: the frame itself, (H, W) uint8, for the refinement
         (None: none)."""
-        K = np.asarray(K, dtype=np.float64)
-        if K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {K.shape}")
+        K = check_shape(K, "3,3", "K", np.float64)
         o, name = self.options, self.target.name
         descriptors = np.asarray(descriptors)
         if len(points) == 0 or is_binary(descriptors) != self.binary or descriptors.ndim != 2 \

@@ -42,6 +42,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.tracking_state import TrackingState
 from services.detection.keypoints.detector import KeypointParams
@@ -53,6 +54,7 @@ from services.estimation.targets.pose import fit_covariance, fit_planar_pose
 from services.estimation.targets.recognition import RecognitionOptions, TargetRecognizer
 from services.estimation.targets.target import Target
 from services.geometry.camera import project_points, undistort_image, undistort_pixels
+from services.geometry.shapes import check_shape
 
 __all__ = [
     "FrameFeatures",
@@ -65,56 +67,40 @@ __all__ = [
 MIN_DEPTH_M = 1e-6
 
 
-@dataclass(frozen=True)
-class TrackingOptions:
-    """``window_px``: side of the Lucas-Kanade window, pixels; ``levels``: pyramid levels above the
-    frame's own (coarse to fine); ``forward_backward_px``: largest distance between a point and where
-    tracking it forward and back brings it; ``threshold_px``: the residual beyond which a point leaves
-    the pose, undistorted pixels; ``min_points``: points a tracked pose needs; ``max_rms_px``: the
-    largest RMS residual of a tracked pose; ``max_points``: points followed at most; ``refill_below``:
-    refill when fewer are followed; ``spacing_px``: the refill grid's cell side, pixels; ``anchor_every``:
-    every this many tracked frames the points are measured afresh against the target (0: never); ``sigma_px``:
-    per-axis pixel noise of the covariance (None: from the residuals); ``align``: refine the final pose
-    by direct alignment of the target image (``services.estimation.targets.alignment``);
-    ``motion``: the constant-velocity model's options.
+class TrackingOptions(BaseModel):
+    """How a target is followed from frame to frame (see the module docstring).
 
     The defaults follow a target at 640x480 about three times as fast as 21 px windows, 400 points
     and measuring them every frame, as accurately (docs/feature-targets.md): the motion model's
     prediction leaves Lucas-Kanade little to search, and three levels keep the reach (about 50 px)
     of a prediction that is off."""
 
-    window_px: int = 13
-    levels: int = 3
-    forward_backward_px: float = 0.5
-    threshold_px: float = 2.0
-    min_points: int = 30
-    max_rms_px: float = 1.0
-    max_points: int = 250
-    refill_below: int = 150
-    spacing_px: float = 16.0
-    anchor_every: int = 2
-    sigma_px: float | None = None
-    align: bool = False
-    alignment: AlignmentOptions = field(default_factory=AlignmentOptions)
-    motion: MotionOptions = DEFAULT_MOTION
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    def __post_init__(self) -> None:
-        _ = self.measure  # MeasureOptions checks window_px, levels and forward_backward_px
-        for name in ("threshold_px", "max_rms_px", "spacing_px"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not 4 <= self.min_points <= self.refill_below <= self.max_points:
-            raise ValueError(f"need 4 <= min_points <= refill_below <= max_points, got {self.min_points}, "
+    measure: MeasureOptions = Field(default=MeasureOptions(), description="Lucas-Kanade settings of following "
+                                                                          "and measuring points")
+    threshold_px: float = Field(default=2.0, gt=0, description="the residual beyond which a point leaves the pose, "
+                                                               "undistorted px")
+    min_points: int = Field(default=30, ge=4, description="points a tracked pose needs")
+    max_rms_px: float = Field(default=1.0, gt=0, description="largest reprojection RMS of a tracked pose, px")
+    max_points: int = Field(default=250, ge=4, description="points followed at most")
+    refill_below: int = Field(default=150, ge=4, description="refill the points from the target when fewer are "
+                                                             "followed")
+    spacing_px: float = Field(default=16.0, gt=0, description="cell side of the refill grid, px")
+    anchor_every: int = Field(default=2, ge=0, description="measure followed points afresh against the target "
+                                                           "every this many tracked frames (0: never)")
+    sigma_px: float | None = Field(default=None, gt=0, description="per-axis pixel noise of the covariance, px; "
+                                                                   "default: estimated from the residuals")
+    align: bool = Field(default=False, description="refine each pose by direct alignment of the target image (ECC)")
+    alignment: AlignmentOptions = Field(default=AlignmentOptions(), description="the direct alignment's options")
+    motion: MotionOptions = Field(default=DEFAULT_MOTION, description="the constant-velocity model's options")
+
+    @model_validator(mode="after")
+    def _point_counts(self) -> TrackingOptions:
+        if not self.min_points <= self.refill_below <= self.max_points:
+            raise ValueError(f"need min_points <= refill_below <= max_points, got {self.min_points}, "
                              f"{self.refill_below}, {self.max_points}")
-        if self.sigma_px is not None and not self.sigma_px > 0:
-            raise ValueError(f"sigma_px must be > 0 or None, got {self.sigma_px}")
-        if self.anchor_every < 0:
-            raise ValueError(f"anchor_every must be >= 0, got {self.anchor_every}")
-
-    @property
-    def measure(self) -> MeasureOptions:
-        """The Lucas-Kanade settings of following and measuring points."""
-        return MeasureOptions(self.window_px, self.levels, self.forward_backward_px)
+        return self
 
 
 @dataclass(frozen=True)
@@ -205,9 +191,7 @@ class TargetTracker:
         ``features``: the frame's shared keypoints, used when the frame needs recognition (default:
         extracted here on demand).
         """
-        K = np.asarray(K, dtype=np.float64)
-        if K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {K.shape}")
+        K = check_shape(K, "3,3", "K", np.float64)
         dist = None if dist is None or not np.any(dist) else np.asarray(dist, dtype=np.float64)
         grey = features.grey if features is not None else to_grey(image)
         if self._tracks is not None:
@@ -274,7 +258,7 @@ class TargetTracker:
             self._unanchored = 0
         candidates = np.setdiff1d(self._candidates, tracks.ids, assume_unique=True)
         points = self.target.points[candidates]
-        margin = o.window_px / 2
+        margin = o.measure.window_px / 2
         pixels, visible = _project(points, tracks.T_camera_target, K, dist, tracks.grey.shape, margin)
         cells = np.floor(pixels / o.spacing_px).astype(np.int64)
         width = int(tracks.grey.shape[1] / o.spacing_px) + 2
