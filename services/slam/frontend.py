@@ -336,8 +336,6 @@ class Tracker:
                 if p in self.map.points and len(self.map.points[p].observations) >= least)
         decision = keyframe_decision(self.settings, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked,
                                      reference_tracked)
-        if decision is KeyframeDecision.IF_IDLE and self.wait_for_mapping:
-            return self._wait_for_mapper(frame, timings)
         idle = self.mapper.idle  # asked at every decision: it brings in what the mapping process sent back
         return decision is KeyframeDecision.YES or (decision is KeyframeDecision.IF_IDLE and idle)
 

@@ -1,11 +1,8 @@
 """A real SLAM run scored alike by ``artrack eval`` and by evo's ``evo_ape`` (run as a command when evo
 is installed; it is GPL-3 and never imported): TUM fr3 long_office_household at about 1 Hz through
-``SlamSystem`` as users run it (its mapping process; keyframe decisions waiting for it, as in a lossless
-run), its final trajectory written as a TUM file and scored against the data set's own
-``groundtruth.txt`` with a Sim(3) alignment by both tools. Held here: the two tools' agreement on
-whatever the run tracked. The run's accuracy is ``test_slam_accuracy.py``'s: fed back to back, the
-mapping process loses about half of these frames (docs/slam.md, known limits), how many depending on
-the load."""
+``SlamSystem`` as users run it (its mapping process, each new keyframe mapped before the next frame as in
+a lossless run), its final trajectory written as a TUM file and scored against the data set's own
+``groundtruth.txt`` with a Sim(3) alignment by both tools."""
 
 import json
 
@@ -31,7 +28,7 @@ def test_a_slam_run_gets_the_same_ate_from_artrack_eval_and_evo(tmp_path):
         trajectory = system.trajectory()
     finally:
         system.close()
-    assert len(trajectory) >= 3, f"only {len(trajectory)} of 20 frames tracked: too few for a Sim(3) alignment"
+    assert len(trajectory) >= 15, f"only {len(trajectory)} of 20 frames tracked"
     stamps = np.array([stamp for stamp, _ in trajectory])
     estimate = eval_cli.write_tum(tmp_path / "slam.txt", np.array([T for _, T in trajectory]), stamps)
     truth = folder / "groundtruth.txt"
@@ -42,3 +39,4 @@ def test_a_slam_run_gets_the_same_ate_from_artrack_eval_and_evo(tmp_path):
     print(f"artrack eval {ours}\nevo_ape {theirs}")
     assert set(theirs) == {"rmse", "mean", "median", "max"}
     assert theirs == pytest.approx({k: ours[k] for k in theirs}, abs=2e-6)
+    assert ours["rmse"] <= 0.02
