@@ -36,7 +36,8 @@ def test_pipeline_outputs_on_replay_equal_those_of_the_live_run(bus, procs, sess
 
     def capture() -> None:
         cam = start_node(procs, "capture", "cam", source="synthetic:markers", cameras=["cam0"], frames=FRAMES,
-                         fps=20, scene={"noise_std": 2.0}, wait_for_subscriber=True)
+                         fps=20, scene={"noise_std": 2.0}, wait_for_subscriber=True,
+                         flow={"lossless": True})  # frames block rather than drop on a busy bus
         assert cam.wait(3 * START_S) == 0, cam.describe()
 
     live = run_echo_and_record(bus, procs, session, live_file, capture, 4 * FRAMES)  # image, info, truth, echo
