@@ -51,6 +51,14 @@ PROCESS_STARTS = ((subprocess.Popen, "__init__"), (multiprocessing.process.BaseP
 """Every way a test starts a process: subprocess, multiprocessing, and the os calls beneath them."""
 
 
+def pytest_configure(config):
+    """Let Ctrl-C reach the processes the tests start, which inherit an ignored SIGINT: a suite run in the
+    background of a shell without job control (CI scripts, ``make test &``) has SIGINT ignored, and a
+    Python program that starts so never turns Ctrl-C into KeyboardInterrupt."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 @pytest.fixture(autouse=True)
 def tiers(request, monkeypatch):
     """Hold the tiers (module docstring): fail a test under tests/integration or tests/accuracy without its
