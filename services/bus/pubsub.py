@@ -40,6 +40,7 @@ import zenoh
 
 from protocol.codec import DecodeError, decode, encode, media_type, peek
 from protocol.message import Message
+from services.bus.local import LocalBus, Payload, deliver
 from services.bus.stats import SeqGaps, StreamCounter
 
 log = logging.getLogger(__name__)
@@ -73,25 +74,40 @@ class RawPublisher:
     """Publishes payloads that are already encoded (a recording's bytes, untouched) on one key.
 
     ``role`` sets the QoS (with ``lossless``, frames block rather than drop); ``encoding`` is the
-    Zenoh encoding to announce.
+    Zenoh encoding to announce. With ``local`` (the process's ``LocalBus``), the process's own
+    subscribers get the payload from here and the bus only while another session subscribes.
     """
 
     def __init__(self, session: zenoh.Session, key: str, role: Role, encoding: zenoh.Encoding,
-                 counter: StreamCounter | None = None, lossless: bool = False):
+                 counter: StreamCounter | None = None, lossless: bool = False, local: LocalBus | None = None):
         self.key = key
         self.role = role
         self.counter = counter or StreamCounter(key, "out")
+        self.local = local
         qos = _QOS[role]
         if lossless and role is Role.FRAME:
             qos = {**qos, "congestion_control": zenoh.CongestionControl.BLOCK}
-        self._publisher = session.declare_publisher(key, encoding=encoding, **qos)
+        destination = zenoh.Locality.ANY if local is None else zenoh.Locality.REMOTE
+        self._publisher = session.declare_publisher(key, encoding=encoding, allowed_destination=destination, **qos)
 
     def put(self, payload: bytes) -> None:
-        self._publisher.put(payload)
+        if self.local is not None:
+            for sink in self.local.sinks(self.key):
+                sink.offer(self.key, payload)
+        if self.wanted():
+            self.send(payload)
         self.counter.count(messages=1)
 
+    def wanted(self) -> bool:
+        """Whether the bus needs the payload: always without a local bus, else while another session subscribes."""
+        return self.local is None or self.matched()
+
+    def send(self, payload: bytes) -> None:
+        """Put ``payload`` on the bus (uncounted: ``put`` counts)."""
+        self._publisher.put(payload)
+
     def matched(self) -> bool:
-        """True while at least one subscriber matches this key."""
+        """True while at least one subscriber matches this key (with a local bus: in another session)."""
         return self._publisher.matching_status.matching  # type: ignore[attr-defined]  # a MatchingStatus, not a bool
 
     def close(self) -> None:
@@ -99,21 +115,33 @@ class RawPublisher:
 
 
 class Publisher(Generic[M]):
-    """Publishes messages of one type on one key (encoded here, then sent raw)."""
+    """Publishes messages of one type on one key: by reference to the process's own subscribers (with
+    ``local``), encoded once for the bus and for raw taps, only when one of them wants it."""
 
     def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
-                 counter: StreamCounter | None = None, lossless: bool = False):
+                 counter: StreamCounter | None = None, lossless: bool = False, local: LocalBus | None = None):
         self.key = key
         self.cls = cls
         self.role = role
         self.raw = RawPublisher(session, key, role, zenoh.Encoding(media_type(cls)).with_schema(cls.SCHEMA), counter,
-                                lossless)
+                                lossless, local)
         self.counter = self.raw.counter
 
     def put(self, message: M) -> None:
         if not isinstance(message, self.cls):
             raise TypeError(f"{self.key} carries {self.cls.__name__}, not {type(message).__name__}")
-        self.raw.put(encode(message))
+        encoded: list[bytes] = []
+
+        def once() -> bytes:
+            if not encoded:
+                encoded.append(encode(message))
+            return encoded[0]
+
+        if self.raw.local is not None:
+            deliver(self.raw.local.sinks(self.key), self.key, message, once)
+        if self.raw.wanted():
+            self.raw.send(once())
+        self.counter.count(messages=1)
 
     def matched(self) -> bool:
         return self.raw.matched()
@@ -145,13 +173,19 @@ class Inbox(Generic[M]):
     ``cls`` restricts the inbox to one message type (anything else counts as a decode
     error); ``None`` accepts every artrack message. ``wake`` lets several inboxes share one
     condition so a consumer can wait on all of them at once; ``notify`` is called (on Zenoh's
-    thread) after each arrival, for a consumer that waits elsewhere (an asyncio loop).
+    thread) after each arrival, for a consumer that waits elsewhere (an asyncio loop). With
+    ``local`` (the process's ``LocalBus``), publishers of the same process hand their messages
+    over by reference, taken as they are (a node of the same process built them): their Zenoh
+    publishers send to other sessions only, so the same message never comes twice.
     """
+
+    wants_bytes = False
 
     def __init__(self, session: zenoh.Session, key: str, cls: type[M] | None, role: Role, *,
                  depth: int | None = None, counter: StreamCounter | None = None,
                  on_decode_error: Callable[[str, DecodeError], None] | None = None,
-                 wake: threading.Condition | None = None, notify: Callable[[], object] | None = None):
+                 wake: threading.Condition | None = None, notify: Callable[[], object] | None = None,
+                 local: LocalBus | None = None):
         self.key = key
         self.cls = cls
         self.role = role
@@ -160,15 +194,21 @@ class Inbox(Generic[M]):
         self.wake = wake or threading.Condition()
         self._on_decode_error = on_decode_error
         self._notify = notify
-        self._queue: deque[tuple[str, bytes, int]] = deque()
+        self._queue: deque[tuple[str, Payload, int]] = deque()
         self._latest: Received[M] | None = None
         self._warned_at = -1.0
         self._gaps = SeqGaps() if role is Role.FRAME else None
+        self._local = local
         self._subscriber = session.declare_subscriber(key, self._on_sample)
+        if local is not None:
+            local.attach(self)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        item = (key, sample.payload.to_bytes(), time.time_ns())
+        self.offer(str(sample.key_expr), sample.payload.to_bytes())
+
+    def offer(self, key: str, payload: Payload) -> None:
+        """Queue ``payload`` that arrived on ``key`` (a message from this process, or bytes)."""
+        item = (key, payload, time.time_ns())
         missing = 0
         with self.wake:
             if self._gaps is not None and (seq := _seq(item[1])) >= 0:
@@ -211,7 +251,7 @@ class Inbox(Generic[M]):
                     return None
                 key, payload, received_ns = self._queue.popleft()
             try:
-                message = decode_as(payload, self.cls)
+                message = decode_as(payload, self.cls) if isinstance(payload, bytes) else self._check(payload)
             except DecodeError as error:
                 self.counter.count(decode_errors=1)
                 if self._on_decode_error is not None:
@@ -219,6 +259,12 @@ class Inbox(Generic[M]):
                 continue
             self._latest = Received(key, message, received_ns)
             return self._latest
+
+    def _check(self, message: Message) -> M:
+        """A message handed over in this process, as it is; DecodeError when it is not of the inbox's type."""
+        if self.cls is not None and not isinstance(message, self.cls):
+            raise DecodeError(f"expected {self.cls.SCHEMA} on this key", schema=message.SCHEMA)
+        return cast(M, message)
 
     def recv(self, timeout_s: float | None = None) -> Received[M] | None:
         """Wait up to ``timeout_s`` (forever when None) for a message; None on timeout."""
@@ -242,11 +288,15 @@ class Inbox(Generic[M]):
         return self._latest
 
     def close(self) -> None:
+        if self._local is not None:
+            self._local.detach(self)
         self._subscriber.undeclare()
 
 
-def _seq(payload: bytes) -> int:
+def _seq(payload: Payload) -> int:
     """The ``header.seq`` of a payload, -1 when it does not peek (its decode error is counted when taken)."""
+    if isinstance(payload, Message):
+        return payload.header.seq
     try:
         return peek(payload).seq
     except DecodeError:

@@ -22,7 +22,7 @@ log = logging.getLogger("artrack")
 
 COMMANDS = (pipelines.add_up, observe.add_status, observe.add_config, pipelines.add_router, observe.add_list,
             observe.add_echo, run.add_run, pipelines.add_kinds, pipelines.add_trackers, pipelines.add_demo,
-            pipelines.add_node, observe.add_schemas, recordings.add_record, recordings.add_replay,
+            pipelines.add_node, pipelines.add_group, observe.add_schemas, recordings.add_record, recordings.add_replay,
             recordings.add_control, recordings.add_info, recordings.add_export, recordings.add_eval,
             recordings.add_view, calibrate.add_calibrate, markers.add_markers, scenes.add_scene, bodies.add_bodies,
             targets.add_target)

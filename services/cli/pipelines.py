@@ -1,4 +1,4 @@
-"""``artrack up``, ``node``, ``router`` and ``demo``: the processes of a pipeline; ``artrack kinds`` and
+"""``artrack up``, ``node``, ``group``, ``router`` and ``demo``: the processes of a pipeline; ``artrack kinds`` and
 ``trackers``: what pipelines are made of."""
 
 from __future__ import annotations
@@ -10,17 +10,16 @@ import signal
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
-from services.bus.session import LOCAL_ROUTER, BusConfig
+from services.bus.session import LOCAL_ROUTER
 from services.cli.bus_options import add_bus_options, add_tls_options, bus_config, security_options
 from services.launcher.pipeline import PipelineError, describe
 from services.runtime.logs import log_format, setup_logging
 
 if TYPE_CHECKING:
-    from services.runtime.flow import FlowPlan
     from services.runtime.node import Node
 
 
@@ -62,6 +61,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_node(args: argparse.Namespace) -> int:
     from services.launcher.kinds import kind
     from services.runtime.flow import FlowPlan
+    from services.runtime.node import run_node
 
     node_kind = kind(args.kind)
     try:
@@ -75,19 +75,34 @@ def cmd_node(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         raise PipelineError(f"node {args.name} ({args.kind}): --flow: {describe(exc)}") from exc
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return node_exit(args.name, args.kind, bus_config(args, daemon=True), lambda node: node_kind.run(node, params),
-                     flow)
+    return run_node(args.name, args.kind, bus_config(args, daemon=True), lambda node: node_kind.run(node, params), flow)
 
 
-def node_exit(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object],
-              flow: FlowPlan | None = None) -> int:
-    """``run_node``'s exit code, or the one ``body`` returned (a replay's 3 for a damaged file) when it is 0."""
-    from services.runtime.node import run_node
+def cmd_group(args: argparse.Namespace) -> int:
+    from services.launcher.kinds import kind
+    from services.launcher.pipeline import GROUP_MEMBERS
+    from services.runtime.group import Member, run_group
 
-    returned: list[object] = []
-    failed = run_node(name, kind, bus, lambda node: returned.append(body(node)), flow)
-    code = returned[0] if returned else 0
-    return failed or (code if isinstance(code, int) else 0)
+    try:
+        listed = GROUP_MEMBERS.validate_json(args.nodes)
+    except ValidationError as exc:
+        raise PipelineError(f"process {args.name}: --nodes: {describe(exc)}") from exc
+    members = []
+    for member in listed:
+        node_kind = kind(member.kind)
+        try:
+            params = node_kind.validate(member.params)
+        except ValidationError as exc:
+            raise PipelineError(f"node {member.name} ({member.kind}): {describe(exc)}") from exc
+        members.append(Member(member.name, member.kind, _body(node_kind.run, params), member.flow, member.source))
+    setup_logging(log_format=log_format(args.log_format), node=args.name,
+                  members=frozenset(member.name for member in members))
+    return run_group(args.name, bus_config(args, daemon=True), members)
+
+
+def _body(run: Callable[[Node, Any], object], params: Any) -> Callable[[Node], object]:
+    """A node body: ``run`` with ``params``."""
+    return lambda node: run(node, params)
 
 
 def cmd_kinds(args: argparse.Namespace) -> int:
@@ -147,6 +162,16 @@ def add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", type=Path, metavar="DIR", help="where the run folder goes (default: runs/)")
     add_bus_options(p)
     p.set_defaults(func=cmd_demo)
+
+
+def add_group(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("group", help="run several nodes in one process, messages between them passed by reference "
+                                     "(what `up` and `run` start per process group)")
+    p.add_argument("name", metavar="PROCESS", help="the process group's name")
+    p.add_argument("--nodes", required=True, metavar="JSON", help="its nodes: a JSON list of {name, kind, params, "
+                   "flow, source}")
+    add_bus_options(p)
+    p.set_defaults(func=cmd_group)
 
 
 def add_node(sub: argparse._SubParsersAction) -> None:

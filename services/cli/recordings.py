@@ -18,7 +18,6 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
-from services.cli.pipelines import node_exit
 from services.runtime.logs import log_format, setup_logging
 
 if TYPE_CHECKING:
@@ -31,9 +30,12 @@ M = TypeVar("M", bound=BaseModel)
 
 
 def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[[Node], object]) -> int:
-    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name); see ``pipelines.node_exit``."""
+    """Run ``body(node)`` as node ``args.name`` of ``kind`` (logs tagged with the name): its exit code
+    (``services.runtime.node.serve``)."""
+    from services.runtime.node import run_node
+
     setup_logging(log_format=log_format(args.log_format), node=args.name)
-    return node_exit(args.name, kind, bus_config(args), body)
+    return run_node(args.name, kind, bus_config(args), body)
 
 
 def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional: dict[str, str], description: str,

@@ -6,12 +6,9 @@ import argparse
 import logging
 import shlex
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from services.cli.bus_options import add_bus_options, bus_config
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger("artrack")
 
@@ -32,7 +29,9 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     from services.launcher.tracker import Tracker
 
     chosen = Tracker.load(tracker)
-    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", description=chosen.summary, epilog=RUN_EXITS)
+    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", epilog=RUN_EXITS, description=(
+        f"{chosen.summary}. Processes: {chosen.layout()} (messages within a process pass by reference; "
+        f"--processes separate or --process NODE= splits them out)"))
     source = flags_for(kind("capture").params, SOURCE_SKIP)
     add_flags(p.add_argument_group("source (a capture node; or --source recording:PATH.mcap, replayed on its own "
                                    "rig unless --rig/--namespace or ARTRACK_RIG/ARTRACK_NAMESPACE name another)"),
@@ -54,6 +53,8 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
 
 
 def _display_options(group: argparse._ArgumentGroup) -> None:
+    from services.launcher.layout import LAYOUTS
+
     group.add_argument("--flow", choices=("auto", "lossless", "realtime"),
                        help="lossless: every node takes every frame, the source waiting for the slowest (--fps is "
                        "then a ceiling; --fps 0: as fast as the slowest node); realtime: slow nodes drop frames "
@@ -61,6 +62,11 @@ def _display_options(group: argparse._ArgumentGroup) -> None:
                        "a scene with --frames)")
     group.add_argument("--window", type=int, metavar="N", help="frames a lossless source may send ahead of its "
                        "slowest node (default 4)")
+    group.add_argument("--processes", choices=LAYOUTS, default="given", help="given (default): the grouping of "
+                       "nodes into processes the tracker or file gives; separate: every node its own process; "
+                       "single: every node but the recorder and viewer in one process")
+    group.add_argument("--process", action="append", default=[], metavar="NODE=NAME", help="run NODE in process "
+                       "NAME, with the nodes placed there (NODE= alone: a process of its own); repeatable")
     group.add_argument("--strict", action="store_true", help="exit 4 when any frame was dropped or went missing")
     group.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
                        help="a progress line redrawn on standard error (auto: when it is a terminal)")
@@ -89,6 +95,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.flags import given_values
     from services.launcher.job import run_job
     from services.launcher.kinds import catalogue
+    from services.launcher.layout import laid_out
     from services.launcher.pipeline import read_pipeline, save_pipeline
     from services.launcher.tracker import Tracker
 
@@ -102,7 +109,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 0 if asked else 2
     if args.tracker.endswith(".toml"):
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
-        spec = with_flow(read_pipeline(Path(args.tracker)), _flow_given(run_args))
+        spec = laid_out(with_flow(read_pipeline(Path(args.tracker)), _flow_given(run_args)), run_args.processes,
+                        run_args.process)
         bus = bus_config(run_args, defaults=spec.bus, source=args.tracker)
         return run_job(bus, spec, args.tracker, _display(run_args), run_args.strict)
     p, source_flags, own_flags = _run_parser(args.tracker)
@@ -114,6 +122,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         tracker=args.tracker, source=given, bus=lambda defaults: bus_config(run_args, defaults=defaults),
         scene=scene_option_texts(run_args.scene_option), options=given_values(run_args, own_flags), flags=own_flags,
         source_flags=source_flags, record=run_args.record, rerun=run_args.rerun, flow=_flow_given(run_args)))
+    spec = laid_out(spec, run_args.processes, run_args.process)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
         save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "

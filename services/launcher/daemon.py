@@ -114,7 +114,7 @@ class Daemon:
             else:
                 log.info("reload: node %s applied %s", name, answer.applied, extra={"node_name": name})
             nodes[name] = wanted.nodes[name]
-            self.supervisor.update(restarts[name])
+            self.supervisor.update(restarts[wanted.process_of(name)])
         self.spec = self.spec.model_copy(update={"nodes": nodes})
         return True
 

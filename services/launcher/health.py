@@ -15,9 +15,11 @@ from services.launcher.supervisor import ChildHealth
 
 def pipeline_health(pipeline: str, spec: PipelineSpec, children: Iterable[ChildHealth],
                     uptime_s: float) -> PipelineHealth:
-    """This process's answer for ``pipeline`` (a file, or what the job runs): every supervised node of ``spec``."""
-    nodes = tuple(SupervisedNode(name=h.name, kind=spec.nodes[h.name].kind, state=h.state, pid=h.pid,
+    """This process's answer for ``pipeline`` (a file, or what the job runs): every node of ``spec`` in the
+    supervised processes ``children`` (the nodes of a process group share its process's health)."""
+    groups = spec.groups()
+    nodes = tuple(SupervisedNode(name=name, kind=spec.nodes[name].kind, state=h.state, pid=h.pid,
                                  uptime_s=h.uptime_s, restarts=h.restarts, exit_code=h.exit_code)
-                  for h in children)
+                  for h in children for name in groups[h.name])
     return PipelineHealth(header=Header(stamp_ns=time.time_ns()), pipeline=pipeline, host=socket.gethostname(),
                           pid=os.getpid(), uptime_s=uptime_s, nodes=nodes)

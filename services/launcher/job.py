@@ -150,7 +150,8 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
     name, node = source_node(source)
     where = f"tracker {tracker.name}"
     cameras = cameras_of(resolved(PipelineSpec(nodes={name: node}), where).nodes[name])
-    nodes = {name: node, **tracker.expand(cameras, options, flags)}
+    placed = node if tracker.source_process is None else node.model_copy(update={"process": tracker.source_process})
+    nodes = {name: placed, **tracker.expand(cameras, options, flags)}
     if record is not None:
         nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:
@@ -170,18 +171,21 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
     if not sources:
         raise JobError("this pipeline has no source (a node that reads nothing): nothing would ever start it")
     preflight(spec, "job")
-    downstream = [name for name in spec.nodes if name not in sources]
+    groups = spec.groups()
+    feeding = [process for process, names in groups.items() if any(name in sources for name in names)]
+    reading = [process for process in groups if process not in feeding]
+    downstream = [name for process in reading for name in groups[process]]
     plans = spec.flow_plans()
-    ending = {name for name in downstream if plans[name].upstream}
+    ending = {name for name in spec.nodes if name not in sources and plans[name].upstream}
     interrupted = JobExit.DONE if not all(finite(spec.nodes[n].kind, spec.nodes[n].params) for n in sources) \
         else JobExit.INTERRUPTED
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     session = open_session(bus)
-    restarting = processes(spec, bus, downstream)
+    restarting = processes(spec, bus, reading)
     supervisor = Supervisor([replace(p, restart=False) for p in restarting], spec.supervisor)
-    source_supervisor = Supervisor([replace(p, restart=False) for p in processes(spec, bus, sources)],
+    source_supervisor = Supervisor([replace(p, restart=False) for p in processes(spec, bus, feeding)],
                                    spec.supervisor)
     supervising = [supervisor]
     health = _answer_health(session, bus, title, spec, supervising)
@@ -190,10 +194,10 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
     watch: JobWatch | None = None
     try:
         supervisor.start()
-        why = _come_up(session, bus, supervisor, set(downstream), stop)
+        why = _come_up(session, bus, spec, supervisor, set(downstream), stop)
         if why is None:
             time.sleep(SETTLE_S)  # a node may fail just after it went live (say, on opening its output)
-            why = _exited(supervisor)
+            why = _exited(spec, supervisor)
         if why is not None:
             return JobExit.CANNOT_START
         if stop.is_set():
@@ -207,14 +211,14 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
         log.info("job on %s: %s", bus.keys.prefix, ", ".join(f"{n} ({spec.nodes[n].kind})" for n in spec.nodes))
         while not stop.is_set() and source_supervisor.step():
             supervisor.step()
-            if (why := _failed(supervisor)) is not None:
+            if (why := _failed(spec, supervisor)) is not None:
                 return JobExit.NODE_FAILED
             stop.wait(0.05)
         if stop.is_set():
             return interrupted
         ended, why = _sources_ended(source_supervisor.health())
         if ended == JobExit.DONE:
-            why = _await_ends(ends, supervisor, stop)
+            why = _await_ends(spec, ends, supervisor, stop)
             if why is not None:
                 return JobExit.NODE_FAILED
             if stop.is_set():
@@ -254,15 +258,15 @@ def _answer_health(session: zenoh.Session, bus: BusConfig, title: str, spec: Pip
     return session.declare_queryable(key, answer)
 
 
-def _come_up(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, names: set[str],
+def _come_up(session: zenoh.Session, bus: BusConfig, spec: PipelineSpec, supervisor: Supervisor, names: set[str],
              stop: threading.Event) -> str | None:
     """Wait until every node of ``names`` is live (or ``stop``): None; else why one cannot start, in one line
-    (the first node that exited, with the last line it wrote)."""
+    (the first process that exited, with the last line it wrote)."""
     deadline = time.monotonic() + START_LIMIT_S
     while not stop.is_set():
-        if (why := _exited(supervisor)) is not None:
+        if (why := _exited(spec, supervisor)) is not None:
             return why
-        live = _ours_live(session, bus, supervisor, names)
+        live = _ours_live(session, bus, spec, supervisor, names)
         if live == names:
             return None
         if time.monotonic() > deadline:
@@ -270,26 +274,33 @@ def _come_up(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, nam
     return None
 
 
-def _exited(supervisor: Supervisor) -> str | None:
-    """Why the first of the supervisor's nodes that exited could not start, in one line (None while none has)."""
+def _process(spec: PipelineSpec, process: str) -> str:
+    """How a message names a process of ``spec``: ``node NAME`` for a lone node's, else ``process NAME (nodes)``."""
+    names = spec.groups()[process]
+    return f"node {process}" if names == (process,) else f"process {process} ({', '.join(names)})"
+
+
+def _exited(spec: PipelineSpec, supervisor: Supervisor) -> str | None:
+    """Why the first of the supervisor's processes that exited could not start, in one line (None while none has)."""
     supervisor.step()
     ended = next((child for child in supervisor.health() if child.exit_code is not None), None)
     return None if ended is None else \
-        f"node {ended.name} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
+        f"{_process(spec, ended.name)} could not start: {ended.reason.removeprefix(f'node {ended.name}: ')}"
 
 
-def _ours_live(session: zenoh.Session, bus: BusConfig, supervisor: Supervisor, names: set[str]) -> set[str]:
+def _ours_live(session: zenoh.Session, bus: BusConfig, spec: PipelineSpec, supervisor: Supervisor,
+               names: set[str]) -> set[str]:
     """The nodes of ``names`` that answer on this rig from the very processes ``supervisor`` started: a node
     of the same name that another pipeline runs here is not this job's node coming up."""
     pids = {child.name: child.pid for child in supervisor.health()}
     return {name for (rig, name), stats in node_reports(session, bus.keys, 0.3)
-            if rig == bus.rig and name in names and stats.pid == pids.get(name)}
+            if rig == bus.rig and name in names and stats.pid == pids.get(spec.process_of(name))}
 
 
-def _failed(supervisor: Supervisor) -> str | None:
-    """Why a node the supervisor gave up on failed (None while none has)."""
+def _failed(spec: PipelineSpec, supervisor: Supervisor) -> str | None:
+    """Why a process the supervisor gave up on failed (None while none has)."""
     failed = next((child.name for child in supervisor.health() if child.state == "failed"), None)
-    return None if failed is None else f"node {failed} failed: {supervisor.failure(failed)}"
+    return None if failed is None else f"{_process(spec, failed)} failed: {supervisor.failure(failed)}"
 
 
 def _sources_ended(children: list[ChildHealth]) -> tuple[JobExit, str | None]:
@@ -314,15 +325,16 @@ def _watch(session, bus: BusConfig, spec: PipelineSpec, display: Display | None,
     return JobWatch(session, bus, spec, display if shows and display is not None else Display(summary=False))
 
 
-def _await_ends(ends: Ends, supervisor: Supervisor, stop: threading.Event) -> str | None:
-    """Wait until every node ``ends`` waits for has ended, or ``stop``: None; else why a node failed first.
-    A node that finished (exited 0) without an end is not waited for."""
+def _await_ends(spec: PipelineSpec, ends: Ends, supervisor: Supervisor, stop: threading.Event) -> str | None:
+    """Wait until every node ``ends`` waits for has ended, or ``stop``: None; else why a process failed first.
+    A node whose process finished (exited 0) without its end is not waited for."""
+    groups = spec.groups()
     asked = time.monotonic()
     while not stop.is_set():
         supervisor.step()
-        if (why := _failed(supervisor)) is not None:
+        if (why := _failed(spec, supervisor)) is not None:
             return why
-        finished = {child.name for child in supervisor.health() if child.state == "finished"}
+        finished = {name for child in supervisor.health() if child.state == "finished" for name in groups[child.name]}
         if not ends.waiting() - finished:
             return None
         if time.monotonic() - asked >= 2.0:

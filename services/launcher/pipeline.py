@@ -1,4 +1,4 @@
-"""Pipelines: which nodes run, each as its own process, and what each reads and writes.
+"""Pipelines: which nodes run, in which processes, and what each reads and writes.
 
 ``artrack up FILE.toml`` reads a pipeline from a file, ``artrack run TRACKER`` builds one from
 a tracker template and flags (``--save-pipeline FILE.toml`` writes it out); both give the same
@@ -23,7 +23,13 @@ a tracker template and flags (``--save-pipeline FILE.toml`` writes it out); both
 
     [nodes.echo]
     kind = "echo"
+    process = "cam"     # optional: run in the process of that name, beside the nodes that name it too
     inputs = ["cam0/image"]                                      # optional: the keys it reads
+
+Each node runs in a process of its own unless ``process`` names a process group: the nodes that
+name the same one run in one process, where the messages between them pass by reference
+(``services.runtime.group``). A lone node's process is named after it, so a group may not take
+the name of a node outside it.
 
 ``inputs`` and ``outputs`` (keys relative to ``<namespace>/<rig>/``) follow from the kind and
 its parameters; a file may state them, and then they must agree, so a reader of the file sees
@@ -42,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
 from protocol.keys import check_name
 from services.bus.session import BusConfig
@@ -52,7 +58,7 @@ from services.launcher.supervisor import ProcessSpec, SupervisorSettings
 from services.runtime.flow import FlowPlan
 from services.runtime.params import flat_dump
 
-RESERVED = ("kind", "restart", "inputs", "outputs")
+RESERVED = ("kind", "restart", "process", "inputs", "outputs")
 """Keys of a node table that are not parameters of its kind."""
 
 
@@ -61,12 +67,14 @@ class PipelineError(ValueError):
 
 
 class NodeSpec(BaseModel):
-    """One node of a pipeline: its kind, restart policy, declared keys and the kind's parameters (extra keys)."""
+    """One node of a pipeline: its kind, restart policy, process group, declared keys and the kind's parameters
+    (extra keys)."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
 
     kind: str
     restart: bool = True
+    process: str | None = None
     inputs: tuple[str, ...] | None = None
     outputs: tuple[str, ...] | None = None
 
@@ -86,9 +94,26 @@ class PipelineSpec(BaseModel):
     @field_validator("nodes")
     @classmethod
     def _names(cls, nodes: dict[str, NodeSpec]) -> dict[str, NodeSpec]:
-        for name in nodes:
+        for name, node in nodes.items():
             check_name(name, "node name")
+            if node.process is not None:
+                check_name(node.process, f"nodes.{name}.process")
+                if node.process in nodes and nodes[node.process].process not in (None, node.process):
+                    raise ValueError(f"nodes.{name}.process: {node.process!r} is the name of a node in another "
+                                     f"process (a lone node's process is named after it): name the group otherwise")
         return nodes
+
+    def groups(self) -> dict[str, tuple[str, ...]]:
+        """``{process: (node, ...)}``: the nodes each process runs, in the file's order; a node that names no
+        process runs alone in one named after it."""
+        groups: dict[str, list[str]] = {}
+        for name, node in self.nodes.items():
+            groups.setdefault(node.process or name, []).append(name)
+        return {process: tuple(names) for process, names in groups.items()}
+
+    def process_of(self, node: str) -> str:
+        """The name of the process node ``node`` runs in."""
+        return self.nodes[node].process or node
 
     def sources(self) -> list[str]:
         """The nodes that read nothing from the bus (captures, replays): where data enters."""
@@ -213,7 +238,8 @@ def to_toml(spec: PipelineSpec, header: str = "") -> str:
     document["nodes"] = {}
     for name, node in spec.nodes.items():
         params = flat_dump(kind(node.kind).validate(node.params), mode="json", exclude_unset=True, exclude_none=True)
-        table: dict[str, Any] = {"kind": node.kind, **({} if node.restart else {"restart": False}), **params}
+        table: dict[str, Any] = {"kind": node.kind, **({} if node.restart else {"restart": False}),
+                                 **({} if node.process is None else {"process": node.process}), **params}
         for field in ("inputs", "outputs"):
             if getattr(node, field) is not None:
                 table[field] = list(getattr(node, field))
@@ -238,19 +264,55 @@ def node_command(kind_name: str, name: str, params: dict[str, Any], flow: FlowPl
             *(() if flow is None else ("--flow", flow.model_dump_json(exclude_defaults=True))))
 
 
+class GroupMember(BaseModel):
+    """One node of a process group as its command passes it: ``artrack group NAME --nodes JSON``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    kind: str
+    params: dict[str, Any] = Field(default_factory=dict)
+    flow: FlowPlan = Field(default_factory=FlowPlan)
+    source: bool = False
+
+
+GROUP_MEMBERS = TypeAdapter(list[GroupMember])
+
+
+def group_command(process: str, members: list[GroupMember]) -> tuple[str, ...]:
+    """The command that runs ``members`` in one process named ``process``."""
+    return (sys.executable, "-m", "services.cli", "group", process, "--nodes",
+            GROUP_MEMBERS.dump_json(members, exclude_defaults=True).decode())
+
+
 def params_model(kind_name: str) -> type[BaseModel]:
     """The Params model of a node kind (its ``RELOADABLE`` fields may change live)."""
     return kind(kind_name).params
 
 
 def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None) -> list[ProcessSpec]:
-    """One ProcessSpec per pipeline node (or per node of ``names``), sharing ``bus``, each with its flow plan
-    (``spec`` is resolved)."""
+    """One ProcessSpec per process of the pipeline (or per process of ``names``), sharing ``bus``, each node with
+    its flow plan (``spec`` is resolved). A process restarts when it dies unless one of its nodes says
+    ``restart = false``."""
     env = bus.to_env()
     flow = spec.flow_plans()
-    return [ProcessSpec(name, node_command(node.kind, name, node.params, flow[name]), env, node.restart)
-            for name, node in spec.nodes.items() if names is None or name in names]
+    sources = set(spec.sources())
+    found = []
+    for process, members in spec.groups().items():
+        if names is not None and process not in names:
+            continue
+        restart = all(spec.nodes[name].restart for name in members)
+        if members == (process,):
+            node = spec.nodes[process]
+            found.append(ProcessSpec(process, node_command(node.kind, process, node.params, flow[process]), env,
+                                     restart))
+            continue
+        listed = [GroupMember(name=name, kind=spec.nodes[name].kind, params=spec.nodes[name].params, flow=flow[name],
+                              source=name in sources) for name in members]
+        found.append(ProcessSpec(process, group_command(process, listed), env, restart))
+    return found
 
 
-__all__ = ["NodeSpec", "PipelineError", "PipelineSpec", "describe", "node_command", "params_model",
+__all__ = ["GROUP_MEMBERS", "GroupMember", "NodeSpec", "PipelineError", "PipelineSpec", "describe", "group_command",
+           "node_command", "params_model",
            "preflight", "processes", "read_pipeline", "resolved", "save_pipeline", "to_toml"]

@@ -61,8 +61,8 @@ def plan_reload(running: PipelineSpec, wanted: PipelineSpec,
         plan.refused.append(f"node {name}: removed: needs a restart of `artrack up`")
     for name in sorted(running.nodes.keys() & wanted.nodes.keys()):
         old, new = running.nodes[name], wanted.nodes[name]
-        if (old.kind, old.restart) != (new.kind, new.restart):
-            what = "kind" if old.kind != new.kind else "restart"
+        if (old.kind, old.restart, old.process) != (new.kind, new.restart, new.process):
+            what = "kind" if old.kind != new.kind else "restart" if old.restart != new.restart else "process"
             plan.refused.append(f"node {name}: {what} changed: needs a restart of `artrack up`")
             continue
         before, after = old.params, new.params

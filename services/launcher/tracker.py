@@ -13,11 +13,18 @@ A tracker is a TOML file ``trackers/NAME.toml`` in any package the launcher sear
     kind = "rigid_bodies"
     cameras = "{cameras}"       # a value "{cameras}" is the list of the source's cameras
 
+    [source]                    # optional: the source node's place
+    process = "rig"             # run it in process "rig", with the nodes that name it too
+
 A template lists the nodes downstream of the source; the source node (capture or replay)
-and the recorder and viewer are added by the job. Its flags are generated from the
-parameter models of its node kinds (``services.launcher.flags``): every flat parameter but those
-the template binds to ``{camera}``. A field shared by several kinds is one flag when its type is
-the same in all of them; a flag set on the command line applies to every node having that field.
+and the recorder and viewer are added by the job. A node's ``process`` (which may hold
+``{camera}``) groups it with the others naming the same process (``services.launcher.pipeline``):
+the grouping the tracker's rate needs, which ``artrack run --processes`` and ``--process`` change.
+
+Its flags are generated from the parameter models of its node kinds (``services.launcher.flags``):
+every flat parameter but those the template binds to ``{camera}``. A field shared by several kinds
+is one flag when its type is the same in all of them; a flag set on the command line applies to
+every node having that field.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from pydantic import BaseModel, ValidationError
 
 from services.launcher.flags import Flag, explain, flags_for
 from services.launcher.kinds import catalogue, kind
-from services.launcher.pipeline import NodeSpec, PipelineError
+from services.launcher.pipeline import RESERVED, NodeSpec, PipelineError
 from services.runtime.params import flat_fields
 
 CAMERA = "{camera}"
@@ -46,6 +53,7 @@ class Tracker:
     summary: str
     path: Path
     nodes: dict[str, dict[str, Any]]
+    source_process: str | None = None
 
     @classmethod
     def load(cls, name: str) -> Tracker:
@@ -61,17 +69,31 @@ class Tracker:
         nodes = document.get("nodes", {})
         if not isinstance(nodes, dict) or not all(isinstance(t, dict) and "kind" in t for t in nodes.values()):
             raise PipelineError(f"{path}: each [nodes.NAME] table needs a kind")
-        unknown = set(document) - {"summary", "nodes"}
+        unknown = set(document) - {"summary", "nodes", "source"}
         if unknown:
-            raise PipelineError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} (summary, nodes)")
-        return cls(name, str(document.get("summary", "")), path, nodes)
+            raise PipelineError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} (summary, nodes, "
+                                f"source)")
+        source = document.get("source", {})
+        if not isinstance(source, dict) or set(source) - {"process"}:
+            raise PipelineError(f"{path}: [source] may only say the source's process")
+        return cls(name, str(document.get("summary", "")), path, nodes, source.get("process"))
+
+    def layout(self) -> str:
+        """The template's processes in one line: who runs with whom (``{camera}`` left as written)."""
+        groups: dict[str, list[str]] = {}
+        if self.source_process is not None:
+            groups[self.source_process] = ["the source"]
+        for name, table in self.nodes.items():
+            groups.setdefault(table.get("process") or name, []).append(name)
+        return "; ".join(f"process {process}: {', '.join(names)}" if names != [process] else f"{process} alone"
+                         for process, names in groups.items())
 
     def models(self) -> list[tuple[str, type[BaseModel], set[str]]]:
         """``(kind, Params, fields bound by the template)`` of each distinct node kind, in template order."""
         seen: dict[str, tuple[str, type[BaseModel], set[str]]] = {}
         for table in self.nodes.values():
-            bound = {key for key, value in table.items() if isinstance(value, str) and (CAMERA in value
-                                                                                    or value == CAMERAS)}
+            bound = {key for key, value in table.items() if key in RESERVED or isinstance(value, str) and (
+                CAMERA in value or value == CAMERAS)}
             name = table["kind"]
             model = kind(name).params
             if name in seen:
@@ -111,10 +133,12 @@ class Tracker:
                     owner, _, field = key.rpartition(".")
                     if field in fields and owner in ("", node_kind.name) and field not in values:
                         values[field] = value
-                params = {k: v for k, v in values.items() if k != "kind"}
+                params = {k: v for k, v in values.items() if k not in RESERVED}
                 try:
                     node_kind.validate(params)
                 except ValidationError as exc:
                     raise ValueError(explain(exc, flags, f"tracker {self.name}, node {name}")) from exc
-                nodes[name.replace(CAMERA, camera) if camera else name] = NodeSpec(kind=node_kind.name, **params)
+                place = {k: values[k] for k in RESERVED if k != "kind" and k in values}
+                nodes[name.replace(CAMERA, camera) if camera else name] = NodeSpec(kind=node_kind.name, **place,
+                                                                                   **params)
         return nodes

@@ -39,9 +39,10 @@ from typing import ClassVar, Literal, TypeGuard
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from protocol.codec import Peeked
+from protocol.codec import Peeked, encode
 from protocol.keys import Keys
 from protocol.sensors import Image
+from services.bus.local import Payload
 from services.bus.stats import SeqGaps, StreamCounter
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.writing import (
@@ -100,7 +101,13 @@ class Params(BaseModel):
 
 
 class Tap:
-    """One raw subscription feeding the queue; its counter is part of the node's stats."""
+    """One raw subscription feeding the queue; its counter is part of the node's stats.
+
+    Messages published by nodes of the recorder's own process come encoded from their publisher
+    (the recorder writes bytes), the others' through Zenoh.
+    """
+
+    wants_bytes = True
 
     def __init__(self, node: Node, key: str, queue: ByteQueue[Arrival]):
         self.key = key
@@ -112,11 +119,17 @@ class Tap:
         self._delivered = threading.Event()  # Zenoh calls the drop callback after the last sample
         self._subscriber = node.session.declare_subscriber(
             key, zenoh.handlers.Callback(self._on_sample, self._delivered.set))
+        node.host.local.attach(self)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if sample.kind != zenoh.SampleKind.PUT:  # a deletion carries no payload to record or replay
             return
-        key, payload, arrived = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+        self.offer(str(sample.key_expr), sample.payload.to_bytes())
+
+    def offer(self, key: str, message: Payload) -> None:
+        """Queue what arrived on ``key``, as the bytes it is (or is encoded to)."""
+        arrived = time.time_ns()
+        payload = message if isinstance(message, bytes) else encode(message)
         identity = identify(payload)
         missing = 0
         if _is_image(identity):
@@ -140,6 +153,7 @@ class Tap:
 
     def close(self) -> bool:
         """Undeclare; True once Zenoh has delivered everything it had for this subscriber."""
+        self._node.host.local.detach(self)
         self._subscriber.undeclare()
         return self._delivered.wait(CLOSE_S)
 

@@ -20,6 +20,7 @@ import json
 import logging
 import os
 import sys
+import threading
 from datetime import UTC, datetime
 from typing import Literal, cast
 
@@ -33,19 +34,30 @@ LogFormat = Literal["text", "json"]
 _STANDARD = frozenset(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message", "asctime"}
 
 
-class JsonFormatter(logging.Formatter):
-    """One JSON object per record (see the module docstring)."""
+class NodeTag(logging.Filter):
+    """Tags each record with the node it comes from (``record.node``): ``node``, or in a process group the
+    node whose thread logs it (threads named after one of ``members``)."""
 
-    def __init__(self, node: str | None):
+    def __init__(self, node: str | None, members: frozenset[str] = frozenset()):
         super().__init__()
         self.node = node
+        self.members = members
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        thread = threading.current_thread().name
+        record.node = thread if thread in self.members else self.node
+        return True
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per record (see the module docstring)."""
 
     def format(self, record: logging.LogRecord) -> str:
         entry = {
             "time": datetime.fromtimestamp(record.created, UTC).isoformat(timespec="milliseconds"),
             "level": record.levelname.lower(),
             "logger": record.name,
-            "node": self.node,
+            "node": getattr(record, "node", None),
             "message": record.getMessage(),
         }
         if record.exc_info:
@@ -70,15 +82,19 @@ def log_format(given: str | None = None) -> LogFormat:
     return cast(LogFormat, value)
 
 
-def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, node: str | None = None) -> None:
-    """Send log records to stderr in ``log_format`` (``node`` tags every line)."""
+def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, node: str | None = None,
+                  members: frozenset[str] = frozenset()) -> None:
+    """Send log records to stderr in ``log_format`` (``node`` tags every line; in a process group, a line
+    logged on the thread of one of ``members`` is tagged with that node instead)."""
     level = level or os.environ.get(LEVEL_ENV, "INFO")
     handler = logging.StreamHandler(sys.stderr)
+    handler.addFilter(NodeTag(node, members))
     if log_format == "json":
-        handler.setFormatter(JsonFormatter(node))
+        handler.setFormatter(JsonFormatter())
+    elif node or members:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s [%(node)s] %(name)s: %(message)s"))
     else:
-        tag = f"[{node}] " if node else ""
-        handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s {tag}%(name)s: %(message)s"))
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())

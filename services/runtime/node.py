@@ -53,9 +53,10 @@ from protocol.message import Header, Message
 from protocol.system import ConfigAnswer, ConfigChange, ErrorReport, NodeStats, SyncInputStats, SyncStats
 from services.bus.discovery import every_answer, token_held
 from services.bus.pubsub import Inbox, Publisher, RawPublisher, Role
-from services.bus.session import BusConfig, BusError, open_session
+from services.bus.session import BusConfig, BusError
 from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
 from services.runtime.flow import Credits, Ends, FlowPlan, end_message
+from services.runtime.host import Host
 from services.runtime.memory import settle_heap
 from services.runtime.reconfig import LiveParams
 from services.runtime.restarts import EXIT_CANNOT_RUN
@@ -151,7 +152,7 @@ class Node:
     """A named participant on the bus (see the module docstring)."""
 
     def __init__(self, name: str, kind: str, bus: BusConfig, *, stats_period_s: float = 1.0,
-                 flow: FlowPlan | None = None):
+                 flow: FlowPlan | None = None, host: Host | None = None):
         self.name = name
         self.flow = flow or FlowPlan()
         self.kind = kind
@@ -159,6 +160,8 @@ class Node:
         self.keys = bus.keys
         self.log = logging.getLogger(f"artrack.{kind}")
         self._stop = threading.Event()
+        self.serving = threading.Event()
+        """Set once the node's inputs are subscribed and it waits for them (``ready``)."""
         self._wake = threading.Condition()
         self._started = time.monotonic()
         self._inboxes: list[Inbox] = []
@@ -175,6 +178,8 @@ class Node:
         self._last_report: dict[tuple[str, str], float] = {}
         self._stats_period_s = stats_period_s
         self.taken: str | None = None
+        self.failure: str | None = None
+        """Why the node's body failed, in one line (set by ``serve``)."""
         """Why the node stopped itself: another process holds its name (see ``_yield_to_an_elder``)."""
         self._started_ns = time.time_ns()
         self._ready = False
@@ -183,7 +188,9 @@ class Node:
         self._short_since: float | None = None
         self._short_total = -1
         self._credits: list[Credits] = []
-        self.session = open_session(bus)
+        self._owns_host = host is None
+        self.host = Host(bus) if host is None else host
+        self.session = self.host.session
         try:
             _refuse_taken_name(self.session, self.keys, name)
             self._token = self.session.liveliness().declare_token(self.keys.node(name))
@@ -197,7 +204,7 @@ class Node:
             self._ack_answer = self.session.declare_queryable(self.keys.ack(name), self._on_ack_query)
             self._ends = Ends(self.session, self.keys, self.flow.upstream, self._poke) if self.flow.upstream else None
         except Exception:
-            self.session.close()
+            self._close_host()
             raise
         self._stats_thread = threading.Thread(target=self._stats_loop, name=f"{name}-stats", daemon=True)
         self._stats_thread.start()
@@ -236,13 +243,15 @@ class Node:
         return self.running
 
     def publisher(self, key: str, cls: type[M], role: Role = Role.RESULT) -> Publisher[M]:
-        publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"), self.flow.lossless)
+        publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"), self.flow.lossless,
+                              self.host.local)
         self._publishers.append(publisher)
         return publisher
 
     def raw_publisher(self, key: str, role: Role, encoding: zenoh.Encoding) -> RawPublisher:
         """A publisher of already encoded payloads (replay), counted in the node's stats."""
-        publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"), self.flow.lossless)
+        publisher = RawPublisher(self.session, key, role, encoding, StreamCounter(key, "out"), self.flow.lossless,
+                                 self.host.local)
         self._publishers.append(publisher)
         return publisher
 
@@ -296,7 +305,7 @@ class Node:
         if self.flow.lossless and role is Role.FRAME:
             depth = LOSSLESS_DEPTH
         inbox = Inbox(self.session, key, cls, role, depth=depth, counter=StreamCounter(key, "in"),
-                      on_decode_error=self._on_decode_error, wake=self._wake)
+                      on_decode_error=self._on_decode_error, wake=self._wake, local=self.host.local)
         self._inboxes.append(inbox)
         return inbox
 
@@ -383,7 +392,9 @@ class Node:
         return credits
 
     def ready(self) -> None:
-        """Say, once, that the node's inputs are subscribed (an ack of -1), when it acknowledges frames."""
+        """Say, once, that the node's inputs are subscribed: ``serving`` is set, and an ack of -1 goes out
+        when it acknowledges frames."""
+        self.serving.set()
         if self.flow.acks and not self._ready:
             self._ready = True
             self.ack(-1)
@@ -564,7 +575,12 @@ class Node:
         for queryable in [*self._answers, self._queryable, self._end_answer, self._ack_answer]:
             queryable.undeclare()
         self._token.undeclare()
-        self.session.close()
+        self._close_host()
+
+    def _close_host(self) -> None:
+        """Close the session when this node opened it (nodes of a group share their process's)."""
+        if self._owns_host:
+            self.host.close()
 
 
 class Synced(Generic[M]):
@@ -614,7 +630,8 @@ class Synced(Generic[M]):
 
 def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object],
              flow: FlowPlan | None = None) -> int:
-    """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code."""
+    """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code
+    (``serve``'s)."""
     log = logging.getLogger(f"artrack.{kind}")
     try:
         node = Node(name, kind, bus, flow=flow)
@@ -624,20 +641,31 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
     with node:
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: node.stop())
-        log.info("node %s (%s) up on %s, pid %d", name, kind, node.keys.prefix, os.getpid())
         settle_heap()
-        try:
-            body(node)
-        except NodeError as exc:
-            log.error("node %s: %s", name, exc)
-            return EXIT_CANNOT_RUN
-        except Exception:
-            log.exception("node %s failed", name)
-            return 1
-        if node.running:
-            node.linger()
+        return serve(node, body)
+
+
+def serve(node: Node, body: Callable[[Node], object]) -> int:
+    """Run ``body`` on ``node`` (up, not yet closed) and say how it went, as an exit code: 2
+    (``EXIT_CANNOT_RUN``) for a ``NodeError`` or a name another process holds, 1 for any other
+    exception, else the code ``body`` returned (a replay's 3 for a damaged file), 0 for none."""
+    log = node.log
+    log.info("node %s (%s) up on %s, pid %d", node.name, node.kind, node.keys.prefix, os.getpid())
+    try:
+        returned = body(node)
+    except NodeError as exc:
+        node.failure = f"node {node.name}: {exc}"
+        log.error("%s", node.failure)
+        return EXIT_CANNOT_RUN
+    except Exception as exc:
+        node.failure = f"node {node.name} failed: {type(exc).__name__}: {exc}"
+        log.exception("node %s failed", node.name)
+        return 1
+    if node.running:
+        node.linger()
     if node.taken is not None:
+        node.failure = node.taken
         log.error("%s", node.taken)
         return EXIT_CANNOT_RUN
-    log.info("node %s stopped", name)
-    return 0
+    log.info("node %s stopped", node.name)
+    return returned if isinstance(returned, int) else 0

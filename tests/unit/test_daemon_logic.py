@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,7 @@ from services.launcher.pipeline import PipelineError, params_model, read_pipelin
 from services.launcher.reload import plan_reload
 from services.launcher.status import Status
 from services.launcher.supervisor import RestartBudget
-from services.runtime.logs import JsonFormatter, log_format
+from services.runtime.logs import JsonFormatter, NodeTag, log_format
 from services.runtime.reconfig import LiveParams, Refused, changed_params
 
 PIPELINE = """
@@ -139,10 +140,27 @@ def test_plan_reload_refuses_what_needs_a_restart_naming_node_and_field(tmp_path
 def test_json_log_lines_carry_the_fields_and_extras():
     record = logging.LogRecord("artrack.up", logging.WARNING, __file__, 1, "echo died %d times", (3,), None)
     record.child = "echo"
-    entry = json.loads(JsonFormatter("cam").format(record))
+    NodeTag("cam").filter(record)
+    entry = json.loads(JsonFormatter().format(record))
     assert entry["level"] == "warning" and entry["logger"] == "artrack.up" and entry["node"] == "cam"
     assert entry["message"] == "echo died 3 times" and entry["child"] == "echo"
     assert entry["time"].endswith("+00:00")
+
+
+def test_a_group_tags_each_line_with_the_node_whose_thread_logs_it():
+    tag = NodeTag("cam0", frozenset({"capture", "blobs-cam0"}))
+    tagged: dict[str, str] = {}
+
+    def log_on_thread() -> None:
+        record = logging.LogRecord("artrack.blobs", logging.INFO, __file__, 1, "up", (), None)
+        tag.filter(record)
+        tagged[threading.current_thread().name] = record.node
+
+    for name in ("blobs-cam0", "elsewhere"):
+        thread = threading.Thread(target=log_on_thread, name=name)
+        thread.start()
+        thread.join()
+    assert tagged == {"blobs-cam0": "blobs-cam0", "elsewhere": "cam0"}
 
 
 def test_log_format_comes_from_flag_then_environment(monkeypatch):
