@@ -89,6 +89,12 @@ class RawPublisher:
             qos = {**qos, "congestion_control": zenoh.CongestionControl.BLOCK}
         destination = zenoh.Locality.ANY if local is None else zenoh.Locality.REMOTE
         self._publisher = session.declare_publisher(key, encoding=encoding, allowed_destination=destination, **qos)
+        self._matched = False
+        self._listener = self._publisher.declare_matching_listener(self._on_matching)
+        self._matched = self._publisher.matching_status.matching  # type: ignore[attr-defined]  # a MatchingStatus
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self._matched = status.matching
 
     def put(self, payload: bytes) -> None:
         if self.local is not None:
@@ -107,10 +113,12 @@ class RawPublisher:
         self._publisher.put(payload)
 
     def matched(self) -> bool:
-        """True while at least one subscriber matches this key (with a local bus: in another session)."""
-        return self._publisher.matching_status.matching  # type: ignore[attr-defined]  # a MatchingStatus, not a bool
+        """True while at least one subscriber matches this key (with a local bus: in another session); kept by a
+        matching listener, since asking Zenoh gives up the GIL, which a busy process may take long to give back."""
+        return self._matched
 
     def close(self) -> None:
+        self._listener.undeclare()
         self._publisher.undeclare()
 
 

@@ -2,7 +2,7 @@
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
 ``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``, ``slam_tracking``, ``slam_bus``,
-``refusals``, ``stops``, ``lossless``.
+``refusals``, ``stops``, ``lossless``, ``layouts``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -24,7 +24,8 @@ mapping per keyframe on one core, mapping in a process, on a thread and inline (
 node's poses over the bus against in process (``slam_bus``), how long ``artrack`` takes to refuse a
 command that cannot work (``refusals``) and a node or ``artrack up`` to stop on SIGTERM (``stops``), and
 each tracker's lossless runs idle and under load against its node's work in one process, with the
-credits' cost (``lossless``) (each module's docstring says what it measures).
+credits' cost (``lossless``), and the trackers run as ``artrack run`` runs them with their nodes grouped into
+processes three ways (``layouts``) (each module's docstring says what it measures).
 Progress goes to stderr.
 """
 
@@ -48,6 +49,7 @@ from tests.bench.features import bench_features
 from tests.bench.features_bus import bench_features_bus
 from tests.bench.figures import alternating, comparison_lines, machine_line, variant_line
 from tests.bench.keypoints import bench_keypoints
+from tests.bench.layouts import bench_layouts
 from tests.bench.link import Sink
 from tests.bench.lossless import bench_lossless
 from tests.bench.markers import bench_markers
@@ -124,7 +126,7 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "features": bench_features,
     "features_bus": bench_features_bus, "stereo": bench_stereo, "slam": bench_slam,
     "slam_tracking": bench_slam_tracking, "slam_bus": bench_slam_bus, "refusals": bench_refusals,
-    "stops": bench_stops, "lossless": bench_lossless,
+    "stops": bench_stops, "lossless": bench_lossless, "layouts": bench_layouts,
 }
 
 
