@@ -203,9 +203,14 @@ def _start_deaf_to_ctrl_c(process: Any) -> None:
     """Start ``process`` with SIGINT ignored from its first instruction on (an ignored signal stays ignored
     across the spawn's exec, and Python then installs no KeyboardInterrupt handler), so a Ctrl-C to the whole
     process group while it still imports NumPy and pycolmap leaves it be: its tracker ends it. Only the main
-    thread may set a handler; elsewhere the process ignores SIGINT from its first line (``_serve``) on."""
+    thread may set a handler; a node on another thread (in a process group) blocks SIGINT in its own thread
+    while it starts the process instead, and a blocked signal stays blocked across the exec too."""
     if threading.current_thread() is not threading.main_thread():
-        process.start()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         return
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:

@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from protocol import CameraInfo, ErrorReport, Header, Image, Message, Pose, deco
 from protocol.codec import MEDIA_FRAME
 from protocol.schemas import json_schema
 from protocol.spatial import Transform
+from services.bus.local import LocalBus
 from services.bus.pubsub import Publisher, Role
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.reading import Scan, indexed
@@ -244,6 +246,7 @@ def test_a_full_queue_drops_the_newest_arrivals_and_counts_them_without_blocking
     class Node:  # the parts of a node a tap uses; the bus under it is real
         def __init__(self) -> None:
             self.session, self.reports = session, []
+            self.host = SimpleNamespace(local=LocalBus())
 
         def track(self, counter):
             return counter
