@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from protocol.message import Header
 from protocol.flow import FlowAck
+from protocol.message import Header
 from services.bus.local import LocalBus, deliver
 from services.bus.session import BusConfig
 from services.launcher.health import pipeline_health
