@@ -215,3 +215,42 @@ marker_length = 0.05
         assert [p for p in collect(poses, 0) if p.header.seq > applied_by and p.state is TrackingState.TRACKING] == []
     finally:
         poses.close()
+
+
+def test_a_process_group_is_supervised_as_one_process_with_its_nodes_each_on_the_bus(bus, procs, tmp_path):
+    path = tmp_path / "group.toml"
+    path.write_text(_bus_table(bus) + """
+[supervisor]
+backoff_s = 0.1
+
+[nodes.cam]
+kind = "capture"
+cameras = ["cam0"]
+fps = 20
+scene = { width = 64, height = 64 }
+process = "camera"
+
+[nodes.echo]
+kind = "echo"
+camera = "cam0"
+process = "camera"
+""")
+    launcher = procs.start([sys.executable, "-m", "services.cli", "--log-format", "json", "up", str(path)], name="up")
+
+    def running(previous: int | None = None) -> dict | None:
+        assert launcher.poll() is None, launcher.describe()
+        nodes = _nodes(procs)
+        up = {"cam", "echo"} <= nodes.keys() and all(n["state"] == "running" and n["stats"] for n in nodes.values())
+        fresh = up and nodes["cam"]["pid"] != previous and nodes["echo"]["stats"]["pid"] == nodes["echo"]["pid"]
+        return nodes if fresh and nodes["echo"]["stats"]["in_hz"] > 0 else None
+
+    nodes = wait_until(running, START_S, "both nodes of the group running, frames echoed")
+    assert nodes["cam"]["pid"] == nodes["echo"]["pid"] == nodes["echo"]["stats"]["pid"]
+    os.kill(nodes["cam"]["pid"], signal.SIGKILL)  # the group dies as one process, and comes back as one
+    again = wait_until(lambda: running(nodes["cam"]["pid"]), START_S, "the group restarted")
+    assert again["cam"]["restarts"] == again["echo"]["restarts"] == 1
+    launcher.popen.send_signal(signal.SIGTERM)
+    assert launcher.wait(10) == 0, launcher.describe()
+    logs = json_lines(launcher.stderr)
+    assert any(e["node"] == "echo" and e["logger"] == "artrack.echo" for e in logs)
+    assert any(e["node"] == "cam" and e["logger"] == "artrack.capture" for e in logs)
