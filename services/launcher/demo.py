@@ -7,7 +7,8 @@ one marker node per camera detects and estimates, and a recorder and a viewer wr
 This process is the subscribing client: it joins every pose to the ground truth of its frame (by camera and
 sequence number), prints a line a second while the run goes on, and a table at the end:
 frames, markers tracked, rotation and translation errors, latency from the frame's stamp to
-the pose's arrival here (two process hops: replay -> marker node -> client), and the files.
+the pose's arrival here (one process hop: the marker node runs in the replay's process, the frame reaching
+it by reference, and its poses cross to this client), and the files.
 
 The demo runs on a rig of its own, ``demo-<pid>`` (``artrack demo`` gives that default; a
 ``--rig`` flag or ``ARTRACK_RIG``, and ``--namespace`` / ``ARTRACK_NAMESPACE``, choose another),
@@ -191,7 +192,7 @@ def _summary(out: TextIO, replayed: str, card: Scorecard, record: Path, rerun: P
         ("markers tracked", f"{tracked} of {total} marker views (poses: {outcomes})"),
         ("rotation error", f"median {_median(rotation):.3f} deg, p90 {p90:.3f} deg"),
         ("translation error", f"median {_median(translation_mm):.2f} mm, {_median(translation_pct):.3f} % of range"),
-        ("latency p50 / p99", f"{p50:.2f} / {p99:.2f} ms (frame stamp -> pose here, 2 hops)"),
+        ("latency p50 / p99", f"{p50:.2f} / {p99:.2f} ms (frame stamp -> pose here, 1 hop)"),
         ("recorded", str(record)),
         ("rerun", f"{rerun} (open it with `rerun {rerun}`)"),
     ]
