@@ -106,16 +106,17 @@ class RawPublisher:
 
     def wanted(self) -> bool:
         """Whether the bus needs the payload: always without a local bus, else while another session subscribes."""
-        return self.local is None or self.matched()
+        return self.local is None or self._matched
 
     def send(self, payload: bytes) -> None:
         """Put ``payload`` on the bus (uncounted: ``put`` counts)."""
         self._publisher.put(payload)
 
     def matched(self) -> bool:
-        """True while at least one subscriber matches this key (with a local bus: in another session); kept by a
-        matching listener, since asking Zenoh gives up the GIL, which a busy process may take long to give back."""
-        return self._matched
+        """True while at least one subscriber takes this key, in this process or another session. The other
+        sessions' are kept by a matching listener: asking Zenoh gives up the GIL, which a busy process may take
+        long to give back."""
+        return self._matched or (self.local is not None and bool(self.local.sinks(self.key)))
 
     def close(self) -> None:
         self._listener.undeclare()
