@@ -11,10 +11,13 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.message import Header
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo
 from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
+from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.frames import FrameGraph
+from services.geometry.rotation import quaternion_of_rows
 from services.geometry.se3 import from_quaternion_translation, to_quaternion_translation
 
 
@@ -27,6 +30,28 @@ def transform_from_matrix(T: np.ndarray) -> Transform:
     """Wire transform of a (4, 4) rigid ``T_parent_child``."""
     q, t = to_quaternion_translation(np.asarray(T, dtype=np.float64))
     return Transform(translation=tuple(float(v) for v in t), rotation=tuple(float(v) for v in q))
+
+
+def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingState = TrackingState.TRACKING,
+                 rms_px: float | None = None, inliers: int = 0, ambiguous: bool = False,
+                 covariance: np.ndarray | None = None) -> Pose:
+    """The ``Pose`` of a (4, 4) float64 rigid ``T_<header.frame_id>_<child>`` with its quality and (6, 6)
+    ``covariance`` (None: none), as a tracker publishes it.
+
+    Built in one validation pass from plain Python values (the transform's rows taken out of numpy once):
+    per pose this is what a frame's publishing costs beyond the tracker, so it avoids building the
+    transform and the quality as models of their own first. The result equals
+    ``Pose(header=header, child_frame_id=child, state=state, transform=transform_from_matrix(T),
+    quality=PoseQuality(reprojection_rms_px=rms_px, inliers=inliers, ambiguous=ambiguous), covariance=...)``;
+    values the protocol refuses (a non-finite translation or covariance, a negative RMS) raise as there.
+    """
+    rows = np.asarray(T, dtype=np.float64).tolist()
+    return Pose.model_validate({
+        "header": header, "child_frame_id": child, "state": state,
+        "transform": {"translation": (rows[0][3], rows[1][3], rows[2][3]), "rotation": quaternion_of_rows(rows)},
+        "quality": {"reprojection_rms_px": rms_px, "inliers": inliers, "ambiguous": ambiguous},
+        "covariance": None if covariance is None else np.asarray(covariance, dtype=np.float64).ravel().tolist(),
+    })
 
 
 def frame_transforms(truth: list[tuple[str, str, np.ndarray]]) -> tuple[FrameTransform, ...]:
