@@ -80,6 +80,28 @@ def camera_model(info: CameraInfo, name: str | None = None) -> CameraModel:
                        T_rig_camera=matrix_from_transform(info.T_rig_camera))
 
 
+class CameraModels:
+    """``camera_model`` of one camera's CameraInfo stream, message after message.
+
+    A capture node sends its CameraInfo with every frame, nearly always saying what the previous one
+    said: one that does (same frame id, size, distortion, intrinsics and ``T_rig_camera``) gives back the
+    model made for that one, so a frame pays a comparison of those fields rather than a new model.
+    The model is shared: it is frozen, and its arrays are read, never written.
+    """
+
+    def __init__(self) -> None:
+        self._said: tuple[object, ...] | None = None
+        self._model: CameraModel | None = None
+
+    def __call__(self, info: CameraInfo) -> CameraModel:
+        said = (info.header.frame_id, info.width, info.height, info.distortion_model, info.d, info.k,
+                info.T_rig_camera)
+        if self._model is None or said != self._said:
+            self._model = camera_model(info)
+            self._said = said
+        return self._model
+
+
 def rig_static_transforms(header: Header, cameras: dict[str, CameraModel]) -> StaticTransforms:
     """Each camera's ``T_rig_camera``: ``RIG_FRAME`` the parent, the camera's name (the key) the child."""
     return StaticTransforms(header=header, transforms=frame_transforms(

@@ -1,8 +1,10 @@
 """The per-frame messages of the marker and image-target trackers: built with as little work as they
-need, and equal, to the byte once encoded, to the same messages built field by field and validated."""
+need, and equal, to the byte once encoded, to the same messages built field by field and validated;
+and the camera model a tracker makes of each frame's CameraInfo."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -17,7 +19,7 @@ from protocol.message import Header, Message
 from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
 from protocol.tracking_state import TrackingState
-from services.convert import pose_message, transform_from_matrix
+from services.convert import CameraModels, camera_info, camera_model, pose_message, transform_from_matrix
 from services.detection.markers.detector import REFINEMENTS
 from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
@@ -199,3 +201,25 @@ def test_an_overlay_is_drawn_only_for_a_subscriber(subscribed):
         drawn = [messages[0] for messages in sent]
         assert all(isinstance(m, Image) and m.encoding == "bgr8" and m.header.frame_id == "cam0/overlay" for m in drawn)
         assert not np.array_equal(drawn[0].data, drawn[1].data)
+
+
+def test_a_camera_info_that_says_the_same_gives_the_same_model():
+    _, camera = scene_frames()
+    models = CameraModels()
+    infos = [camera_info(HEADER.model_copy(update={"seq": n}), camera) for n in range(3)]
+    moved = dataclasses.replace(camera, K=camera.K * [[1.01], [1.01], [1.0]])
+    shifted = transform_from_matrix(make_transform(np.eye(3), [0.1, 0.0, 0.0]))
+    infos += [camera_info(HEADER.model_copy(update={"seq": 3}), moved), infos[0],
+              infos[0].model_copy(update={"header": HEADER.model_copy(update={"frame_id": "cam1"})}),
+              infos[0].model_copy(update={"T_rig_camera": shifted}),
+              infos[0].model_copy(update={"d": (0.0, 0.0, 0.0, 0.0)})]
+    made = [models(info) for info in infos]
+    for model, info in zip(made, infos, strict=True):
+        reference = camera_model(info)
+        assert model.name == reference.name and (model.width, model.height) == (reference.width, reference.height)
+        for name in ("K", "dist", "T_rig_camera"):
+            assert np.array_equal(getattr(model, name), getattr(reference, name))
+    assert made[1] is made[0] and made[2] is made[0]
+    assert len({id(model) for model in made}) == len(made) - 2
+    with pytest.raises(ValueError, match="plumb_bob only"):
+        models(infos[0].model_copy(update={"distortion_model": "equidistant"}))

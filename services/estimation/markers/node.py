@@ -51,7 +51,7 @@ from protocol.sensors import Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.fixed import FixedCalibration, check_own_calibration
-from services.convert import camera_model, pose_message
+from services.convert import CameraModels, pose_message
 from services.detection.markers.detector import MarkerDetector
 from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
@@ -188,7 +188,7 @@ def run(node: Node, params: Params) -> None:
 
     node.configurable(params, apply)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
+    calibration = FrameCalibration.of_camera(node, params.camera, CameraModels(), fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]

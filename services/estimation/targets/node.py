@@ -71,7 +71,7 @@ from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
 from services.calibration.fixed import FixedCalibration, check_own_calibration
-from services.convert import camera_model, pose_message
+from services.convert import CameraModels, pose_message
 from services.estimation.markers.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroOptions, OneEuroPoseFilter
@@ -218,7 +218,7 @@ def run(node: Node, params: Params) -> None:
         raise NodeError(str(exc)) from exc
     node.log.info("tracking %s on %s", ", ".join(t.name for t in targets), params.camera)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
+    calibration = FrameCalibration.of_camera(node, params.camera, CameraModels(), fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, targets) if params.overlay else None
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
