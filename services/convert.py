@@ -38,9 +38,9 @@ def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingSt
     """The ``Pose`` of a (4, 4) float64 rigid ``T_<header.frame_id>_<child>`` with its quality and (6, 6)
     ``covariance`` (None: none), as a tracker publishes it.
 
-    Built in one validation pass from plain Python values (the transform's rows taken out of numpy once):
-    per pose this is what a frame's publishing costs beyond the tracker, so it avoids building the
-    transform and the quality as models of their own first. The result equals
+    Built in one validation pass from plain Python values (the transform's rows taken out of numpy once),
+    rather than the transform and the quality validated as models of their own first: a tracker node
+    makes one for every pose of every frame. The result equals
     ``Pose(header=header, child_frame_id=child, state=state, transform=transform_from_matrix(T),
     quality=PoseQuality(reprojection_rms_px=rms_px, inliers=inliers, ambiguous=ambiguous), covariance=...)``;
     values the protocol refuses (a non-finite translation or covariance, a negative RMS) raise as there.

@@ -55,7 +55,7 @@ def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDet
     """``found`` in an image with ``header`` as the message that carries it.
 
     Not validated again: ``MarkerDetector.detect`` gives native int32 / float32 arrays of the message's
-    shapes, aligned (tests/unit/test_marker_messages.py holds the two against each other), and the
+    shapes, aligned (tests/unit/test_tracker_messages.py holds the two against each other), and the
     array checks would otherwise be paid on every frame for nothing.
     """
     return MarkerDetections.model_construct(header=header, dictionary=dictionary, ids=found.ids,
