@@ -74,7 +74,7 @@ class Pose(Message):
     @field_validator("covariance")
     @classmethod
     def _six_by_six(cls, value: Covariance6 | None) -> Covariance6 | None:
-        if value is not None and (len(value) != 36 or not all(math.isfinite(v) for v in value)):
+        if value is not None and (len(value) != 36 or not all(map(math.isfinite, value))):
             raise ValueError("covariance must hold 36 finite numbers (row-major 6x6)")
         return value
 

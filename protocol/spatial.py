@@ -37,7 +37,7 @@ class Transform(Struct):
     @field_validator("translation")
     @classmethod
     def _finite(cls, value: Vector3) -> Vector3:
-        if not all(math.isfinite(v) for v in value):
+        if not all(map(math.isfinite, value)):
             raise ValueError("translation must be finite")
         return value
 

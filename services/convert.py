@@ -11,10 +11,13 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.message import Header
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo
 from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms, Transform
+from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.frames import FrameGraph
+from services.geometry.rotation import quaternion_of_rows
 from services.geometry.se3 import from_quaternion_translation, to_quaternion_translation
 
 
@@ -27,6 +30,28 @@ def transform_from_matrix(T: np.ndarray) -> Transform:
     """Wire transform of a (4, 4) rigid ``T_parent_child``."""
     q, t = to_quaternion_translation(np.asarray(T, dtype=np.float64))
     return Transform(translation=tuple(float(v) for v in t), rotation=tuple(float(v) for v in q))
+
+
+def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingState = TrackingState.TRACKING,
+                 rms_px: float | None = None, inliers: int = 0, ambiguous: bool = False,
+                 covariance: np.ndarray | None = None) -> Pose:
+    """The ``Pose`` of a (4, 4) float64 rigid ``T_<header.frame_id>_<child>`` with its quality and (6, 6)
+    ``covariance`` (None: none), as a tracker publishes it.
+
+    Built in one validation pass from plain Python values (the transform's rows taken out of numpy once),
+    rather than the transform and the quality validated as models of their own first: a tracker node
+    makes one for every pose of every frame. The result equals
+    ``Pose(header=header, child_frame_id=child, state=state, transform=transform_from_matrix(T),
+    quality=PoseQuality(reprojection_rms_px=rms_px, inliers=inliers, ambiguous=ambiguous), covariance=...)``;
+    values the protocol refuses (a non-finite translation or covariance, a negative RMS) raise as there.
+    """
+    rows = np.asarray(T, dtype=np.float64).tolist()
+    return Pose.model_validate({
+        "header": header, "child_frame_id": child, "state": state,
+        "transform": {"translation": (rows[0][3], rows[1][3], rows[2][3]), "rotation": quaternion_of_rows(rows)},
+        "quality": {"reprojection_rms_px": rms_px, "inliers": inliers, "ambiguous": ambiguous},
+        "covariance": None if covariance is None else np.asarray(covariance, dtype=np.float64).ravel().tolist(),
+    })
 
 
 def frame_transforms(truth: list[tuple[str, str, np.ndarray]]) -> tuple[FrameTransform, ...]:
@@ -53,6 +78,28 @@ def camera_model(info: CameraInfo, name: str | None = None) -> CameraModel:
     return CameraModel(name=name or info.header.frame_id, width=info.width, height=info.height,
                        K=np.array(info.k, dtype=np.float64).reshape(3, 3), dist=dist,
                        T_rig_camera=matrix_from_transform(info.T_rig_camera))
+
+
+class CameraModels:
+    """``camera_model`` of one camera's CameraInfo stream, message after message.
+
+    A capture node sends its CameraInfo with every frame, nearly always saying what the previous one
+    said: one that does (same frame id, size, distortion, intrinsics and ``T_rig_camera``) gives back the
+    model made for that one, so a frame pays a comparison of those fields rather than a new model.
+    The model is shared: it is frozen, and its arrays are read, never written.
+    """
+
+    def __init__(self) -> None:
+        self._said: tuple[object, ...] | None = None
+        self._model: CameraModel | None = None
+
+    def __call__(self, info: CameraInfo) -> CameraModel:
+        said = (info.header.frame_id, info.width, info.height, info.distortion_model, info.d, info.k,
+                info.T_rig_camera)
+        if self._model is None or said != self._said:
+            self._model = camera_model(info)
+            self._said = said
+        return self._model
 
 
 def rig_static_transforms(header: Header, cameras: dict[str, CameraModel]) -> StaticTransforms:

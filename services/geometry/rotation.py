@@ -16,13 +16,18 @@ from services.geometry.shapes import check_shape
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """(4,) unit quaternion (x, y, z, w), w >= 0, of the (3, 3) rotation ``R``.
+    """(4,) unit quaternion (x, y, z, w), w >= 0, of the (3, 3) rotation ``R`` (``quaternion_of_rows``)."""
+    return np.array(quaternion_of_rows(check_shape(R, "3,3", "R", np.float64).tolist()))
+
+
+def quaternion_of_rows(R: list[list[float]]) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation given as rows of Python floats: at least three
+    rows of at least three numbers, the (3, 3) block read (``T.tolist()`` of a (4, 4) transform will do).
 
     Shepperd's method: pick the largest of the four squared components to divide by,
     so the result stays accurate near 180 degrees. Worked on Python floats: nine numbers do
     not repay numpy's per-call cost, paid once per published pose (docs/benchmarks.md).
     """
-    R = check_shape(R, "3,3", "R", np.float64).tolist()
     trace = R[0][0] + R[1][1] + R[2][2]
     squares = [1 + 2 * R[0][0] - trace, 1 + 2 * R[1][1] - trace, 1 + 2 * R[2][2] - trace, 1 + trace]
     i = max(range(4), key=squares.__getitem__)
@@ -37,7 +42,8 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
         q[k] = (R[k][i] + R[i][k]) / d
         q[3] = (R[k][j] - R[j][k]) / d
     sign = (1.0 if q[3] >= 0 else -1.0) / math.sqrt(sum(v * v for v in q))
-    return np.array([v * sign for v in q])
+    x, y, z, w = (v * sign for v in q)
+    return x, y, z, w
 
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:

@@ -142,6 +142,33 @@ def test_every_method_finds_described_keypoints_on_texture(texture, method, desc
     assert found.cv_norm == (cv2.NORM_L2 if norm == "l2" else cv2.NORM_HAMMING)
 
 
+def reference_table(detector: KeypointDetector, keypoints: list[cv2.KeyPoint], descriptors: np.ndarray) -> dict:
+    """The table of described keypoints read one field at a time, keypoint by keypoint, strongest first."""
+    order = np.argsort(-np.array([k.response for k in keypoints], np.float32), kind="stable")
+    ranked = [keypoints[i] for i in order]
+    octaves = np.array([k.octave for k in ranked], np.int32)
+    if detector.params.method == "sift":
+        octaves = (octaves & 0xFF).astype(np.int8).astype(np.int32)
+    return {"points": np.array([k.pt for k in ranked], np.float32).reshape(-1, 2),
+            "sizes": np.array([k.size for k in ranked], np.float32),
+            "angles": np.array([k.angle for k in ranked], np.float32),
+            "responses": np.array([k.response for k in ranked], np.float32), "octaves": octaves,
+            "descriptors": descriptors[order]}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_the_keypoint_table_is_each_keypoints_fields_strongest_first(texture, method):
+    detector = KeypointDetector(KeypointParams(method=method, descriptor="native", max_count=1500))
+    finder = detector._detector  # OpenCV's own detector and extractor (ORB's for the corner methods)
+    keypoints, descriptors = finder.compute(texture, finder.detect(texture, None))
+    assert len(keypoints) > 300
+    table = detector._table(list(keypoints), descriptors)
+    for name, expected in reference_table(detector, list(keypoints), descriptors).items():
+        got = getattr(table, name)
+        assert got.dtype == expected.dtype and np.array_equal(got, expected), name
+    assert len(detector._table([], None)) == 0
+
+
 @pytest.mark.parametrize("spread", ["grid", "anms", "none"])
 @pytest.mark.parametrize("cap", [25, 300])
 def test_the_cap_holds(texture, spread, cap):

@@ -232,17 +232,20 @@ class KeypointDetector:
         return strongest[chosen]
 
     def _table(self, keypoints: list[cv2.KeyPoint], descriptors: np.ndarray | None) -> Keypoints:
-        """The described keypoints as arrays, strongest first (ORB's extractor returns them by level)."""
+        """The described keypoints as arrays, strongest first (ORB's extractor returns them by level).
+
+        Each field is read off the keypoints in the order they come and the arrays are ordered after:
+        reading a ``cv2.KeyPoint``'s field is what costs here, so no reordered list is built to read again.
+        """
         responses = _responses(keypoints)
         order = np.argsort(-responses, kind="stable")
-        keypoints = [keypoints[i] for i in order]
-        octaves = np.array([k.octave for k in keypoints], np.int32)
+        octaves = np.array([k.octave for k in keypoints], np.int32)[order]
         if self.params.method == "sift":  # the octave is the low byte, signed
             octaves = (octaves & 0xFF).astype(np.int8).astype(np.int32)
         kept = self._no_descriptors if descriptors is None else descriptors[order]
-        return Keypoints(points=_points(keypoints),
-                         sizes=np.array([k.size for k in keypoints], np.float32),
-                         angles=np.array([k.angle for k in keypoints], np.float32), responses=responses[order],
+        sizes = np.array([k.size for k in keypoints], np.float32)[order]
+        angles = np.array([k.angle for k in keypoints], np.float32)[order]
+        return Keypoints(points=_points(keypoints)[order], sizes=sizes, angles=angles, responses=responses[order],
                          octaves=octaves, descriptors=kept.astype(self._no_descriptors.dtype, copy=False),
                          method=self.params.method, descriptor_type=self.descriptor_type, norm=self.norm)
 

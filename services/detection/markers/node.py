@@ -52,9 +52,14 @@ def run(node: Node, params: Params) -> None:
 
 
 def as_message(header: Header, dictionary: str, found: MarkerFound) -> MarkerDetections:
-    """``found`` in an image with ``header`` as the message that carries it."""
-    return MarkerDetections(header=header, dictionary=dictionary, ids=found.ids, corners=found.corners,
-                            quality=found.quality, side_m=found.side_m)
+    """``found`` in an image with ``header`` as the message that carries it.
+
+    Not validated again: ``MarkerDetector.detect`` gives native int32 / float32 arrays of the message's
+    shapes, aligned (tests/unit/test_tracker_messages.py holds the two against each other), and the
+    array checks would otherwise be paid on every frame for nothing.
+    """
+    return MarkerDetections.model_construct(header=header, dictionary=dictionary, ids=found.ids,
+                                            corners=found.corners, quality=found.quality, side_m=found.side_m)
 
 
 def _check(params: Params) -> None:

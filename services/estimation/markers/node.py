@@ -18,9 +18,10 @@ Outputs, each with the header of the frame the detections came from:
 * ``<camera>/overlay`` (with ``overlay`` set, ``input = "images"`` only): every frame, as
   bgr8, with a wireframe cube and axes drawn on each target that got a pose in it
   (``services.estimation.overlay``; a frame with none, or without calibration, goes out
-  undrawn). A marker's cube has the marker's side; a board's is half the smaller side of its
-  markers' bounding box, at least its largest marker (``overlay.board_cube_size``: the axis
-  length of OpenCV's board samples, a cube that stays on the board). The header is the
+  undrawn), while anything subscribes to the key (no frame is drawn while nothing does). A
+  marker's cube has the marker's side; a board's is half the smaller side of its markers'
+  bounding box, at least its largest marker (``overlay.board_cube_size``: the axis length of
+  OpenCV's board samples, a cube that stays on the board). The header is the
   frame's, except ``frame_id`` = ``<frame's frame_id>/overlay``: a frame id names a camera's
   picture to viewers, and Rerun keeps one image per entity, so the overlay under the
   camera's own frame id would overwrite the camera's image there; under its own it is a
@@ -50,7 +51,7 @@ from protocol.sensors import Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.fixed import FixedCalibration, check_own_calibration
-from services.convert import camera_model, transform_from_matrix
+from services.convert import CameraModels, pose_message
 from services.detection.markers.detector import MarkerDetector
 from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
@@ -135,6 +136,9 @@ class _Overlay:
 
     def put(self, image: Image, detections: MarkerDetections, camera: CameraModel | None,
             result: FrameEstimate | None) -> None:
+        """Draw and publish ``image`` with ``result``'s targets; nothing while no one subscribes to the overlay."""
+        if not self._out.matched():
+            return
         sides = dict(zip(detections.ids.tolist(), detections.side_m.tolist(), strict=True))
         targets = []
         for estimate in result.poses if result is not None else ():
@@ -184,7 +188,7 @@ def run(node: Node, params: Params) -> None:
 
     node.configurable(params, apply)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
+    calibration = FrameCalibration.of_camera(node, params.camera, CameraModels(), fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, board) if params.overlay else None
     found: Iterator[tuple[Image | None, MarkerDetections]]
@@ -235,11 +239,9 @@ def _estimate(node: Node, detections: MarkerDetections, camera: CameraModel | No
         kind = reason.value
         node.report(kind, f"frame {header.seq}: {count} marker(s) gave no pose ({kind.replace('_', ' ')})",
                     node.keys.markers(header.frame_id), count)
-    poses.frame(header, [Pose(
-        header=header, child_frame_id=estimate.target, transform=transform_from_matrix(estimate.T),
-        quality=PoseQuality(reprojection_rms_px=estimate.rms_px, inliers=estimate.points, ambiguous=estimate.ambiguous),
-        covariance=None if estimate.covariance is None else tuple(np.asarray(estimate.covariance).ravel()),
-    ) for estimate in result.poses])
+    poses.frame(header, [pose_message(header, estimate.target, estimate.T, rms_px=estimate.rms_px,
+                                      inliers=estimate.points, ambiguous=estimate.ambiguous,
+                                      covariance=estimate.covariance) for estimate in result.poses])
     return result
 
 

@@ -48,12 +48,13 @@ afresh.
 
 ``overlay``: every frame, as bgr8, on ``<camera>/overlay`` with each posed target's outline
 and axes drawn (``services.estimation.overlay``), its frame id ``<frame's frame_id>/overlay``
-(as the marker node's).
+(as the marker node's); while nothing subscribes to the key, no frame is drawn.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -64,13 +65,13 @@ from pydantic import BeforeValidator, Field
 
 from protocol.keys import KeyName
 from protocol.message import Header
-from protocol.poses import Pose, PoseQuality
+from protocol.poses import Pose
 from protocol.sensors import Image
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
 from services.calibration.fixed import FixedCalibration, check_own_calibration
-from services.convert import camera_model, transform_from_matrix
+from services.convert import CameraModels, pose_message
 from services.estimation.markers.node import PosePublishers
 from services.estimation.overlay import OverlayTarget, draw_overlay, to_bgr8
 from services.estimation.pose_filter import OneEuroOptions, OneEuroPoseFilter
@@ -141,17 +142,17 @@ def make_trackers(params: Params, targets: Sequence[Target]) -> list[TargetTrack
 
 
 def as_pose(header: Header, found: TargetPose) -> Pose:
-    """``found`` in the frame with ``header`` as the message that carries it (``target/<name>``)."""
+    """``found`` in the frame with ``header`` as the message that carries it (``target/<name>``); a covariance
+    that is not finite throughout, or an RMS that is not finite, is left out."""
     child = f"target/{found.target}"
     if found.T_camera_target is None:
         return Pose(header=header, child_frame_id=child, state=TrackingState.LOST, reason=found.reason)
-    covariance = None
-    if found.covariance is not None and np.all(np.isfinite(found.covariance)):
-        covariance = tuple(float(v) for v in np.asarray(found.covariance).ravel())
-    rms = float(found.rms_px) if np.isfinite(found.rms_px) else None
-    return Pose(header=header, child_frame_id=child, state=found.state,
-                transform=transform_from_matrix(found.T_camera_target),
-                quality=PoseQuality(reprojection_rms_px=rms, inliers=found.inliers), covariance=covariance)
+    covariance = found.covariance
+    if covariance is not None and not np.isfinite(covariance).all():
+        covariance = None
+    rms = float(found.rms_px)
+    return pose_message(header, child, found.T_camera_target, state=found.state,
+                        rms_px=rms if math.isfinite(rms) else None, inliers=found.inliers, covariance=covariance)
 
 
 class _Frames:
@@ -198,6 +199,9 @@ class _Overlay:
         self._outlines = {t.name: (t.width_m, t.height_m) for t in targets}
 
     def put(self, image: Image, K: np.ndarray | None, dist: np.ndarray | None, found: list[TargetPose]) -> None:
+        """Draw and publish ``image`` with ``found``'s posed targets; nothing while no one subscribes to the overlay."""
+        if not self._out.matched():
+            return
         drawn = [OverlayTarget(pose.T_camera_target, 0.5 * min(self._outlines[pose.target]), pose.target,
                                self._outlines[pose.target]) for pose in found if pose.T_camera_target is not None]
         picture = draw_overlay(image.data, K, dist, drawn) if K is not None and drawn else to_bgr8(image.data)
@@ -214,7 +218,7 @@ def run(node: Node, params: Params) -> None:
         raise NodeError(str(exc)) from exc
     node.log.info("tracking %s on %s", ", ".join(t.name for t in targets), params.camera)
     keys = node.keys
-    calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
+    calibration = FrameCalibration.of_camera(node, params.camera, CameraModels(), fixed)
     poses = PosePublishers(node, params.camera)
     overlay = _Overlay(node, params.camera, targets) if params.overlay else None
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
