@@ -21,10 +21,11 @@
   the default ``lines`` (which runs ``subpix`` and then fits lines to the sides): what the
   default refinement costs.
 * ``pipeline_overhead``, ``pipeline_apart_overhead``: pipeline p50 - in-process p50, against both
-  baselines. Target: <= 0.5 ms over the paced baseline, and ``FPS`` sustained with no frame dropped. The paced loop is the one
-  judged because it gets the frames as the pipeline does, one every 1/``FPS`` s; such a gap
-  costs every code path a cold start (``tests.bench.codec`` measures one: a pose decoded back
-  to back and as the first call after a sleep), which back-to-back work never pays.
+  baselines. Target: <= 0.5 ms over the paced baseline, and ``FPS`` sustained with no frame
+  dropped. The paced loop is the one judged because it gets the frames as the pipeline does,
+  one every 1/``FPS`` s; such a gap costs every code path a cold start (``tests.bench.codec``
+  measures one: a pose decoded back to back and as the first call after a sleep), which
+  back-to-back work never pays.
 
 ``python -m tests.bench.markers`` prints the lines (about 20 s).
 """
