@@ -40,6 +40,7 @@ import zenoh
 
 from protocol.codec import DecodeError, decode, encode, media_type, peek
 from protocol.message import Message
+from services.bus.shm import ShmPayloads, received_bytes
 from services.bus.stats import SeqGaps, StreamCounter
 
 log = logging.getLogger(__name__)
@@ -73,7 +74,8 @@ class RawPublisher:
     """Publishes payloads that are already encoded (a recording's bytes, untouched) on one key.
 
     ``role`` sets the QoS (with ``lossless``, frames block rather than drop); ``encoding`` is the
-    Zenoh encoding to announce.
+    Zenoh encoding to announce. Payloads of ``services.bus.shm.THRESHOLD`` bytes or more are
+    written into this publisher's shared-memory pool and put from there.
     """
 
     def __init__(self, session: zenoh.Session, key: str, role: Role, encoding: zenoh.Encoding,
@@ -85,9 +87,10 @@ class RawPublisher:
         if lossless and role is Role.FRAME:
             qos = {**qos, "congestion_control": zenoh.CongestionControl.BLOCK}
         self._publisher = session.declare_publisher(key, encoding=encoding, **qos)
+        self._shm = ShmPayloads()
 
     def put(self, payload: bytes) -> None:
-        self._publisher.put(payload)
+        self._publisher.put(self._shm.payload(payload))
         self.counter.count(messages=1)
 
     def matched(self) -> bool:
@@ -168,7 +171,7 @@ class Inbox(Generic[M]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        item = (key, sample.payload.to_bytes(), time.time_ns())
+        item = (key, received_bytes(sample.payload), time.time_ns())
         missing = 0
         with self.wake:
             if self._gaps is not None and (seq := _seq(item[1])) >= 0:
@@ -275,7 +278,7 @@ class Listener(Generic[M]):
         received_ns = time.time_ns()
         key = str(sample.key_expr)
         try:
-            message = decode_as(sample.payload.to_bytes(), self._cls)
+            message = decode_as(received_bytes(sample.payload), self._cls)
         except DecodeError as error:
             self.counter.count(decode_errors=1)
             if self._on_decode_error is not None:

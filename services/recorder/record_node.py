@@ -42,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from protocol.codec import Peeked
 from protocol.keys import Keys
 from protocol.sensors import Image
+from services.bus.shm import received_bytes
 from services.bus.stats import SeqGaps, StreamCounter
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.writing import (
@@ -116,7 +117,7 @@ class Tap:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if sample.kind != zenoh.SampleKind.PUT:  # a deletion carries no payload to record or replay
             return
-        key, payload, arrived = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+        key, payload, arrived = str(sample.key_expr), received_bytes(sample.payload), time.time_ns()
         identity = identify(payload)
         missing = 0
         if _is_image(identity):
