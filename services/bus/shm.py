@@ -32,10 +32,14 @@ THRESHOLD = 3072
 pool costs more than copying them. Zenoh's own threshold for its implicit shared memory is the same."""
 
 POOL_PAYLOADS = 8
-"""How many payloads of the largest size seen so far a pool holds: the frames a lossless run has in
-flight (four credits), with room for a burst. Chunks that subscribers have released are collected
-before each allocation, so the one just released is written again while it is still in the caches,
-and only a burst touches the rest of the pool."""
+"""How many payloads of the largest size seen so far a pool holds: twice the frames a lossless run's
+credits let be in flight, for the bursts a flood makes (with 4, a zero-loss flood of 640x480 frames
+fell back to plain bytes more often and ran slower than without the pool; docs/benchmarks.md).
+Zenoh locks a pool in memory as it makes it (``mlock``), so a pool costs its full size in RAM and in
+``/dev/shm`` at once (8 x 2.8 MB for 1280x720 bgr8), and a process without ``CAP_IPC_LOCK`` gets
+pools only up to its ``RLIMIT_MEMLOCK`` in all (often 8 MiB): beyond it, no pool. Chunks that
+subscribers have released are collected before each allocation, so the one just released is
+written again while it is still in the caches."""
 
 CHUNK_SLACK = 4096
 """Bytes of pool kept per payload besides its own: a pool of exactly k payloads' bytes holds only k - 1 of them."""
