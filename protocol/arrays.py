@@ -16,16 +16,13 @@ from typing import Any
 
 import numpy as np
 from annotated_types import GroupedMetadata
-from pydantic import PlainSerializer, PlainValidator, SerializationInfo, ValidationInfo, WithJsonSchema
+from pydantic import PlainSerializer, PlainValidator, SerializationInfo, WithJsonSchema
 
 WIRE_DTYPES: dict[str, np.dtype] = {
     name: np.dtype(name).newbyteorder("<")
     for name in ("uint8", "uint16", "int32", "int64", "float32", "float64")
 }
 """Dtypes that may travel, by name; all are little-endian on the wire."""
-
-VIEWS = "artrack.views"
-"""Validation-context key under which the codec passes its descriptor -> array resolver."""
 
 _NAMES: dict[np.dtype, str] = {
     np.dtype(name).newbyteorder(order): name for name in WIRE_DTYPES for order in ("<", ">", "=")
@@ -76,21 +73,8 @@ class ArraySpec(GroupedMetadata):
             raise ValueError(f"shape {tuple(array.shape)} does not fit {wanted}")
         return array
 
-    def check_in_context(self, value: Any, info: ValidationInfo) -> np.ndarray:
-        """``check``, after turning a frame's array descriptor into its view when the codec asks.
-
-        The codec validates a frame's JSON header in one pass with ``context={VIEWS: resolve}``,
-        ``resolve(descriptor, field_name) -> ndarray`` (bounds-checked, read-only).
-        """
-        resolve = info.context.get(VIEWS) if info.context else None
-        if resolve is not None:
-            if not isinstance(value, dict):
-                raise ValueError("a frame's arrays travel as descriptors, not inline")
-            value = resolve(value, info.field_name)
-        return self.check(value)
-
     def __iter__(self) -> Iterator[object]:
-        yield PlainValidator(self.check_in_context)
+        yield PlainValidator(self.check)
         yield PlainSerializer(self.serialize, when_used="json", return_type=Any)
         yield WithJsonSchema(ARRAY_DESCRIPTOR_SCHEMA)
 

@@ -38,7 +38,7 @@ import numpy as np
 from pydantic import ValidationError
 from pydantic_core import from_json
 
-from protocol.arrays import VIEWS, WIRE_DTYPES, dtype_name
+from protocol.arrays import WIRE_DTYPES, dtype_name
 from protocol.message import Header, Message, message_type
 
 MAGIC = b"ARTK"
@@ -179,24 +179,24 @@ def _validate(cls: type[Message], document: dict[str, Any], size: int) -> Messag
 _HEAD = re.compile(rb'\{"schema":"([A-Za-z0-9_.\-]+)","version":([0-9]+),')
 
 
-def _fast(document: bytes, framed: bool, context: dict[str, Any] | None = None) -> Message | None:
-    """The message, validated in one pass by pydantic's JSON parser, when ``document`` starts the way
-    ``encode`` writes it and validates; None sends the caller down the careful path, which says
+def _fast(document: bytes) -> Message | None:
+    """The JSON message, validated in one pass by pydantic's JSON parser, when ``document`` starts the
+    way ``encode`` writes it and validates; None sends the caller down the careful path, which says
     exactly what is wrong."""
     head = _HEAD.match(document)
     if head is None:
         return None
     cls = message_type(head.group(1).decode())
-    if cls is None or int(head.group(2)) != cls.VERSION or is_frame(cls) != framed:
+    if cls is None or int(head.group(2)) != cls.VERSION or is_frame(cls):
         return None
     try:
-        return cls.__pydantic_validator__.validate_json(b"{" + document[head.end():], context=context)
+        return cls.__pydantic_validator__.validate_json(b"{" + document[head.end():])
     except ValidationError:
         return None
 
 
 def _decode_json(payload: bytes | bytearray | memoryview) -> Message:
-    fast = _fast(bytes(payload), framed=False)
+    fast = _fast(bytes(payload))
     if fast is not None:
         return fast
     size = len(payload)
@@ -227,11 +227,11 @@ def _header_end(payload: bytes | bytearray | memoryview) -> int:
 def _decode_frame(payload: bytes | bytearray | memoryview) -> Message:
     size = len(payload)
     end = _header_end(payload)
-    header = bytes(payload[_PREAMBLE.size : end])
-    fast = _fast(header, True, {VIEWS: lambda descriptor, name: _view(payload, descriptor, name, end, "")})
-    if fast is not None:
-        return fast
-    cls, document = _lookup(json.loads(header), size, framed=True)
+    try:
+        document = from_json(bytes(payload[_PREAMBLE.size : end]))
+    except ValueError as exc:
+        raise DecodeError(f"frame header is not JSON ({exc})", size=size) from exc
+    cls, document = _lookup(document, size, framed=True)
     for name in cls.ARRAY_FIELDS:
         document[name] = _view(payload, document.get(name), name, end, cls.SCHEMA)
     return _validate(cls, document, size)

@@ -41,6 +41,7 @@ import zenoh
 from protocol.codec import DecodeError, decode, encode, media_type, peek
 from protocol.message import Message
 from services.bus.local import LocalBus, Payload, deliver
+from services.bus.shm import ShmPayloads, received_bytes
 from services.bus.stats import SeqGaps, StreamCounter
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,8 @@ class RawPublisher:
     ``role`` sets the QoS (with ``lossless``, frames block rather than drop); ``encoding`` is the
     Zenoh encoding to announce. With ``local`` (the process's ``LocalBus``), the process's own
     subscribers get the payload from here and the bus only while another session subscribes.
+    Payloads of ``services.bus.shm.THRESHOLD`` bytes or more go onto the bus from this publisher's
+    shared-memory pool.
     """
 
     def __init__(self, session: zenoh.Session, key: str, role: Role, encoding: zenoh.Encoding,
@@ -89,6 +92,7 @@ class RawPublisher:
             qos = {**qos, "congestion_control": zenoh.CongestionControl.BLOCK}
         destination = zenoh.Locality.ANY if local is None else zenoh.Locality.REMOTE
         self._publisher = session.declare_publisher(key, encoding=encoding, allowed_destination=destination, **qos)
+        self._shm = ShmPayloads()
         self._matched = False
         self._listener = self._publisher.declare_matching_listener(self._on_matching)
         self._matched = self._publisher.matching_status.matching  # type: ignore[attr-defined]  # a MatchingStatus
@@ -110,7 +114,7 @@ class RawPublisher:
 
     def send(self, payload: bytes) -> None:
         """Put ``payload`` on the bus (uncounted: ``put`` counts)."""
-        self._publisher.put(payload)
+        self._publisher.put(self._shm.payload(payload))
 
     def matched(self) -> bool:
         """True while at least one subscriber takes this key, in this process or another session. The other
@@ -213,7 +217,7 @@ class Inbox(Generic[M]):
             local.attach(self)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.offer(str(sample.key_expr), sample.payload.to_bytes())
+        self.offer(str(sample.key_expr), received_bytes(sample.payload))
 
     def offer(self, key: str, payload: Payload) -> None:
         """Queue ``payload`` that arrived on ``key`` (a message from this process, or bytes)."""
@@ -334,7 +338,7 @@ class Listener(Generic[M]):
         received_ns = time.time_ns()
         key = str(sample.key_expr)
         try:
-            message = decode_as(sample.payload.to_bytes(), self._cls)
+            message = decode_as(received_bytes(sample.payload), self._cls)
         except DecodeError as error:
             self.counter.count(decode_errors=1)
             if self._on_decode_error is not None:

@@ -43,6 +43,7 @@ from protocol.codec import Peeked, encode
 from protocol.keys import Keys
 from protocol.sensors import Image
 from services.bus.local import Payload
+from services.bus.shm import received_bytes
 from services.bus.stats import SeqGaps, StreamCounter
 from services.recorder.byte_queue import ByteQueue
 from services.recorder.writing import (
@@ -124,7 +125,7 @@ class Tap:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if sample.kind != zenoh.SampleKind.PUT:  # a deletion carries no payload to record or replay
             return
-        self.offer(str(sample.key_expr), sample.payload.to_bytes())
+        self.offer(str(sample.key_expr), received_bytes(sample.payload))
 
     def offer(self, key: str, message: Payload) -> None:
         """Queue what arrived on ``key``, as the bytes it is (or is encoded to)."""

@@ -4,12 +4,17 @@ Three kinds of traffic:
 
 * ``typed`` images: for every message a ``protocol.Image`` is built around the numpy frame
   and put through ``services.bus.pubsub.Publisher``, which encodes it; the sink runs
-  ``protocol.decode`` and gets the pixels as a read-only numpy view.
+  ``protocol.decode`` on ``services.bus.shm.received_bytes`` and gets the pixels as a read-only
+  numpy view.
 * ``raw`` images: the same frame as plain bytes, joined behind a zero-padded prefix that makes
   the payload exactly as long as the typed one (one copy of the pixels, as ``encode`` makes),
   put through ``services.bus.pubsub.RawPublisher`` (what ``Publisher`` puts its encoded
-  bytes through); the sink does ``payload.to_bytes()`` and ``np.frombuffer``.
+  bytes through); the sink does ``services.bus.shm.received_bytes`` (what an ``Inbox`` does) and
+  ``np.frombuffer``.
 * poses: a ``protocol.Pose`` (JSON codec) built and put through ``Publisher``, decoded by the sink.
+
+Both kinds of image go through ``RawPublisher.put``, so both are written into the publisher's
+shared-memory pool (``services.bus.shm``), and both are read back the same way.
 
 Every message carries its send time, ``time.time_ns()`` (CLOCK_REALTIME, shared by the
 processes of one host) taken before the message is built: the typed ones in
@@ -31,6 +36,7 @@ import zenoh
 
 from protocol import Header, Image, Pose, PoseQuality, Transform, decode, encode
 from services.bus.pubsub import Publisher, RawPublisher, Role
+from services.bus.shm import received_bytes
 
 STAMP = struct.Struct("<q")
 FRAME_ID = "cam0"
@@ -147,12 +153,12 @@ def raw_reader_spec(shape: tuple[int, ...], payload_bytes: int) -> dict[str, Any
 def reader(spec: dict[str, Any]) -> Callable[[zenoh.Sample], int]:
     """The sink-side work for ``spec``: take the payload, decode or view it, return the send stamp."""
     if spec["kind"] == "typed":
-        return lambda sample: decode(sample.payload.to_bytes()).header.stamp_ns
+        return lambda sample: decode(received_bytes(sample.payload)).header.stamp_ns
     shape, offset = tuple(spec["shape"]), spec["offset"]
     count = math.prod(shape)
 
     def read_raw(sample: zenoh.Sample) -> int:
-        payload = sample.payload.to_bytes()
+        payload = received_bytes(sample.payload)
         np.frombuffer(payload, np.uint8, count, offset).reshape(shape)  # the view a raw user works with
         return STAMP.unpack_from(payload)[0]
 

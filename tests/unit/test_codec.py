@@ -93,6 +93,28 @@ def test_frame_arrays_are_aligned_read_only_views(schema: str, data: st.DataObje
             assert array.ctypes.data - buffer.ctypes.data == offset
 
 
+def plain_frame_decode(payload: bytes) -> Message:
+    """A frame decoded the plain way, as a reference: the header by ``json``, each array copied out
+    by ``np.frombuffer``, the message validated by pydantic."""
+    header, _ = frame_header(payload)
+    cls = message_types()[header.pop("schema")]
+    header.pop("version")
+    for name in cls.ARRAY_FIELDS:
+        descriptor = header[name]
+        dtype = np.dtype(descriptor["dtype"]).newbyteorder("<")
+        count = int(np.prod(descriptor["shape"]))
+        header[name] = np.frombuffer(payload, dtype, count, descriptor["offset"]).reshape(descriptor["shape"]).copy()
+    return cls.model_validate(header)
+
+
+@pytest.mark.parametrize("schema", sorted(s for s, cls in message_types().items() if is_frame(cls)))
+@FAST
+@given(data=st.data())
+def test_frames_decode_as_the_plain_reference_does(schema: str, data: st.DataObject):
+    payload = encode(data.draw(MESSAGES[schema]))
+    assert decode(payload) == plain_frame_decode(payload)
+
+
 def test_array_nan_and_infinity_travel_bit_for_bit():
     odd = np.array([np.nan, -np.inf, np.inf, -0.0], dtype=np.float32)
     odd.view(np.uint32)[0] = 0x7FC0BEEF  # a NaN with a payload
@@ -258,6 +280,13 @@ FRAME_FAULTS = [
 def test_frame_header_faults_are_named(edit: Callable[[dict[str, Any]], None], expected: str):
     error = decode_error(reframe(encode(image()), edit))
     assert expected in str(error)
+
+
+def test_a_frame_header_that_is_not_json_is_named():
+    payload = encode(image())
+    _, header_end = frame_header(payload)
+    broken = payload[:12] + b'{"schema":'.ljust(header_end - 12) + payload[header_end:]
+    assert "frame header is not JSON" in str(decode_error(broken))
 
 
 def test_decode_error_names_schema_and_size():
