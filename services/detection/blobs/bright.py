@@ -240,7 +240,7 @@ class Windows:
     filled: np.ndarray
 
     @classmethod
-    def cut(cls, image: np.ndarray, boxes: Sequence[tuple[int, int, int, int]],
+    def cut(cls, image: np.ndarray, boxes: Sequence[Sequence[int]],
             contours: Sequence[np.ndarray]) -> Windows:
         """The windows of components with bounding boxes ``(x, y, w, h)`` px and borders ``contours``
         (image pixels), each box grown by ``WINDOW_PAD`` within ``image``."""
