@@ -182,7 +182,7 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     background = grid_median(image) if params.background is None else params.background
     windows = Windows.cut(image, [boxes[k] for k in big], [contours[k] for k in big])
     weights = windows.weights(params.threshold, background)
-    areas = np.count_nonzero(windows.filled.reshape(len(big), -1), axis=1).tolist()
+    areas = (windows.filled.reshape(len(big), -1).sum(axis=1, dtype=np.int64) // 255).tolist()
     rows = []
     for slot, k in enumerate(big):
         area = float(areas[slot])
