@@ -7,11 +7,12 @@ bodies' spheres and stray markers. Matching runs in three steps:
 1. ``body_candidates``: for one body, every assignment of spheres to points whose pairwise
    distances all agree with the body's to within ``distance_tolerance`` (an interpretation tree:
    spheres taken in order, each new one tried only on points at the right distance from every
-   point already chosen; every branch of one depth grown at once from a table of which point
-   pairs fit which sphere pairs). A body of four or more spheres may leave one sphere unassigned
-   (hidden); a three-sphere body needs all three. Each assignment is verified by a rigid fit
-   (least squares, all of a body's assignments in one ``least_squares_transforms``): its
-   residual RMS must be within ``gate_rms``. Covariances are computed for the chosen fits only.
+   point already chosen; every branch of one depth, of every body matched together, grown at once
+   from a table of which point pairs fit which sphere pairs). A body of four or more spheres may
+   leave one sphere unassigned (hidden); a three-sphere body needs all three. Each assignment is
+   verified by a rigid fit (least squares, all bodies' assignments in one
+   ``least_squares_transforms``): its residual RMS must be within ``gate_rms``. Covariances are
+   computed for the chosen fits only, in one ``pose_covariances``.
 2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
    whole set at once: the most bodies, then the most spheres, then the least total squared
    residual (a branch and bound over the bodies), so a body listed first never takes a point
