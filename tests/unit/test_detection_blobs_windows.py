@@ -20,6 +20,7 @@ from services.detection.blobs.bright import (
     grid_median,
     moment_shape,
     shape_flags,
+    stack_groups,
 )
 from services.synthetic import make_scene
 from tests.blob_images import disc_image
@@ -130,3 +131,26 @@ def test_hard_images_give_the_reference_blobs(params, shape):
 def test_the_grid_median_is_numpys(size):
     image = np.random.default_rng(sum(size)).integers(0, 255, size, dtype=np.uint8)
     assert grid_median(image) == float(np.median(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]))
+
+
+def test_a_large_blob_among_small_ones_is_stacked_apart_and_gives_the_reference_blobs():
+    rng = np.random.default_rng(11)
+    discs = [(300.0, 200.0, 45.0)] + [(rng.uniform(10, 630), rng.uniform(300, 470), rng.uniform(1.5, 3.0))
+                                      for _ in range(60)]
+    image = disc_image(discs, (480, 640), background=12)
+    params, shape = IrBlobParams(), ShapeParams()
+    binary = cv2.compare(image, params.threshold, cv2.CMP_GT)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    groups = stack_groups([cv2.boundingRect(c) for c in contours], image.shape)
+    assert len(groups) >= 2 and sorted(k for g in groups for k in g) == list(range(len(contours)))
+    found = detect_ir_blobs(image, params, shape)
+    assert np.max(found.area) > 6000
+    assert_same(found, reference_blobs(image, params, shape))
+
+
+def test_scene_frames_stack_their_windows_in_one_image():
+    scene = make_scene("ir_rig", body_count=3)
+    image = scene.render(0).images[scene.cameras[0].name]
+    contours, _ = cv2.findContours(cv2.compare(image, 60.0, cv2.CMP_GT), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    assert len(contours) >= 8
+    assert stack_groups([cv2.boundingRect(c) for c in contours], image.shape) == [list(range(len(contours)))]

@@ -46,6 +46,9 @@ WINDOW_PAD = 2
 BACKGROUND_STRIDE = 8
 """The estimated background is the median of every ``BACKGROUND_STRIDE``-th pixel along both axes."""
 _GROW = np.ones((3, 3), np.uint8)
+STACK_WASTE, STACK_SPARE = 4, 4096
+"""Windows are stacked in one tall image while it holds at most ``STACK_WASTE`` times their own pixels and
+``STACK_SPARE`` more (``stack_groups``)."""
 
 
 class BlobFlag(enum.IntFlag):
@@ -180,12 +183,17 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     if not big:
         return Blobs.from_rows([])
     background = grid_median(image) if params.background is None else params.background
-    windows = Windows.cut(image, [boxes[k] for k in big], [contours[k] for k in big])
-    weights = windows.weights(params.threshold, background)
-    areas = (windows.filled.reshape(len(big), -1).sum(axis=1, dtype=np.int64) // 255).tolist()
+    weights_of, origin_of, area_of = {}, {}, {}
+    for group in stack_groups([boxes[k] for k in big], (height, width)):
+        members = [big[g] for g in group]
+        windows = Windows.cut(image, [boxes[k] for k in members], [contours[k] for k in members])
+        weights = windows.weights(params.threshold, background)
+        areas = (windows.filled.reshape(len(members), -1).sum(axis=1, dtype=np.int64) // 255).tolist()
+        for slot, k in enumerate(members):
+            weights_of[k], origin_of[k], area_of[k] = weights[slot], (windows.x0[slot], windows.y0[slot]), areas[slot]
     rows = []
-    for slot, k in enumerate(big):
-        area = float(areas[slot])
+    for k in big:
+        area = float(area_of[k])
         radius = math.sqrt(area / math.pi)
         if not (shape.min_area <= area <= shape.max_area and params.min_radius <= radius <= params.max_radius):
             continue
@@ -195,7 +203,7 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
         circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
         if circularity < shape.min_circularity:
             continue
-        window = weights[slot]
+        window = weights_of[k]
         moments = cv2.moments(window)
         if moments["m00"] <= 0.0:
             continue
@@ -207,8 +215,9 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
         x, y, w, h = boxes[k]
         if x == 0 or y == 0 or x + w == width or y + h == height:
             flags |= CLIPPED
-        rows.append((windows.x0[slot] + centroid[0], windows.y0[slot] + centroid[1], area, radius, perimeter,
-                     circularity, roundness * solidity, flags))
+        x0, y0 = origin_of[k]
+        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity, roundness * solidity,
+                     flags))
     return Blobs.from_rows(rows)
 
 
@@ -221,6 +230,23 @@ def grid_median(image: np.ndarray) -> float:
         return float(np.partition(sample, middle)[middle])
     low, high = np.partition(sample, [middle - 1, middle])[middle - 1:middle + 1].tolist()
     return (low + high) / 2.0
+
+
+def stack_groups(boxes: Sequence[Sequence[int]], image_size: tuple[int, int]) -> list[list[int]]:
+    """The components with bounding boxes ``(x, y, w, h)`` px in an image of ``image_size`` (H, W), as groups
+    of indices whose windows are stacked together (``Windows``): all in one group unless the slots of the
+    largest window would be mostly padding (a stack over ``STACK_WASTE`` times the windows' own pixels and
+    ``STACK_SPARE`` more), then grouped by the powers of two of their windows' height and width."""
+    image_height, image_width = image_size
+    sizes = [(min(y + h + WINDOW_PAD, image_height) - max(y - WINDOW_PAD, 0) + 1,
+              min(x + w + WINDOW_PAD, image_width) - max(x - WINDOW_PAD, 0)) for x, y, w, h in boxes]
+    own = sum(h * w for h, w in sizes)
+    if len(sizes) * max(h for h, _ in sizes) * max(w for _, w in sizes) <= STACK_WASTE * own + STACK_SPARE:
+        return [list(range(len(sizes)))]
+    groups: dict[tuple[int, int], list[int]] = {}
+    for k, (h, w) in enumerate(sizes):
+        groups.setdefault((h.bit_length(), w.bit_length()), []).append(k)
+    return list(groups.values())
 
 
 @dataclass(frozen=True)
