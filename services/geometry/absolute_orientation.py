@@ -34,6 +34,7 @@ __all__ = [
     "least_squares_transform",
     "least_squares_transforms",
     "pose_covariance",
+    "pose_covariances",
     "pose_jacobians",
     "three_point_transform",
     "umeyama_alignment",
@@ -159,14 +160,20 @@ def pose_jacobians(T_world_body: np.ndarray, points_body: np.ndarray) -> np.ndar
     The pose perturbation is ``(dtheta, dt)``: ``R = exp([dtheta]x) R_hat`` and ``t = t_hat + dt``,
     both in the world frame (see ``fit_rigid``), so the block is ``[-[R_hat b_i]x, I]``.
     """
-    rotated = (check_shape(points_body, "N,3", "points_body", np.float64)
-               @ check_shape(T_world_body, "4,4", "T_world_body")[:3, :3].T)
-    J = np.zeros((len(rotated), 3, 6))
-    x, y, z = rotated[:, 0], rotated[:, 1], rotated[:, 2]
-    J[:, 0, 1], J[:, 0, 2] = z, -y
-    J[:, 1, 0], J[:, 1, 2] = -z, x
-    J[:, 2, 0], J[:, 2, 1] = y, -x
-    J[:, :, 3:] = np.eye(3)
+    T_world_body = check_shape(T_world_body, "4,4", "T_world_body")
+    points_body = check_shape(points_body, "N,3", "points_body", np.float64)
+    return _jacobians(T_world_body[None], points_body[None])[0]
+
+
+def _jacobians(T_world_body: np.ndarray, points_body: np.ndarray) -> np.ndarray:
+    """(P, N, 3, 6) ``pose_jacobians`` of P poses (P, 4, 4), each at its own (P, N, 3) body points."""
+    rotated = points_body @ T_world_body[:, :3, :3].transpose(0, 2, 1)
+    J = np.zeros(rotated.shape + (6,))
+    x, y, z = rotated[..., 0], rotated[..., 1], rotated[..., 2]
+    J[..., 0, 1], J[..., 0, 2] = z, -y
+    J[..., 1, 0], J[..., 1, 2] = -z, x
+    J[..., 2, 0], J[..., 2, 1] = y, -x
+    J[..., :, 3:] = np.eye(3)
     return J
 
 
@@ -178,13 +185,35 @@ def pose_covariance(T_world_body: np.ndarray, points_body: np.ndarray, covarianc
     ``H^-1 (sum_i J_i^T Sigma_i J_i) H^-1``; it equals the inverse information ``(sum_i J_i^T Sigma_i^-1 J_i)^-1``
     when every ``Sigma_i`` is the same isotropic matrix. Order and frame as in ``fit_rigid``.
     """
-    J = pose_jacobians(T_world_body, points_body)
-    sigma = check_shape(covariances, f"{len(J)},3,3", "covariances", np.float64)
-    H = np.einsum("nki,nkj->ij", J, J)
-    B = np.einsum("nki,nkl,nlj->ij", J, sigma, J)
+    T_world_body = check_shape(T_world_body, "4,4", "T_world_body")
+    points_body = check_shape(points_body, "N,3", "points_body", np.float64)
+    covariances = check_shape(covariances, f"{len(points_body)},3,3", "covariances", np.float64)
+    return pose_covariances(T_world_body[None], points_body[None], covariances[None])[0]
+
+
+def pose_covariances(T_world_body: np.ndarray, points_body: np.ndarray, covariances: np.ndarray,
+                     used: np.ndarray | None = None) -> np.ndarray:
+    """(P, 6, 6) ``pose_covariance`` of P poses at once.
+
+    ``T_world_body``: (P, 4, 4); ``points_body``: (P, N, 3) float64, body frame; ``covariances``: (P, N, 3, 3)
+    float64 world-point covariances (m^2); ``used``: (P, N) bool, the points each pose was fitted to (default
+    all; the others may hold any value).
+    """
+    T_world_body = check_shape(T_world_body, "P,4,4", "T_world_body", np.float64)
+    sets = len(T_world_body)
+    points_body = check_shape(points_body, f"{sets},N,3", "points_body", np.float64)
+    count = points_body.shape[1]
+    sigma = check_shape(covariances, f"{sets},{count},3,3", "covariances", np.float64)
+    J = _jacobians(T_world_body, points_body)
+    if used is not None:
+        used = check_shape(used, f"{sets},{count}", "used", bool)
+        J = np.where(used[..., None, None], J, 0.0)
+        sigma = np.where(used[..., None, None], sigma, 0.0)
+    H = np.einsum("pnki,pnkj->pij", J, J)
+    B = np.einsum("pnki,pnkl,pnlj->pij", J, sigma, J)
     H_inv = np.linalg.inv(H)
     covariance = H_inv @ B @ H_inv
-    return (covariance + covariance.T) / 2
+    return (covariance + covariance.transpose(0, 2, 1)) / 2
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -77,17 +78,27 @@ class CameraStack:
         assert jacobians is not None
         return pixels, jacobians
 
+    @cached_property
+    def _distortion(self) -> tuple[np.ndarray, ...]:
+        """(C,) ``k1, k2, p1, p2, k3`` of every camera."""
+        return tuple(self.dist[:, k] for k in range(5))
+
+    @cached_property
+    def _intrinsics(self) -> tuple[np.ndarray, ...]:
+        """(C,) ``fx, fy, cx, cy`` of every camera."""
+        return self.K[:, 0, 0], self.K[:, 1, 1], self.K[:, 0, 2], self.K[:, 1, 2]
+
     def _project(self, points_world: np.ndarray, with_jacobians: bool) -> tuple[np.ndarray, np.ndarray | None]:
         p = self.to_cameras(points_world)
         inverse_z = 1.0 / p[..., 2]
         x, y = p[..., 0] * inverse_z, p[..., 1] * inverse_z
-        k1, k2, p1, p2, k3 = (self.dist[:, k] for k in range(5))
+        k1, k2, p1, p2, k3 = self._distortion
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xy = x * y
         xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x)
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy
-        fx, fy, cx, cy = self.K[:, 0, 0], self.K[:, 1, 1], self.K[:, 0, 2], self.K[:, 1, 2]
+        fx, fy, cx, cy = self._intrinsics
         pixels = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
         if not with_jacobians:
             return pixels, None

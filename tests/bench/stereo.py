@@ -9,7 +9,7 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   Points3D and Pose messages built and encoded). ``triangulation`` is the final points'
   batched DLT + Gauss-Newton + covariance redone alone, and ``correspondence`` what the rest of
   ``triangulate_blobs`` takes (its total minus that); ``fit`` is the chosen bodies' rigid fits
-  with covariance redone alone (one batched least squares, then each covariance, as
+  with covariance redone alone (one batched least squares, then the covariances in one batch, as
   ``match_bodies`` does), ``matching`` the rest of ``match_bodies``. ``total``: blobs +
   triangulate_blobs + match_bodies + messages. p50 / p99 ms after ``WARMUP`` instants.
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
@@ -50,7 +50,7 @@ from services.estimation.bodies import node as rigid_bodies_node
 from services.estimation.bodies.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.bodies.file import save_bodies
 from services.estimation.bodies.rigid import Matching, match_bodies
-from services.geometry.absolute_orientation import least_squares_transforms, pose_covariance
+from services.geometry.absolute_orientation import least_squares_transforms, pose_covariances
 from services.geometry.triangulation import triangulate_many
 from services.synthetic import make_scene
 from tests.bench.link import at_rate, cpu_seconds
@@ -125,21 +125,22 @@ def _triangulation_alone(stack: Any, found: list, blobs: list, sigma_px: float) 
 
 def _fit_alone(bodies: dict[str, np.ndarray], points: np.ndarray, covariances: np.ndarray, matching: Matching) -> float:
     """Seconds the chosen bodies' rigid fits take alone, done as ``match_bodies`` does them: one batched
-    least squares (``least_squares_transforms``), then each fit's covariance."""
+    least squares (``least_squares_transforms``), then their covariances in one batch (``pose_covariances``)."""
     chosen = list(matching.bodies.items())
     if not chosen:
         return 0.0
     widest = max(len(bodies[name]) for name, _ in chosen)
     spheres, world = np.zeros((len(chosen), widest, 3)), np.zeros((len(chosen), widest, 3))
+    sigma = np.zeros((len(chosen), widest, 3, 3))
     used = np.zeros((len(chosen), widest), bool)
     for row, (name, match) in enumerate(chosen):
         count = len(bodies[name])
         spheres[row, :count], used[row, :count] = bodies[name], match.indices >= 0
         world[row, :count] = points[np.maximum(match.indices, 0)]
+        sigma[row, :count] = covariances[np.maximum(match.indices, 0)]
     started = time.perf_counter()
     transforms, _ = least_squares_transforms(spheres, world, used)
-    for row, (_, match) in enumerate(chosen):
-        pose_covariance(transforms[row], spheres[row][used[row]], covariances[match.indices[match.indices >= 0]])
+    pose_covariances(transforms, spheres, sigma, used)
     return time.perf_counter() - started
 
 

@@ -55,6 +55,26 @@ def test_the_window_forgets_old_sets():
     assert estimate == pytest.approx(0.05, rel=0.15)
 
 
+@pytest.mark.parametrize("window", [1, 5, 100])
+def test_the_running_estimate_is_the_pooled_estimate_of_the_window_s_sets(window):
+    rng = np.random.default_rng(window)
+    noise = CentroidNoise(window=window, floor_px=0.005, prior_px=0.1)
+    sets, expected = [], 0.1
+    for _ in range(300):
+        count = int(rng.integers(0, 15))
+        views = rng.choice([1, 2, 2, 3, 4], count)
+        rms = np.abs(rng.normal(0.0, 0.05, count)) * np.where(rng.random(count) < 0.05, 20.0, 1.0)
+        if count and rng.random() < 0.1:
+            rms[0] = np.inf if rng.random() < 0.5 else 0.0
+        estimate = noise.update(rms, views)
+        if np.any(views >= 2):
+            sets = [*sets, (np.square(rms) * views, degrees_of_freedom(views))][-window:]
+        variance = robust_variance(np.concatenate([s for s, _ in sets]), np.concatenate([d for _, d in sets])) \
+            if sets else None
+        expected = expected if variance is None else max(float(np.sqrt(variance)), 0.005)
+        assert estimate == expected
+
+
 def test_the_residuals_of_triangulated_points_give_back_the_pixel_noise():
     rng = np.random.default_rng(4)
     K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])

@@ -13,7 +13,7 @@ from services.estimation.bodies.correspondence import (
     unambiguous,
 )
 from services.geometry.se3 import transform_points
-from services.geometry.triangulation import reproject
+from services.geometry.triangulation import reproject, triangulate
 from services.synthetic import make_scene
 
 
@@ -108,3 +108,23 @@ def test_blob_lists_must_match_the_cameras():
     scene = make_scene("ir_rig", camera_count=2)
     with pytest.raises(ValueError, match="2 cameras and 1 blob lists"):
         triangulate_blobs(scene.cameras, [np.zeros((0, 2))])
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_each_point_is_its_own_views_triangulated_alone(count):
+    scene = make_scene("ir_rig", camera_count=count, occlusion_rate=1.0)
+    rng = np.random.default_rng(count)
+    made = 0
+    for index in range(0, 60, 6):
+        truth = np.concatenate([transform_points(T, scene.bodies[n]) for n, T in scene.body_poses(index).items()])
+        blobs = [np.vstack([reproject(c, truth) + rng.normal(0.0, 0.02, (len(truth), 2)),
+                            rng.uniform((0, 0), (640, 480), (3, 2))]) for c in scene.cameras]
+        for point in triangulate_blobs(scene.cameras, blobs, CorrespondenceOptions(sigma_px=0.05)):
+            views = [scene.cameras[c] for c in point.camera_indices]
+            pixels = np.array([blobs[c][i] for c, i in zip(point.camera_indices, point.blob_indices, strict=True)])
+            alone = triangulate(views, pixels, 0.05)
+            np.testing.assert_allclose(point.point, alone.point, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(point.covariance, alone.covariance, rtol=1e-9, atol=0)
+            assert point.rms_px == pytest.approx(alone.rms_px, rel=1e-9, abs=1e-12)
+            made += 1
+    assert made >= 10 * len(scene.bodies)

@@ -46,6 +46,9 @@ WINDOW_PAD = 2
 BACKGROUND_STRIDE = 8
 """The estimated background is the median of every ``BACKGROUND_STRIDE``-th pixel along both axes."""
 _GROW = np.ones((3, 3), np.uint8)
+STACK_WASTE, STACK_SPARE = 4, 4096
+"""Windows are stacked in one tall image while it holds at most ``STACK_WASTE`` times their own pixels and
+``STACK_SPARE`` more (``stack_groups``)."""
 
 
 class BlobFlag(enum.IntFlag):
@@ -57,6 +60,9 @@ class BlobFlag(enum.IntFlag):
     """Not round and no waist: partly hidden or cut, the centroid is off the spot's centre."""
     CLIPPED = 4
     """Touches the image border: part of the blob may lie outside the image."""
+
+
+CLIPPED = int(BlobFlag.CLIPPED)
 
 
 @dataclass(frozen=True)
@@ -158,51 +164,137 @@ def check_mono(image: np.ndarray) -> np.ndarray:
 
 def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape: ShapeParams | None = None) -> Blobs:
     """Bright blobs of ``image`` ((H, W) uint8 or uint16 grey levels, the scale of ``params.threshold``), in the
-    order found."""
+    order found.
+
+    The components' windows (bounding box grown by ``WINDOW_PAD``) are cut out together as the
+    slots of one tall image (``Windows``): their rims and weights are a few operations on it, and
+    only the moments and the shape are taken component by component."""
     image = check_mono(image)
     params = params or IrBlobParams()
     shape = shape or ShapeParams()
     height, width = image.shape
-    binary = cv2.compare(image, params.threshold, cv2.CMP_GT)  # type: ignore[call-overload]
+    if image.dtype == np.uint8:
+        binary = cv2.threshold(image, params.threshold, 255, cv2.THRESH_BINARY)[1]
+    else:
+        binary = cv2.compare(image, params.threshold, cv2.CMP_GT)  # type: ignore[call-overload]
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    background = (float(np.median(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]))
-                  if params.background is None else params.background)
+    boxes = [cv2.boundingRect(c) for c in contours]
+    big = [k for k, (_, _, w, h) in enumerate(boxes) if w * h >= shape.min_area]
+    if not big:
+        return Blobs.from_rows([])
+    background = grid_median(image) if params.background is None else params.background
+    weights_of, origin_of, area_of = {}, {}, {}
+    for group in stack_groups([boxes[k] for k in big], (height, width)):
+        members = [big[g] for g in group]
+        windows = Windows.cut(image, [boxes[k] for k in members], [contours[k] for k in members])
+        weights = windows.weights(params.threshold, background)
+        areas = (windows.filled.reshape(len(members), -1).sum(axis=1, dtype=np.int64) // 255).tolist()
+        for slot, k in enumerate(members):
+            weights_of[k], origin_of[k], area_of[k] = weights[slot], (windows.x0[slot], windows.y0[slot]), areas[slot]
     rows = []
-    for contour in contours:
-        x, y, w, h = cv2.boundingRect(contour)
-        if w * h < shape.min_area:
-            continue
-        x0, y0 = max(x - WINDOW_PAD, 0), max(y - WINDOW_PAD, 0)
-        x1, y1 = min(x + w + WINDOW_PAD, width), min(y + h + WINDOW_PAD, height)
-        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.drawContours(mask, [contour], 0, 255, cv2.FILLED, offset=(-x0, -y0))
-        area = float(cv2.countNonZero(mask))
+    for k in big:
+        area = float(area_of[k])
         radius = math.sqrt(area / math.pi)
         if not (shape.min_area <= area <= shape.max_area and params.min_radius <= radius <= params.max_radius):
             continue
+        contour = contours[k]
         perimeter = cv2.arcLength(contour, True)
         polygon_area = cv2.contourArea(contour)
         circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
         if circularity < shape.min_circularity:
             continue
-        rim = cv2.subtract(cv2.dilate(mask, _GROW), cv2.subtract(binary[y0:y1, x0:x1], mask))
-        weights = np.zeros(mask.shape, np.float32)
-        cv2.subtract(image[y0:y1, x0:x1], background, dst=weights, mask=rim,  # type: ignore[call-overload]
-                     dtype=cv2.CV_32F)
-        np.maximum(weights, 0.0, out=weights)
-        moments = cv2.moments(weights)
+        window = weights_of[k]
+        moments = cv2.moments(window)
         if moments["m00"] <= 0.0:
             continue
         centroid, axis, roundness = moment_shape(moments)
         hull_area = cv2.contourArea(cv2.convexHull(contour))
         solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
-        flags = shape_flags(weights, centroid, axis, roundness < shape.min_roundness
-                            or solidity < params.min_solidity, shape.waist_depth)
+        irregular = roundness < shape.min_roundness or solidity < params.min_solidity
+        flags = int(shape_flags(window, centroid, axis, True, shape.waist_depth)) if irregular else 0
+        x, y, w, h = boxes[k]
         if x == 0 or y == 0 or x + w == width or y + h == height:
-            flags |= BlobFlag.CLIPPED
-        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity,
-                     roundness * solidity, int(flags)))
+            flags |= CLIPPED
+        x0, y0 = origin_of[k]
+        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity, roundness * solidity,
+                     flags))
     return Blobs.from_rows(rows)
+
+
+def grid_median(image: np.ndarray) -> float:
+    """The median grey level of every ``BACKGROUND_STRIDE``-th pixel of ``image`` along both axes (the mean of
+    the two middle values of an even count, as ``np.median``)."""
+    sample = image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE].ravel()
+    middle = len(sample) // 2
+    if len(sample) % 2:
+        return float(np.partition(sample, middle)[middle])
+    low, high = np.partition(sample, [middle - 1, middle])[middle - 1:middle + 1].tolist()
+    return (low + high) / 2.0
+
+
+def stack_groups(boxes: Sequence[Sequence[int]], image_size: tuple[int, int]) -> list[list[int]]:
+    """The components with bounding boxes ``(x, y, w, h)`` px in an image of ``image_size`` (H, W), as groups
+    of indices whose windows are stacked together (``Windows``): all in one group unless the slots of the
+    largest window would be mostly padding (a stack over ``STACK_WASTE`` times the windows' own pixels and
+    ``STACK_SPARE`` more), then grouped by the powers of two of their windows' height and width."""
+    image_height, image_width = image_size
+    sizes = [(min(y + h + WINDOW_PAD, image_height) - max(y - WINDOW_PAD, 0) + 1,
+              min(x + w + WINDOW_PAD, image_width) - max(x - WINDOW_PAD, 0)) for x, y, w, h in boxes]
+    own = sum(h * w for h, w in sizes)
+    if len(sizes) * max(h for h, _ in sizes) * max(w for _, w in sizes) <= STACK_WASTE * own + STACK_SPARE:
+        return [list(range(len(sizes)))]
+    groups: dict[tuple[int, int], list[int]] = {}
+    for k, (h, w) in enumerate(sizes):
+        groups.setdefault((h.bit_length(), w.bit_length()), []).append(k)
+    return list(groups.values())
+
+
+@dataclass(frozen=True)
+class Windows:
+    """K components' windows cut out of an image as the slots of one tall image: slot k is rows
+    ``k * height`` to ``(k + 1) * height`` of ``pixels`` (its last row spare), its pixel (0, 0) the
+    image's pixel (``x0[k]``, ``y0[k]``), ``width`` columns, what lies outside the image 0.
+
+    ``pixels``: (K * height, width) the image's grey levels; ``filled``: (K, height, width) uint8,
+    255 inside each component's border (its pixels and its holes) in its slot."""
+
+    x0: list[int]
+    y0: list[int]
+    height: int
+    width: int
+    pixels: np.ndarray
+    filled: np.ndarray
+
+    @classmethod
+    def cut(cls, image: np.ndarray, boxes: Sequence[Sequence[int]],
+            contours: Sequence[np.ndarray]) -> Windows:
+        """The windows of components with bounding boxes ``(x, y, w, h)`` px and borders ``contours``
+        (image pixels), each box grown by ``WINDOW_PAD`` within ``image``."""
+        image_height, image_width = image.shape
+        corners = [(max(x - WINDOW_PAD, 0), max(y - WINDOW_PAD, 0), min(x + w + WINDOW_PAD, image_width),
+                    min(y + h + WINDOW_PAD, image_height)) for x, y, w, h in boxes]
+        height = max(y1 - y0 for _, y0, _, y1 in corners) + 1
+        width = max(x1 - x0 for x0, _, x1, _ in corners)
+        pixels = np.zeros((len(corners) * height, width), image.dtype)
+        filled = np.zeros(pixels.shape, np.uint8)
+        for k, ((x0, y0, x1, y1), contour) in enumerate(zip(corners, contours, strict=True)):
+            top = k * height
+            pixels[top:top + y1 - y0, :x1 - x0] = image[y0:y1, x0:x1]
+            cv2.drawContours(filled, [contour], 0, 255, cv2.FILLED, offset=(-x0, top - y0))
+        return cls([c[0] for c in corners], [c[1] for c in corners], height, width, pixels,
+                   filled.reshape(len(corners), height, width))
+
+    def weights(self, threshold: float, background: float) -> np.ndarray:
+        """(K, height, width) float32 centroid weights ``max(level - background, 0)`` over each component
+        grown by one pixel (8-neighbours), less the pixels above ``threshold`` outside it."""
+        own = self.filled.reshape(self.pixels.shape)
+        bright = cv2.compare(self.pixels, threshold, cv2.CMP_GT)  # type: ignore[call-overload]
+        rim = cv2.max(own, cv2.subtract(cv2.dilate(own, _GROW), bright))
+        weights = np.zeros(own.shape, np.float32)
+        cv2.subtract(self.pixels, background, dst=weights, mask=rim,  # type: ignore[call-overload]
+                     dtype=cv2.CV_32F)
+        np.maximum(weights, 0.0, out=weights)
+        return weights.reshape(self.filled.shape)
 
 
 def moment_shape(moments: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float], float]:

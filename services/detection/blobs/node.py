@@ -92,7 +92,8 @@ def as_message(header: Header, method: BlobMethod, found: FoundBlobs) -> Blobs:
     """``found`` in the frame with ``header`` as the message that carries it."""
     return Blobs(header=header, method=method, centroids=np.asarray(found.centroids, np.float64).reshape(-1, 2),
                  areas=found.area.astype(np.float32), radii=found.radius.astype(np.float32),
-                 quality=np.nan_to_num(found.quality, nan=0.0).astype(np.float32), flags=found.flags.astype(np.uint8))
+                 quality=np.where(np.isnan(found.quality), 0.0, found.quality).astype(np.float32),
+                 flags=found.flags.astype(np.uint8))
 
 
 def run(node: Node, params: Params) -> None:

@@ -36,15 +36,21 @@ def degrees_of_freedom(views: np.ndarray) -> np.ndarray:
 def robust_variance(squares: np.ndarray, dof: np.ndarray, keep: float = 0.999) -> float | None:
     """``sigma_px^2`` (px^2) from (N,) sums of squared residuals (px^2) with (N,) ``dof`` each (> 0 counted);
     None without a point of positive ``dof``. See the module's docstring for the estimator."""
-    squares = np.asarray(squares, np.float64)
-    dof = np.asarray(dof, np.int64)
+    table = _usable_table(np.asarray(squares, np.float64), np.asarray(dof, np.int64), keep)
+    return _pooled_variance(table) if table.shape[1] else None
+
+
+def _usable_table(squares: np.ndarray, dof: np.ndarray, keep: float) -> np.ndarray:
+    """(4, K) float64: the points with positive ``dof`` and a finite sum of squares, in order, as columns
+    ``(sum of squares, chi2 median, chi2 keep quantile, expected share)`` (``_chi2_constants`` of their dof)."""
     usable = (dof > 0) & np.isfinite(squares)
-    squares, dof = squares[usable], dof[usable]
-    if not len(dof):
-        return None
-    values, index = np.unique(dof, return_inverse=True)
-    median, limit, expected = (np.array(column)[index] for column in
-                               zip(*(_chi2_constants(int(d), keep) for d in values), strict=True))
+    constants = [_chi2_constants(d, keep) for d in dof[usable].tolist()]
+    return np.vstack([squares[usable], np.array(constants, np.float64).reshape(-1, 3).T])
+
+
+def _pooled_variance(table: np.ndarray) -> float:
+    """The robust pooled ``sigma_px^2`` of the points of a ``_usable_table`` (at least one)."""
+    squares, median, limit, expected = table
     scale = float(np.median(squares / median))
     if scale <= 0.0:
         return 0.0
@@ -64,7 +70,8 @@ class CentroidNoise:
     """A running estimate of the centroid noise ``sigma_px`` (px per coordinate) over the last ``window`` sets.
 
     ``update`` takes one set's points: (N,) ``rms_px`` (root mean square over its views of the reprojection
-    error's length, as ``TriangulatedPoint.rms_px``) and (N,) ``views``.
+    error's length, as ``TriangulatedPoint.rms_px``) and (N,) ``views``. The window's usable points are kept
+    as one ``_usable_table``, oldest set first, and ``sizes`` counts each set's columns in it.
     """
 
     def __init__(self, window: int = 100, floor_px: float = 0.005, prior_px: float = 0.1, keep: float = 0.999):
@@ -72,18 +79,20 @@ class CentroidNoise:
             raise ValueError(f"need window >= 1, 0 < floor_px <= prior_px and 0.5 < keep < 1, got {window}, "
                              f"{floor_px}, {prior_px} and {keep}")
         self.floor_px, self.prior_px, self.keep = floor_px, prior_px, keep
-        self.sets: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)
+        self.sizes: deque[int] = deque(maxlen=window)
+        self.table = np.zeros((4, 0))
         self.sigma_px = prior_px
 
     def update(self, rms_px: np.ndarray, views: np.ndarray) -> float:
         """Take in one set's points and return the estimate (px)."""
         views = np.asarray(views, np.int64)
-        squares = np.square(np.asarray(rms_px, np.float64)) * views
         dof = degrees_of_freedom(views)
         if np.any(dof > 0):
-            self.sets.append((squares, dof))
-            variance = robust_variance(np.concatenate([s for s, _ in self.sets]),
-                                       np.concatenate([d for _, d in self.sets]), self.keep)
-            if variance is not None:
-                self.sigma_px = max(float(np.sqrt(variance)), self.floor_px)
+            squares = np.square(np.asarray(rms_px, np.float64)) * views
+            added = _usable_table(squares, dof, self.keep)
+            forgotten = self.sizes[0] if len(self.sizes) == self.sizes.maxlen else 0
+            self.sizes.append(added.shape[1])
+            self.table = np.concatenate([self.table[:, forgotten:], added], axis=1)
+            if self.table.shape[1]:
+                self.sigma_px = max(float(np.sqrt(_pooled_variance(self.table))), self.floor_px)
         return self.sigma_px

@@ -86,12 +86,14 @@ def gated_assignment(cost: np.ndarray, gate: float) -> list[tuple[int, int]]:
     allowed = np.isfinite(cost) & (cost < gate)
     square = np.full((rows + columns, columns + rows), forbidden)
     square[:rows, :columns] = np.where(allowed, cost, forbidden)
-    square[:rows, columns:] = np.where(np.eye(rows, dtype=bool), gate, forbidden)
-    square[rows:, :columns] = np.where(np.eye(columns, dtype=bool), gate, forbidden)
+    square[np.arange(rows), columns + np.arange(rows)] = gate
+    square[rows + np.arange(columns), np.arange(columns)] = gate
     square[rows:, columns:] = 0.0
     chosen_rows, chosen_columns = linear_sum_assignment(square)
-    return [(int(r), int(c)) for r, c in zip(chosen_rows, chosen_columns, strict=True)
-            if r < rows and c < columns and allowed[r, c]]
+    real = (chosen_rows < rows) & (chosen_columns < columns)
+    chosen_rows, chosen_columns = chosen_rows[real], chosen_columns[real]
+    made = allowed[chosen_rows, chosen_columns]
+    return list(zip(chosen_rows[made].tolist(), chosen_columns[made].tolist(), strict=True))
 
 
 def fundamental_matrices(cameras: Sequence[CameraModel]) -> dict[tuple[int, int], np.ndarray]:
@@ -145,6 +147,8 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
     rig = rig_geometry(cameras)
     stack, count = rig.stack, len(cameras)
+    offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]])
+    every_blob, every_ideal = np.concatenate(blobs), np.concatenate(ideal)
     gate = options.reprojection_gate_px
 
     def solve(clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
@@ -153,11 +157,14 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             return []
         pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
         seen = np.zeros((len(clusters), count), bool)
-        for row, views in enumerate(clusters):
-            for c, i in views:
-                pixels[row, c], undistorted[row, c], seen[row, c] = blobs[c][i], ideal[c][i], True
+        rows = [row for row, views in enumerate(clusters) for _ in views]
+        cameras_seen, blob_indices = np.array([v for views in clusters for v in views], np.int64).T
+        flat = offsets[cameras_seen] + blob_indices
+        pixels[rows, cameras_seen], undistorted[rows, cameras_seen] = every_blob[flat], every_ideal[flat]
+        seen[rows, cameras_seen] = True
         found = triangulate_many(stack, pixels, seen, options.covariance_sigma_px, undistorted, start)
-        return [TriangulatedPoint(found.points[row], float(found.rms_px[row]), found.covariances[row],
+        rms = found.rms_px.tolist()
+        return [TriangulatedPoint(found.points[row], rms[row], found.covariances[row],
                                   tuple(c for c, _ in views), tuple(i for _, i in views))
                 for row, views in enumerate(clusters)]
 
@@ -196,19 +203,19 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         if not free or not single:
             return cost, points_dlt
         distance = np.full((len(free), len(single)), np.inf)
-        single_cameras = np.array([a for a, _ in single])
-        for a in np.unique(single_cameras):
+        single_cameras, single_blobs = np.array(single, np.int64).T
+        single_ideal = every_ideal[offsets[single_cameras] + single_blobs]
+        for a in set(single_cameras.tolist()):
             columns = np.flatnonzero(single_cameras == a)
-            distance[:, columns] = epipolar_distances(rig.fundamental[(c, int(a))],
-                                                      ideal[a][[single[k][1] for k in columns]], ideal[c][free]).T
+            distance[:, columns] = epipolar_distances(rig.fundamental[(c, a)], single_ideal[columns],
+                                                      ideal[c][free]).T
         rows, columns = np.nonzero(distance < options.epipolar_gate_px)
         if not len(rows):
             return cost, points_dlt
         undistorted = np.zeros((len(rows), count, 2))
         seen = np.zeros((len(rows), count), bool)
         pair_cameras = single_cameras[columns]
-        undistorted[np.arange(len(rows)), pair_cameras] = [ideal[a][single[k][1]] for a, k in
-                                                           zip(pair_cameras, columns, strict=True)]
+        undistorted[np.arange(len(rows)), pair_cameras] = single_ideal[columns]
         undistorted[:, c] = ideal[c][np.asarray(free)[rows]]
         seen[np.arange(len(rows)), pair_cameras] = True
         seen[:, c] = True
@@ -252,8 +259,10 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         candidates = [[single[column], (c, free[row])] for row, column in pairs]
         made = solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
         depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
-        for (row, column), views, point, depth in zip(pairs, candidates, made, depths, strict=True):
-            if point.rms_px <= gate and np.all(depth[[v for v, _ in views]] > 0.0):
+        first = np.array([a for (a, _), _ in candidates], np.int64)
+        in_front = (depths[np.arange(len(pairs)), first] > 0.0) & (depths[:, c] > 0.0)
+        for (row, column), views, point, front in zip(pairs, candidates, made, in_front.tolist(), strict=True):
+            if point.rms_px <= gate and front:
                 clusters.append(views)
                 solved.append(point)
                 used.add(column)

@@ -207,7 +207,7 @@ def body_poses(header: Header, matching: Matching) -> list[Pose]:
         poses.append(Pose(header=header, child_frame_id=f"body/{name}",
                           transform=transform_from_matrix(fit.T_world_body),
                           quality=PoseQuality(inliers=match.spheres_used, residual_rms_m=fit.residual_rms),
-                          covariance=None if covariance is None else tuple(float(v) for v in covariance.ravel())))
+                          covariance=None if covariance is None else tuple(covariance.ravel().tolist())))
     return poses
 
 
@@ -215,7 +215,7 @@ def predicted_poses(header: Header, predicted: Mapping[str, Prediction]) -> list
     """One ``predicted`` pose per body bridged: the predicted transform and its grown covariance, no inliers."""
     return [Pose(header=header, child_frame_id=f"body/{name}", state=TrackingState.PREDICTED,
                  transform=transform_from_matrix(p.T_world_body),
-                 covariance=tuple(float(v) for v in child_frame_covariance(p.covariance, p.T_world_body).ravel()))
+                 covariance=tuple(child_frame_covariance(p.covariance, p.T_world_body).ravel().tolist()))
             for name, p in predicted.items()]
 
 

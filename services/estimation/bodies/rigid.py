@@ -7,11 +7,12 @@ bodies' spheres and stray markers. Matching runs in three steps:
 1. ``body_candidates``: for one body, every assignment of spheres to points whose pairwise
    distances all agree with the body's to within ``distance_tolerance`` (an interpretation tree:
    spheres taken in order, each new one tried only on points at the right distance from every
-   point already chosen; every branch of one depth grown at once from a table of which point
-   pairs fit which sphere pairs). A body of four or more spheres may leave one sphere unassigned
-   (hidden); a three-sphere body needs all three. Each assignment is verified by a rigid fit
-   (least squares, all of a body's assignments in one ``least_squares_transforms``): its
-   residual RMS must be within ``gate_rms``. Covariances are computed for the chosen fits only.
+   point already chosen; every branch of one depth, of every body matched together, grown at once
+   from a table of which point pairs fit which sphere pairs). A body of four or more spheres may
+   leave one sphere unassigned (hidden); a three-sphere body needs all three. Each assignment is
+   verified by a rigid fit (least squares, all bodies' assignments in one
+   ``least_squares_transforms``): its residual RMS must be within ``gate_rms``. Covariances are
+   computed for the chosen fits only, in one ``pose_covariances``.
 2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
    whole set at once: the most bodies, then the most spheres, then the least total squared
    residual (a branch and bound over the bodies), so a body listed first never takes a point
@@ -32,7 +33,7 @@ from services.geometry.absolute_orientation import (
     COLLINEAR_TOLERANCE,
     RigidFit,
     least_squares_transforms,
-    pose_covariance,
+    pose_covariances,
 )
 from services.geometry.shapes import check_shape
 
@@ -147,31 +148,30 @@ def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOpti
         if len(spheres) < 3:
             raise ValueError(f"a body needs at least 3 spheres, got {len(spheres)}")
     widest = max(len(spheres) for spheres in bodies)
-    found = [_assignments(pairwise_distances(spheres), distances, options.distance_tolerance,
-                          1 if options.allow_missing and len(spheres) >= 4 else 0) for spheres in bodies]
-    # Every assignment of every body, padded to the widest body (padding unseen).
-    owner = np.repeat(np.arange(len(bodies)), [len(a) for a in found])
-    assignments = np.full((len(owner), widest), -1, np.int64)
     padded = np.zeros((len(bodies), widest, 3))
-    start = 0
-    for b, (spheres, chosen) in enumerate(zip(bodies, found, strict=True)):
-        assignments[start:start + len(chosen), :len(spheres)] = chosen
+    for b, spheres in enumerate(bodies):
         padded[b, :len(spheres)] = spheres
-        start += len(chosen)
+    may_miss = [1 if options.allow_missing and len(spheres) >= 4 else 0 for spheres in bodies]
+    # Every assignment of every body, padded to the widest body (padding unseen), body after body.
+    owner, assignments = _assignments(padded, [len(spheres) for spheres in bodies], distances,
+                                      options.distance_tolerance, may_miss)
+    by_body = np.argsort(owner, kind="stable")
+    owner, assignments = owner[by_body], assignments[by_body]
     seen = assignments >= 0
     kept = ~_collinear(padded[owner], seen)
     owner, assignments, seen = owner[kept], assignments[kept], seen[kept]
     transforms, rms = least_squares_transforms(padded[owner], points[np.maximum(assignments, 0)], seen)
     good = np.flatnonzero(rms <= options.gate_rms)
+    used = seen.sum(axis=1)
     out = []
     for b, spheres in enumerate(bodies):
         mine = good[owner[good] == b]
-        order = sorted(mine.tolist(), key=lambda k: (-int(seen[k].sum()), rms[k],
+        order = sorted(mine.tolist(), key=lambda k: (-int(used[k]), rms[k],
                                                      _tree_order(assignments[k], len(points))))
-        out.append([Candidate(assignments[k, :len(spheres)].copy(),
-                              _fit(spheres, points, assignments[k, :len(spheres)], transforms[k], float(rms[k]),
-                                   covariances))
-                    for k in order[:options.max_candidates]])
+        picked = [(spheres, assignments[k, :len(spheres)].copy()) for k in order[:options.max_candidates]]
+        fits = [RigidFit(transforms[k], float(rms[k]), int(used[k])) for k in order[:options.max_candidates]]
+        out.append([Candidate(indices, fit) for (_, indices), fit in
+                    zip(picked, _with_covariances(picked, fits, covariances), strict=True)])
     return out
 
 
@@ -189,47 +189,68 @@ def _tree_order(indices: np.ndarray, point_count: int) -> tuple[int, ...]:
     return tuple(int(i) if i >= 0 else point_count for i in indices)
 
 
-def _fit(spheres: np.ndarray, points: np.ndarray, indices: np.ndarray, T: np.ndarray, rms: float,
-         covariances: np.ndarray | None) -> RigidFit:
-    """The ``RigidFit`` of an assignment already solved (``T``, ``rms``), with its covariance when ``covariances``."""
-    seen = indices >= 0
-    covariance = None if covariances is None else pose_covariance(T, spheres[seen], covariances[indices[seen]])
-    return RigidFit(T, rms, int(seen.sum()), covariance)
+def _with_covariances(picked: list[tuple[np.ndarray, np.ndarray]], fits: list[RigidFit],
+                      covariances: np.ndarray | None) -> list[RigidFit]:
+    """``fits``, each of the assignment ``picked[k]`` = ``(spheres (N, 3), indices (N,))`` already solved, with
+    its pose covariance from the points' ``covariances`` ((M, 3, 3) m^2), all in one batch; as they are
+    without ``covariances``."""
+    if covariances is None or not fits:
+        return fits
+    widest = max(len(spheres) for spheres, _ in picked)
+    body = np.zeros((len(picked), widest, 3))
+    sigma = np.zeros((len(picked), widest, 3, 3))
+    used = np.zeros((len(picked), widest), bool)
+    for row, (spheres, indices) in enumerate(picked):
+        body[row, :len(spheres)], used[row, :len(spheres)] = spheres, indices >= 0
+        sigma[row, :len(spheres)] = covariances[np.maximum(indices, 0)]
+    found = pose_covariances(np.array([fit.T_world_body for fit in fits]), body, sigma, used)
+    return [RigidFit(fit.T_world_body, fit.residual_rms, fit.count, covariance)
+            for fit, covariance in zip(fits, found, strict=True)]
 
 
-def _assignments(body_distances: np.ndarray, point_distances: np.ndarray, tolerance: float,
-                 may_miss: int) -> np.ndarray:
-    """(A, N) int64: every assignment of the N spheres to distinct points (-1: hidden, at most ``may_miss``)
-    whose pairwise distances all agree with the body's within ``tolerance``, grown sphere by sphere for all
-    branches at once; each branch carries, per sphere still to assign, the points it may still take (at
-    first those with enough partners at the body's distances).
+def _assignments(spheres: np.ndarray, sizes: list[int], point_distances: np.ndarray, tolerance: float,
+                 may_miss: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Every assignment of each body's spheres to distinct points (-1: hidden, at most ``may_miss[b]`` of body
+    b) whose pairwise distances all agree with the body's within ``tolerance``: an interpretation tree grown
+    sphere by sphere for all branches of all bodies at once; each branch carries, per sphere still to assign,
+    the points it may still take (at first those with enough partners at the body's distances).
 
-    ``body_distances``: (N, N) m; ``point_distances``: (M, M) m.
+    ``spheres``: (B, N, 3) the bodies' spheres, body b's first ``sizes[b]`` rows; ``point_distances``: (M, M) m.
+    Returns ``(owner (A,) int64, assignments (A, N) int64)``: each assignment's body and its point per sphere
+    (-1 past the body's spheres); a body's assignments in the order of its own tree.
     """
-    n = len(body_distances)
-    # agree[k, s, p, q]: point q may be sphere k when point p is sphere s.
-    agree = np.abs(point_distances[None, None] - body_distances[:, :, None, None]) <= tolerance
+    n = spheres.shape[1]
+    present = np.arange(n) < np.array(sizes)[:, None]
+    body_distances = np.where(present[:, :, None] & present[:, None, :],
+                              np.sqrt(np.sum((spheres[:, :, None] - spheres[:, None]) ** 2, axis=3)), np.nan)
+    # agree[b, k, s, p, q]: point q may be sphere k of body b when point p is its sphere s.
+    agree = np.abs(point_distances[None, None, None] - body_distances[..., None, None]) <= tolerance
     # Point q can be sphere k only if, for all the other spheres but the hidden ones, some point lies at the
     # right distance from it: most points are ruled out for most spheres before the tree is grown.
-    partners = agree.any(axis=2)
-    partners[np.arange(n), np.arange(n)] = False
-    possible = (partners.sum(axis=1) >= n - 1 - may_miss)[None]
-    partial = np.zeros((1, 0), np.int64)
-    if np.count_nonzero(~possible[0].any(axis=1)) > may_miss:
-        return np.zeros((0, n), np.int64)
-    missing = np.zeros(1, np.int64)
+    partners = agree.any(axis=3)
+    partners[:, np.arange(n), np.arange(n)] = False
+    spare = np.array(may_miss)
+    possible = partners.sum(axis=2) >= (np.array(sizes) - 1 - spare)[:, None, None]
+    unplaced = np.count_nonzero(present & ~possible.any(axis=2), axis=1)
+    owner = np.flatnonzero(unplaced <= spare)
+    partial = np.zeros((len(owner), 0), np.int64)
+    possible = possible[owner]
+    missing = np.zeros(len(owner), np.int64)
     for k in range(n):
-        if not len(partial):
-            return np.zeros((0, n), np.int64)
-        rows, columns = np.nonzero(possible[:, k])
-        grown = possible[rows] & agree[:, k, columns].transpose(1, 0, 2)
+        if not len(owner):
+            break
+        growing = present[owner, k]
+        rows, columns = np.nonzero(possible[:, k] & growing[:, None])
+        grown = possible[rows] & agree[owner[rows], :, k, columns]
         grown[np.arange(len(rows)), :, columns] = False
-        hide = np.flatnonzero(missing < may_miss)
-        partial = np.vstack([np.hstack([partial[rows], columns[:, None]]),
-                             np.hstack([partial[hide], np.full((len(hide), 1), -1, np.int64)])])
-        missing = np.concatenate([missing[rows], missing[hide] + 1])
-        possible = np.concatenate([grown, possible[hide]])
-    return partial
+        hide = np.flatnonzero(growing & (missing < spare[owner]))
+        done = np.flatnonzero(~growing)
+        kept = np.concatenate([rows, hide, done])
+        partial = np.hstack([partial[kept], np.concatenate([columns, np.full(len(kept) - len(rows), -1)])[:, None]])
+        owner = owner[kept]
+        missing = np.concatenate([missing[rows], missing[hide] + 1, missing[done]])
+        possible = np.concatenate([grown, possible[hide], possible[done]])
+    return owner, partial.reshape(len(owner), n)
 
 
 def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
@@ -247,11 +268,10 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
     distances = pairwise_distances(points)
     names = list(bodies)
     options_per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []
-    choice = _best_choice(options_per_body, len(points))
-    matched = {names[k]: BodyMatch(names[k], c.indices, _fit(check_points(bodies[names[k]], "spheres"), points,
-                                                            c.indices, c.fit.T_world_body, c.fit.residual_rms,
-                                                            covariances))
-               for k, c in enumerate(choice) if c is not None}
+    choice = [(names[k], c) for k, c in enumerate(_best_choice(options_per_body, len(points))) if c is not None]
+    fits = _with_covariances([(np.asarray(bodies[name], np.float64), c.indices) for name, c in choice],
+                             [c.fit for _, c in choice], covariances)
+    matched = {name: BodyMatch(name, c.indices, fit) for (name, c), fit in zip(choice, fits, strict=True)}
     taken = np.zeros(len(points), bool)
     for match in matched.values():
         taken[match.indices[match.indices >= 0]] = True

@@ -1,0 +1,156 @@
+"""IR blob detection with its windows measured together, cross-checked against a plain reference that
+measures each component in a window of its own: the same blobs in the same order, the same numbers
+(bit for bit but the quality, whose second moments OpenCV sums in its own order), on ``ir_rig`` frames
+and on hard images (merged and cut discs, discs over the border, salt noise, a ring with a spot in its
+hole, mono16)."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from services.detection.blobs.bright import (
+    BACKGROUND_STRIDE,
+    BlobFlag,
+    Blobs,
+    IrBlobParams,
+    ShapeParams,
+    detect_ir_blobs,
+    grid_median,
+    moment_shape,
+    shape_flags,
+    stack_groups,
+)
+from services.synthetic import make_scene
+from tests.blob_images import disc_image
+
+PAD = 2
+EXACT = ("centroids", "area", "radius", "perimeter", "circularity", "flags")
+
+
+def reference_blobs(image: np.ndarray, params: IrBlobParams, shape: ShapeParams) -> Blobs:
+    """The IR blobs of ``image`` one component at a time, each measured in a window of its own."""
+    height, width = image.shape
+    binary = cv2.compare(image, params.threshold, cv2.CMP_GT)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    background = (float(np.median(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]))
+                  if params.background is None else params.background)
+    rows = []
+    for contour in contours:
+        x, y, w, h = cv2.boundingRect(contour)
+        if w * h < shape.min_area:
+            continue
+        x0, y0, x1, y1 = max(x - PAD, 0), max(y - PAD, 0), min(x + w + PAD, width), min(y + h + PAD, height)
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.drawContours(mask, [contour], 0, 255, cv2.FILLED, offset=(-x0, -y0))
+        area = float(cv2.countNonZero(mask))
+        radius = math.sqrt(area / math.pi)
+        if not (shape.min_area <= area <= shape.max_area and params.min_radius <= radius <= params.max_radius):
+            continue
+        perimeter = cv2.arcLength(contour, True)
+        polygon_area = cv2.contourArea(contour)
+        circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
+        if circularity < shape.min_circularity:
+            continue
+        others = (binary[y0:y1, x0:x1] > 0) & (mask == 0)
+        rim = (cv2.dilate(mask, np.ones((3, 3), np.uint8)) > 0) & ~others
+        levels = image[y0:y1, x0:x1].astype(np.float32) - np.float32(background)
+        weights = np.where(rim, np.maximum(levels, np.float32(0.0)), np.float32(0.0))
+        moments = cv2.moments(weights)
+        if moments["m00"] <= 0.0:
+            continue
+        centroid, axis, roundness = moment_shape(moments)
+        hull_area = cv2.contourArea(cv2.convexHull(contour))
+        solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
+        flags = shape_flags(weights, centroid, axis, roundness < shape.min_roundness
+                            or solidity < params.min_solidity, shape.waist_depth)
+        if x == 0 or y == 0 or x + w == width or y + h == height:
+            flags |= BlobFlag.CLIPPED
+        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity,
+                     roundness * solidity, int(flags)))
+    return Blobs.from_rows(rows)
+
+
+def hard_images() -> list[np.ndarray]:
+    rng = np.random.default_rng(3)
+    images = []
+    for _ in range(12):
+        discs = [(rng.uniform(-5, 165), rng.uniform(-5, 125), rng.uniform(0.5, 9)) for _ in range(rng.integers(1, 25))]
+        image = disc_image(discs, background=12)
+        images += [image, np.where(rng.random(image.shape) < 0.01, 255, image).astype(np.uint8)]
+    ring = np.full((60, 70), 12, np.uint8)
+    ring[10:40, 10:40], ring[15:35, 15:35], ring[20:25, 20:25] = 200, 12, 200
+    ring[44:60, 50:70] = 230
+    images += [ring, np.zeros((30, 30), np.uint8), np.full((30, 30), 200, np.uint8)]
+    return images
+
+
+def scene_images() -> list[np.ndarray]:
+    images = []
+    for options in ({"body_count": 3}, {"body_count": 4, "occlusion_rate": 1.0, "sphere_radius": 0.02}):
+        scene = make_scene("ir_rig", **options)
+        images += [scene.render(i).images[camera.name] for i in range(0, 240, 12) for camera in scene.cameras]
+    return images
+
+
+def assert_same(found: Blobs, expected: Blobs) -> None:
+    assert len(found) == len(expected)
+    for name in EXACT:
+        np.testing.assert_array_equal(getattr(found, name), getattr(expected, name), err_msg=name)
+    np.testing.assert_allclose(found.quality, expected.quality, rtol=1e-9, atol=1e-6)
+    assert found.flags.dtype == np.uint8
+
+
+SETTINGS = [(IrBlobParams(), ShapeParams()),
+            (IrBlobParams(background=10.3, min_radius=1.0, max_radius=6.0),
+             ShapeParams(min_area=0.0, min_circularity=0.0, min_roundness=0.95))]
+
+
+@pytest.mark.parametrize(("params", "shape"), SETTINGS)
+def test_scene_frames_give_the_reference_blobs(params, shape):
+    images = scene_images()
+    assert sum(len(detect_ir_blobs(image, params, shape)) for image in images) >= 5 * len(images)
+    for image in images:
+        assert_same(detect_ir_blobs(image, params, shape), reference_blobs(image, params, shape))
+
+
+@pytest.mark.parametrize(("params", "shape"), SETTINGS)
+def test_hard_images_give_the_reference_blobs(params, shape):
+    flags = 0
+    for image in hard_images():
+        for pixels, scaled in ((image, params), (image.astype(np.uint16) * 257,
+                                                  params.model_copy(update={"threshold": params.threshold * 257}))):
+            found = detect_ir_blobs(pixels, scaled, shape)
+            assert_same(found, reference_blobs(pixels, scaled, shape))
+            flags |= int(np.bitwise_or.reduce(found.flags, initial=0))
+    assert flags == BlobFlag.MERGED | BlobFlag.OCCLUDED | BlobFlag.CLIPPED
+
+
+@pytest.mark.parametrize("size", [(48, 64), (49, 63), (7, 9)])
+def test_the_grid_median_is_numpys(size):
+    image = np.random.default_rng(sum(size)).integers(0, 255, size, dtype=np.uint8)
+    assert grid_median(image) == float(np.median(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]))
+
+
+def test_a_large_blob_among_small_ones_is_stacked_apart_and_gives_the_reference_blobs():
+    rng = np.random.default_rng(11)
+    discs = [(300.0, 200.0, 45.0)] + [(rng.uniform(10, 630), rng.uniform(300, 470), rng.uniform(1.5, 3.0))
+                                      for _ in range(60)]
+    image = disc_image(discs, (480, 640), background=12)
+    params, shape = IrBlobParams(), ShapeParams()
+    binary = cv2.compare(image, params.threshold, cv2.CMP_GT)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    groups = stack_groups([cv2.boundingRect(c) for c in contours], image.shape)
+    assert len(groups) >= 2 and sorted(k for g in groups for k in g) == list(range(len(contours)))
+    found = detect_ir_blobs(image, params, shape)
+    assert np.max(found.area) > 6000
+    assert_same(found, reference_blobs(image, params, shape))
+
+
+def test_scene_frames_stack_their_windows_in_one_image():
+    scene = make_scene("ir_rig", body_count=3)
+    image = scene.render(0).images[scene.cameras[0].name]
+    contours, _ = cv2.findContours(cv2.compare(image, 60.0, cv2.CMP_GT), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    assert len(contours) >= 8
+    assert stack_groups([cv2.boundingRect(c) for c in contours], image.shape) == [list(range(len(contours)))]
