@@ -86,10 +86,12 @@ class CameraModels:
     A capture node sends its CameraInfo with every frame, nearly always saying what the previous one
     said: one that does (same frame id, size, distortion, intrinsics and ``T_rig_camera``) gives back the
     model made for that one, so a frame pays a comparison of those fields rather than a new model.
-    The model is shared: it is frozen, and its arrays are read, never written.
+    The model is shared: it is frozen, and its arrays are read, never written. ``name`` names the models
+    (default: each CameraInfo's frame id).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, name: str | None = None) -> None:
+        self.name = name
         self._said: tuple[object, ...] | None = None
         self._model: CameraModel | None = None
 
@@ -97,7 +99,7 @@ class CameraModels:
         said = (info.header.frame_id, info.width, info.height, info.distortion_model, info.d, info.k,
                 info.T_rig_camera)
         if self._model is None or said != self._said:
-            self._model = camera_model(info)
+            self._model = camera_model(info, self.name)
             self._said = said
         return self._model
 

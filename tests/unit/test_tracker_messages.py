@@ -223,3 +223,5 @@ def test_a_camera_info_that_says_the_same_gives_the_same_model():
     assert len({id(model) for model in made}) == len(made) - 2
     with pytest.raises(ValueError, match="plumb_bob only"):
         models(infos[0].model_copy(update={"distortion_model": "equidistant"}))
+    named = CameraModels("left")
+    assert named(infos[5]).name == "left" and named(infos[0]).name == "left"

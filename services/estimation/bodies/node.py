@@ -56,7 +56,7 @@ from protocol.sensors import CameraInfo
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
-from services.convert import camera_model, transform_from_matrix
+from services.convert import CameraModels, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
@@ -126,8 +126,7 @@ class Calibration:
         self.infos = infos
         self.models: dict[str, CameraModel] = {} if rig is None else {name: rig.camera(name) for name in cameras}
         self.waited = False
-        self.used: dict[str, dict] = {}
-        """The CameraInfo fields (all but the header) each camera's model was last built from."""
+        self._streams = {name: CameraModels(name) for name in cameras}
 
     def current(self) -> list[CameraModel] | None:
         """The cameras in ``cameras`` order, None while one has no calibration yet."""
@@ -136,7 +135,7 @@ class Calibration:
             self.waited = True
             for name in self.cameras:
                 if name not in self.models and (received := self.infos[name].recv(FIRST_INFO_WAIT_S)) is not None:
-                    self.models[name] = camera_model(received.message, name)
+                    self.models[name] = self._streams[name](received.message)
         if len(self.models) < len(self.cameras):
             return None
         return [self.models[name] for name in self.cameras]
@@ -151,9 +150,8 @@ class Calibration:
             newest = None
             while (received := inbox.take()) is not None:
                 newest = received.message
-            if newest is not None and newest.model_dump(exclude={"header"}) != self.used.get(name):
-                self.used[name] = newest.model_dump(exclude={"header"})
-                self.models[name] = camera_model(newest, name)
+            if newest is not None:
+                self.models[name] = self._streams[name](newest)
 
 
 def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
