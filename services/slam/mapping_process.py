@@ -8,8 +8,10 @@ change points and keyframe poses. They talk through a queue (to the mapper) and 
   message, ``map.sync.take_counts``) and ``stop``;
 * to the tracker: ``ready`` once, then for each keyframe ``points`` after each of its neighbours gave
   new points and after their fusion (what changed so far, ``map.sync.take_changes``: the tracker needs
-  new points first, as it gets them from a mapping thread) and ``mapped`` once its mapping is done
-  (what changed since, and the mapper's stage times, wall and CPU milliseconds); ``stopped`` at the end.
+  new points first, as it gets them from a mapping thread), ``calibration`` once, before the ``mapped``
+  of the keyframe after which the mapper checked the camera matrix (``LocalMapper.check_calibration``),
+  and ``mapped`` once its mapping is done (what changed since, and the mapper's stage times, wall and CPU
+  milliseconds); ``stopped`` at the end.
 
 A thread of the tracker's process reads the messages off the pipe as they come; the tracker brings
 the changes in before each frame and when it asks whether the mapper is idle (``sync``,
@@ -37,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from services.slam.calibration_check import FocalCheck
 from services.slam.map import sync
 from services.slam.map.database import MapDatabase
 from services.slam.mapping import LocalMapper, MappedKeyframe
@@ -75,6 +78,8 @@ class MappingProcess:
         self._alive = True
         self.history: list[MappedKeyframe] = []
         """Every keyframe mapped so far, oldest first."""
+        self.focal_check: FocalCheck | None = None
+        """The mapping process's check of the camera matrix, once it came back."""
         self._received: queue.Queue[bytes] = queue.Queue()
         self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
         self._receiver.start()
@@ -191,6 +196,8 @@ class MappingProcess:
                 self._pending.remove(keyframe_id)
             sync.apply_changes(self.map, changes, self._pending)
             self.history.append(record)
+        elif kind == "calibration":
+            self.focal_check = message[1]
         elif kind == "stopped":
             sync.apply_changes(self.map, message[1], [])
             self._pending.clear()
@@ -227,7 +234,7 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
     sync.record_changes(slam_map)
     mapper = LocalMapper(slam_map, K, size, settings, threaded=False)
     waiting: list[int] = []
-    stopping = False
+    stopping = checked = False
     send("ready")
     try:
         while True:
@@ -242,6 +249,9 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
                 keyframe_id = waiting.pop(0)
                 mapper.process(keyframe_id, others_waiting=bool(waiting),
                                stepped=lambda: send("points", sync.take_changes(slam_map)))
+                if mapper.focal_check is not None and not checked:
+                    checked = True
+                    send("calibration", mapper.focal_check)
                 send("mapped", keyframe_id, sync.take_changes(slam_map),
                      dataclasses.replace(mapper.history.pop(), waiting=len(waiting)))
             elif stopping:
