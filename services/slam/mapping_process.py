@@ -20,8 +20,12 @@ mapper has not processed yet keep their observations. ``idle`` (no keyframe wait
 keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
 mapper has none left to send.
 
-Costs: ``MappingProcess`` waits for the process to start (NumPy, OpenCV and pycolmap are imported
-again); the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
+Start: ``MappingProcess`` returns as soon as the process is spawned; the process imports NumPy, OpenCV and
+pycolmap again (about 0.5 s, more on a loaded machine) while the tracker goes on with its first frames
+(what it sends meanwhile waits in the queue). A process that ends before it said ``ready``, or is not
+ready within ``START_TIMEOUT_S``, raises ``MappingProcessError`` at the next ``sync``.
+
+Costs: the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
 ``tests/bench/slam_tracking.py``, figures in docs/benchmarks.md).
 """
 
@@ -61,7 +65,7 @@ class MappingProcessError(RuntimeError):
 
 class MappingProcess:
     """``LocalMapper`` of ``slam_map``'s copy in a spawned process; camera intrinsics ``K`` (3, 3),
-    image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not come up."""
+    image ``size`` (w, h). ``sync`` raises ``MappingProcessError`` once the process failed to come up."""
 
     def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
         self.map = slam_map
@@ -76,6 +80,10 @@ class MappingProcess:
         writer.close()  # the process holds the only writing end: its end is the pipe's
         self._pending: list[int] = []
         self._alive = True
+        self._started = time.monotonic()
+        self._ready = False
+        self._failed: str | None = None
+        """Why the process did not come up, once known (raised by ``sync``)."""
         self.history: list[MappedKeyframe] = []
         """Every keyframe mapped so far, oldest first."""
         self.focal_check: FocalCheck | None = None
@@ -84,7 +92,6 @@ class MappingProcess:
         self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
         self._receiver.start()
         sync.record_counts(slam_map)
-        self._wait_ready()
         if slam_map.keyframes:
             self._reset()
 
@@ -99,21 +106,10 @@ class MappingProcess:
                 self._received.put(pickle.dumps(("ended", f"it ended (exit code {self._process.exitcode})")))
                 return
 
-    def _wait_ready(self) -> None:
-        try:
-            message = pickle.loads(self._received.get(timeout=START_TIMEOUT_S))
-        except queue.Empty:
-            self._process.kill()
-            raise MappingProcessError(f"the mapping process did not start within {START_TIMEOUT_S:.0f} s") from None
-        if message == ("ready",):
-            return
+    def _not_started(self, why: str) -> None:
         self._process.kill()
-        if message[0] == "ended":
-            raise MappingProcessError(
-                f"the mapping process ended at its start (exit code {self._process.exitcode}): a script that makes "
-                "a SlamSystem must keep its top level under `if __name__ == \"__main__\":` (the process imports it "
-                "again), or map on a thread (mapping=\"thread\")")
-        raise MappingProcessError(f"the mapping process said {message!r} instead of being ready")
+        self._gone(why)
+        self._failed = why
 
     @property
     def idle(self) -> bool:
@@ -152,13 +148,18 @@ class MappingProcess:
         self._reset()
 
     def sync(self) -> None:
-        """Bring in every mapped keyframe's changes that came back (never waits)."""
+        """Bring in every mapped keyframe's changes that came back (never waits); ``MappingProcessError`` when
+        the process did not come up (ended before it was ready, or not ready within ``START_TIMEOUT_S``)."""
         while self._alive:
             try:
                 message = self._received.get_nowait()
             except queue.Empty:
-                return
+                break
             self._receive(pickle.loads(message))
+        if self._alive and not self._ready and time.monotonic() - self._started > START_TIMEOUT_S:
+            self._not_started(f"the mapping process did not start within {START_TIMEOUT_S:.0f} s")
+        if self._failed is not None:
+            raise MappingProcessError(self._failed)
 
     def close(self) -> None:
         """Let the process map the keyframes it was given, bring their changes in, and end it."""
@@ -202,6 +203,13 @@ class MappingProcess:
             sync.apply_changes(self.map, message[1], [])
             self._pending.clear()
             self._alive = False
+        elif kind == "ready":
+            self._ready = True
+        elif kind == "ended" and not self._ready:
+            self._not_started(
+                f"the mapping process ended at its start (exit code {self._process.exitcode}): a script that makes "
+                "a SlamSystem must keep its top level under `if __name__ == \"__main__\":` (the process imports it "
+                "again), or map on a thread (mapping=\"thread\")")
         elif kind in ("failed", "ended"):
             self._gone(message[1])
 
