@@ -98,6 +98,7 @@ def restore(database: MapDatabase, map_snapshot: MapSnapshot) -> None:
     with database.lock:
         database.keyframes = {k.id: k.copy() for k in map_snapshot.keyframes}
         database.points = {p.id: p.copy() for p in map_snapshot.points}
+        database.table.rebuild(database.points.values())
         database.next_keyframe_id, database.next_point_id = map_snapshot.next_keyframe_id, map_snapshot.next_point_id
         database.replaced = {}
         if database.changes is not None:
@@ -113,6 +114,7 @@ def apply_changes(database: MapDatabase, changes: MapChanges, pending: list[int]
     with database.lock:
         for point_id in changes.removed:
             database.points.pop(point_id, None)
+            database.table.drop(point_id)
         for keyframe_id, (T, point_ids) in changes.keyframes.items():
             keyframe = database.keyframes.get(keyframe_id)
             if keyframe is not None:
@@ -120,6 +122,7 @@ def apply_changes(database: MapDatabase, changes: MapChanges, pending: list[int]
                 keyframe.point_ids = point_ids
         for point in changes.points:
             database.points[point.id] = point
+            database.table.write(point)
             database.next_point_id = max(database.next_point_id, point.id + 1)
         database.replaced.update(changes.replaced)
         touched_ids = np.array([p.id for p in changes.points] + list(changes.removed), np.int64)
