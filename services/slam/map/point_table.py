@@ -55,6 +55,20 @@ class PointTable:
         self.max_distances[row] = point.max_distance
         self.present[row] = True
 
+    def write_arrays(self, arrays: PointArrays) -> None:
+        """The rows of ``arrays``' points (now present)."""
+        if len(arrays) == 0:
+            return
+        if int(arrays.ids.max()) >= len(self.present):
+            self._grow(max(2 * len(self.present), int(arrays.ids.max()) + 1))
+        rows = arrays.ids
+        self.positions[rows] = arrays.positions
+        self.descriptors[rows] = arrays.descriptors
+        self.normals[rows] = arrays.normals
+        self.min_distances[rows] = arrays.min_distances
+        self.max_distances[rows] = arrays.max_distances
+        self.present[rows] = True
+
     def drop(self, point_id: int) -> None:
         """The point ``point_id`` is no longer in the map."""
         if 0 <= point_id < len(self.present):
