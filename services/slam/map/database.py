@@ -284,14 +284,17 @@ class MapDatabase:
 
     def count_visible(self, point_ids: np.ndarray, found: np.ndarray | None = None) -> None:
         """Add one to ``visible`` of each point of ``point_ids`` (P,), and to ``found`` where ``found`` (P,) bool."""
+        ids = point_ids.tolist()
+        matched = [False] * len(ids) if found is None else np.asarray(found, bool).tolist()
         with self.lock:
-            for k, point_id in enumerate(point_ids.tolist()):
+            journal = self.counts
+            for point_id, hit in zip(ids, matched, strict=True):
                 point = self.points.get(point_id)
                 if point is not None:
                     point.visible += 1
-                    point.found += int(found is not None and found[k])
-                    if self.counts is not None:
-                        self.counts.add(point_id, bool(found is not None and found[k]))
+                    point.found += hit
+                    if journal is not None:
+                        journal.add(point_id, hit)
 
     def point_ids(self) -> np.ndarray:
         """(P,) int64 sorted ids of every point."""
