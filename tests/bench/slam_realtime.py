@@ -12,7 +12,8 @@ latest-wins, so a node that falls behind drops them):
 Each sequence runs ``RUNS`` times on the machine as it is (``idle``) and ``RUNS`` times while
 ``tests.load.busy`` spins a process on every core (``loaded``). From each recording: the frames the
 capture sent (images recorded), the SLAM node's frames dropped (its last ``NodeStats``: frames that came
-while one was being processed and another already waited), its poses and those ``tracking``, and the
+while one was being processed and the queue was full), the frames without a pose before the first
+tracked one (initialisation) and after it, its poses and those ``tracking``, and the
 machine's 1-minute load average before and after (the machine is shared: its load says what "idle" was).
 One JSON line per run, then one per sequence and condition: runs with 0 frames dropped out of ``RUNS`` (the target:
 all of them), and the SLAM node's processing p50 / p99 (its stats, ms) per run.
@@ -76,12 +77,16 @@ def read_run(path: Path) -> dict[str, Any]:
     """Frames sent (images recorded), the SLAM node's dropped frames and processing p50 / p99 (its last
     stats), its poses and how many of them were tracking."""
     images, poses, tracked = 0, 0, 0
+    sent: set[int] = set()
+    posed: dict[int, bool] = {}
     stats: NodeStats | None = None
     with open(path, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
             topic = channel.topic
             if topic.endswith("/image"):
                 images += 1
+                header = decode(message.data).header
+                sent.add(header.seq)
             elif topic.endswith("/stats"):
                 decoded = decode(message.data)
                 if isinstance(decoded, NodeStats) and decoded.kind == "slam":
@@ -91,9 +96,14 @@ def read_run(path: Path) -> dict[str, Any]:
                 if isinstance(pose, Pose):
                     poses += 1
                     tracked += pose.state is TrackingState.TRACKING
+                    posed[pose.header.seq] = pose.state is TrackingState.TRACKING
     if stats is None:
         raise RuntimeError(f"{path}: no statistics of the slam node were recorded")
-    return {"sent": images, "dropped": stats.dropped + stats.missing, "poses": poses, "tracked": tracked,
+    first_tracked = min((seq for seq, tracking in posed.items() if tracking), default=max(sent, default=0) + 1)
+    unposed = sent - set(posed)
+    return {"sent": images, "dropped": stats.dropped + stats.missing,
+            "unposed_before_tracking": sum(seq < first_tracked for seq in unposed),
+            "unposed_after": sum(seq > first_tracked for seq in unposed), "poses": poses, "tracked": tracked,
             "node_p50_ms": round(stats.processing_ms_p50 or 0.0, 1),
             "node_p99_ms": round(stats.processing_ms_p99 or 0.0, 1)}
 
