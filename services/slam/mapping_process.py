@@ -20,10 +20,13 @@ mapper has not processed yet keep their observations. ``idle`` (no keyframe wait
 keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
 mapper has none left to send.
 
-Start: ``MappingProcess`` returns as soon as the process is spawned; the process imports NumPy, OpenCV and
-pycolmap again (about 0.5 s, more on a loaded machine) while the tracker goes on with its first frames
-(what it sends meanwhile waits in the queue). A process that ends before it said ``ready``, or is not
-ready within ``START_TIMEOUT_S``, raises ``MappingProcessError`` at the next ``sync``.
+Start: a spawned process imports NumPy, OpenCV and pycolmap again (about 0.5 s, seconds on a loaded
+machine), then waits for its camera (``camera``: intrinsics, image size, settings, pyramid) and says
+``ready``. ``MappingProcess`` waits for that ``ready`` (``MappingProcessError`` if the process ends first or
+is not ready within ``START_TIMEOUT_S``): its first keyframes must not wait for a process still importing
+(a camera moving fast, KITTI at 10 Hz, loses a map whose first keyframes bring no new points in time). So
+that no frame waits for the imports, ``prepare`` spawns a process ahead of time, which the next
+``MappingProcess`` takes: the SLAM node does it when it starts, before its first frame.
 
 Costs: the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
 ``tests/bench/slam_tracking.py``, figures in docs/benchmarks.md).
@@ -63,53 +66,88 @@ class MappingProcessError(RuntimeError):
     """The mapping process did not start."""
 
 
+class _Spawned:
+    """A mapping process spawned (not told its camera yet), its queue, and its pipe back read by a thread
+    as messages come (a full pipe would hold the process up, and a message read only while it is being
+    written would come a frame late), until the pipe ends with the process."""
+
+    def __init__(self) -> None:
+        context = multiprocessing.get_context("spawn")
+        self.inbox: Any = context.Queue()
+        self.outbox, writer = context.Pipe(duplex=False)
+        self.process = context.Process(target=_serve, name="slam-mapping", daemon=True, args=(self.inbox, writer))
+        _start_deaf_to_ctrl_c(self.process)
+        writer.close()  # the process holds the only writing end: its end is the pipe's
+        self.received: queue.Queue[bytes] = queue.Queue()
+        threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True).start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                self.received.put(self.outbox.recv_bytes())
+            except (EOFError, OSError):
+                self.received.put(pickle.dumps(("ended", f"it ended (exit code {self.process.exitcode})")))
+                return
+
+
+_spare: _Spawned | None = None
+_spare_lock = threading.Lock()
+
+
+def prepare() -> None:
+    """Spawn a mapping process now (unless one waits already) for the next ``MappingProcess`` to take, so
+    that its imports are done before a map needs it."""
+    global _spare
+    with _spare_lock:
+        if _spare is None or not _spare.process.is_alive():
+            _spare = _Spawned()
+
+
+def _spawned() -> _Spawned:
+    """The process ``prepare`` spawned, if it still runs, else a new one."""
+    global _spare
+    with _spare_lock:
+        spare, _spare = _spare, None
+    return spare if spare is not None and spare.process.is_alive() else _Spawned()
+
+
 class MappingProcess:
-    """``LocalMapper`` of ``slam_map``'s copy in a spawned process; camera intrinsics ``K`` (3, 3),
-    image ``size`` (w, h). ``sync`` raises ``MappingProcessError`` once the process failed to come up."""
+    """``LocalMapper`` of ``slam_map``'s copy in a spawned process (``prepare``'s, or a new one); camera
+    intrinsics ``K`` (3, 3), image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not
+    come up."""
 
     def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
         self.map = slam_map
         self._local = LocalMapper(slam_map, K, size, settings, threaded=False)
-        context = multiprocessing.get_context("spawn")
-        self._inbox: Any = context.Queue()
-        self._outbox, writer = context.Pipe(duplex=False)
-        self._process = context.Process(target=_serve, name="slam-mapping", daemon=True,
-                                        args=(self._inbox, writer, np.asarray(K, np.float64), size, settings,
-                                              slam_map.scale_factor, slam_map.levels))
-        _start_deaf_to_ctrl_c(self._process)
-        writer.close()  # the process holds the only writing end: its end is the pipe's
+        spawned = _spawned()
+        self._inbox, self._process, self._received = spawned.inbox, spawned.process, spawned.received
+        self._inbox.put(("camera", np.asarray(K, np.float64), size, settings, slam_map.scale_factor, slam_map.levels))
         self._pending: list[int] = []
         self._alive = True
-        self._started = time.monotonic()
-        self._ready = False
-        self._failed: str | None = None
-        """Why the process did not come up, once known (raised by ``sync``)."""
         self.history: list[MappedKeyframe] = []
         """Every keyframe mapped so far, oldest first."""
         self.focal_check: FocalCheck | None = None
         """The mapping process's check of the camera matrix, once it came back."""
-        self._received: queue.Queue[bytes] = queue.Queue()
-        self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
-        self._receiver.start()
         sync.record_counts(slam_map)
+        self._wait_ready()
         if slam_map.keyframes:
             self._reset()
 
-    def _drain(self) -> None:
-        """Read the mapping process's messages as they come, unpickled later by ``sync`` (a full pipe
-        would hold the process up, and a message read only while it is being written would come a
-        frame late), until the pipe ends with the process."""
-        while True:
-            try:
-                self._received.put(self._outbox.recv_bytes())
-            except (EOFError, OSError):
-                self._received.put(pickle.dumps(("ended", f"it ended (exit code {self._process.exitcode})")))
-                return
-
-    def _not_started(self, why: str) -> None:
+    def _wait_ready(self) -> None:
+        try:
+            message = pickle.loads(self._received.get(timeout=START_TIMEOUT_S))
+        except queue.Empty:
+            self._process.kill()
+            raise MappingProcessError(f"the mapping process did not start within {START_TIMEOUT_S:.0f} s") from None
+        if message == ("ready",):
+            return
         self._process.kill()
-        self._gone(why)
-        self._failed = why
+        if message[0] == "ended":
+            raise MappingProcessError(
+                f"the mapping process ended at its start (exit code {self._process.exitcode}): a script that makes "
+                "a SlamSystem must keep its top level under `if __name__ == \"__main__\":` (the process imports it "
+                "again), or map on a thread (mapping=\"thread\")")
+        raise MappingProcessError(f"the mapping process said {message!r} instead of being ready")
 
     @property
     def idle(self) -> bool:
@@ -148,18 +186,13 @@ class MappingProcess:
         self._reset()
 
     def sync(self) -> None:
-        """Bring in every mapped keyframe's changes that came back (never waits); ``MappingProcessError`` when
-        the process did not come up (ended before it was ready, or not ready within ``START_TIMEOUT_S``)."""
+        """Bring in every mapped keyframe's changes that came back (never waits)."""
         while self._alive:
             try:
                 message = self._received.get_nowait()
             except queue.Empty:
-                break
+                return
             self._receive(pickle.loads(message))
-        if self._alive and not self._ready and time.monotonic() - self._started > START_TIMEOUT_S:
-            self._not_started(f"the mapping process did not start within {START_TIMEOUT_S:.0f} s")
-        if self._failed is not None:
-            raise MappingProcessError(self._failed)
 
     def close(self) -> None:
         """Let the process map the keyframes it was given, bring their changes in, and end it."""
@@ -203,13 +236,6 @@ class MappingProcess:
             sync.apply_changes(self.map, message[1], [])
             self._pending.clear()
             self._alive = False
-        elif kind == "ready":
-            self._ready = True
-        elif kind == "ended" and not self._ready:
-            self._not_started(
-                f"the mapping process ended at its start (exit code {self._process.exitcode}): a script that makes "
-                "a SlamSystem must keep its top level under `if __name__ == \"__main__\":` (the process imports it "
-                "again), or map on a thread (mapping=\"thread\")")
         elif kind in ("failed", "ended"):
             self._gone(message[1])
 
@@ -229,15 +255,32 @@ def _start_deaf_to_ctrl_c(process: Any) -> None:
         signal.signal(signal.SIGINT, previous)
 
 
-def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
-           scale_factor: float, levels: int) -> None:
-    """The mapping process: keyframes in, changes out, until ``stop`` or the parent's end."""
+def _camera(inbox: Any) -> tuple[Any, ...] | None:
+    """The ``camera`` message's fields, waited for (None once the parent is gone)."""
+    parent = multiprocessing.parent_process()
+    while True:
+        try:
+            message = inbox.get(timeout=PARENT_CHECK_S)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+            continue
+        if message[0] == "camera":
+            return tuple(message[1:])
+
+
+def _serve(inbox: Any, writer: Any) -> None:
+    """The mapping process: its camera, then keyframes in, changes out, until ``stop`` or the parent's end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def send(*message: Any) -> None:
         writer.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))
 
     parent = multiprocessing.parent_process()
+    camera = _camera(inbox)
+    if camera is None:
+        return
+    K, size, settings, scale_factor, levels = camera
     slam_map = MapDatabase(scale_factor, levels)
     sync.record_changes(slam_map)
     mapper = LocalMapper(slam_map, K, size, settings, threaded=False)
