@@ -21,8 +21,11 @@ import pycolmap
 from services.slam.map.database import MapDatabase
 from services.slam.optimisation import reprojection_errors
 
-__all__ = ["FocalCheck", "check_focal"]
+__all__ = ["CHECK_KEYFRAMES", "FocalCheck", "check_focal"]
 
+CHECK_KEYFRAMES = 5
+"""The local mapper checks the camera matrix against the map once, after mapping a keyframe of a map that holds
+this many keyframes (``mapping.LocalMapper``, in the mapping process too): never on the frames' path."""
 MIN_FOCAL_CHANGE = 0.10
 MIN_ERROR_DROP = 0.03
 HUBER_PX = 2.0
@@ -39,6 +42,8 @@ class FocalCheck:
     free_fy: float
     error_fixed_px: float
     error_free_px: float
+    took_ms: float = 0.0
+    """How long the check took where it ran (the mapper's thread or process), ms."""
 
     @property
     def suspect(self) -> bool:

@@ -331,9 +331,9 @@ class Tracker:
         with self.map.lock:
             reference = self.map.keyframes.get(self._reference_keyframe)
             least = 2 if len(self.map.keyframes) <= 2 else 3
-            reference_tracked = 0 if reference is None else sum(
-                1 for p in reference.point_ids[reference.point_ids >= 0].tolist()
-                if p in self.map.points and len(self.map.points[p].observations) >= least)
+            seen = [] if reference is None else map(self.map.points.get,
+                                                    reference.point_ids[reference.point_ids >= 0].tolist())
+            reference_tracked = sum(1 for point in seen if point is not None and len(point.observations) >= least)
         decision = keyframe_decision(self.settings, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked,
                                      reference_tracked)
         idle = self.mapper.idle  # asked at every decision: it brings in what the mapping process sent back

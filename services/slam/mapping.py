@@ -14,6 +14,9 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
 4. Local bundle adjustment (``services.slam.optimisation.bundle_adjust``) of the keyframe, its
    covisible keyframes and their points, every other keyframe observing those points fixed; the
    observations it finds to be outliers are removed.
+5. Once, when the map holds ``calibration_check.CHECK_KEYFRAMES`` keyframes: the camera matrix
+   checked against the map (``calibration_check.check_focal``, about 80-200 ms), its outcome in
+   ``focal_check`` for the tracker to report, so that no frame waits for it.
 
 ``LocalMapper`` runs this on a thread fed by a queue (``threaded=True``), so that tracking never
 waits for it unless it asks to (``wait_idle``), or inline in ``enqueue`` (deterministic, for tests).
@@ -26,6 +29,7 @@ two keyframes' results sees one.) A keyframe processed while others wait gets on
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
@@ -42,6 +46,7 @@ from services.geometry.camera_stack import CameraStack
 from services.geometry.epipolar import fundamental_matrix, near_lines
 from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_many
+from services.slam.calibration_check import CHECK_KEYFRAMES, FocalCheck, check_focal
 from services.slam.map.cleaner import LocalMapCleaner
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
@@ -86,6 +91,8 @@ class Mapper(Protocol):
     ``mapping_process.MappingProcess``. ``history``: every keyframe mapped, oldest first."""
 
     history: list[MappedKeyframe]
+    focal_check: FocalCheck | None
+    """The camera matrix's check against the map, once the mapper made it (``calibration_check``)."""
 
     @property
     def idle(self) -> bool: ...
@@ -164,6 +171,8 @@ class LocalMapper:
         self.size = size
         self.settings = settings
         self.history: list[MappedKeyframe] = []
+        self.focal_check: FocalCheck | None = None
+        """The camera matrix's check against the map (step 5), once made."""
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._unfinished = 0
         """Keyframes handed to the thread and not mapped yet (under ``_finished``)."""
@@ -239,6 +248,16 @@ class LocalMapper:
                 self.adjust(window)
         self.history.append(MappedKeyframe(keyframe_id, timings, (time.perf_counter() - wall) * 1e3,
                                            (time.thread_time() - cpu) * 1e3, self._queue.qsize()))
+        self.check_calibration()
+
+    def check_calibration(self) -> None:
+        """Step 5: check the camera matrix once the map holds ``CHECK_KEYFRAMES`` keyframes (once)."""
+        if self.focal_check is not None or len(self.map.keyframes) < CHECK_KEYFRAMES:
+            return
+        started = time.perf_counter()
+        check = check_focal(self.map, self.K, self.size)
+        if check is not None:
+            self.focal_check = dataclasses.replace(check, took_ms=(time.perf_counter() - started) * 1e3)
 
     def adjust_initial_map(self, first: int, second: int) -> None:
         """Bundle adjust the map's first two keyframes and points (the first fixed, and the scale)."""

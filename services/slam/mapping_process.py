@@ -8,8 +8,10 @@ change points and keyframe poses. They talk through a queue (to the mapper) and 
   message, ``map.sync.take_counts``) and ``stop``;
 * to the tracker: ``ready`` once, then for each keyframe ``points`` after each of its neighbours gave
   new points and after their fusion (what changed so far, ``map.sync.take_changes``: the tracker needs
-  new points first, as it gets them from a mapping thread) and ``mapped`` once its mapping is done
-  (what changed since, and the mapper's stage times, wall and CPU milliseconds); ``stopped`` at the end.
+  new points first, as it gets them from a mapping thread), ``calibration`` once, before the ``mapped``
+  of the keyframe after which the mapper checked the camera matrix (``LocalMapper.check_calibration``),
+  and ``mapped`` once its mapping is done (what changed since, and the mapper's stage times, wall and CPU
+  milliseconds); ``stopped`` at the end.
 
 A thread of the tracker's process reads the messages off the pipe as they come; the tracker brings
 the changes in before each frame and when it asks whether the mapper is idle (``sync``,
@@ -18,8 +20,15 @@ mapper has not processed yet keep their observations. ``idle`` (no keyframe wait
 keyframe decision as the thread's does; ``wait_idle`` brings the changes in as they come until the
 mapper has none left to send.
 
-Costs: ``MappingProcess`` waits for the process to start (NumPy, OpenCV and pycolmap are imported
-again); the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
+Start: a spawned process imports NumPy, OpenCV and pycolmap again (about 0.5 s, seconds on a loaded
+machine), then waits for its camera (``camera``: intrinsics, image size, settings, pyramid) and says
+``ready``. ``MappingProcess`` waits for that ``ready`` (``MappingProcessError`` if the process ends first or
+is not ready within ``START_TIMEOUT_S``): its first keyframes must not wait for a process still importing
+(a camera moving fast, KITTI at 10 Hz, loses a map whose first keyframes bring no new points in time). So
+that no frame waits for the imports, ``prepare`` spawns a process ahead of time, which the next
+``MappingProcess`` takes: the SLAM node does it when it starts, before its first frame.
+
+Costs: the changes are unpickled in the tracker's thread, the frame's ``map_sync`` stage (measured by
 ``tests/bench/slam_tracking.py``, figures in docs/benchmarks.md).
 """
 
@@ -37,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from services.slam.calibration_check import FocalCheck
 from services.slam.map import sync
 from services.slam.map.database import MapDatabase
 from services.slam.mapping import LocalMapper, MappedKeyframe
@@ -56,43 +66,72 @@ class MappingProcessError(RuntimeError):
     """The mapping process did not start."""
 
 
+class _Spawned:
+    """A mapping process spawned (not told its camera yet), its queue, and its pipe back read by a thread
+    as messages come (a full pipe would hold the process up, and a message read only while it is being
+    written would come a frame late), until the pipe ends with the process."""
+
+    def __init__(self) -> None:
+        context = multiprocessing.get_context("spawn")
+        self.inbox: Any = context.Queue()
+        self.outbox, writer = context.Pipe(duplex=False)
+        self.process = context.Process(target=_serve, name="slam-mapping", daemon=True, args=(self.inbox, writer))
+        _start_deaf_to_ctrl_c(self.process)
+        writer.close()  # the process holds the only writing end: its end is the pipe's
+        self.received: queue.Queue[bytes] = queue.Queue()
+        threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True).start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                self.received.put(self.outbox.recv_bytes())
+            except (EOFError, OSError):
+                self.received.put(pickle.dumps(("ended", f"it ended (exit code {self.process.exitcode})")))
+                return
+
+
+_spare: _Spawned | None = None
+_spare_lock = threading.Lock()
+
+
+def prepare() -> None:
+    """Spawn a mapping process now (unless one waits already) for the next ``MappingProcess`` to take, so
+    that its imports are done before a map needs it."""
+    global _spare
+    with _spare_lock:
+        if _spare is None or not _spare.process.is_alive():
+            _spare = _Spawned()
+
+
+def _spawned() -> _Spawned:
+    """The process ``prepare`` spawned, if it still runs, else a new one."""
+    global _spare
+    with _spare_lock:
+        spare, _spare = _spare, None
+    return spare if spare is not None and spare.process.is_alive() else _Spawned()
+
+
 class MappingProcess:
-    """``LocalMapper`` of ``slam_map``'s copy in a spawned process; camera intrinsics ``K`` (3, 3),
-    image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not come up."""
+    """``LocalMapper`` of ``slam_map``'s copy in a spawned process (``prepare``'s, or a new one); camera
+    intrinsics ``K`` (3, 3), image ``size`` (w, h). Raises ``MappingProcessError`` when the process does not
+    come up."""
 
     def __init__(self, slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int], settings: SlamSettings):
         self.map = slam_map
         self._local = LocalMapper(slam_map, K, size, settings, threaded=False)
-        context = multiprocessing.get_context("spawn")
-        self._inbox: Any = context.Queue()
-        self._outbox, writer = context.Pipe(duplex=False)
-        self._process = context.Process(target=_serve, name="slam-mapping", daemon=True,
-                                        args=(self._inbox, writer, np.asarray(K, np.float64), size, settings,
-                                              slam_map.scale_factor, slam_map.levels))
-        _start_deaf_to_ctrl_c(self._process)
-        writer.close()  # the process holds the only writing end: its end is the pipe's
+        spawned = _spawned()
+        self._inbox, self._process, self._received = spawned.inbox, spawned.process, spawned.received
+        self._inbox.put(("camera", np.asarray(K, np.float64), size, settings, slam_map.scale_factor, slam_map.levels))
         self._pending: list[int] = []
         self._alive = True
         self.history: list[MappedKeyframe] = []
         """Every keyframe mapped so far, oldest first."""
-        self._received: queue.Queue[bytes] = queue.Queue()
-        self._receiver = threading.Thread(target=self._drain, name="slam-mapping-receiver", daemon=True)
-        self._receiver.start()
+        self.focal_check: FocalCheck | None = None
+        """The mapping process's check of the camera matrix, once it came back."""
         sync.record_counts(slam_map)
         self._wait_ready()
         if slam_map.keyframes:
             self._reset()
-
-    def _drain(self) -> None:
-        """Read the mapping process's messages as they come, unpickled later by ``sync`` (a full pipe
-        would hold the process up, and a message read only while it is being written would come a
-        frame late), until the pipe ends with the process."""
-        while True:
-            try:
-                self._received.put(self._outbox.recv_bytes())
-            except (EOFError, OSError):
-                self._received.put(pickle.dumps(("ended", f"it ended (exit code {self._process.exitcode})")))
-                return
 
     def _wait_ready(self) -> None:
         try:
@@ -191,6 +230,8 @@ class MappingProcess:
                 self._pending.remove(keyframe_id)
             sync.apply_changes(self.map, changes, self._pending)
             self.history.append(record)
+        elif kind == "calibration":
+            self.focal_check = message[1]
         elif kind == "stopped":
             sync.apply_changes(self.map, message[1], [])
             self._pending.clear()
@@ -219,20 +260,37 @@ def _start_deaf_to_ctrl_c(process: Any) -> None:
         signal.signal(signal.SIGINT, previous)
 
 
-def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settings: SlamSettings,
-           scale_factor: float, levels: int) -> None:
-    """The mapping process: keyframes in, changes out, until ``stop`` or the parent's end."""
+def _camera(inbox: Any) -> tuple[Any, ...] | None:
+    """The ``camera`` message's fields, waited for (None once the parent is gone)."""
+    parent = multiprocessing.parent_process()
+    while True:
+        try:
+            message = inbox.get(timeout=PARENT_CHECK_S)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+            continue
+        if message[0] == "camera":
+            return tuple(message[1:])
+
+
+def _serve(inbox: Any, writer: Any) -> None:
+    """The mapping process: its camera, then keyframes in, changes out, until ``stop`` or the parent's end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def send(*message: Any) -> None:
         writer.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))
 
     parent = multiprocessing.parent_process()
+    camera = _camera(inbox)
+    if camera is None:
+        return
+    K, size, settings, scale_factor, levels = camera
     slam_map = MapDatabase(scale_factor, levels)
     sync.record_changes(slam_map)
     mapper = LocalMapper(slam_map, K, size, settings, threaded=False)
     waiting: list[int] = []
-    stopping = False
+    stopping = checked = False
     send("ready")
     try:
         while True:
@@ -247,6 +305,9 @@ def _serve(inbox: Any, writer: Any, K: np.ndarray, size: tuple[int, int], settin
                 keyframe_id = waiting.pop(0)
                 mapper.process(keyframe_id, others_waiting=bool(waiting),
                                stepped=lambda: send("points", sync.take_changes(slam_map)))
+                if mapper.focal_check is not None and not checked:
+                    checked = True
+                    send("calibration", mapper.focal_check)
                 send("mapped", keyframe_id, sync.take_changes(slam_map),
                      dataclasses.replace(mapper.history.pop(), waiting=len(waiting)))
             elif stopping:

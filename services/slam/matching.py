@@ -10,7 +10,9 @@ differ, 0..256). Pixels are undistorted px (``features``); ``levels`` are pyrami
   a window around a prediction).
 * ``search_by_projection``: map points already projected into a frame, each compared only with
   the frame's keypoints within a window around its predicted pixel (a radius growing with the
-  predicted pyramid level) and on a neighbouring level; the same two tests.
+  predicted pyramid level) and on a neighbouring level; the same two tests. The keypoints in each
+  window come from a grid of square cells (``pairs_within``), listed by array operations with no
+  loop over points.
 * ``rotation_consistent``: the matches whose keypoint orientations turned by about the same angle
   as most others (a histogram of 30 bins, its three fullest kept): a cheap check that rejects
   matches no rigid image motion explains.
@@ -18,16 +20,15 @@ differ, 0..256). Pixels are undistorted px (``features``); ``levels`` are pyrami
 
 from __future__ import annotations
 
-import itertools
-
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-__all__ = ["hamming", "hamming_matrix", "match_descriptors", "match_candidates", "search_by_projection",
-           "rotation_consistent", "best_two"]
+__all__ = ["hamming", "hamming_matrix", "match_descriptors", "match_candidates", "pairs_within",
+           "search_by_projection", "rotation_consistent", "best_two"]
 
 ROTATION_BINS = 30
+MIN_CELL_PX = 8.0
+"""The grid of ``pairs_within`` has cells at least this wide (narrower ones would only make more empty cells)."""
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -47,10 +48,14 @@ def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def best_two(groups: np.ndarray, costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For pairs given as (P,) ``groups`` and (P,) ``costs``: ``(rows, best, second)`` where ``rows``
     indexes each group's cheapest pair, ``best`` its cost and ``second`` the group's second cheapest
-    cost (inf when the group has one pair)."""
+    cost (inf when the group has one pair); among equal costs the earlier pair. Non-negative integer costs
+    of non-negative groups are sorted on one key (group and cost in one integer), others by ``lexsort``."""
     if len(groups) == 0:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
-    order = np.lexsort((costs, groups))
+    if np.issubdtype(costs.dtype, np.integer) and costs.min() >= 0 and groups.min() >= 0:
+        order = np.argsort(groups.astype(np.int64) * (int(costs.max()) + 1) + costs, kind="stable")
+    else:
+        order = np.lexsort((costs, groups))
     g = groups[order]
     first = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
     has_second = (first + 1 < len(g)) & (g[np.minimum(first + 1, len(g) - 1)] == g[first])
@@ -94,6 +99,54 @@ def match_candidates(a: np.ndarray, b: np.ndarray, rows: np.ndarray, columns: np
     return rows[kept], columns[kept]
 
 
+def pairs_within(centres: np.ndarray, radii: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, columns)`` (M,) int64, in no particular order: every pair whose ``pixels[column]``
+    ((N, 2) px) lies within ``radii[row]`` ((P,) px, distance <= radius) of ``centres[row]`` ((P, 2) px).
+
+    The pixels are sorted into square cells a quarter of the largest radius wide (at least ``MIN_CELL_PX``),
+    row by row, so that the cells a window's square overlaps in one row of the grid hold one slice of the
+    sorted pixels; the slices of every window, one grid row at a time, are listed at once and their pixels
+    kept by their squared distance. A centre or radius that is not finite has no pairs."""
+    empty = np.zeros(0, np.int64)
+    centres, pixels = np.asarray(centres, np.float64), np.asarray(pixels, np.float64)
+    radii = np.asarray(radii, np.float64)
+    finite = np.flatnonzero(np.isfinite(centres).all(axis=1) & np.isfinite(radii) & (radii >= 0))
+    if len(finite) == 0 or len(pixels) == 0:
+        return empty, empty
+    cell = max(float(radii[finite].max()) / 4, MIN_CELL_PX)
+    origin = pixels.min(axis=0)
+    cells = np.floor((pixels - origin) / cell).astype(np.int64)
+    size = cells.max(axis=0) + 1
+    width = int(size[0])
+    ids = cells[:, 1] * width + cells[:, 0]
+    order = np.argsort(ids, kind="stable")
+    bounds = np.searchsorted(ids[order], np.arange(width * int(size[1]) + 1))
+    reach = radii[finite, None]
+    low = np.floor((centres[finite] - reach - origin) / cell).astype(np.int64)
+    high = np.floor((centres[finite] + reach - origin) / cell).astype(np.int64)
+    seen = np.all((high >= 0) & (low < size), axis=1)
+    finite, low, high = finite[seen], np.maximum(low[seen], 0), np.minimum(high[seen], size - 1)
+    rows, starts, counts = [], [], []
+    for step in range(int((high[:, 1] - low[:, 1]).max(initial=-1)) + 1):
+        y = low[:, 1] + step
+        within = np.flatnonzero(y <= high[:, 1])
+        first = bounds[y[within] * width + low[within, 0]]
+        rows.append(finite[within])
+        starts.append(first)
+        counts.append(bounds[y[within] * width + high[within, 0] + 1] - first)
+    if not rows:
+        return empty, empty
+    row_of, start, count = np.concatenate(rows), np.concatenate(starts), np.concatenate(counts)
+    total = int(count.sum())
+    if total == 0:
+        return empty, empty
+    columns = order[np.arange(total) + np.repeat(start - (np.cumsum(count) - count), count)]
+    row_of = np.repeat(row_of, count)
+    offsets = pixels[columns] - centres[row_of]
+    near = offsets[:, 0] * offsets[:, 0] + offsets[:, 1] * offsets[:, 1] <= radii[row_of] * radii[row_of]
+    return row_of[near], columns[near]
+
+
 def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.ndarray, descriptors: np.ndarray,
                          frame_pixels: np.ndarray, frame_levels: np.ndarray, frame_descriptors: np.ndarray,
                          available: np.ndarray, max_distance: int, ratio: float,
@@ -110,13 +163,8 @@ def search_by_projection(predicted: np.ndarray, radii: np.ndarray, levels: np.nd
     free = np.flatnonzero(available)
     if len(predicted) == 0 or len(free) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    tree = cKDTree(frame_pixels[free])
-    neighbours = tree.query_ball_point(predicted, radii)
-    counts = np.fromiter((len(n) for n in neighbours), np.int64, len(neighbours))
-    if counts.sum() == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    rows = np.repeat(np.arange(len(predicted)), counts)
-    columns = free[np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(counts.sum()))]
+    rows, columns = pairs_within(predicted, radii, frame_pixels[free])
+    columns = free[columns]
     near_level = np.abs(frame_levels[columns] - levels[rows]) <= level_slack
     return match_candidates(descriptors, frame_descriptors, rows[near_level], columns[near_level], max_distance,
                             ratio)

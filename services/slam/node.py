@@ -34,6 +34,9 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
 The SLAM system's settings (``services.slam.settings``) are the node's too, under their own names
 (``max_keypoints``, ``min_tracked``, ...).
 
+With the mapping process (``mapping``, the default) the node spawns that process when it starts, so
+that its imports are done before the first frame (``mapping_process.prepare``).
+
 Lossless runs (a finite source whose every frame reaches the node in order, ``node.flow.lossless``): each
 new keyframe is mapped before the next frame is tracked (``SlamSystem``'s ``wait_for_mapping``; the source
 waits for the node meanwhile), so the poses are those of inline mapping, the same on a loaded machine as on
@@ -85,6 +88,7 @@ from services.runtime.frame_calibration import FrameCalibration
 from services.runtime.kind import NodeKind
 from services.runtime.node import Node, NodeError
 from services.runtime.params import Flat, NodeParams
+from services.slam import mapping_process
 from services.slam.anchor import AnchorSettings, MarkerAnchor, MarkerSighting
 from services.slam.map.file import MapFileError, read_header
 from services.slam.settings import SlamSettings
@@ -330,6 +334,8 @@ def run(node: Node, params: Params) -> None:
     except ValueError as exc:
         raise NodeError(str(exc)) from exc
     keys = node.keys
+    if params.mapping == "process" and not params.localisation_only:
+        mapping_process.prepare()  # its imports run before the first frame, which then need not wait for them
     calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
     slam = _CameraSlam(node, params)
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)

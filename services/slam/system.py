@@ -25,7 +25,7 @@ import numpy as np
 from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import invert
-from services.slam.calibration_check import check_focal
+from services.slam.calibration_check import FocalCheck
 from services.slam.features import FeatureExtractor
 from services.slam.frontend import Tracked, Tracker
 from services.slam.map.database import MapDatabase
@@ -44,8 +44,6 @@ STEP_BACK_S = 1.0
 order (skipped); one stamped further back is a jump in the sequence, tracked (or relocalised) as usual."""
 MAPPING_MODES = ("process", "thread", "inline")
 """Where local mapping runs (``SlamSystem``'s ``mapping``)."""
-CHECK_KEYFRAMES = 5
-"""The camera matrix is checked against the map (``calibration_check``) once, when it holds this many keyframes."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +61,9 @@ class FrameResult:
     waited for the mapper (``wait_for_mapping``; included in ``keyframe``), ``initial_map`` on the frame that
     starts the map, ``mapping`` when a keyframe was mapped inline (included in ``keyframe``),
     ``relocalise_candidates`` and ``relocalise_pose`` on a frame after a lost one, ``calibration_check``
-    on the frame that made the ``CHECK_KEYFRAMES``-th keyframe, ``total``)."""
+    on the frame that first has the mapper's check of the camera matrix (made after the map's
+    ``CHECK_KEYFRAMES``-th keyframe, in the mapper's process or thread: the milliseconds it took there, not
+    part of this frame's ``total`` unless mapping runs inline), ``total``)."""
 
     state: TrackingState
     reason: str
@@ -157,10 +157,9 @@ class SlamSystem:
                 tracked = self._tracker.track(stamp_ns, features, timings)
             if tracked.keyframe_id is not None and self.mapping == "inline" and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.history[-1].stages.values())
-            if tracked.keyframe_id is not None and self._calibration is None and len(self.map.keyframes) >= \
-                    CHECK_KEYFRAMES:
-                with stage_timer(timings, "calibration_check"):
-                    self._check_calibration()
+            if self._calibration is None and (check := self._mapper.focal_check) is not None:
+                self._report_calibration(check)
+                timings["calibration_check"] = check.took_ms
         if tracked.T_camera_world is not None:
             self._remember(stamp_ns, tracked.T_camera_world, tracked.keyframe_id)
         pose = None if tracked.T_camera_world is None else invert(tracked.T_camera_world)
@@ -180,10 +179,7 @@ class SlamSystem:
             if keyframe is not None:
                 self._tracked.append((stamp_ns, keyframe.id, T_camera_world @ invert(keyframe.T_camera_world)))
 
-    def _check_calibration(self) -> None:
-        check = check_focal(self.map, self.camera.K, (self.camera.width, self.camera.height))
-        if check is None:
-            return
+    def _report_calibration(self, check: FocalCheck) -> None:
         self._calibration = "calibration_suspect" if check.suspect else "ok"
         logger.log(logging.WARNING if check.suspect else logging.INFO, "camera %s: %s%s", self.camera.name,
                    check.line(), ": the calibration looks wrong, poses are suspect" if check.suspect else "")

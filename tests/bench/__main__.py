@@ -2,7 +2,7 @@
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
 ``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``, ``slam_tracking``, ``slam_bus``,
-``refusals``, ``stops``, ``lossless``, ``layouts``.
+``slam_realtime``, ``refusals``, ``stops``, ``lossless``, ``layouts``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -21,11 +21,13 @@ bus against in process (``features_bus``) and stereo tracking's stages
 in one process against the live pipeline at motion-capture rates (``stereo``), SLAM's bundle
 adjustment and pose refinement on synthetic problems (``slam``), SLAM's tracking per frame and local
 mapping per keyframe on one core, mapping in a process, on a thread and inline (``slam_tracking``), and the SLAM
-node's poses over the bus against in process (``slam_bus``), how long ``artrack`` takes to refuse a
-command that cannot work (``refusals``) and a node or ``artrack up`` to stop on SIGTERM (``stops``), and
-each tracker's lossless runs idle and under load against its node's work in one process, with the
-credits' cost (``lossless``), and the trackers run as ``artrack run`` runs them with their nodes grouped into
-processes three ways (``layouts``) (each module's docstring says what it measures).
+node's poses over the bus against in process (``slam_bus``), the SLAM tracker's real-time runs on the room at
+30 fps and KITTI at 10 fps, ten each idle and under load, counting frames dropped (``slam_realtime``),
+how long ``artrack`` takes to refuse a command that cannot work (``refusals``) and a node or ``artrack up``
+to stop on SIGTERM (``stops``), and each tracker's lossless runs idle and under load against its node's work
+in one process, with the credits' cost (``lossless``), and the trackers run as ``artrack run`` runs them
+with their nodes grouped into processes three ways (``layouts``) (each module's docstring says what it
+measures).
 Progress goes to stderr.
 """
 
@@ -60,6 +62,7 @@ from tests.bench.runs import Run, measure
 from tests.bench.scenes import bench_scenes
 from tests.bench.slam import bench_slam
 from tests.bench.slam_bus import bench_slam_bus
+from tests.bench.slam_realtime import bench_slam_realtime
 from tests.bench.slam_tracking import bench_slam_tracking
 from tests.bench.stereo import bench_stereo
 from tests.bench.stops import bench_stops
@@ -125,8 +128,8 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "recorder": bench_recorder, "viewer": bench_viewer, "markers": bench_markers, "apps": bench_apps,
     "accuracy": report_lines, "blobs": bench_blobs, "keypoints": bench_keypoints, "features": bench_features,
     "features_bus": bench_features_bus, "stereo": bench_stereo, "slam": bench_slam,
-    "slam_tracking": bench_slam_tracking, "slam_bus": bench_slam_bus, "refusals": bench_refusals,
-    "stops": bench_stops, "lossless": bench_lossless, "layouts": bench_layouts,
+    "slam_tracking": bench_slam_tracking, "slam_bus": bench_slam_bus, "slam_realtime": bench_slam_realtime,
+    "refusals": bench_refusals, "stops": bench_stops, "lossless": bench_lossless, "layouts": bench_layouts,
 }
 
 

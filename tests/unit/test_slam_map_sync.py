@@ -21,7 +21,8 @@ def assert_same_map(copy: MapDatabase, original: MapDatabase) -> None:
         other = copy.points[point_id]
         np.testing.assert_array_equal(other.position, point.position)
         np.testing.assert_array_equal(other.descriptor, point.descriptor)
-        assert other.observations == point.observations
+        np.testing.assert_array_equal(other.normal, point.normal)
+        assert other.observations == point.observations and other.first_keyframe == point.first_keyframe
         assert (other.min_distance, other.max_distance) == (point.min_distance, point.max_distance)
 
 

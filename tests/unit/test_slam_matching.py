@@ -1,14 +1,19 @@
 """Descriptor matching and search by projection for SLAM, against OpenCV where it does the same."""
 
+import itertools
+
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from services.slam.map.map_point import PointArrays
 from services.slam.matching import (
+    best_two,
     hamming,
     hamming_matrix,
     match_candidates,
     match_descriptors,
+    pairs_within,
     rotation_consistent,
     search_by_projection,
 )
@@ -89,6 +94,68 @@ def test_search_by_projection_keeps_window_level_and_uniqueness():
     rows, _ = search_by_projection(predicted[:1], np.full(1, 1.0), np.zeros(1, np.int64), points[:1], keypoints, levels,
                                    descriptors, np.ones(4, bool), max_distance=50, ratio=0.9)
     assert len(rows) == 0
+
+
+def test_best_two_is_the_plain_loop_for_integer_and_float_costs():
+    groups = RNG.integers(0, 300, 5000)
+    for costs in (RNG.integers(0, 257, 5000).astype(np.int32), RNG.integers(0, 257, 5000).astype(np.float64)):
+        rows, best, second = best_two(groups, costs)
+        expected = {}
+        for index, (group, cost) in enumerate(zip(groups.tolist(), costs.tolist(), strict=True)):
+            pairs = expected.setdefault(group, [])
+            pairs.append((cost, index))
+        for row, lowest, runner_up in zip(rows.tolist(), best.tolist(), second.tolist(), strict=True):
+            ranked = sorted(expected.pop(int(groups[row])))
+            assert (lowest, row) == (ranked[0][0], ranked[0][1])
+            assert runner_up == (ranked[1][0] if len(ranked) > 1 else np.inf)
+        assert not expected
+
+
+def _kd_tree_pairs(centres: np.ndarray, radii: np.ndarray, pixels: np.ndarray) -> set[tuple[int, int]]:
+    """The pairs within each radius as SciPy's k-d tree finds them (the reference)."""
+    found = cKDTree(pixels).query_ball_point(centres, radii)
+    return {(row, int(column)) for row, columns in enumerate(found) for column in columns}
+
+
+def test_pairs_within_are_the_kd_tree_pairs():
+    pixels = RNG.uniform(-5, 645, (1500, 2))
+    for radii in (np.full(400, 100.0), 4.0 * 1.2 ** RNG.integers(0, 8, 400), np.full(400, 0.5)):
+        centres = RNG.uniform(-20, 660, (400, 2))
+        rows, columns = pairs_within(centres, radii, pixels)
+        assert set(zip(rows.tolist(), columns.tolist(), strict=True)) == _kd_tree_pairs(centres, radii, pixels)
+    grid = np.array(list(itertools.product(range(0, 40), range(0, 30))), np.float64)  # distances exactly 5 (3-4-5)
+    centres, radii = np.array([[10.0, 10.0], [20.0, 20.0]]), np.array([5.0, 3.0])
+    rows, columns = pairs_within(centres, radii, grid)
+    found = set(zip(rows.tolist(), columns.tolist(), strict=True))
+    assert found == _kd_tree_pairs(centres, radii, grid)
+    assert (0, int(np.flatnonzero((grid == [13.0, 14.0]).all(axis=1))[0])) in found  # exactly on the circle
+    rows, _ = pairs_within(np.array([[np.nan, 1.0]]), np.array([5.0]), grid)
+    assert len(rows) == 0
+
+
+def test_search_by_projection_is_the_kd_tree_search_on_real_features():
+    """The grid's candidates give the matches the k-d tree's gave, on two frames of the room."""
+    from services.slam.features import FeatureExtractor
+    from services.slam.settings import SlamSettings
+    from services.synthetic import make_scene
+
+    scene = make_scene("room")
+    s = SlamSettings()
+    extractor = FeatureExtractor(scene.cameras[0], s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
+    a, b = (extractor.extract(scene.render(i).images["cam0"]) for i in (0, 2))
+    available = RNG.random(len(b)) < 0.8
+    for radii in (np.full(len(a), 100.0), 15.0 * 1.2 ** a.levels.astype(np.float64),
+                  4.0 * 1.2 ** a.levels.astype(np.float64)):
+        found = search_by_projection(a.pixels, radii, a.levels, a.descriptors, b.pixels, b.levels, b.descriptors,
+                                     available, 64, 0.9)
+        free = np.flatnonzero(available)
+        pairs = sorted(_kd_tree_pairs(a.pixels, radii, b.pixels[free]))
+        rows = np.array([r for r, _ in pairs], np.int64)
+        columns = free[np.array([c for _, c in pairs], np.int64)]
+        near = np.abs(b.levels[columns] - a.levels[rows]) <= 1
+        expected = match_candidates(a.descriptors, b.descriptors, rows[near], columns[near], 64, 0.9)
+        assert len(expected[0]) > 10
+        assert np.array_equal(found[0], expected[0]) and np.array_equal(found[1], expected[1])
 
 
 def test_rotation_consistency_drops_odd_turns():

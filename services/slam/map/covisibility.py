@@ -8,6 +8,7 @@ the keyframes observing its matched points and their best covisible neighbours.
 
 from __future__ import annotations
 
+import itertools
 from collections import Counter
 
 import numpy as np
@@ -42,9 +43,10 @@ class CovisibilityGraph:
     def _count_covisible(self, keyframe_id: int) -> Counter[int]:
         database = self.database
         with database.lock:
-            counts: Counter[int] = Counter()
-            for point_id in database.keyframes[keyframe_id].point_ids[database.keyframes[keyframe_id].point_ids >= 0]:
-                counts.update(database.points[int(point_id)].observations.keys())
+            point_ids = database.keyframes[keyframe_id].point_ids
+            points = database.points
+            counts = Counter(itertools.chain.from_iterable(points[p].observations for p in
+                                                           point_ids[point_ids >= 0].tolist()))
             counts.pop(keyframe_id, None)
             return counts
 
@@ -55,12 +57,8 @@ class CovisibilityGraph:
     def observers(self, point_ids: np.ndarray) -> Counter[int]:
         """Keyframe id -> how many of the points ``point_ids`` (P,) it observes."""
         with self.database.lock:
-            counts: Counter[int] = Counter()
-            for point_id in point_ids.tolist():
-                point = self.database.points.get(point_id)
-                if point is not None:
-                    counts.update(point.observations.keys())
-            return counts
+            found = map(self.database.points.get, point_ids.tolist())
+            return Counter(itertools.chain.from_iterable(p.observations for p in found if p is not None))
 
     def local_keyframes(self, point_ids: np.ndarray, count: int) -> list[int]:
         """The keyframes of a frame's local map: those observing its matched ``point_ids`` (P,), most

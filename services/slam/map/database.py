@@ -15,6 +15,10 @@ points or observations. The lock is held only while the dictionaries are read or
 summary is computed from a snapshot of its observations outside the lock and written back under it
 unless the point changed meanwhile (``refresh_points``, ``add_points``).
 
+What a frame's tracking reads of many points (``arrays``, ``positions``) comes from ``table``
+(``point_table``): a copy of the points' positions and summaries in arrays by point id, written by every
+method here that changes them (and by ``sync`` when it replaces points).
+
 While a copy of the map is kept in another process (``sync``), the database notes its changes in
 ``changes`` and the counters it adds in ``counts`` (``journal``); both are None otherwise.
 """
@@ -30,6 +34,7 @@ from services.slam.map.journal import ChangeJournal, CountJournal
 from services.slam.map.keyframe import Keyframe
 from services.slam.map.map_point import MapPoint, PointArrays
 from services.slam.map.point_summary import PointDraft, PointSummaries, summarise
+from services.slam.map.point_table import PointTable
 
 __all__ = ["MapDatabase"]
 
@@ -44,6 +49,8 @@ class MapDatabase:
         self.lock = threading.RLock()
         self.keyframes: dict[int, Keyframe] = {}
         self.points: dict[int, MapPoint] = {}
+        self.table = PointTable()
+        """The points' positions and summaries as arrays by id (``point_table``), kept with ``points``."""
         self.revision = 0
         self.next_keyframe_id = 0
         """The id the next keyframe gets unless one is given."""
@@ -77,6 +84,7 @@ class MapDatabase:
         with self.lock:
             self.keyframes.clear()
             self.points.clear()
+            self.table.rebuild(())
             self.replaced.clear()
             if self.changes is not None:
                 self.changes = ChangeJournal()
@@ -187,6 +195,7 @@ class MapDatabase:
             point = self.points.pop(point_id, None)
             if point is None:
                 return
+            self.table.drop(point_id)
             for keyframe_id, index in point.observations.items():
                 self.keyframes[keyframe_id].point_ids[index] = -1
             if self.changes is not None:
@@ -253,6 +262,7 @@ class MapDatabase:
         point.normal = summaries.normals[row]
         point.min_distance = float(summaries.min_distances[row])
         point.max_distance = float(summaries.max_distances[row])
+        self.table.write(point)
 
     def set_pose(self, keyframe_id: int, T_camera_world: np.ndarray) -> None:
         """Keyframe ``keyframe_id`` gets the pose ``T_camera_world`` (4, 4)."""
@@ -267,20 +277,24 @@ class MapDatabase:
         with self.lock:
             if point_id in self.points:
                 self.points[point_id].position = np.array(position, np.float64)
+                self.table.write(self.points[point_id])
                 if self.changes is not None:
                     self.changes.point(point_id)
                 self.revision += 1
 
     def count_visible(self, point_ids: np.ndarray, found: np.ndarray | None = None) -> None:
         """Add one to ``visible`` of each point of ``point_ids`` (P,), and to ``found`` where ``found`` (P,) bool."""
+        ids = point_ids.tolist()
+        matched = [False] * len(ids) if found is None else np.asarray(found, bool).tolist()
         with self.lock:
-            for k, point_id in enumerate(point_ids.tolist()):
+            journal = self.counts
+            for point_id, hit in zip(ids, matched, strict=True):
                 point = self.points.get(point_id)
                 if point is not None:
                     point.visible += 1
-                    point.found += int(found is not None and found[k])
-                    if self.counts is not None:
-                        self.counts.add(point_id, bool(found is not None and found[k]))
+                    point.found += hit
+                    if journal is not None:
+                        journal.add(point_id, hit)
 
     def point_ids(self) -> np.ndarray:
         """(P,) int64 sorted ids of every point."""
@@ -297,16 +311,9 @@ class MapDatabase:
     def positions(self, point_ids: np.ndarray) -> np.ndarray:
         """(P, 3) world positions of the points ``point_ids`` that still exist (copies)."""
         with self.lock:
-            positions = [self.points[i].position for i in point_ids.tolist() if i in self.points]
-        return np.array(positions, np.float64).reshape(-1, 3)
+            return self.table.positions[self.table.existing(point_ids)]
 
     def arrays(self, point_ids: np.ndarray) -> PointArrays:
-        """Copies of the data of the points ``point_ids`` that still exist."""
+        """Copies of the data of the points ``point_ids`` that still exist, in their order."""
         with self.lock:
-            points = [self.points[i] for i in point_ids.tolist() if i in self.points]
-            return PointArrays(ids=np.array([p.id for p in points], np.int64).reshape(-1),
-                               positions=np.array([p.position for p in points], np.float64).reshape(-1, 3),
-                               descriptors=np.array([p.descriptor for p in points], np.uint8).reshape(-1, 32),
-                               normals=np.array([p.normal for p in points], np.float64).reshape(-1, 3),
-                               min_distances=np.array([p.min_distance for p in points], np.float64),
-                               max_distances=np.array([p.max_distance for p in points], np.float64))
+            return self.table.arrays(point_ids)

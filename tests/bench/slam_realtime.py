@@ -1,0 +1,162 @@
+"""Monocular SLAM in real time: does the node keep up with a camera's rate, frame for frame?
+
+Two sequences at their own rate, each run through ``artrack run slam --flow realtime --record R.mcap``
+(a capture node, the SLAM node with its mapping process, the default, and a recorder; frames
+latest-wins, so a node that falls behind drops them):
+
+* ``room``: the synthetic ``room`` scene, 640x480, ``ROOM_FRAMES`` frames at 30 fps (rendered by the
+  capture node as they go out);
+* ``kitti``: the KITTI 06 excerpt (``tests.accuracy.slam_sequences.KITTI``, 1226x370, its 51 frames at
+  10 fps; a ``skipped`` line when the data set is absent).
+
+Each sequence runs ``RUNS`` times on the machine as it is (``idle``) and ``RUNS`` times while
+``tests.load.busy`` spins a process on every core (``loaded``). From each recording: the frames the
+capture sent (images recorded), the SLAM node's frames dropped (its last ``NodeStats``: frames that came
+while one was being processed and the queue was full), the frames without a pose before the first
+tracked one (initialisation) and after it, its poses and those ``tracking``, and the
+machine's 1-minute load average before and after (the machine is shared: its load says what "idle" was).
+One JSON line per run, then one per sequence and condition: runs with 0 frames dropped out of ``RUNS`` (the target:
+all of them), and the SLAM node's processing p50 / p99 (its stats, ms) per run.
+
+``python -m tests.bench.slam_realtime [--runs N] [--sequences room kitti] [--conditions idle loaded]``
+prints the lines (``--runs`` lowers the ten runs for a quick look); ``python -m tests.bench slam_realtime``
+runs the default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import uuid
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, nullcontext
+from pathlib import Path
+from typing import Any
+
+from mcap.reader import make_reader
+
+from protocol import decode
+from protocol.poses import Pose
+from protocol.system import NodeStats
+from protocol.tracking_state import TrackingState
+from tests.accuracy.slam_sequences import KITTI
+from tests.data import data_root
+from tests.load import busy
+
+ROOT = Path(__file__).resolve().parents[2]
+RUNS = 10
+ROOM_FRAMES = 300
+CONDITIONS = ("idle", "loaded")
+
+
+def sources() -> dict[str, tuple[str, ...] | None]:
+    """Each sequence's source flags (None when its data set is absent)."""
+    kitti = data_root() / KITTI / "image_0"
+    return {"room": ("--source", "synthetic:room", "--frames", str(ROOM_FRAMES), "--fps", "30"),
+            "kitti": ("--source", f"images:{kitti}", "--fps", "10") if kitti.is_dir() else None}
+
+
+def run_once(flags: tuple[str, ...], folder: Path) -> dict[str, Any]:
+    """One real-time run of the SLAM tracker with a recorder; its figures from the recording."""
+    out = folder / f"{uuid.uuid4().hex[:8]}.mcap"
+    argv = [sys.executable, "-m", "services.cli", "run", "slam", *flags, "--flow", "realtime", "--record", str(out),
+            "--quiet", "--rig", f"bench{uuid.uuid4().hex[:6]}"]
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} exited {done.returncode}: {done.stderr[-2000:]}")
+    figures = read_run(out)
+    out.unlink()
+    return figures
+
+
+def read_run(path: Path) -> dict[str, Any]:
+    """Frames sent (images recorded), the SLAM node's dropped frames and processing p50 / p99 (its last
+    stats), its poses and how many of them were tracking."""
+    images, poses, tracked = 0, 0, 0
+    sent: set[int] = set()
+    posed: dict[int, bool] = {}
+    stats: NodeStats | None = None
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            topic = channel.topic
+            if topic.endswith("/image"):
+                images += 1
+                header = decode(message.data).header
+                sent.add(header.seq)
+            elif topic.endswith("/stats"):
+                decoded = decode(message.data)
+                if isinstance(decoded, NodeStats) and decoded.kind == "slam":
+                    stats = decoded
+            elif "/pose/slam/" in f"/{topic}":
+                pose = decode(message.data)
+                if isinstance(pose, Pose):
+                    poses += 1
+                    tracked += pose.state is TrackingState.TRACKING
+                    posed[pose.header.seq] = pose.state is TrackingState.TRACKING
+    if stats is None:
+        raise RuntimeError(f"{path}: no statistics of the slam node were recorded")
+    first_tracked = min((seq for seq, tracking in posed.items() if tracking), default=max(sent, default=0) + 1)
+    unposed = sent - set(posed)
+    return {"sent": images, "dropped": stats.dropped + stats.missing,
+            "unposed_before_tracking": sum(seq < first_tracked for seq in unposed),
+            "unposed_after": sum(seq > first_tracked for seq in unposed), "poses": poses, "tracked": tracked,
+            "node_p50_ms": round(stats.processing_ms_p50 or 0.0, 1),
+            "node_p99_ms": round(stats.processing_ms_p99 or 0.0, 1)}
+
+
+def _condition(name: str) -> AbstractContextManager[Any]:
+    return busy() if name == "loaded" else nullcontext()
+
+
+def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path) -> Iterator[dict[str, Any]]:
+    """``count`` runs of one sequence under one condition: a line per run, then the summary line."""
+    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition}
+    lines = []
+    for run in range(count):
+        load_before = os.getloadavg()[0]
+        with _condition(condition):
+            figures = run_once(flags, folder)
+        figures |= {"loadavg_1m_before": round(load_before, 2), "loadavg_1m_after": round(os.getloadavg()[0], 2)}
+        lines.append(figures)
+        print(f"slam_realtime {sequence} {condition} {run + 1}/{count}: {figures}", file=sys.stderr, flush=True)
+        yield {**common, "run": run + 1, **figures}
+    yield {**common, "runs": count, "runs_without_drops": sum(line["dropped"] == 0 for line in lines),
+           "dropped_runs": [line["dropped"] for line in lines], "tracked_runs": [line["tracked"] for line in lines],
+           "sent_runs": [line["sent"] for line in lines],
+           "node_p50_ms_runs": [line["node_p50_ms"] for line in lines],
+           "node_p99_ms_runs": [line["node_p99_ms"] for line in lines],
+           "target": f"0 dropped in {count} of {count}",
+           "met": all(line["dropped"] == 0 for line in lines)}
+
+
+def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room", "kitti"),
+                        conditions: tuple[str, ...] = CONDITIONS) -> list[dict[str, Any]]:
+    lines: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
+        for sequence in sequences:
+            flags = sources()[sequence]
+            if flags is None:
+                lines.append({"bench": "slam_realtime", "sequence": sequence,
+                              "skipped": f"data set {KITTI!r} not found at {data_root() / KITTI}"})
+                continue
+            for condition in conditions:
+                lines += runs(sequence, flags, condition, count, Path(tmp))
+    return lines
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m tests.bench.slam_realtime", description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=RUNS, help=f"runs per sequence and condition (default {RUNS})")
+    parser.add_argument("--sequences", nargs="+", choices=("room", "kitti"), default=["room", "kitti"])
+    parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
+    args = parser.parse_args(argv)
+    for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions)):
+        print(json.dumps(line), flush=True)
+
+
+if __name__ == "__main__":
+    main()
