@@ -96,6 +96,9 @@ class Params(BaseModel):
     fps: float | None = Field(default=None, ge=0, le=1000, description="pace (a ceiling in a lossless run); "
                               "0: as fast as frames are taken; default: the source's own timing")
     frames: int = Field(default=0, ge=0, description="stop after this many frames; 0 = until the source ends")
+    prerender: int = Field(default=0, ge=0, le=10_000, description="a synthetic scene's first N instants rendered "
+                           "before the first frame goes out, then sent over and over: no rendering while it runs "
+                           "(for measuring what comes after it at high rates); 0: each frame rendered when due")
     loop: bool = Field(default=False, description="start finite sources over when they end")
     calib: Annotated[tuple[Path, ...], BeforeValidator(_as_tuple)] = Field(
         default=(), description="ROS camera_info YAML per camera")
@@ -131,7 +134,8 @@ class Rig:
         self.sources: list[Source] = []
         try:
             for uri in params.source:
-                self.sources.append(open_source(uri, frames=params.frames, scene_options=params.scene))
+                self.sources.append(open_source(uri, frames=params.frames, scene_options=params.scene,
+                                                prerender=params.prerender))
         except SourceError:
             self.close()
             raise

@@ -255,15 +255,22 @@ class VideoSource(Source):
 
 
 class SceneSource(Source):
-    """A synthetic scene: rendered frames with exact ground truth and known calibration."""
+    """A synthetic scene: rendered frames with exact ground truth and known calibration.
 
-    def __init__(self, uri: str, scene_name: str, frames: int, options: dict):
+    With ``prerender`` N > 0, the scene's first N instants are rendered before the first frame goes out,
+    then sent over and over (frame k is instant k mod N, with its ground truth, timed as frame k): a
+    source that costs no rendering while it runs, as a camera costs its host little, for measuring
+    what comes after it at high rates.
+    """
+
+    def __init__(self, uri: str, scene_name: str, frames: int, options: dict, prerender: int = 0):
         self.uri = uri
         try:
             self.scene = make_scene(scene_name, **options)
         except ValueError as exc:
             raise SourceError(f"{uri}: {exc}") from exc
         self.count = frames
+        self.prerender = prerender
         self.camera_names = tuple(c.name for c in self.scene.cameras)
 
     @property
@@ -271,10 +278,16 @@ class SceneSource(Source):
         return {c.name: c for c in self.scene.cameras}
 
     def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        rendered = [self.scene.render(i) for i in range(self.prerender)]
+        period_ns = rendered[1].time_s * 1e9 - rendered[0].time_s * 1e9 if len(rendered) > 1 else 0.0
         index = 0
         while self.count == 0 or index < self.count:
-            frame = self.scene.render(index)
-            yield SourceFrame(index, round(frame.time_s * 1e9), frame.images, frame.truth)
+            if rendered:
+                frame = rendered[index % len(rendered)]
+                yield SourceFrame(index, round(index * period_ns), frame.images, frame.truth)
+            else:
+                frame = self.scene.render(index)
+                yield SourceFrame(index, round(frame.time_s * 1e9), frame.images, frame.truth)
             index += 1
 
 
@@ -389,8 +402,9 @@ def check_source(uri: str) -> tuple[str, str]:
     return scheme, rest
 
 
-def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None) -> Source:
-    """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless)."""
+def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None, prerender: int = 0) -> Source:
+    """Open the source named by ``uri``; ``frames`` bounds a synthetic scene (0 = endless), ``prerender`` renders
+    its first instants before it starts and cycles them (``SceneSource``)."""
     scheme, rest = check_source(uri)
     if scheme == "camera":
         return VideoSource(uri, int(rest), live=True)
@@ -400,4 +414,4 @@ def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None)
         return CameraFoldersSource(uri, camera_folders(Path(rest).expanduser()))
     if scheme == "images":
         return ImageFolderSource(uri, Path(rest).expanduser())
-    return SceneSource(uri, rest, frames, scene_options or {})
+    return SceneSource(uri, rest, frames, scene_options or {}, prerender)

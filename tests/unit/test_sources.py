@@ -111,6 +111,17 @@ def test_synthetic_scene_frames_carry_truth_and_calibration():
     assert "cam0" in source.calibration and frames[0].truth["cam0"]
 
 
+def test_a_prerendered_scene_sends_its_first_instants_over_and_over_timed_as_it_goes():
+    rendered = list(open_source("synthetic:ir_rig", frames=3, scene_options={"seed": 2}).frames())
+    cycled = list(open_source("synthetic:ir_rig", frames=7, scene_options={"seed": 2}, prerender=3).frames())
+    assert [f.index for f in cycled] == list(range(7))
+    for frame in cycled:
+        again = rendered[frame.index % 3]
+        assert all(np.array_equal(frame.images[c], again.images[c]) for c in again.images)
+        assert frame.truth is again.truth
+    assert [f.time_ns for f in cycled] == [round(i * (rendered[1].time_ns - rendered[0].time_ns)) for i in range(7)]
+
+
 @pytest.mark.parametrize(("uri", "expected"), [
     ("camera:97", "cannot open video device 97"),
     ("video:/no/such/clip.mp4", "no such file"),
