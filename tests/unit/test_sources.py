@@ -118,7 +118,10 @@ def test_a_prerendered_scene_sends_its_first_instants_over_and_over_timed_as_it_
     for frame in cycled:
         again = rendered[frame.index % 3]
         assert all(np.array_equal(frame.images[c], again.images[c]) for c in again.images)
-        assert frame.truth is again.truth
+        assert frame.truth.keys() == again.truth.keys()
+        for camera, poses in frame.truth.items():
+            assert [(parent, child) for parent, child, _ in poses] == [(p, c) for p, c, _ in again.truth[camera]]
+            assert all(np.array_equal(a[2], b[2]) for a, b in zip(poses, again.truth[camera], strict=True))
     assert [f.time_ns for f in cycled] == [round(i * (rendered[1].time_ns - rendered[0].time_ns)) for i in range(7)]
 
 
