@@ -112,8 +112,9 @@ def test_synthetic_scene_frames_carry_truth_and_calibration():
 
 
 def test_a_prerendered_scene_sends_its_first_instants_over_and_over_timed_as_it_goes():
-    rendered = list(open_source("synthetic:ir_rig", frames=3, scene_options={"seed": 2}).frames())
-    cycled = list(open_source("synthetic:ir_rig", frames=7, scene_options={"seed": 2}, prerender=3).frames())
+    options = {"seed": 2, "fps": 120.0}
+    rendered = list(open_source("synthetic:ir_rig", frames=3, scene_options=options).frames())
+    cycled = list(open_source("synthetic:ir_rig", frames=7, scene_options=options, prerender=3).frames())
     assert [f.index for f in cycled] == list(range(7))
     for frame in cycled:
         again = rendered[frame.index % 3]
@@ -122,7 +123,7 @@ def test_a_prerendered_scene_sends_its_first_instants_over_and_over_timed_as_it_
         for camera, poses in frame.truth.items():
             assert [(parent, child) for parent, child, _ in poses] == [(p, c) for p, c, _ in again.truth[camera]]
             assert all(np.array_equal(a[2], b[2]) for a, b in zip(poses, again.truth[camera], strict=True))
-    assert [f.time_ns for f in cycled] == [round(i * (rendered[1].time_ns - rendered[0].time_ns)) for i in range(7)]
+    assert [f.time_ns for f in cycled] == [round(i * 1e9 / 120) for i in range(7)]
 
 
 @pytest.mark.parametrize(("uri", "expected"), [
