@@ -42,6 +42,7 @@ from tests.bench.link import cpu_seconds
 from tests.bench.live import LiveBus
 
 WARMUP = 20
+PRERENDER = 240
 STEREO_SECONDS = 20.0
 TARGET_SECONDS = 60.0
 SECONDS = 10.0
@@ -63,14 +64,17 @@ def children(pid: int) -> list[int]:
 
 
 def run_job(tracker: str, scene: str, rate: float, frames: int, layout: str, *extra: str) -> dict[str, Any]:
-    """One ``artrack run`` of ``tracker`` on ``scene`` at ``rate`` for ``frames`` frames, grouped by ``layout``."""
+    """One ``artrack run`` of ``tracker`` on ``scene`` at ``rate`` for ``frames`` frames, grouped by ``layout``; the
+    scene's first ``PRERENDER`` instants rendered before the run and cycled, so that the source costs what a
+    camera does, not a renderer's work."""
     with LiveBus(f"{tracker}_probe") as live:
         last: dict[str, NodeStats] = {}
         stats = Listener(live.session, f"{live.bus.keys.prefix}/node/*/stats", NodeStats,
                          lambda received: last.__setitem__(received.message.node, received.message))
         job = live.start([sys.executable, "-m", "services.cli", "run", tracker, "--source", f"synthetic:{scene}",
-                          "--fps", str(rate), "--frames", str(frames), "--flow", "realtime", "--processes", layout,
-                          "--quiet", *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                          "--fps", str(rate), "--frames", str(frames), "--prerender", str(PRERENDER),
+                          "--flow", "realtime", "--processes", layout, "--quiet", *extra],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         cpu: dict[int, tuple[float, float, float]] = {}
         deadline = time.monotonic() + DONE_S
         while job.poll() is None and time.monotonic() < deadline:
