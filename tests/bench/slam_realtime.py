@@ -18,7 +18,8 @@ machine's 1-minute load average before and after (the machine is shared: its loa
 One JSON line per run, then one per sequence and condition: runs with 0 frames dropped out of ``RUNS`` (the target:
 all of them), and the SLAM node's processing p50 / p99 (its stats, ms) per run.
 
-``python -m tests.bench.slam_realtime [--runs N] [--sequences room kitti] [--conditions idle loaded]``
+``python -m tests.bench.slam_realtime [--runs N] [--sequences room kitti] [--conditions idle loaded]
+[--processes given|separate|single]``
 prints the lines (``--runs`` lowers the ten runs for a quick look); ``python -m tests.bench slam_realtime``
 runs the default.
 """
@@ -114,7 +115,8 @@ def _condition(name: str) -> AbstractContextManager[Any]:
 
 def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path) -> Iterator[dict[str, Any]]:
     """``count`` runs of one sequence under one condition: a line per run, then the summary line."""
-    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition}
+    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition,
+              "processes": flags[flags.index("--processes") + 1] if "--processes" in flags else "given"}
     lines = []
     for run in range(count):
         load_before = os.getloadavg()[0]
@@ -134,11 +136,13 @@ def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, fold
 
 
 def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room", "kitti"),
-                        conditions: tuple[str, ...] = CONDITIONS) -> list[dict[str, Any]]:
+                        conditions: tuple[str, ...] = CONDITIONS, layout: str = "given") -> list[dict[str, Any]]:
     lines: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
         for sequence in sequences:
             flags = sources()[sequence]
+            if flags is not None:
+                flags += ("--processes", layout)
             if flags is None:
                 lines.append({"bench": "slam_realtime", "sequence": sequence,
                               "skipped": f"data set {KITTI!r} not found at {data_root() / KITTI}"})
@@ -153,8 +157,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", type=int, default=RUNS, help=f"runs per sequence and condition (default {RUNS})")
     parser.add_argument("--sequences", nargs="+", choices=("room", "kitti"), default=["room", "kitti"])
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
+    parser.add_argument("--processes", choices=("given", "separate", "single"), default="given",
+                        help="how the nodes share processes (artrack run --processes; default: the template's)")
     args = parser.parse_args(argv)
-    for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions)):
+    for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions), args.processes):
         print(json.dumps(line), flush=True)
 
 
