@@ -6,10 +6,10 @@ parameters, logs) and runs its body on a thread of its own; the members share th
 and goes onto the bus, encoded once, only while another session subscribes to its key.
 
 The members that read the bus start first; the sources (members that read nothing) start once
-every other member waits for its inputs (``Node.serving``), so no frame goes out before its
-consumers in the process can take it. Once the sources have returned and every other member has
-published its end of stream, the process stops them and exits, as a lone source's process exits
-at its end. SIGINT and SIGTERM stop every member. A member that fails
+every other member waits for its inputs (``Node.serving``) and ``SETTLE_S`` more has passed, so no
+frame goes out before its consumers in the process can take it. Once the sources have returned
+and every other member has published its end of stream, the process stops them and exits, as a
+lone source's process exits at its end. SIGINT and SIGTERM stop every member. A member that fails
 (code 1 or 2) stops the others, and the process exits with the worst code: 2 (``EXIT_CANNOT_RUN``) when one
 cannot do its job, else 1 when one failed, else the highest code a body returned (a replay's 3).
 A supervisor restarts the process, the whole group, as it restarts a lone node.
@@ -35,6 +35,9 @@ log = logging.getLogger("artrack.group")
 
 SERVING_WAIT_S = 10.0
 """How long sources wait for the other members to serve before starting anyway (one slow to start)."""
+SETTLE_S = 0.5
+"""How long sources wait once the other members serve, as a job waits between its nodes coming up and its
+sources starting: what a node starts beside its loop (the SLAM node's mapping process) gets under way."""
 POLL_S = 0.1
 
 
@@ -142,6 +145,8 @@ def _start(threads: list[_Thread], stopping: threading.Event) -> None:
                             SERVING_WAIT_S)
                 break
             thread.node.serving.wait(POLL_S)
+    if consumers:
+        stopping.wait(SETTLE_S)
     for thread in threads:
         if thread.member.source:
             thread.start()
