@@ -36,11 +36,13 @@ class PointTable:
         self.max_distances = np.full(rows, np.inf)
         self.present = np.zeros(rows, bool)
 
+    def _columns(self) -> tuple[np.ndarray, ...]:
+        return self.positions, self.descriptors, self.normals, self.min_distances, self.max_distances, self.present
+
     def _grow(self, rows: int) -> None:
-        old = (self.positions, self.descriptors, self.normals, self.min_distances, self.max_distances, self.present)
+        old = self._columns()
         self._allocate(rows)
-        for new, kept in zip((self.positions, self.descriptors, self.normals, self.min_distances,
-                              self.max_distances, self.present), old, strict=True):
+        for new, kept in zip(self._columns(), old, strict=True):
             new[:len(kept)] = kept
 
     def write(self, point: MapPoint) -> None:
