@@ -81,6 +81,7 @@ def run_group(group: str, bus: BusConfig, members: Sequence[Member]) -> int:
     except BusError as exc:
         log.error("%s", exc)
         return EXIT_CANNOT_RUN
+    members = sorted(members, key=lambda member: member.source)  # as they start: a refused name is a consumer's
     nodes: list[Node] = []
     try:
         for member in members:

@@ -92,7 +92,7 @@ def test_a_second_job_of_the_same_tracker_on_one_rig_is_refused_naming_the_holde
     second = procs.run(*marker, timeout=60)
     assert second.poll() == 2, second.describe()
     assert f"node marker-cam0 is already running on ar/{bus.rig}" in second.stderr, second.stderr
-    assert "job on" not in second.stderr, "the second job started its source beside the first one's nodes"
+    assert "node capture (capture) up" not in second.stderr, "the second job started its source beside the first one's"
     assert first.poll() is None, first.describe()
 
 
