@@ -5,7 +5,8 @@ parameters, logs) and runs its body on a thread of its own; the members share th
 ``Host``, so a message from one to another passes as the Python object (``services.bus.local``)
 and goes onto the bus, encoded once, only while another session subscribes to its key.
 
-The members that read the bus start first; the sources (members that read nothing) start once
+The members that read the bus are made and started first (a name another process holds is refused
+on theirs before any source exists); the sources (members that read nothing) start once
 every other member waits for its inputs (``Node.serving``) and ``SETTLE_S`` more has passed, so no
 frame goes out before its consumers in the process can take it. Once the sources have returned
 and every other member has published its end of stream, the process stops them and exits, as a
