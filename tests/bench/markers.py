@@ -121,8 +121,8 @@ def pipeline(settings: DetectorSettings, apps: int = 0, grouped: bool = True, **
         marker = {"camera": "cam0", **settings.model_dump(exclude_defaults=True), **node}
         capture_params = {"source": ["synthetic:markers"], "fps": FPS, "frames": FRAMES, "wait_for_subscriber": True,
                           "prerender": PRERENDER}
+        wait_for_apps(session, bus, apps)
         if grouped:
-            wait_for_apps(session, bus, apps)
             members = [GroupMember(name="marker", kind="marker_pose", params=marker,
                                    flow=FlowPlan(upstream=("capture",))),
                        GroupMember(name="capture", kind="capture", params=capture_params, source=True)]
@@ -131,7 +131,6 @@ def pipeline(settings: DetectorSettings, apps: int = 0, grouped: bool = True, **
             processes.append(subprocess.Popen(node_command("marker_pose", "marker", marker), cwd=ROOT, env=env))
             if wait_for_nodes(session, bus.keys, {"marker"}, START_S) != {"marker"}:
                 raise RuntimeError("the marker node did not come up")
-            wait_for_apps(session, bus, apps)
             capture = subprocess.Popen(node_command("capture", "capture", capture_params), cwd=ROOT, env=env)
         processes.append(capture)
         started, apps_cpu = time.monotonic(), sum(cpu_seconds(p.pid) for p in processes[:apps])

@@ -113,10 +113,10 @@ def _condition(name: str) -> AbstractContextManager[Any]:
     return busy() if name == "loaded" else nullcontext()
 
 
-def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path) -> Iterator[dict[str, Any]]:
+def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path,
+         layout: str = "given") -> Iterator[dict[str, Any]]:
     """``count`` runs of one sequence under one condition: a line per run, then the summary line."""
-    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition,
-              "processes": flags[flags.index("--processes") + 1] if "--processes" in flags else "given"}
+    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition, "processes": layout}
     lines = []
     for run in range(count):
         load_before = os.getloadavg()[0]
@@ -141,14 +141,12 @@ def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room",
     with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
         for sequence in sequences:
             flags = sources()[sequence]
-            if flags is not None:
-                flags += ("--processes", layout)
             if flags is None:
                 lines.append({"bench": "slam_realtime", "sequence": sequence,
                               "skipped": f"data set {KITTI!r} not found at {data_root() / KITTI}"})
                 continue
             for condition in conditions:
-                lines += runs(sequence, flags, condition, count, Path(tmp))
+                lines += runs(sequence, (*flags, "--processes", layout), condition, count, Path(tmp), layout)
     return lines
 
 
