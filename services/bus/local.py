@@ -7,7 +7,9 @@ once, only while a subscriber in another session matches the key (Zenoh's matchi
 Zenoh publisher sends to other sessions only, so nothing arrives twice and the matching status
 counts only the subscribers that need the encoded bytes; what the session's other publishers put
 (statistics, ends of stream) still reaches the local subscribers through Zenoh. A recorder's raw
-taps want bytes: they get the same encoded payload as the bus does, encoded once for both.
+taps want bytes: they get the same encoded payload as the bus does, encoded once for both. Once a
+local subscriber has taken a message, its trip to the bus leaves from the process's ``Outbox``
+(``services.bus.outbox``), so the subscriber is not kept waiting while the message is encoded.
 
 A published message is immutable: a publisher does not change it (its arrays included) after
 ``put``, and a subscriber does not write into it. Decoded arrays are read-only, so a subscriber
@@ -23,6 +25,7 @@ from typing import Protocol
 import zenoh
 
 from protocol.message import Message
+from services.bus.outbox import Outbox
 
 Payload = Message | bytes
 """What a local subscriber is offered: the message itself, or the encoded bytes of a raw publisher."""
@@ -40,9 +43,11 @@ class LocalSink(Protocol):
 
 
 class LocalBus:
-    """The subscribers of one process's nodes, found by the keys their expressions take."""
+    """The subscribers of one process's nodes, found by the keys their expressions take, and the process's
+    ``outbox`` of sends to the bus."""
 
     def __init__(self) -> None:
+        self.outbox = Outbox()
         self._sinks: list[LocalSink] = []
         self._by_key: dict[str, tuple[LocalSink, ...]] = {}
         self._lock = threading.Lock()
@@ -57,6 +62,10 @@ class LocalBus:
             if sink in self._sinks:
                 self._sinks.remove(sink)
             self._by_key.clear()
+
+    def close(self) -> None:
+        """Send what the outbox holds and stop its thread."""
+        self.outbox.close()
 
     def sinks(self, key: str) -> tuple[LocalSink, ...]:
         """The subscribers whose key expression takes ``key`` (remembered per key until one comes or goes)."""

@@ -27,6 +27,7 @@ to ``on_decode_error`` and skipped.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -101,11 +102,14 @@ class RawPublisher:
         self._matched = status.matching
 
     def put(self, payload: bytes) -> None:
-        if self.local is not None:
-            for sink in self.local.sinks(self.key):
-                sink.offer(self.key, payload)
-        if self.wanted():
+        if self.local is None:
             self.send(payload)
+        else:
+            sinks = self.local.sinks(self.key)
+            for sink in sinks:
+                sink.offer(self.key, payload)
+            if self.wanted():
+                self.local.outbox.send(functools.partial(self.send, payload), defer=bool(sinks))
         self.counter.count(messages=1)
 
     def wanted(self) -> bool:
@@ -129,7 +133,8 @@ class RawPublisher:
 
 class Publisher(Generic[M]):
     """Publishes messages of one type on one key: by reference to the process's own subscribers (with
-    ``local``), encoded once for the bus and for raw taps, only when one of them wants it."""
+    ``local``), encoded once for the bus and for raw taps, only when one of them wants it; the bus's copy
+    leaves from ``local``'s outbox."""
 
     def __init__(self, session: zenoh.Session, key: str, cls: type[M], role: Role,
                  counter: StreamCounter | None = None, lossless: bool = False, local: LocalBus | None = None):
@@ -150,10 +155,14 @@ class Publisher(Generic[M]):
                 encoded.append(encode(message))
             return encoded[0]
 
-        if self.raw.local is not None:
-            deliver(self.raw.local.sinks(self.key), self.key, message, once)
-        if self.raw.wanted():
+        local = self.raw.local
+        if local is None:
             self.raw.send(once())
+        else:
+            sinks = local.sinks(self.key)
+            deliver(sinks, self.key, message, once)
+            if self.raw.wanted():
+                local.outbox.send(lambda: self.raw.send(once()), defer=bool(sinks))
         self.counter.count(messages=1)
 
     def matched(self) -> bool:

@@ -44,7 +44,7 @@ from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import GroundTruth
 from protocol.sensors import CameraInfo, Image
-from protocol.spatial import RIG_FRAME, StaticTransforms
+from protocol.spatial import RIG_FRAME, FrameTransform, StaticTransforms
 from services.bus.pubsub import Role
 from services.calibration.camera_info import CalibrationError, fit_to_image, read_camera_info
 from services.capture.sources import (
@@ -61,6 +61,7 @@ from services.capture.sources import (
     rig_camera_names,
 )
 from services.convert import camera_info, frame_transforms, rig_static_transforms
+from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import REPORT_EVERY_S, Node, NodeError
 from services.synthetic import scene_options
@@ -213,6 +214,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     if rig.calibration:
         _publish_static_transforms(node, rig)
     seq = 0
+    stamped = _StampedInfos(rig)
     late = _Lateness(node, keys.image(rig.names[0]))
     credits = node.credits()
     while node.running and (params.frames == 0 or seq < params.frames):
@@ -236,9 +238,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
                         rig.fit(rename[own_name], image, node.log)
             except CalibrationError as exc:
                 raise NodeError(str(exc)) from exc
-            header_stamp = _stamp(params, instant[0])
-            for frame, rename in zip(instant, rig.renames, strict=True):
-                _publish_frame(frame, rename, header_stamp, seq, images, infos, truths, rig)
+            header_stamp = _publish_instant(params, instant, rig, seq, stamped, images, infos, truths)
             node.processed(time.perf_counter() - started, header_stamp)
             if credits is not None:
                 credits.sent(seq)
@@ -275,17 +275,60 @@ def _stamp(params: Params, frame: SourceFrame) -> int:
     return time.time_ns()
 
 
-def _publish_frame(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: int, images, infos, truths,
-                   rig: Rig) -> None:
+def _publish_instant(params: Params, instant: list[SourceFrame], rig: Rig, seq: int, stamped: _StampedInfos,
+                     images, infos, truths) -> int:
+    """Put one instant's messages under one header and return its stamp. Everything is built before the stamp
+    is taken or right after it, cheaply; CameraInfo and GroundTruth go before the images, so a node that takes
+    a frame has its calibration, and the images go last: a node of this process handed one starts on it while
+    this thread has nothing more to do for the instant."""
+    truth = {rename[own]: frame_transforms(frame.truth.get(own, []))
+             for frame, rename in zip(instant, rig.renames, strict=True) for own in frame.images
+             if rename[own] in truths}
+    stamp = _stamp(params, instant[0])
+    messages = [message for frame, rename in zip(instant, rig.renames, strict=True)
+                for message in _frame_messages(frame, rename, stamp, seq, stamped, truth)]
+    for name, _, info, ground_truth in messages:
+        if info is not None:
+            infos[name].put(info)
+        if ground_truth is not None:
+            truths[name].put(ground_truth)
+    for name, image, _, _ in messages:
+        images[name].put(image)
+    return stamp
+
+
+def _frame_messages(frame: SourceFrame, rename: dict[str, str], stamp: int, seq: int, infos: _StampedInfos,
+                    truth: dict[str, tuple[FrameTransform, ...]]) -> list[tuple[str, Image, CameraInfo | None,
+                                                                              GroundTruth | None]]:
+    """Per camera of ``frame``: its name, Image, CameraInfo (None uncalibrated) and GroundTruth (None without
+    ``truth`` for it) under one header."""
+    messages = []
     for own_name, image in frame.images.items():
         name = rename[own_name]
         header = Header(stamp_ns=stamp, frame_id=name, seq=seq)
         encoding = _ENCODINGS[(image.dtype, image.shape[2] if image.ndim == 3 else 1)]
-        if name in infos:  # before the image: a node that takes the frame has been sent its calibration
-            infos[name].put(camera_info(header, rig.calibration[name]))
-        images[name].put(Image(header=header, encoding=encoding, data=image))
-        if name in truths:
-            truths[name].put(GroundTruth(header=header, transforms=frame_transforms(frame.truth.get(own_name, []))))
+        messages.append((name, Image(header=header, encoding=encoding, data=image), infos.under(header),
+                         None if name not in truth else GroundTruth(header=header, transforms=truth[name])))
+    return messages
+
+
+class _StampedInfos:
+    """Each calibrated camera's CameraInfo, built once per calibration and put under each frame's header."""
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self._built: dict[str, tuple[CameraModel, CameraInfo]] = {}
+
+    def under(self, header: Header) -> CameraInfo | None:
+        """The CameraInfo of camera ``header.frame_id`` with ``header``, None when it has no calibration."""
+        camera = self.rig.calibration.get(header.frame_id)
+        if camera is None:
+            return None
+        built = self._built.get(header.frame_id)
+        if built is None or built[0] is not camera:
+            built = camera, camera_info(header, camera)
+            self._built[header.frame_id] = built
+        return built[1].model_copy(update={"header": header})
 
 
 class _Pacer:

@@ -21,4 +21,6 @@ class Host:
         self.local = LocalBus()
 
     def close(self) -> None:
+        """Send what the nodes put (``LocalBus.close``), then close the session."""
+        self.local.close()
         self.session.close()

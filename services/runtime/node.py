@@ -565,6 +565,7 @@ class Node:
         self.stop()
         self._stats_thread.join(timeout=1.0)
         self._publish_stats()  # the last counts, for whoever sums a run up after this node has gone
+        self.host.local.outbox.flush()
         if self._ends is not None:
             self._ends.close()
         for credits in self._credits:
