@@ -33,6 +33,7 @@ from services.estimation.bodies.rigid import (
     Matching,
     MatchOptions,
     check_points,
+    fit_labelled,
     match_bodies,
 )
 from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions, Prediction
@@ -83,11 +84,8 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
         for row, column in gated_assignment(cost, tracking.gate):
             k = owner[row]
             indices[k][row - first[k]] = column
-        for k, name in enumerate(predicted):
-            fitted = _fit_near(np.asarray(bodies[name], np.float64), points, covariances, indices[k], options,
-                               tracking.min_spheres)
-            if fitted is not None:
-                found[name] = BodyMatch(name, *fitted)
+        found = fit_labelled(bodies, points, covariances, dict(zip(predicted, indices, strict=True)),
+                             options.gate_rms, tracking.min_spheres)
     taken = np.zeros(len(points), bool)
     for match in found.values():
         taken[match.indices[match.indices >= 0]] = True
