@@ -2,12 +2,24 @@
 
 import numpy as np
 
-from services.estimation.bodies.rigid import fit_labelled
-from services.estimation.bodies.tracking import _fit_near
-from services.estimation.bodies.rigid import MatchOptions
+from services.estimation.bodies.rigid import MatchOptions, fit_labelled
+from services.geometry.absolute_orientation import fit_rigid
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points
 from services.synthetic.ir_rig import LAYOUTS
+
+
+def fit_alone(spheres, points, covariances, indices, gate_rms, min_spheres):
+    """One body: fitted to its labelled points, the farthest sphere let go while the fit breaks the gate."""
+    indices = indices.copy()
+    while np.count_nonzero(indices >= 0) >= min_spheres:
+        seen = np.flatnonzero(indices >= 0)
+        fit = fit_rigid(spheres[seen], points[indices[seen]], covariances[indices[seen]])
+        if fit.residual_rms <= gate_rms:
+            return indices, fit
+        residuals = np.linalg.norm(points[indices[seen]] - transform_points(fit.T_world_body, spheres[seen]), axis=1)
+        indices[seen[int(np.argmax(residuals))]] = -1
+    return None
 
 
 def test_batched_fits_are_those_of_one_body_at_a_time():
@@ -28,7 +40,7 @@ def test_batched_fits_are_those_of_one_body_at_a_time():
         options = MatchOptions()
         batched = fit_labelled(LAYOUTS, points, covariances, labels, options.gate_rms, 3)
         for name, spheres in LAYOUTS.items():
-            alone = _fit_near(spheres, points, covariances, labels[name], options, 3)
+            alone = fit_alone(spheres, points, covariances, labels[name], options.gate_rms, 3)
             assert (alone is None) == (name not in batched), (trial, name)
             if alone is None:
                 continue

@@ -60,6 +60,7 @@ from services.convert import CameraModels, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
+from services.estimation.bodies.labelled import Found, track_blobs
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
 from services.estimation.bodies.tracking import BodyTracker, TrackingOptions
 from services.estimation.markers.tracking import TargetTracks
@@ -91,8 +92,8 @@ class Params(NodeParams):
     correspondence: Annotated[CorrespondenceOptions, Flat()] = CorrespondenceOptions()
     match: Annotated[MatchOptions, Flat()] = MatchOptions()
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
-    predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
-                                                     "matched near it first, one missing set bridged")
+    predict: bool = Field(default=True, description="follow each body with a constant-velocity prediction: its "
+                                                    "spheres labelled in the images first, one missing set bridged")
     tracking: Annotated[TrackingOptions, Flat("predict_", names={
         "motion_max_gap_s": "predict_gap_s", "motion_acceleration": "predict_acceleration",
         "motion_angular_acceleration": "predict_angular_acceleration"}, label="predict")] = TrackingOptions()
@@ -182,6 +183,33 @@ class PointNoise:
         return points, covariances * sigma_px**2
 
 
+class BodiesPerSet:
+    """What the node does with each joined set: its points and the bodies among them, with ``predict`` the
+    bodies followed (``BodyTracker``, ``labelled.track_blobs``), else the full path alone (``triangulate_blobs``,
+    then ``match_bodies``)."""
+
+    def __init__(self, bodies: Mapping[str, np.ndarray], params: Params):
+        self.bodies = dict(bodies)
+        self.params = params
+        self.noise = PointNoise(params.correspondence)
+        self.tracker = BodyTracker(bodies, params.match, params.tracking) if params.predict else None
+
+    def __call__(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray]
+                 ) -> tuple[Found, dict[str, Prediction]]:
+        """The set's ``Found`` and name -> ``Prediction`` of the bodies bridged; ``blobs[c]``: (N_c, 2) pixels
+        of ``cameras[c]`` (``pixels``)."""
+        params = self.params
+        if self.tracker is None:
+            made = triangulate_blobs(cameras, blobs, params.correspondence)
+            points, covariances = self.noise.arrays(made)
+            matching = match_bodies(self.bodies, points, covariances, params.match) if len(made) else Matching()
+            return Found(made, points, covariances, matching), {}
+        forecasts = self.tracker.forecast(stamp_ns)
+        found = track_blobs(cameras, blobs, self.bodies, {name: f.T_world_body for name, f in forecasts.items()},
+                            self.noise.arrays, params.correspondence, params.match, params.tracking)
+        return found, self.tracker.record(stamp_ns, found.matching, forecasts).predicted
+
+
 def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching,
                    covariances: np.ndarray | None = None) -> Points3D:
     """The set's points with the body each was matched to; ``covariances`` (N, 3, 3) m^2 when not the points'
@@ -255,10 +283,7 @@ def run(node: Node, params: Params) -> None:
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
     poses = PosePublishers(node)
     names = list(bodies)
-    noise = PointNoise(params.correspondence)
-    tracker = None
-    if params.predict:
-        tracker = BodyTracker(bodies, params.match, params.tracking)
+    per_set = BodiesPerSet(bodies, params)
     for joined in sets:
         first = joined[params.cameras[0]]
         header = first.header.model_copy(update={"frame_id": WORLD})
@@ -267,17 +292,10 @@ def run(node: Node, params: Params) -> None:
             node.report("no_calibration", f"no CameraInfo for {', '.join(calibration.missing())} and no rig file: "
                         "nothing triangulated", keys.camera_info(calibration.missing()[0]))
             continue
-        found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
-                                  params.correspondence)
-        points, covariances = noise.arrays(found)
-        if tracker is None:
-            matching = match_bodies(bodies, points, covariances, params.match) if len(found) else Matching()
-            poses.put(header, body_poses(header, matching))
-        else:
-            tracked = tracker.step(header.stamp_ns, points, covariances)
-            matching = tracked.matching
-            poses.put(header, body_poses(header, matching) + predicted_poses(header, tracked.predicted))
-        points_out.put(points_message(header, found, names, matching, covariances))
+        found, predicted = per_set(header.stamp_ns, cameras,
+                                   [pixels(joined[name], params.flagged) for name in params.cameras])
+        poses.put(header, body_poses(header, found.matching) + predicted_poses(header, predicted))
+        points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
 
 
 def _inputs(params: Params) -> tuple[str, ...]:

@@ -26,7 +26,7 @@ fits the bodies without a search, letting go of the worst sphere while a fit bre
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
