@@ -11,10 +11,20 @@ synthetic ``ir_rig`` source's own); what ``check_bodies`` finds doubtful about t
 start, one line each. Without a file the node looks for no body: every point is published
 unlabelled (body -1), from which ``artrack bodies define`` makes bodies, and no pose.
 
-Per joined set (``services.estimation.bodies.correspondence``, ``services.estimation.bodies.rigid``):
-the blobs without flags (``flagged`` uses the flagged ones too) are put in correspondence and
-triangulated, the bodies matched among the points and each fitted. Outputs, with the header of
-the set's frames and ``frame_id`` ``world``:
+Per joined set the blobs without flags (``flagged`` uses the flagged ones too) become 3D points and the
+bodies are found among them and each fitted (``BodiesPerSet``). With ``predict`` (the default) the bodies are
+followed from set to set (``services.estimation.bodies.tracking.BodyTracker``): each body's constant-velocity
+motion, from its last two fits and their stamps, predicts its pose at the set's stamp, and the set goes
+through ``services.estimation.bodies.labelled.track_blobs``: the predicted spheres of every body projected
+into every camera label the blobs within ``predict_gate_px`` of them (a blob near two predicted spheres is
+doubtful and labels none), each sphere labelled in two cameras or more is triangulated over its views, and
+each body fitted to its labelled points without a search; the blobs left (the first sets, a body lost or
+new, strays) go through the full path below, and the bodies not fitted are looked for among its points,
+within ``predict_gate`` of their prediction first. Without ``predict`` (``predict=false``), every set takes
+the full path alone: all blobs put in correspondence and triangulated
+(``services.estimation.bodies.correspondence``), the bodies matched among the points by their distances
+(``services.estimation.bodies.rigid``). Outputs, with the header of the set's frames and ``frame_id``
+``world``:
 
 * ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none); the
   covariances are for centroid noise of ``sigma_px``, by default (``auto``) the running estimate of
@@ -25,13 +35,9 @@ the set's frames and ``frame_id`` ``world``:
   (tx, ty, tz, rx, ry, rz) in the body frame); a body found in the previous set and not in this
   one gets one ``lost`` pose (identity transform).
 
-With ``predict`` (off by default; off, the per-set path is the one above and nothing more), the bodies
-are followed from set to set (``services.estimation.bodies.tracking.BodyTracker``): each body's
-constant-velocity motion, from its last two fits and their stamps, predicts its pose in the next set;
-its spheres are looked for within ``predict_gate`` of where they should be before any search by
-distances; and a body found in the previous set and missing from this one gets one pose with state
-``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then
-``lost`` if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
+With ``predict``, a body found in the previous set and missing from this one gets one pose with state
+``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then ``lost``
+if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
 
 Until every camera has a calibration, sets are counted as skipped (``no_calibration``). A rig file is used
 as it is: one whose camera was calibrated at another size than that camera's frames is refused before
