@@ -66,24 +66,26 @@ class Found:
 def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.ndarray, gate_px: float) -> np.ndarray:
     """(S, C) int64: for each predicted sphere (row of (S, 3) ``expected``, world) and camera of ``stack``, the
     index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring)."""
-    projected = stack.project(expected)
     labels = np.full((len(expected), len(stack)), -1, np.int64)
-    for c, observed in enumerate(blobs):
-        if not len(observed):
-            continue
-        cost = np.linalg.norm(projected[:, c, None, :] - observed[None], axis=2)
-        with np.errstate(invalid="ignore"):
-            near = cost < gate_px
-        doubtful = np.count_nonzero(near, axis=0) >= 2
-        if np.any(doubtful):
-            near[np.any(near[:, doubtful], axis=1)] = False
-            near[:, doubtful] = False
-        if np.all(np.count_nonzero(near, axis=1) <= 1):
-            # Each sphere and each blob near one other at most: the gated assignment takes every such pair.
-            rows, columns = np.nonzero(near)
-            labels[rows, c] = columns
-            continue
-        for row, column in gated_assignment(np.where(near, cost, np.inf), gate_px):
+    widest = max(len(b) for b in blobs)
+    if not widest:
+        return labels
+    observed = np.full((len(stack), widest, 2), np.nan)
+    for c, b in enumerate(blobs):
+        observed[c, :len(b)] = b
+    cost = np.linalg.norm(stack.project(expected)[:, :, None, :] - observed[None], axis=3)
+    with np.errstate(invalid="ignore"):
+        near = cost < gate_px
+    doubtful = np.count_nonzero(near, axis=0) >= 2
+    if np.any(doubtful):
+        near &= ~np.any(near & doubtful[None], axis=2)[:, :, None]
+        near &= ~doubtful[None]
+    crowded = np.any(np.count_nonzero(near, axis=2) > 1, axis=0)
+    spheres, cameras, columns = np.nonzero(near & ~crowded[None, :, None])
+    # A sphere near one blob only, that blob near no other sphere: the gated assignment takes every such pair.
+    labels[spheres, cameras] = columns
+    for c in np.flatnonzero(crowded).tolist():
+        for row, column in gated_assignment(np.where(near[:, c], cost[:, c], np.inf), gate_px):
             labels[row, c] = column
     return labels
 
@@ -93,7 +95,7 @@ def triangulate_labelled(instant: Views, labels: np.ndarray, options: Correspond
     """``(spheres (K,) int64, points)``: the spheres (rows of (S, C) ``labels``) triangulated from the blobs they
     label, and their points (see the module docstring)."""
     rows = np.flatnonzero(np.count_nonzero(labels >= 0, axis=1) >= 2)
-    clusters = [[(c, int(labels[s, c])) for c in np.flatnonzero(labels[s] >= 0).tolist()] for s in rows.tolist()]
+    clusters = [[(c, i) for c, i in enumerate(row) if i >= 0] for row in labels[rows].tolist()]
     gate = options.reprojection_gate_px
     solved = instant.drop_worst(clusters, instant.solve(clusters), gate)
     kept = [k for k, point in enumerate(solved) if point.rms_px <= gate and point.views >= options.min_views]
