@@ -16,7 +16,9 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   (its default), on the same blobs, stamped with the scene's time (30 Hz): ``node.BodiesPerSet`` (the
   bodies followed in the images, ``labelled.track_blobs``; the first two instants seed the motions and
   take the full path) and its messages built and encoded, before the full path on odd instants and
-  after it on even ones. p50 / p99 ms after ``WARMUP`` instants.
+  after it on even ones; ``predicted_triangulation`` and ``predicted_fit``: its points' triangulation
+  and its bodies' fits redone alone, as ``triangulation`` and ``fit`` are for the full path. p50 / p99
+  ms after ``WARMUP`` instants.
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
 * ``pipeline``: ``tests.bench.frame_source`` publishes pre-rendered frame pairs at ``rate``
   (Image + CameraInfo per camera, the capture node's way), a ``blobs`` node per camera and the
@@ -55,6 +57,7 @@ from services.detection.blobs import node as blobs_node
 from services.estimation.bodies import node as rigid_bodies_node
 from services.estimation.bodies.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.bodies.file import save_bodies
+from services.estimation.bodies.labelled import Found
 from services.estimation.bodies.rigid import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariances
 from services.geometry.triangulation import triangulate_many
@@ -71,7 +74,7 @@ WARMUP = 20
 START_S = 30.0
 QUIET_S = 2.0
 STAGES = ("blobs", "correspondence", "triangulation", "matching", "fit", "messages", "total", "bodies_full",
-          "bodies_predicted")
+          "bodies_predicted", "predicted_triangulation", "predicted_fit")
 TARGET = {"rate_hz": 240.0, "p50_ms": 3.0, "p99_ms": 5.0}
 
 
@@ -91,9 +94,9 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
         t0 = time.perf_counter()
         found_blobs = [blobs_node.as_message(_header(name), "ir", detect(instant.images[name])) for name in names]
         blobs_s = time.perf_counter() - t0
+        stamp_ns = round(scene.time_s(index) * 1e9)
         if index % 2:
-            times["bodies_predicted"].append(_predicted(followed, round(scene.time_s(index) * 1e9),
-                                                        list(scene.cameras), found_blobs, list(bodies)))
+            followed_s, labelled = _predicted(followed, stamp_ns, list(scene.cameras), found_blobs, list(bodies))
         t1 = time.perf_counter()
         found = triangulate_blobs(scene.cameras, [rigid_bodies_node.pixels(b, False) for b in found_blobs],
                                   correspondence)
@@ -108,8 +111,12 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
             encode(message)
         t4 = time.perf_counter()
         if not index % 2:
-            times["bodies_predicted"].append(_predicted(followed, round(scene.time_s(index) * 1e9),
-                                                        list(scene.cameras), found_blobs, list(bodies)))
+            followed_s, labelled = _predicted(followed, stamp_ns, list(scene.cameras), found_blobs, list(bodies))
+        times["bodies_predicted"].append(followed_s)
+        times["predicted_triangulation"].append(_triangulation_alone(stack, labelled.points, found_blobs,
+                                                                     correspondence.covariance_sigma_px))
+        times["predicted_fit"].append(_fit_alone(bodies, labelled.points_world, labelled.covariances,
+                                                 labelled.matching))
         alone_triangulation = _triangulation_alone(stack, found, found_blobs, correspondence.covariance_sigma_px)
         alone_fit = _fit_alone(bodies, points, covariances, matching)
         times["blobs"].append(blobs_s)
@@ -124,9 +131,9 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
 
 
 def _predicted(followed: rigid_bodies_node.BodiesPerSet, stamp_ns: int, cameras: list, blobs: list[Blobs],
-               names: list[str]) -> float:
-    """Seconds the node's work on one instant takes with prediction: ``BodiesPerSet`` on the ``blobs`` messages
-    and its messages."""
+               names: list[str]) -> tuple[float, Found]:
+    """Seconds the node's work on one instant takes with prediction (``BodiesPerSet`` on the ``blobs`` messages
+    and its messages), and what it found."""
     started = time.perf_counter()
     found, predicted = followed(stamp_ns, cameras, [rigid_bodies_node.pixels(b, False) for b in blobs])
     header = _header("world")
@@ -135,7 +142,7 @@ def _predicted(followed: rigid_bodies_node.BodiesPerSet, stamp_ns: int, cameras:
                 *rigid_bodies_node.predicted_poses(header, predicted)]
     for message in messages:
         encode(message)
-    return time.perf_counter() - started
+    return time.perf_counter() - started, found
 
 
 def _header(frame_id: str) -> Header:
