@@ -1,9 +1,10 @@
 """The stereo tracker's steps run in-process on the ``ir_rig`` scene's rendered frames, scored against its truth.
 
 ``rendered_blobs`` renders frames and finds their blobs as a ``blobs`` node does (its default settings);
-``track`` takes them through what the ``rigid_bodies`` node does per joined set (the unflagged blobs put
-in correspondence and triangulated, the bodies matched and fitted, the covariance turned into the
-published ``Pose``'s) with any cameras, so one set of blobs can be tracked with the true rig and with a
+``track`` takes them through what the ``rigid_bodies`` node does per joined set (``node.BodiesPerSet``: the
+unflagged blobs put in correspondence and triangulated, the bodies found and fitted, followed from frame
+to frame with ``predict``, stamped with the scene's time; the covariance turned into the published
+``Pose``'s) with any cameras, so one set of blobs can be tracked with the true rig and with a
 calibrated one. Each ``Tracked`` pose is set beside the scene's truth of its frame.
 """
 
@@ -18,9 +19,7 @@ from protocol.detections import Blobs
 from protocol.message import Header
 from services.detection.blobs.node import Params as BlobsParams
 from services.detection.blobs.node import as_message, detector
-from services.estimation.bodies.correspondence import triangulate_blobs
-from services.estimation.bodies.node import Params, PointNoise, pixels
-from services.estimation.bodies.rigid import match_bodies
+from services.estimation.bodies.node import BodiesPerSet, Params, pixels
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import rotation_angle, rotvec_from_matrix
@@ -80,16 +79,13 @@ def track(scene: IrRigScene, indices: Sequence[int], blobs: Sequence[Sequence[Bl
     which the truth is expressed in (default: identity, the scene's own rig)."""
     cameras = list(scene.cameras if cameras is None else cameras)
     params = params or Params(cameras=tuple(c.name for c in cameras))
-    noise = PointNoise(params.correspondence)
+    per_set = BodiesPerSet(scene.bodies, params)
     out = []
     for index, frame in zip(indices, blobs, strict=True):
-        found = triangulate_blobs(cameras, [pixels(b, params.flagged) for b in frame], params.correspondence)
-        if not found:
-            continue
-        points, covariances = noise.arrays(found)
+        found, _ = per_set(round(scene.time_s(index) * 1e9), cameras, [pixels(b, params.flagged) for b in frame])
         truth = {name: T_world_body if T_frame_world is None else T_frame_world @ T_world_body
                  for name, T_world_body in scene.body_poses(index).items()}
-        for name, match in match_bodies(scene.bodies, points, covariances, params.match).bodies.items():
+        for name, match in found.matching.bodies.items():
             fit = match.fit
             assert fit.covariance is not None
             out.append(Tracked(index, name, fit.T_world_body, truth[name],

@@ -1,20 +1,22 @@
 """Rigid bodies with and without the constant-velocity prediction, on the rendered ``ir_rig`` scene.
 
-The rigid_bodies node's per-instant path in-process: the scene's default frames (two cameras, three
-bodies, one sphere hidden from one camera in a quarter of the half-second windows) -> IR blobs per
-camera (the blobs node's detector) -> correspondences and triangulation -> bodies matched by
-``match_bodies`` alone, or followed by ``BodyTracker`` (matched near their predictions, one missing
-instant bridged). Each pose is scored against the scene's truth of its frame, unaligned (the rig
-frame is the world).
+The rigid_bodies node's per-instant path in-process (``node.BodiesPerSet``): the scene's default frames
+(two cameras, three bodies, one sphere hidden from one camera in a quarter of the half-second windows,
+30 Hz) -> IR blobs per camera (the blobs node's detector) -> ``predict=false``: correspondences and
+triangulation of all blobs, bodies matched by ``match_bodies``; or the default, followed: the blobs
+labelled by the predicted spheres in the images, triangulated and fitted without a search, the rest through
+the full path, one missing instant bridged. Each pose is scored against the scene's truth of its frame,
+unaligned (the rig frame is the world).
 
 Requirement: with prediction, no fewer frames with a pose (tracking or predicted) per body; on the
 frames both ways give a tracking pose, median position and rotation errors no worse than without (to
 within 1 %); no tracking pose farther from the truth than 1 mm (or than the farthest without), every
 predicted one within 5 mm; on points with ghosts, the same points chosen both ways.
 
-``python -m tests.accuracy.test_body_prediction [FRAMES]`` prints the figures as one JSON line,
-with the matching time per instant of each way (mean over the instants, milliseconds), there and on
-points with ghosts (``ghost_timing``).
+``python -m tests.accuracy.test_body_prediction [FRAMES]`` prints the figures as one JSON line, with the
+node's time per instant (after the blobs) of each way (mean over the instants, milliseconds), and the
+matching time per instant on points with ghosts (``ghost_timing``: ``match_bodies`` against
+``BodyTracker.step``, matched near the predictions among points).
 """
 
 from __future__ import annotations
@@ -29,8 +31,7 @@ import pytest
 
 from services.detection.blobs.node import Params as BlobParams
 from services.detection.blobs.node import detector
-from services.estimation.bodies.correspondence import triangulate_blobs
-from services.estimation.bodies.node import point_arrays
+from services.estimation.bodies.node import BodiesPerSet, Params
 from services.estimation.bodies.rigid import match_bodies
 from services.estimation.bodies.tracking import BodyTracker
 from services.geometry.evaluation import pose_error
@@ -44,15 +45,14 @@ GHOSTS, NOISE_M = 10, 0.0002
 VOLUME = (np.array([-0.9, -0.5, 1.6]), np.array([0.9, 0.7, 2.8]))
 
 
-def instants(scene: IrRigScene, frames: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """Per frame: its stamp (ns), the (M, 3) triangulated points (world) and their (M, 3, 3) covariances."""
+def instants(scene: IrRigScene, frames: int) -> list[tuple[int, list[np.ndarray]]]:
+    """Per frame: its stamp (ns) and each camera's (N, 2) blobs without flags."""
     found = []
     find = detector(BlobParams())
     for index in range(frames):
         images, _ = scene.draw(index)
         blobs = [find(images[c.name]) for c in scene.cameras]
-        points = triangulate_blobs(scene.cameras, [b.centroids[b.flags == 0] for b in blobs])
-        found.append((round(scene.time_s(index) * 1e9), *point_arrays(points)))
+        found.append((round(scene.time_s(index) * 1e9), [b.centroids[b.flags == 0] for b in blobs]))
     return found
 
 
@@ -71,27 +71,29 @@ def run(frames: int = FRAMES) -> dict[str, Any]:
     scene = IrRigScene()
     bodies = scene.bodies
     seen = instants(scene, frames)
-    tracker = BodyTracker(bodies)
+    names = tuple(c.name for c in scene.cameras)
+    ways = {"without": BodiesPerSet(bodies, Params(cameras=names, predict=False)),
+            "with": BodiesPerSet(bodies, Params(cameras=names))}
     plain: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in bodies}
     followed: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in bodies}
     bridged: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in bodies}
     seconds = {"without": 0.0, "with": 0.0}
-    for index, (stamp_ns, points, covariances) in enumerate(seen):
+    for index, (stamp_ns, blobs) in enumerate(seen):
         truth = scene.body_poses(index)
         start = time.perf_counter()
-        matching = match_bodies(bodies, points, covariances)
+        alone, _ = ways["without"](stamp_ns, list(scene.cameras), blobs)
         seconds["without"] += time.perf_counter() - start
         start = time.perf_counter()
-        tracked = tracker.step(stamp_ns, points, covariances)
+        found, predicted = ways["with"](stamp_ns, list(scene.cameras), blobs)
         seconds["with"] += time.perf_counter() - start
-        for name, match in matching.bodies.items():
+        for name, match in alone.matching.bodies.items():
             plain[name][index] = pose_error(match.fit.T_world_body, truth[name])
-        for name, match in tracked.matching.bodies.items():
+        for name, match in found.matching.bodies.items():
             followed[name][index] = pose_error(match.fit.T_world_body, truth[name])
-        for name, prediction in tracked.predicted.items():
+        for name, prediction in predicted.items():
             bridged[name][index] = pose_error(prediction.T_world_body, truth[name])
     figures: dict[str, Any] = {"frames": frames, "cameras": len(scene.cameras),
-                               "match_ms_per_instant": {way: 1e3 * s / frames for way, s in seconds.items()}}
+                               "ms_per_instant": {way: 1e3 * s / frames for way, s in seconds.items()}}
     for name in bodies:
         both = sorted(set(plain[name]) & set(followed[name]))
         figures[name] = {

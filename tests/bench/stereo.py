@@ -11,7 +11,14 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
   ``triangulate_blobs`` takes (its total minus that); ``fit`` is the chosen bodies' rigid fits
   with covariance redone alone (one batched least squares, then the covariances in one batch, as
   ``match_bodies`` does), ``matching`` the rest of ``match_bodies``. ``total``: blobs +
-  triangulate_blobs + match_bodies + messages. p50 / p99 ms after ``WARMUP`` instants.
+  triangulate_blobs + match_bodies + messages; ``bodies_full``: the same less the blobs, the node's work
+  per instant with ``predict=false``. ``bodies_predicted``: the node's work per instant with prediction
+  (its default), on the same blobs, stamped with the scene's time (30 Hz): ``node.BodiesPerSet`` (the
+  bodies followed in the images, ``labelled.track_blobs``; the first two instants seed the motions and
+  take the full path) and its messages built and encoded, before the full path on odd instants and
+  after it on even ones; ``predicted_triangulation`` and ``predicted_fit``: its points' triangulation
+  and its bodies' fits redone alone, as ``triangulation`` and ``fit`` are for the full path. p50 / p99
+  ms after ``WARMUP`` instants.
   ``in_process_paced``: the same, one instant every 1/rate s, as the pipeline gets them.
 * ``pipeline``: ``tests.bench.frame_source`` publishes pre-rendered frame pairs at ``rate``
   (Image + CameraInfo per camera, the capture node's way), a ``blobs`` node per camera and the
@@ -44,11 +51,13 @@ from typing import Any
 import numpy as np
 
 from protocol import encode
+from protocol.detections import Blobs
 from protocol.message import Header
 from services.detection.blobs import node as blobs_node
 from services.estimation.bodies import node as rigid_bodies_node
 from services.estimation.bodies.correspondence import rig_geometry, triangulate_blobs
 from services.estimation.bodies.file import save_bodies
+from services.estimation.bodies.labelled import Found
 from services.estimation.bodies.rigid import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariances
 from services.geometry.triangulation import triangulate_many
@@ -64,7 +73,8 @@ BODIES = 3
 WARMUP = 20
 START_S = 30.0
 QUIET_S = 2.0
-STAGES = ("blobs", "correspondence", "triangulation", "matching", "fit", "messages", "total")
+STAGES = ("blobs", "correspondence", "triangulation", "matching", "fit", "messages", "total", "bodies_full",
+          "bodies_predicted", "predicted_triangulation", "predicted_fit")
 TARGET = {"rate_hz": 240.0, "p50_ms": 3.0, "p99_ms": 5.0}
 
 
@@ -78,10 +88,15 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
     correspondence, matching_options = node.correspondence, node.match
     noise = rigid_bodies_node.PointNoise(correspondence)
     bodies, stack = scene.bodies, rig_geometry(scene.cameras).stack
+    followed = rigid_bodies_node.BodiesPerSet(bodies, node)
     times: dict[str, list[float]] = defaultdict(list)
-    for instant in at_rate(instants, period_s):
+    for index, instant in enumerate(at_rate(instants, period_s)):
         t0 = time.perf_counter()
         found_blobs = [blobs_node.as_message(_header(name), "ir", detect(instant.images[name])) for name in names]
+        blobs_s = time.perf_counter() - t0
+        stamp_ns = round(scene.time_s(index) * 1e9)
+        if index % 2:
+            followed_s, labelled = _predicted(followed, stamp_ns, list(scene.cameras), found_blobs, list(bodies))
         t1 = time.perf_counter()
         found = triangulate_blobs(scene.cameras, [rigid_bodies_node.pixels(b, False) for b in found_blobs],
                                   correspondence)
@@ -95,16 +110,39 @@ def in_process(period_s: float = 0.0) -> dict[str, dict[str, float]]:
         for message in messages:
             encode(message)
         t4 = time.perf_counter()
+        if not index % 2:
+            followed_s, labelled = _predicted(followed, stamp_ns, list(scene.cameras), found_blobs, list(bodies))
+        times["bodies_predicted"].append(followed_s)
+        times["predicted_triangulation"].append(_triangulation_alone(stack, labelled.points, found_blobs,
+                                                                     correspondence.covariance_sigma_px))
+        times["predicted_fit"].append(_fit_alone(bodies, labelled.points_world, labelled.covariances,
+                                                 labelled.matching))
         alone_triangulation = _triangulation_alone(stack, found, found_blobs, correspondence.covariance_sigma_px)
         alone_fit = _fit_alone(bodies, points, covariances, matching)
-        times["blobs"].append(t1 - t0)
+        times["blobs"].append(blobs_s)
         times["correspondence"].append(t2 - t1 - alone_triangulation)
         times["triangulation"].append(alone_triangulation)
         times["matching"].append(t3 - t2 - alone_fit)
         times["fit"].append(alone_fit)
         times["messages"].append(t4 - t3)
-        times["total"].append(t4 - t0)
+        times["total"].append(blobs_s + t4 - t1)
+        times["bodies_full"].append(t4 - t1)
     return {stage: _percentiles(times[stage]) for stage in STAGES}
+
+
+def _predicted(followed: rigid_bodies_node.BodiesPerSet, stamp_ns: int, cameras: list, blobs: list[Blobs],
+               names: list[str]) -> tuple[float, Found]:
+    """Seconds the node's work on one instant takes with prediction (``BodiesPerSet`` on the ``blobs`` messages
+    and its messages), and what it found."""
+    started = time.perf_counter()
+    found, predicted = followed(stamp_ns, cameras, [rigid_bodies_node.pixels(b, False) for b in blobs])
+    header = _header("world")
+    messages = [rigid_bodies_node.points_message(header, found.points, names, found.matching, found.covariances),
+                *rigid_bodies_node.body_poses(header, found.matching),
+                *rigid_bodies_node.predicted_poses(header, predicted)]
+    for message in messages:
+        encode(message)
+    return time.perf_counter() - started, found
 
 
 def _header(frame_id: str) -> Header:

@@ -1,4 +1,4 @@
-"""``artrack run stereo --predict``: bodies followed by their predicted motion, in the real pipeline."""
+"""``artrack run stereo``: bodies followed by their predicted motion (the default), in the real pipeline."""
 
 import json
 
@@ -11,9 +11,9 @@ pytestmark = pytest.mark.integration
 FRAMES = 40
 
 
-def test_with_prediction_the_head_keeps_its_pose_and_a_missing_instant_is_bridged(procs, tmp_path):
+def test_by_default_the_head_keeps_its_pose_and_a_missing_instant_is_bridged(procs, tmp_path):
     out = tmp_path / "predicted.mcap"
-    job = procs.artrack("run", "stereo", "--source", "synthetic:ir_rig", "--frames", str(FRAMES), "--predict",
+    job = procs.artrack("run", "stereo", "--source", "synthetic:ir_rig", "--frames", str(FRAMES),
                         "--record", str(out), name="job")
     assert job.wait(4 * START_S) == 0, job.describe()
     states = {}
@@ -25,8 +25,8 @@ def test_with_prediction_the_head_keeps_its_pose_and_a_missing_instant_is_bridge
             # a predicted pose only ever follows a tracking one; lost follows tracking or predicted
             assert state != "predicted" or before == "tracking", (body, states[body])
             assert state != "lost" or before in ("tracking", "predicted"), (body, states[body])
-    # Without prediction the head (two of its five spheres merged in one camera for most of the
-    # sequence) has a pose in 14 of the first 40 frames; followed, it keeps it on its three others.
+    # Without prediction (--no-predict) the head (two of its five spheres merged in one camera for most
+    # of the sequence) has a pose in 14 of the first 40 frames; followed, it keeps it on its three others.
     assert states["head"].count("tracking") >= 0.8 * FRAMES, states["head"]
     scored = procs.run("eval", str(out), str(out), "--est-key", "pose/body/head", "--gt-key", "cam0/truth",
                        "--child", "body/head", "--align", "none", "--json")

@@ -131,10 +131,10 @@ def test_a_bridged_body_is_published_as_predicted_with_its_grown_covariance():
     assert np.trace(np.reshape(pose.covariance, (6, 6))) > 5 * np.trace(fitted)
 
 
-def test_prediction_is_off_by_default_and_a_flag_of_the_stereo_tracker():
-    params = Params()
-    assert params.predict is False
+def test_prediction_is_on_by_default_and_a_flag_of_the_stereo_tracker():
+    assert Params().predict is True
+    assert Params(predict=False).predict is False
     options = {flag.option for flag in Tracker.load("stereo").flags({})}
-    assert {"--predict", "--predict-gate", "--predict-gap-s"} <= options
-    tracking = Params(predict=True, predict_gate=0.02, predict_gap_s=0.25).tracking
-    assert tracking.gate == 0.02 and tracking.motion.max_gap_ns == 250_000_000
+    assert {"--predict", "--predict-gate", "--predict-gate-px", "--predict-gap-s"} <= options
+    tracking = Params(predict_gate=0.02, predict_gate_px=2.5, predict_gap_s=0.25).tracking
+    assert tracking.gate == 0.02 and tracking.gate_px == 2.5 and tracking.motion.max_gap_ns == 250_000_000

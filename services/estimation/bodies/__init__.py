@@ -2,6 +2,7 @@
 
 ``correspondence`` turns the blobs of every camera into 3D points in the rig frame, ``rigid`` finds bodies
 among them and fits ``T_world_body`` (4, 4), ``tracking`` follows each body from instant to instant,
+``labelled`` labels the blobs by the bodies' predicted spheres and fits them without a search,
 ``centroid_noise`` estimates the blobs' noise, ``definition`` and ``file`` make and keep bodies, and
 ``node`` is the rigid bodies node."""
 
@@ -16,6 +17,7 @@ from services.estimation.bodies.correspondence import (
 )
 from services.estimation.bodies.definition import body_frame
 from services.estimation.bodies.file import BodiesFileError, check_bodies, load_bodies, parse_bodies, save_bodies
+from services.estimation.bodies.labelled import track_blobs
 from services.estimation.bodies.rigid import BodyMatch, Matching, MatchOptions, match_bodies
 from services.estimation.bodies.tracking import BodyTracker, TrackingOptions, match_with_prediction
 
@@ -37,5 +39,6 @@ __all__ = [
     "parse_bodies",
     "rig_geometry",
     "save_bodies",
+    "track_blobs",
     "triangulate_blobs",
 ]

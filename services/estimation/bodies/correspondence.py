@@ -45,7 +45,7 @@ from services.geometry.se3 import invert
 from services.geometry.triangulation import TriangulatedPoint, triangulate_dlt_many, triangulate_many
 
 __all__ = ["CorrespondenceOptions", "RigGeometry", "gated_assignment", "unambiguous", "fundamental_matrices",
-           "rig_geometry", "triangulate_blobs"]
+           "rig_geometry", "triangulate_blobs", "Views"]
 
 
 class CorrespondenceOptions(BaseModel):
@@ -132,6 +132,65 @@ def rig_geometry(cameras: Sequence[CameraModel]) -> RigGeometry:
     return found
 
 
+class Views:
+    """One instant's blobs of every camera, stacked once, and the points of clusters of them.
+
+    ``blobs[c]``: (N_c, 2) observed pixels of camera c of ``stack``; ``ideal[c]``: the same undistorted
+    (ideal pinhole pixels). A cluster is ``[(camera, blob index)]``, cameras ascending, at least two.
+    The points' covariances are for a centroid noise of ``sigma_px``.
+    """
+
+    def __init__(self, stack: CameraStack, blobs: Sequence[np.ndarray], ideal: Sequence[np.ndarray], sigma_px: float):
+        self.stack, self.blobs, self.sigma_px = stack, blobs, sigma_px
+        self.offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]])
+        self.every_blob, self.every_ideal = np.concatenate(blobs), np.concatenate(ideal)
+
+    def solve(self, clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
+        """Each cluster's point over all its views (DLT, unless ``start`` (K, 3) has it, then Gauss-Newton), all
+        at once."""
+        if not clusters:
+            return []
+        count = len(self.stack)
+        pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
+        seen = np.zeros((len(clusters), count), bool)
+        rows = [row for row, views in enumerate(clusters) for _ in views]
+        cameras_seen, blob_indices = np.array([v for views in clusters for v in views], np.int64).T
+        flat = self.offsets[cameras_seen] + blob_indices
+        pixels[rows, cameras_seen], undistorted[rows, cameras_seen] = self.every_blob[flat], self.every_ideal[flat]
+        seen[rows, cameras_seen] = True
+        found = triangulate_many(self.stack, pixels, seen, self.sigma_px, undistorted, start)
+        rms = found.rms_px.tolist()
+        return [TriangulatedPoint(found.points[row], rms[row], found.covariances[row],
+                                  tuple(c for c, _ in views), tuple(i for _, i in views))
+                for row, views in enumerate(clusters)]
+
+    def drop_worst(self, clusters: list[list[tuple[int, int]]], solved: list[TriangulatedPoint],
+                   gate: float) -> list[TriangulatedPoint]:
+        """Each cluster's point (``solved[k]`` of ``clusters[k]``), its worst view dropped and the point solved
+        again while one view's reprojection error is above ``gate`` px and more than two remain; ``clusters``
+        and ``solved`` are updated in place and ``solved`` returned (a point's RMS may still be above the gate)."""
+        count = len(self.stack)
+        pending = [k for k in range(len(clusters)) if len(clusters[k]) > 2]
+        while pending:
+            observed, seen = np.zeros((len(pending), count, 2)), np.zeros((len(pending), count), bool)
+            for row, k in enumerate(pending):
+                for c, i in clusters[k]:
+                    observed[row, c], seen[row, c] = self.blobs[c][i], True
+            with np.errstate(invalid="ignore"):
+                errors = np.where(seen, np.linalg.norm(self.stack.project(np.array([solved[k].point for k in pending]))
+                                                       - observed, axis=2), -np.inf)
+                broken = ~(np.max(errors, axis=1) <= gate)
+            again = []
+            for row in np.flatnonzero(broken).tolist():
+                k, worst = pending[row], int(np.argmax(errors[row]))
+                clusters[k] = [v for v in clusters[k] if v[0] != worst]
+                again.append(k)
+            for k, point in zip(again, self.solve([clusters[k] for k in again]), strict=True):
+                solved[k] = point
+            pending = [k for k in again if len(clusters[k]) > 2]
+        return solved
+
+
 def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray],
                       options: CorrespondenceOptions | None = None) -> list[TriangulatedPoint]:
     """3D points, world (rig) frame, from the blobs of every camera (see the module docstring).
@@ -147,50 +206,8 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
     rig = rig_geometry(cameras)
     stack, count = rig.stack, len(cameras)
-    offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]])
-    every_blob, every_ideal = np.concatenate(blobs), np.concatenate(ideal)
+    instant = Views(stack, blobs, ideal, options.covariance_sigma_px)
     gate = options.reprojection_gate_px
-
-    def solve(clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
-        """Each cluster's point over all its views (DLT, unless ``start`` has it, then Gauss-Newton), all at once."""
-        if not clusters:
-            return []
-        pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
-        seen = np.zeros((len(clusters), count), bool)
-        rows = [row for row, views in enumerate(clusters) for _ in views]
-        cameras_seen, blob_indices = np.array([v for views in clusters for v in views], np.int64).T
-        flat = offsets[cameras_seen] + blob_indices
-        pixels[rows, cameras_seen], undistorted[rows, cameras_seen] = every_blob[flat], every_ideal[flat]
-        seen[rows, cameras_seen] = True
-        found = triangulate_many(stack, pixels, seen, options.covariance_sigma_px, undistorted, start)
-        rms = found.rms_px.tolist()
-        return [TriangulatedPoint(found.points[row], rms[row], found.covariances[row],
-                                  tuple(c for c, _ in views), tuple(i for _, i in views))
-                for row, views in enumerate(clusters)]
-
-    def final(clusters: list[list[tuple[int, int]]], solved: list[TriangulatedPoint]) -> list[TriangulatedPoint]:
-        """Each cluster's point, the worst view dropped while one breaks the gate and more than two
-        remain; those whose RMS of what is left is above the gate are left out."""
-        pending = [k for k in range(len(clusters)) if len(clusters[k]) > 2]
-        while pending:
-            observed, seen = np.zeros((len(pending), count, 2)), np.zeros((len(pending), count), bool)
-            for row, k in enumerate(pending):
-                for c, i in clusters[k]:
-                    observed[row, c], seen[row, c] = blobs[c][i], True
-            with np.errstate(invalid="ignore"):
-                errors = np.where(seen, np.linalg.norm(stack.project(np.array([solved[k].point for k in pending]))
-                                                       - observed, axis=2), -np.inf)
-                broken = ~(np.max(errors, axis=1) <= gate)
-            again = []
-            for row in np.flatnonzero(broken).tolist():
-                k, worst = pending[row], int(np.argmax(errors[row]))
-                clusters[k] = [v for v in clusters[k] if v[0] != worst]
-                again.append(k)
-            for k, point in zip(again, solve([clusters[k] for k in again]), strict=True):
-                solved[k] = point
-            pending = [k for k in again if len(clusters[k]) > 2]
-        return [p for p in solved if p.rms_px <= gate]
-
     unmatched = 1.0 + (count - 2)
 
     def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
@@ -204,7 +221,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             return cost, points_dlt
         distance = np.full((len(free), len(single)), np.inf)
         single_cameras, single_blobs = np.array(single, np.int64).T
-        single_ideal = every_ideal[offsets[single_cameras] + single_blobs]
+        single_ideal = instant.every_ideal[instant.offsets[single_cameras] + single_blobs]
         for a in set(single_cameras.tolist()):
             columns = np.flatnonzero(single_cameras == a)
             distance[:, columns] = epipolar_distances(rig.fundamental[(c, a)], single_ideal[columns],
@@ -250,14 +267,14 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             for k, i in grown:
                 clusters[k].append((c, i))
                 taken.add(i)
-            for (k, _), point in zip(grown, solve([clusters[k] for k, _ in grown]), strict=True):
+            for (k, _), point in zip(grown, instant.solve([clusters[k] for k, _ in grown]), strict=True):
                 solved[k] = point
         free = [i for i in range(len(blobs[c])) if i not in taken]
         cost, points_dlt = pairing_costs(c, free, single)
         used: set[int] = set()
         pairs = unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity)
         candidates = [[single[column], (c, free[row])] for row, column in pairs]
-        made = solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
+        made = instant.solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
         depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
         first = np.array([a for (a, _), _ in candidates], np.int64)
         in_front = (depths[np.arange(len(pairs)), first] > 0.0) & (depths[:, c] > 0.0)
@@ -269,7 +286,8 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                 taken.add(free[row])
         single = [s for column, s in enumerate(single) if column not in used]
         single += [(c, i) for i in range(len(blobs[c])) if i not in taken]
-    return [p for p in final(clusters, solved) if p.views >= options.min_views]
+    return [p for p in instant.drop_worst(clusters, solved, gate)
+            if p.rms_px <= gate and p.views >= options.min_views]
 
 
 def unambiguous(matches: list[tuple[int, int]], cost: np.ndarray, unmatched: float,

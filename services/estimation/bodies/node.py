@@ -11,10 +11,20 @@ synthetic ``ir_rig`` source's own); what ``check_bodies`` finds doubtful about t
 start, one line each. Without a file the node looks for no body: every point is published
 unlabelled (body -1), from which ``artrack bodies define`` makes bodies, and no pose.
 
-Per joined set (``services.estimation.bodies.correspondence``, ``services.estimation.bodies.rigid``):
-the blobs without flags (``flagged`` uses the flagged ones too) are put in correspondence and
-triangulated, the bodies matched among the points and each fitted. Outputs, with the header of
-the set's frames and ``frame_id`` ``world``:
+Per joined set the blobs without flags (``flagged`` uses the flagged ones too) become 3D points and the
+bodies are found among them and each fitted (``BodiesPerSet``). With ``predict`` (the default) the bodies are
+followed from set to set (``services.estimation.bodies.tracking.BodyTracker``): each body's constant-velocity
+motion, from its last two fits and their stamps, predicts its pose at the set's stamp, and the set goes
+through ``services.estimation.bodies.labelled.track_blobs``: the predicted spheres of every body projected
+into every camera label the blobs within ``predict_gate_px`` of them (a blob near two predicted spheres is
+doubtful and labels none), each sphere labelled in two cameras or more is triangulated over its views, and
+each body fitted to its labelled points without a search; the blobs left (the first sets, a body lost or
+new, strays) go through the full path below, and the bodies not fitted are looked for among its points,
+within ``predict_gate`` of their prediction first. Without ``predict`` (``predict=false``), every set takes
+the full path alone: all blobs put in correspondence and triangulated
+(``services.estimation.bodies.correspondence``), the bodies matched among the points by their distances
+(``services.estimation.bodies.rigid``). Outputs, with the header of the set's frames and ``frame_id``
+``world``:
 
 * ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none); the
   covariances are for centroid noise of ``sigma_px``, by default (``auto``) the running estimate of
@@ -25,13 +35,9 @@ the set's frames and ``frame_id`` ``world``:
   (tx, ty, tz, rx, ry, rz) in the body frame); a body found in the previous set and not in this
   one gets one ``lost`` pose (identity transform).
 
-With ``predict`` (off by default; off, the per-set path is the one above and nothing more), the bodies
-are followed from set to set (``services.estimation.bodies.tracking.BodyTracker``): each body's
-constant-velocity motion, from its last two fits and their stamps, predicts its pose in the next set;
-its spheres are looked for within ``predict_gate`` of where they should be before any search by
-distances; and a body found in the previous set and missing from this one gets one pose with state
-``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then
-``lost`` if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
+With ``predict``, a body found in the previous set and missing from this one gets one pose with state
+``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then ``lost``
+if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
 
 Until every camera has a calibration, sets are counted as skipped (``no_calibration``). A rig file is used
 as it is: one whose camera was calibrated at another size than that camera's frames is refused before
@@ -60,6 +66,7 @@ from services.convert import CameraModels, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
+from services.estimation.bodies.labelled import Found, track_blobs
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
 from services.estimation.bodies.tracking import BodyTracker, TrackingOptions
 from services.estimation.markers.tracking import TargetTracks
@@ -91,8 +98,8 @@ class Params(NodeParams):
     correspondence: Annotated[CorrespondenceOptions, Flat()] = CorrespondenceOptions()
     match: Annotated[MatchOptions, Flat()] = MatchOptions()
     sync_depth: int = Field(default=8, ge=1, le=1000, description="blobs kept per camera waiting for partners")
-    predict: bool = Field(default=False, description="follow each body with a constant-velocity prediction: "
-                                                     "matched near it first, one missing set bridged")
+    predict: bool = Field(default=True, description="follow each body with a constant-velocity prediction: its "
+                                                    "spheres labelled in the images first, one missing set bridged")
     tracking: Annotated[TrackingOptions, Flat("predict_", names={
         "motion_max_gap_s": "predict_gap_s", "motion_acceleration": "predict_acceleration",
         "motion_angular_acceleration": "predict_angular_acceleration"}, label="predict")] = TrackingOptions()
@@ -182,6 +189,33 @@ class PointNoise:
         return points, covariances * sigma_px**2
 
 
+class BodiesPerSet:
+    """What the node does with each joined set: its points and the bodies among them, with ``predict`` the
+    bodies followed (``BodyTracker``, ``labelled.track_blobs``), else the full path alone (``triangulate_blobs``,
+    then ``match_bodies``)."""
+
+    def __init__(self, bodies: Mapping[str, np.ndarray], params: Params):
+        self.bodies = dict(bodies)
+        self.params = params
+        self.noise = PointNoise(params.correspondence)
+        self.tracker = BodyTracker(bodies, params.match, params.tracking) if params.predict else None
+
+    def __call__(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray]
+                 ) -> tuple[Found, dict[str, Prediction]]:
+        """The set's ``Found`` and name -> ``Prediction`` of the bodies bridged; ``blobs[c]``: (N_c, 2) pixels
+        of ``cameras[c]`` (``pixels``)."""
+        params = self.params
+        if self.tracker is None:
+            made = triangulate_blobs(cameras, blobs, params.correspondence)
+            points, covariances = self.noise.arrays(made)
+            matching = match_bodies(self.bodies, points, covariances, params.match) if len(made) else Matching()
+            return Found(made, points, covariances, matching), {}
+        forecasts = self.tracker.forecast(stamp_ns)
+        found = track_blobs(cameras, blobs, self.bodies, {name: f.T_world_body for name, f in forecasts.items()},
+                            self.noise.arrays, params.correspondence, params.match, params.tracking)
+        return found, self.tracker.record(stamp_ns, found.matching, forecasts).predicted
+
+
 def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching,
                    covariances: np.ndarray | None = None) -> Points3D:
     """The set's points with the body each was matched to; ``covariances`` (N, 3, 3) m^2 when not the points'
@@ -255,10 +289,7 @@ def run(node: Node, params: Params) -> None:
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
     poses = PosePublishers(node)
     names = list(bodies)
-    noise = PointNoise(params.correspondence)
-    tracker = None
-    if params.predict:
-        tracker = BodyTracker(bodies, params.match, params.tracking)
+    per_set = BodiesPerSet(bodies, params)
     for joined in sets:
         first = joined[params.cameras[0]]
         header = first.header.model_copy(update={"frame_id": WORLD})
@@ -267,17 +298,10 @@ def run(node: Node, params: Params) -> None:
             node.report("no_calibration", f"no CameraInfo for {', '.join(calibration.missing())} and no rig file: "
                         "nothing triangulated", keys.camera_info(calibration.missing()[0]))
             continue
-        found = triangulate_blobs(cameras, [pixels(joined[name], params.flagged) for name in params.cameras],
-                                  params.correspondence)
-        points, covariances = noise.arrays(found)
-        if tracker is None:
-            matching = match_bodies(bodies, points, covariances, params.match) if len(found) else Matching()
-            poses.put(header, body_poses(header, matching))
-        else:
-            tracked = tracker.step(header.stamp_ns, points, covariances)
-            matching = tracked.matching
-            poses.put(header, body_poses(header, matching) + predicted_poses(header, tracked.predicted))
-        points_out.put(points_message(header, found, names, matching, covariances))
+        found, predicted = per_set(header.stamp_ns, cameras,
+                                   [pixels(joined[name], params.flagged) for name in params.cameras])
+        poses.put(header, body_poses(header, found.matching) + predicted_poses(header, predicted))
+        points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
 
 
 def _inputs(params: Params) -> tuple[str, ...]:

@@ -19,6 +19,9 @@ bodies' spheres and stray markers. Matching runs in three steps:
    another body needs.
 3. Each chosen body carries its ``RigidFit``: ``T_world_body``, residual RMS and, when point
    covariances are given, the pose covariance. Points no body took are listed as unassigned.
+
+Where the points of a body's spheres are already known (labelled near a prediction), ``fit_labelled``
+fits the bodies without a search, letting go of the worst sphere while a fit breaks ``gate_rms``.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ __all__ = [
     "MatchOptions",
     "body_candidates",
     "check_points",
+    "fit_labelled",
     "match_bodies",
     "pairwise_distances",
 ]
@@ -251,6 +255,48 @@ def _assignments(spheres: np.ndarray, sizes: list[int], point_distances: np.ndar
         missing = np.concatenate([missing[rows], missing[hide] + 1, missing[done]])
         possible = np.concatenate([grown, possible[hide], possible[done]])
     return owner, partial.reshape(len(owner), n)
+
+
+def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covariances: np.ndarray | None,
+                 labels: Mapping[str, np.ndarray], gate_rms: float, min_spheres: int) -> dict[str, BodyMatch]:
+    """The bodies of ``labels`` fitted to the points their spheres are labelled with: name -> match, for those fitted.
+
+    ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points``: (M, 3) float64, world frame;
+    ``covariances``: (M, 3, 3) m^2 or None; ``labels``: name -> (N,) int64 point index per sphere (-1: none).
+    A body is fitted (least squares, every body in one batch per round) while it has ``min_spheres``
+    labelled spheres not on one line; while its residual RMS is above ``gate_rms`` (m), the sphere farthest
+    from its fitted position is let go (its index set to -1) and it is fitted again. The fits kept get
+    their covariances in one batch.
+    """
+    indices = {name: np.array(label, np.int64) for name, label in labels.items()}
+    fits: dict[str, RigidFit] = {}
+    pending = [name for name, label in indices.items() if np.count_nonzero(label >= 0) >= min_spheres]
+    while pending:
+        widest = max(len(bodies[name]) for name in pending)
+        spheres, world = np.zeros((len(pending), widest, 3)), np.zeros((len(pending), widest, 3))
+        used = np.zeros((len(pending), widest), bool)
+        for row, name in enumerate(pending):
+            count = len(bodies[name])
+            spheres[row, :count], used[row, :count] = bodies[name], indices[name] >= 0
+            world[row, :count] = points[np.maximum(indices[name], 0)]
+        kept = np.flatnonzero(~_collinear(spheres, used))
+        spheres, world, used = spheres[kept], world[kept], used[kept]
+        transforms, rms = least_squares_transforms(spheres, world, used)
+        residuals = np.linalg.norm(world - (spheres @ transforms[:, :3, :3].transpose(0, 2, 1)
+                                            + transforms[:, None, :3, 3]), axis=2)
+        again = []
+        for row, name in enumerate(pending[k] for k in kept.tolist()):
+            if rms[row] <= gate_rms:
+                fits[name] = RigidFit(transforms[row], float(rms[row]), int(np.count_nonzero(used[row])))
+                continue
+            indices[name][int(np.argmax(np.where(used[row], residuals[row], -np.inf)))] = -1
+            if np.count_nonzero(indices[name] >= 0) >= min_spheres:
+                again.append(name)
+        pending = again
+    names = [name for name in labels if name in fits]
+    chosen = _with_covariances([(np.asarray(bodies[name], np.float64), indices[name]) for name in names],
+                               [fits[name] for name in names], covariances)
+    return {name: BodyMatch(name, indices[name], fit) for name, fit in zip(names, chosen, strict=True)}
 
 
 def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,

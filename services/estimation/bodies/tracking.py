@@ -6,15 +6,17 @@ does, but a body with a predicted pose is looked for first where its spheres sho
 1. every predicted body's spheres are placed at their predicted world positions, and all of them
    together are assigned one-to-one to the points (least total distance, each pair closer than
    ``gate`` metres, ``correspondence.gated_assignment``), so no point goes to two bodies;
-2. each predicted body with at least ``min_spheres`` spheres assigned is fitted (``fit_rigid``); while
-   its residual RMS exceeds ``gate_rms`` and spheres remain above ``min_spheres``, the sphere farthest
-   from its fitted position is let go and the body fitted again;
+2. each predicted body with at least ``min_spheres`` spheres assigned is fitted (``rigid.fit_labelled``,
+   all of them in one batch); while its residual RMS exceeds ``gate_rms`` and spheres remain above
+   ``min_spheres``, the sphere farthest from its fitted position is let go and the body fitted again;
 3. the bodies without a prediction, or whose predicted assignment failed, are matched by their
    distance signatures (``match_bodies``) among the points the others left.
 
-``BodyTracker`` runs this instant after instant, one ``body_motion.ConstantVelocity`` per body fed
-with the fits, and bridges: a body published at the previous instant (found, or bridged less than
-``bridge`` times in a row) and not found now is given its predicted pose and covariance, to be
+``BodyTracker`` follows the bodies instant after instant, one ``motion.ConstantVelocity`` per body fed
+with the fits: ``forecast`` gives each body's predicted pose at an instant, ``record`` takes in the
+bodies found there (by ``match_with_prediction`` on points, ``step``, or in the images,
+``labelled.track_blobs``) and bridges: a body published at the previous instant (found, or bridged less
+than ``bridge`` times in a row) and not found now is given its predicted pose and covariance, to be
 published with state ``predicted``; missing once more, it is left out (its track reports it lost).
 """
 
@@ -33,10 +35,10 @@ from services.estimation.bodies.rigid import (
     Matching,
     MatchOptions,
     check_points,
+    fit_labelled,
     match_bodies,
 )
 from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions, Prediction
-from services.geometry.absolute_orientation import RigidFit, fit_rigid
 from services.geometry.se3 import transform_points
 from services.geometry.shapes import check_shape
 
@@ -50,6 +52,8 @@ class TrackingOptions(BaseModel):
 
     gate: float = Field(default=0.015, gt=0, allow_inf_nan=False,
                         description="farthest a point may lie from a sphere's predicted position, m")
+    gate_px: float = Field(default=3.0, gt=0, allow_inf_nan=False,
+                           description="farthest a blob may lie from a sphere's predicted image, px")
     min_spheres: int = Field(default=3, ge=3, description="fewest spheres a predicted body is fitted with")
     bridge: int = Field(default=1, ge=0, description="instants in a row a body missing is given its predicted pose")
     motion: MotionOptions = Field(default=DEFAULT_MOTION, description="the constant-velocity model's options")
@@ -83,11 +87,8 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
         for row, column in gated_assignment(cost, tracking.gate):
             k = owner[row]
             indices[k][row - first[k]] = column
-        for k, name in enumerate(predicted):
-            fitted = _fit_near(np.asarray(bodies[name], np.float64), points, covariances, indices[k], options,
-                               tracking.min_spheres)
-            if fitted is not None:
-                found[name] = BodyMatch(name, *fitted)
+        found = fit_labelled(bodies, points, covariances, dict(zip(predicted, indices, strict=True)),
+                             options.gate_rms, tracking.min_spheres)
     taken = np.zeros(len(points), bool)
     for match in found.values():
         taken[match.indices[match.indices >= 0]] = True
@@ -102,24 +103,6 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
             taken[remapped[remapped >= 0]] = True
     ordered = {name: found[name] for name in names if name in found}
     return Matching(ordered, np.flatnonzero(~taken).astype(np.int64))
-
-
-def _fit_near(spheres: np.ndarray, points: np.ndarray, covariances: np.ndarray | None, indices: np.ndarray,
-              options: MatchOptions, min_spheres: int) -> tuple[np.ndarray, RigidFit] | None:
-    """The assignment (spheres let go set to -1) and its fit within ``gate_rms``, or None."""
-    indices = indices.copy()
-    while np.count_nonzero(indices >= 0) >= min_spheres:
-        seen = np.flatnonzero(indices >= 0)
-        try:
-            fit = fit_rigid(spheres[seen], points[indices[seen]],
-                            None if covariances is None else covariances[indices[seen]])
-        except (ValueError, np.linalg.LinAlgError):
-            return None
-        if fit.residual_rms <= options.gate_rms:
-            return indices, fit
-        residuals = np.linalg.norm(points[indices[seen]] - transform_points(fit.T_world_body, spheres[seen]), axis=1)
-        indices[seen[int(np.argmax(residuals))]] = -1
-    return None
 
 
 @dataclass(frozen=True)
@@ -144,25 +127,20 @@ class BodyTracker:
         """Bodies published at the previous instant -> how many instants in a row they were bridged."""
         self.stamp_ns: int | None = None
 
-    def step(self, stamp_ns: int, points_world: np.ndarray, covariances: np.ndarray | None = None) -> Tracked:
-        """Match the bodies among this instant's (M, 3) ``points_world`` (with (M, 3, 3) ``covariances`` or None),
-        update their motion and bridge those missing. A ``stamp_ns`` not after the previous step's (a
-        recording played again from its start) starts every body afresh."""
+    def forecast(self, stamp_ns: int) -> dict[str, Prediction]:
+        """Name -> predicted pose at ``stamp_ns`` of each body whose motion is known. A ``stamp_ns`` not after
+        the previous instant's (a recording played again from its start) starts every body afresh."""
         if self.stamp_ns is not None and stamp_ns <= self.stamp_ns:
             for model in self.models.values():
                 model.reset()
             self.bridged = {}
         self.stamp_ns = stamp_ns
-        forecasts = {name: forecast for name, model in self.models.items()
-                     if (forecast := model.predict(stamp_ns)) is not None}
-        points = check_points(points_world, "points_world")
-        if len(points) == 0:
-            matching = Matching()
-        elif forecasts:
-            matching = match_with_prediction(self.bodies, points, {n: f.T_world_body for n, f in forecasts.items()},
-                                             covariances, self.options, self.tracking)
-        else:
-            matching = match_bodies(self.bodies, points, covariances, self.options)
+        return {name: forecast for name, model in self.models.items()
+                if (forecast := model.predict(stamp_ns)) is not None}
+
+    def record(self, stamp_ns: int, matching: Matching, forecasts: Mapping[str, Prediction]) -> Tracked:
+        """Take in the bodies found at ``stamp_ns`` (``matching``; ``forecasts`` as ``forecast`` gave them):
+        update their motion and bridge those missing."""
         bridged: dict[str, int] = {}
         predicted: dict[str, Prediction] = {}
         for name, match in matching.bodies.items():
@@ -174,3 +152,13 @@ class BodyTracker:
                 bridged[name] = count + 1
         self.bridged = bridged
         return Tracked(matching, predicted)
+
+    def step(self, stamp_ns: int, points_world: np.ndarray, covariances: np.ndarray | None = None) -> Tracked:
+        """One instant of points: ``forecast``, the bodies matched among the (M, 3) ``points_world`` (with (M, 3, 3)
+        ``covariances`` or None) near their predictions (``match_with_prediction``), then ``record``."""
+        forecasts = self.forecast(stamp_ns)
+        points = check_points(points_world, "points_world")
+        matching = Matching() if len(points) == 0 else match_with_prediction(
+            self.bodies, points, {name: f.T_world_body for name, f in forecasts.items()}, covariances, self.options,
+            self.tracking)
+        return self.record(stamp_ns, matching, forecasts)

@@ -1,0 +1,166 @@
+"""Bodies followed in the images: the blobs labelled by each predicted body's spheres, triangulated and fitted
+without a search; the other blobs through the full path.
+
+World = the rig frame. Blobs are (N_c, 2) observed pixel centroids per camera (with its distortion). Per
+instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.BodyTracker.forecast``):
+
+1. ``label_blobs``: every predicted sphere's world position is projected into every camera at once
+   (``CameraStack.project``, through the distortion). Per camera, the blobs are assigned one-to-one to the
+   projected spheres of all predicted bodies together (least total pixel distance, each pair closer than
+   ``gate_px``: ``correspondence.gated_assignment``). A blob within ``gate_px`` of two predicted spheres or
+   more (their images merged, or about to) is doubtful: none of those spheres takes a view in that camera
+   (each keeps its others), and the blob is left to the full path. A blob far from every predicted sphere
+   (a stray, a body lost or new) is never labelled.
+2. ``triangulate_labelled``: a sphere labelled in two cameras or more is triangulated over all its views,
+   every sphere in one batch (``correspondence.Views``: DLT, Gauss-Newton and covariance, the worst view
+   dropped while one breaks the reprojection gate and more than two remain): the point, residual and
+   covariance ``triangulate_blobs`` gives a cluster of the same views. A point whose RMS is above the gate,
+   or with fewer than ``min_views`` views, is left out.
+3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
+   the worst sphere let go while the fit breaks ``gate_rms``, at least ``min_spheres`` kept). The blobs in
+   no point kept are put in correspondence by ``triangulate_blobs``; the bodies not fitted are then looked
+   for among those points and the labelled points no fit kept, near their prediction first, else by their
+   distance signatures (``tracking.match_with_prediction``). A decoy repeating a body's distances away
+   from its prediction is never taken for a body fitted at its prediction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.estimation.bodies.correspondence import (
+    CorrespondenceOptions,
+    Views,
+    gated_assignment,
+    rig_geometry,
+    triangulate_blobs,
+)
+from services.estimation.bodies.rigid import BodyMatch, Matching, MatchOptions, fit_labelled
+from services.estimation.bodies.tracking import TrackingOptions, match_with_prediction
+from services.geometry.camera import CameraModel, undistort_pixels
+from services.geometry.camera_stack import CameraStack
+from services.geometry.se3 import transform_points
+from services.geometry.triangulation import TriangulatedPoint
+
+__all__ = ["Found", "label_blobs", "track_blobs", "triangulate_labelled"]
+
+PointArrays = Callable[[list[TriangulatedPoint]], tuple[np.ndarray, np.ndarray]]
+"""One instant's points -> their (M, 3) world positions and (M, 3, 3) covariances (m^2)."""
+
+
+@dataclass(frozen=True)
+class Found:
+    """One instant: ``points`` (each with the camera and blob indices it was made from), their ``points_world``
+    (M, 3) and ``covariances`` (M, 3, 3) m^2, and the bodies found among them (``matching``)."""
+
+    points: list[TriangulatedPoint]
+    points_world: np.ndarray
+    covariances: np.ndarray
+    matching: Matching
+
+
+def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.ndarray, gate_px: float) -> np.ndarray:
+    """(S, C) int64: for each predicted sphere (row of (S, 3) ``expected``, world) and camera of ``stack``, the
+    index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring)."""
+    labels = np.full((len(expected), len(stack)), -1, np.int64)
+    widest = max(len(b) for b in blobs)
+    if not widest:
+        return labels
+    observed = np.full((len(stack), widest, 2), np.nan)
+    for c, b in enumerate(blobs):
+        observed[c, :len(b)] = b
+    cost = np.linalg.norm(stack.project(expected)[:, :, None, :] - observed[None], axis=3)
+    with np.errstate(invalid="ignore"):
+        near = cost < gate_px
+    doubtful = np.count_nonzero(near, axis=0) >= 2
+    if np.any(doubtful):
+        near &= ~np.any(near & doubtful[None], axis=2)[:, :, None]
+        near &= ~doubtful[None]
+    crowded = np.any(np.count_nonzero(near, axis=2) > 1, axis=0)
+    spheres, cameras, columns = np.nonzero(near & ~crowded[None, :, None])
+    # A sphere near one blob only, that blob near no other sphere: the gated assignment takes every such pair.
+    labels[spheres, cameras] = columns
+    for c in np.flatnonzero(crowded).tolist():
+        for row, column in gated_assignment(np.where(near[:, c], cost[:, c], np.inf), gate_px):
+            labels[row, c] = column
+    return labels
+
+
+def triangulate_labelled(instant: Views, labels: np.ndarray, options: CorrespondenceOptions
+                         ) -> tuple[np.ndarray, list[TriangulatedPoint]]:
+    """``(spheres (K,) int64, points)``: the spheres (rows of (S, C) ``labels``) triangulated from the blobs they
+    label, and their points (see the module docstring)."""
+    rows = np.flatnonzero(np.count_nonzero(labels >= 0, axis=1) >= 2)
+    clusters = [[(c, i) for c, i in enumerate(row) if i >= 0] for row in labels[rows].tolist()]
+    gate = options.reprojection_gate_px
+    solved = instant.drop_worst(clusters, instant.solve(clusters), gate)
+    kept = [k for k, point in enumerate(solved) if point.rms_px <= gate and point.views >= options.min_views]
+    return rows[kept], [solved[k] for k in kept]
+
+
+def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bodies: Mapping[str, np.ndarray],
+                predictions: Mapping[str, np.ndarray], arrays: PointArrays,
+                correspondence: CorrespondenceOptions, match: MatchOptions, tracking: TrackingOptions) -> Found:
+    """The points of one instant and the bodies among them (see the module docstring).
+
+    ``cameras``: N >= 2 calibrated cameras; ``blobs[c]``: (N_c, 2) observed pixels of camera c; ``bodies``: name
+    -> (N, 3) float64 sphere centres, body frame; ``predictions``: name -> (4, 4) predicted ``T_world_body``
+    (bodies absent have none); ``arrays``: the points' positions and covariances (the node's centroid noise).
+    The points are the labelled ones first, then the full path's.
+    """
+    blobs = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in blobs]
+    predicted = [name for name in bodies if name in predictions]
+    labelled: list[TriangulatedPoint] = []
+    labels: dict[str, np.ndarray] = {}
+    if predicted:
+        stack = rig_geometry(cameras).stack
+        spheres = [np.asarray(bodies[name], np.float64) for name in predicted]
+        expected = np.concatenate([transform_points(predictions[name], s) for name, s in zip(predicted, spheres,
+                                                                                              strict=True)])
+        on_blobs = label_blobs(stack, blobs, expected, tracking.gate_px)
+        ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
+        rows, labelled = triangulate_labelled(Views(stack, blobs, ideal, correspondence.covariance_sigma_px), on_blobs,
+                                              correspondence)
+        point_of_sphere = np.full(len(expected), -1, np.int64)
+        point_of_sphere[rows] = np.arange(len(rows))
+        first = np.cumsum([0] + [len(s) for s in spheres])
+        labels = {name: point_of_sphere[first[k]:first[k + 1]] for k, name in enumerate(predicted)}
+    rest = _full_path(cameras, blobs, labelled, correspondence)
+    found = labelled + rest
+    points, covariances = arrays(found)
+    fitted = fit_labelled(bodies, points, covariances, labels, match.gate_rms, tracking.min_spheres)
+    taken = np.zeros(len(found), bool)
+    for body in fitted.values():
+        taken[body.indices[body.indices >= 0]] = True
+    others = [name for name in bodies if name not in fitted]
+    pool = np.flatnonzero(~taken)
+    if others and len(pool):
+        searched = match_with_prediction({name: bodies[name] for name in others}, points[pool],
+                                         {name: predictions[name] for name in others if name in predictions},
+                                         covariances[pool], match, tracking)
+        for name, body in searched.bodies.items():
+            indices = np.where(body.indices >= 0, pool[np.maximum(body.indices, 0)], -1)
+            fitted[name] = BodyMatch(name, indices, body.fit)
+            taken[indices[indices >= 0]] = True
+    matching = Matching({name: fitted[name] for name in bodies if name in fitted}, np.flatnonzero(~taken))
+    return Found(found, points, covariances, matching)
+
+
+def _full_path(cameras: Sequence[CameraModel], blobs: list[np.ndarray], labelled: list[TriangulatedPoint],
+               options: CorrespondenceOptions) -> list[TriangulatedPoint]:
+    """``triangulate_blobs`` on the blobs in none of the ``labelled`` points, their indices those of ``blobs``."""
+    free = [np.ones(len(b), bool) for b in blobs]
+    for point in labelled:
+        for c, i in zip(point.camera_indices, point.blob_indices, strict=True):
+            free[c][i] = False
+    left = [np.flatnonzero(mask) for mask in free]
+    if sum(len(indices) > 0 for indices in left) < 2:
+        return []
+    found = triangulate_blobs(cameras, [b[indices] for b, indices in zip(blobs, left, strict=True)], options)
+    return [dataclasses.replace(p, blob_indices=tuple(int(left[c][i]) for c, i in zip(p.camera_indices,
+                                                                                      p.blob_indices, strict=True)))
+            for p in found]

@@ -1,0 +1,52 @@
+"""Bodies fitted to labelled points, all in one batch: the same fits as one body at a time."""
+
+import numpy as np
+
+from services.estimation.bodies.rigid import MatchOptions, fit_labelled
+from services.geometry.absolute_orientation import fit_rigid
+from services.geometry.rotation import matrix_from_rotvec
+from services.geometry.se3 import make_transform, transform_points
+from services.synthetic.ir_rig import LAYOUTS
+
+
+def fit_alone(spheres, points, covariances, indices, gate_rms, min_spheres):
+    """One body: fitted to its labelled points, the farthest sphere let go while the fit breaks the gate."""
+    indices = indices.copy()
+    while np.count_nonzero(indices >= 0) >= min_spheres:
+        seen = np.flatnonzero(indices >= 0)
+        fit = fit_rigid(spheres[seen], points[indices[seen]], covariances[indices[seen]])
+        if fit.residual_rms <= gate_rms:
+            return indices, fit
+        residuals = np.linalg.norm(points[indices[seen]] - transform_points(fit.T_world_body, spheres[seen]), axis=1)
+        indices[seen[int(np.argmax(residuals))]] = -1
+    return None
+
+
+def test_batched_fits_are_those_of_one_body_at_a_time():
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        points, labels = [], {}
+        for name, spheres in LAYOUTS.items():
+            T = make_transform(matrix_from_rotvec(rng.normal(0, 1, 3)), rng.uniform(-0.5, 0.5, 3) + [0, 0, 2])
+            world = transform_points(T, spheres) + rng.normal(0, 2e-4, spheres.shape)
+            wrong = rng.random(len(spheres)) < 0.2
+            world[wrong] += rng.normal(0, 0.004, (int(wrong.sum()), 3))
+            label = np.arange(len(points), len(points) + len(spheres))
+            label[rng.random(len(spheres)) < 0.15] = -1
+            labels[name] = label
+            points.extend(world)
+        points = np.array(points)
+        covariances = np.einsum("nij,nkj->nik", *(2 * [rng.normal(0, 1e-4, (len(points), 3, 3))]))
+        options = MatchOptions()
+        batched = fit_labelled(LAYOUTS, points, covariances, labels, options.gate_rms, 3)
+        for name, spheres in LAYOUTS.items():
+            alone = fit_alone(spheres, points, covariances, labels[name], options.gate_rms, 3)
+            assert (alone is None) == (name not in batched), (trial, name)
+            if alone is None:
+                continue
+            indices, fit = alone
+            match = batched[name]
+            assert np.array_equal(match.indices, indices)
+            np.testing.assert_allclose(match.fit.T_world_body, fit.T_world_body, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(match.fit.covariance, fit.covariance, rtol=1e-9, atol=1e-20)
+            assert abs(match.fit.residual_rms - fit.residual_rms) < 1e-12 and match.fit.count == fit.count
