@@ -18,6 +18,7 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
+from services.cli.parsing import Parser
 from services.runtime.logs import log_format, setup_logging
 
 if TYPE_CHECKING:
@@ -44,7 +45,7 @@ def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional:
     the positional ones (paths), bus options and ``--name`` when it runs as a ``node``; errors name the flag."""
     from services.launcher.flags import add_flags, explain, flags_for, given_values
 
-    p = argparse.ArgumentParser(prog=f"artrack {prog}", description=description)
+    p = Parser(prog=f"artrack {prog}", description=description)
     for field, metavar in positional.items():
         p.add_argument(field, type=Path, metavar=metavar)
     flags = flags_for(model, set(positional))
@@ -157,6 +158,7 @@ def _export_key(args: argparse.Namespace, key: str, output: Path | None) -> Expo
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from services.recorder.reading import EXIT_DAMAGED
     from services.recorder.scoring import evaluate, format_evaluation
     from services.recorder.trajectories import load_trajectory
 
@@ -172,7 +174,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(json.dumps(evaluation.to_dict()) if args.json else format_evaluation(evaluation))
     if args.plot is not None:
         log.info("wrote %s", args.plot)
-    return 0
+    damaged = {path: trajectory.damage for path, trajectory in ((args.est, est), (args.gt, gt))
+               if trajectory.damage is not None}
+    for path, damage in damaged.items():
+        log.warning("%s is damaged: %s; scored its intact part", path, damage)
+    return EXIT_DAMAGED if damaged else 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -255,8 +261,8 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gt-child", metavar="FRAME", help="recordings: GT's child frame when it is named otherwise than "
                                                       "EST's (default --child), e.g. a scene's `target` against "
                                                       "the features tracker's `target/NAME`")
-    p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view "
-                                                                "(needs the plot extra: matplotlib)")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view, "
+                                                                "to a PNG")
     p.add_argument("--json", action="store_true", help="one JSON object instead of text")
     p.set_defaults(func=cmd_eval)
 

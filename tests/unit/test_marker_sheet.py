@@ -68,7 +68,6 @@ def pdf_images_pt(path: Path) -> tuple[list[float], list[tuple[float, float]]]:
 
 @pytest.mark.parametrize("paper", ["a4", "letter"])
 def test_pdf_page_is_the_paper_and_markers_are_placed_at_their_length(tmp_path, paper):
-    pytest.importorskip("matplotlib")
     length = 0.05
     path = tmp_path / "sheet.pdf"
     write_pdf(marker_sheet([1, 2, 3], "DICT_5X5_100", length, paper), path)
