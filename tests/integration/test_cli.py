@@ -38,6 +38,17 @@ def test_help_lists_every_subcommand():
         assert re.search(rf"^\s+{name}\s+\S", done.stdout, re.MULTILINE), f"`artrack --help` does not list {name}"
 
 
+def test_the_installed_command_and_the_example_run_from_outside_the_checkout(tmp_path):
+    bin_dir = Path(sys.executable).parent  # the venv's bin/, where the README says `artrack` is
+    version = subprocess.run([str(bin_dir / "artrack"), "--version"], capture_output=True, text=True, timeout=30,
+                             cwd=tmp_path)
+    assert version.returncode == 0 and version.stdout.startswith("artrack "), version.stderr
+    example = Path(__file__).resolve().parents[2] / "examples" / "track_marker.py"
+    helped = subprocess.run([sys.executable, str(example), "--help"], capture_output=True, text=True, timeout=30,
+                            cwd=tmp_path)
+    assert helped.returncode == 0 and "Follow tracked markers" in helped.stdout, helped.stderr
+
+
 def test_list_shows_the_running_nodes_with_kind_and_pid(bus, procs, session):
     cam = start_node(procs, "capture", "cam", **SMALL_CAMERA)
     echo = start_node(procs, "echo", "relay", camera="cam0")
