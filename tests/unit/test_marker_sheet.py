@@ -136,6 +136,18 @@ def test_the_cli_writes_a_sheet_and_a_board_file_the_tracker_reads(tmp_path):
     np.testing.assert_allclose(loaded.markers[4].T_map_marker[:3, 3], [-0.03125, 0.0625, 0.0])
 
 
+def test_the_cli_keeps_an_existing_sheet_or_board_file_unless_forced(tmp_path, capsys):
+    out, board_file = tmp_path / "grid.png", tmp_path / "grid.yaml"
+    grid = ["markers", "print", "-o", str(out), "--board", "grid", "--columns", "2", "--rows", "3", "--length", "0.05"]
+    board_file.write_text("mine\n")
+    assert main(grid) == 2
+    assert capsys.readouterr().err.strip().endswith(f"{board_file} exists: give --force to overwrite it")
+    assert not out.exists() and board_file.read_text() == "mine\n"  # refused before the sheet was written
+    assert main([*grid, "--force"]) == 0 and load_marker_map(board_file).name == "board"
+    assert main(grid) == 2
+    assert f"{out} exists" in capsys.readouterr().err
+
+
 def test_bad_sheets_are_refused_in_one_line(tmp_path, capsys):
     with pytest.raises(ValueError, match=r"^id 50 is not in DICT_4X4_50 \(ids 0 to 49\)$"):
         marker_sheet([3, 50], "DICT_4X4_50", 0.05)
