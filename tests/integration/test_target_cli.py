@@ -92,7 +92,8 @@ def test_check_verdicts_are_exit_codes(procs, tmp_path, texture):
         assert added.poll() == 0 and added.stdout.startswith(f"{verdict}: "), added.describe()
         rating = checked.stdout.splitlines()[0]
         assert warned == ([] if verdict == "good" else [warned[0]]), added.stderr
-        assert verdict == "good" or warned[0].endswith(f"{path} rates {rating} (`artrack target check {path}` says why)")
+        said = f"{path} rates {rating} (`artrack target check {path}` says why)"
+        assert verdict == "good" or warned[0].endswith(said), warned
     one_line_error(procs.run("target", "check", str(tmp_path / "missing.png")), "missing.png: no such file")
 
 
