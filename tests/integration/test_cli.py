@@ -122,6 +122,13 @@ def test_echo_shows_the_key_an_error_report_arrived_on_and_keeps_its_own(bus, pr
         "artrack.ErrorReport", "marker", "no_calibration", "no CameraInfo")
 
 
+def test_echo_says_when_nothing_arrived_before_its_timeout(bus, procs):
+    quiet = procs.run("echo", "cam7/image", "--timeout", "1")
+    assert quiet.poll() == 1 and quiet.stdout == "", quiet.describe()
+    lines = [line for line in quiet.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].endswith(f"nothing arrived on {bus.keys.image('cam7')} in 1 s"), quiet.stderr
+
+
 def test_echo_refuses_a_bad_key_expression_in_one_line(procs):
     refused = procs.run("echo", "a b//c", "--connect", "tcp/127.0.0.1:9", timeout=30)
     assert refused.poll() == 2, refused.describe()
