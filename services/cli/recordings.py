@@ -133,10 +133,10 @@ def cmd_export(args: argparse.Namespace) -> int:
         folder = args.output or Path(".")
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"-o {folder}: a key expression writes one file per key: give a folder")
-        for key in keys:
-            check_output(export_path(folder, key, prefix, args.format), args.force, makes_folders=True)
-        for key in keys:
-            target = export_path(folder, key, prefix, args.format)
+        targets = {key: export_path(folder, key, prefix, args.format) for key in keys}
+        for target in targets.values():
+            check_output(target, args.force, makes_folders=True)
+        for key, target in targets.items():
             job = _export_key(args, key, target)
             log.info("wrote %s: %d rows of %s%s", target, job.rows, key, _skipped(job.skipped))
         log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
