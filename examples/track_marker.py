@@ -1,8 +1,9 @@
 """Follow tracked markers from your own app: print each pose and how old it is on arrival.
 
 Start a marker pipeline first (for instance ``artrack run marker --source synthetic:markers
---loop --marker-length 0.05``), then ``python examples/track_marker.py cam0/marker/3``. With
-no target it follows every pose of the rig. The bus options are the nodes' own environment
+--loop --marker-length 0.05``), then ``python examples/track_marker.py cam0/marker/3`` with the
+checkout's ``.venv`` active (or ``.venv/bin/python examples/track_marker.py ...``). With no target
+it follows every pose of the rig. The bus options are the nodes' own environment
 variables (``ARTRACK_CONNECT``, ``ARTRACK_MODE``, ``ARTRACK_RIG``, ...).
 """
 

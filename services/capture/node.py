@@ -52,6 +52,7 @@ from services.capture.sources import (
     Source,
     SourceError,
     SourceFrame,
+    VideoSource,
     camera_names,
     check_source,
     check_uri,
@@ -430,11 +431,13 @@ def _outputs(params: Params) -> tuple[str, ...]:
 
 
 def _check(params: Params) -> None:
-    """The sources can be opened, the calibration files read, and each file fits its camera's frames
-    where their size is known before capturing (scenes, image folders, video files)."""
+    """The sources can be opened (camera devices too), the calibration files read, and each file fits its
+    camera's frames where their size is known before capturing (scenes, image folders, video files)."""
     try:
         for uri in params.source:
-            check_source(uri)
+            scheme, rest = check_source(uri)
+            if scheme == "camera":  # a device that does not open is refused before the job says it runs
+                VideoSource(uri, int(rest), live=True).close()
         sizes = frame_sizes(params.source, params.scene) if params.calib else []
     except SourceError as exc:
         raise ValueError(str(exc)) from exc

@@ -27,6 +27,7 @@ import os
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -219,17 +220,29 @@ def _entries(uri: str, folder: Path) -> list[tuple[Path, int | None]]:
         raise SourceError(str(exc)) from None
 
 
+@contextmanager
+def opencv_silenced() -> Iterator[None]:
+    """OpenCV's own log off (its backends' ``[ WARN:...] global cap_v4l.cpp`` lines when a device does not open,
+    which the SourceError says in one line), then back to its level."""
+    before = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(before)
+
+
 class VideoSource(Source):
     """Frames of a video file or a camera device, through cv2.VideoCapture."""
 
     def __init__(self, uri: str, target: str | int, live: bool):
         self.uri = uri
         self.live = live
-        self.capture = cv2.VideoCapture(target)
+        with opencv_silenced():
+            self.capture = cv2.VideoCapture(target)
         if not self.capture.isOpened():
             self.capture.release()
-            what = f"cannot open video device {target}" if live else "OpenCV cannot read this file"
-            raise SourceError(f"{uri}: {what}")
+            raise SourceError(f"{uri}: {_not_opened(target) if live else 'OpenCV cannot read this file'}")
         self.count = -1 if live else int(self.capture.get(cv2.CAP_PROP_FRAME_COUNT))
 
     def frames(self) -> Iterator[SourceFrame | FrameFault]:
@@ -252,6 +265,14 @@ class VideoSource(Source):
 
     def close(self) -> None:
         self.capture.release()
+
+
+def _not_opened(device: str | int) -> str:
+    """Why camera ``device`` did not open, as far as the system tells: no device file, or one that does not open."""
+    node = Path(f"/dev/video{device}")
+    if isinstance(device, int) and Path("/dev").is_dir() and not node.exists():
+        return f"cannot open video device {device} (there is no {node})"
+    return f"cannot open video device {device}"
 
 
 class SceneSource(Source):

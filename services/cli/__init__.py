@@ -12,6 +12,7 @@ from importlib import metadata
 from services.bus.session import BusError
 from services.cli import bodies, calibrate, markers, observe, pipelines, recordings, run, scenes, targets
 from services.cli.markers import PAPER_NAMES
+from services.cli.parsing import Parser
 from services.launcher.pipeline import PipelineError
 from services.runtime.logs import FORMAT_ENV, FORMATS, log_format, native_logs_to_stderr, setup_logging
 from services.runtime.memory import tune_malloc
@@ -30,7 +31,7 @@ COMMANDS = (pipelines.add_up, observe.add_status, observe.add_config, pipelines.
 
 
 def parser() -> argparse.ArgumentParser:
-    top = argparse.ArgumentParser(prog="artrack", description="AR tracking service over Zenoh.")
+    top = Parser(prog="artrack", description="AR tracking service over Zenoh.")
     top.add_argument("--version", action="version", version=f"artrack {metadata.version('artrack')}")
     top.add_argument("--log-format", choices=FORMATS, help=f"log lines as text or JSON objects (env {FORMAT_ENV}; "
                      "default text); `up` passes it on to its nodes")

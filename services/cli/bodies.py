@@ -17,6 +17,8 @@ CHECK_HELP = ("each body of a bodies file (spheres, shortest and longest distanc
 DEFINE_HELP = ("a new body from a stereo recording's unlabelled points at one time, appended to a bodies file "
                "(body frame: origin at their centroid, principal axes)")
 NS_PER_S = 1_000_000_000
+SPAN_SLACK_S = 0.0005
+"""How far ``--at`` may be outside a recording's span: half the millisecond the span is printed to."""
 
 
 def spread(spheres: np.ndarray) -> str:
@@ -43,7 +45,8 @@ def cmd_bodies_check(args: argparse.Namespace) -> int:
 
 def unlabelled_points(recording: Path, at_s: float, key: str = "points") -> tuple[np.ndarray, float]:
     """The unlabelled points (body index -1) of the ``Points3D`` message on ``key`` whose stamp is nearest
-    ``at_s`` seconds after the first one's: ``((N, 3) world, m; that message's time in seconds)``."""
+    ``at_s`` seconds after the first one's: ``((N, 3) world, m; that message's time in seconds)``. ValueError
+    for an ``at_s`` outside the span of the messages."""
     from protocol.mocap import Points3D
     from services.recorder.export import Export
 
@@ -51,6 +54,10 @@ def unlabelled_points(recording: Path, at_s: float, key: str = "points") -> tupl
     if not found:
         raise ValueError(f"{recording}: no Points3D messages on {key!r} (record a stereo tracker's run)")
     start = min(m.header.stamp_ns for m in found)
+    span_s = (max(m.header.stamp_ns for m in found) - start) / NS_PER_S
+    if not -SPAN_SLACK_S <= at_s <= span_s + SPAN_SLACK_S:
+        raise ValueError(f"--at {at_s:g}: {recording} holds points from 0 to {span_s:.3f} s (after its first "
+                         f"points message)")
     wanted = start + round(at_s * NS_PER_S)
     nearest = min(found, key=lambda m: abs(m.header.stamp_ns - wanted))
     return nearest.points[nearest.body == -1], (nearest.header.stamp_ns - start) / NS_PER_S

@@ -8,6 +8,8 @@ import contextlib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from services.cli.outputs import add_force_option, check_output
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -51,6 +53,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from services.calibration.camera_info import write_camera_info
     from services.calibration.intrinsics import calibrate_images
 
+    check_output(args.out, args.force)  # before the work: a calibration can take minutes
     if args.wand is not None:
         return cmd_calibrate_wand(args)
     missing = [flag for flag, value in (("DIR_OR_GLOB", args.images or None), ("--pattern", args.pattern),
@@ -228,6 +231,7 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dictionary", metavar="NAME", help="ChArUco: its markers' dictionary, e.g. DICT_6X6_250")
     p.add_argument("--camera", default="cam0", metavar="NAME", help="camera name written to the file (default cam0)")
     p.add_argument("-o", "--out", required=True, type=Path, metavar="CAMERA.yaml|RIG.yaml")
+    add_force_option(p)
     p.add_argument("--wand", type=Path, metavar="RECORDING.mcap",
                    help="extrinsics from the IR images of a recording of a 3-sphere wand waved through the volume")
     p.add_argument("--wand-length", type=float, metavar="M", help="--wand: distance between its end spheres, metres")

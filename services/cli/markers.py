@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.cli.outputs import add_force_option, check_output
+
 PAPER_NAMES = ("a4", "letter", "a3")
 """``artrack markers print --paper`` choices: ``marker_sheet.PAPERS``' names (that module loads OpenCV)."""
 
@@ -32,6 +34,9 @@ def cmd_markers_print(args: argparse.Namespace) -> int:
     dictionary = args.dictionary or DEFAULT_DICTIONARY
     if suffix not in (".pdf", ".png"):
         raise ValueError(f"-o {args.out}: give a .pdf or .png file")
+    board_file = args.board_file or args.out.with_suffix(".yaml")
+    for output in (args.out, board_file) if args.board is not None else (args.out,):
+        check_output(output, args.force)
     ids = parse_ids(args.ids) if args.ids is not None else None
     sheet: Sheet
     board: cv2.aruco.Board | None = None
@@ -53,7 +58,6 @@ def cmd_markers_print(args: argparse.Namespace) -> int:
         raise ValueError(f"cannot write {args.out}: {exc.strerror}") from exc
     print(f"wrote {args.out} ({args.paper}): print it at 100 % (actual size), then measure the scale bar")
     if board is not None:
-        board_file = args.board_file or args.out.with_suffix(".yaml")
         try:
             board_file.write_text(yaml.safe_dump(board_document(board, args.name, dictionary), sort_keys=False,
                                                 default_flow_style=None))
@@ -87,4 +91,5 @@ def add_markers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--name", default="board", help="board: its name, the pose key's last part (default board)")
     p.add_argument("--board-file", type=Path, metavar="BOARD.yaml", help="board: where its marker map goes "
                    "(default: beside the sheet, .yaml)")
+    add_force_option(p)
     p.set_defaults(func=cmd_markers_print)

@@ -16,6 +16,10 @@ from services.cli.bus_options import add_bus_options, bus_config
 
 log = logging.getLogger("artrack")
 
+EXIT_NOTHING = 1
+"""Exit status of ``echo`` when nothing arrived before ``--timeout`` (as ``config`` and ``control`` when no node
+answers)."""
+
 
 def cmd_status(args: argparse.Namespace) -> int:
     from services.launcher.status import HEALTHY, UNHEALTHY, format_status, gather
@@ -51,8 +55,9 @@ def cmd_config(args: argparse.Namespace) -> int:
         log.error("no node answered on %s within %.1f s (is %s running, and does its kind take live changes?)",
                   bus.keys.config(args.node), args.timeout, args.node)
         return 1
-    print(json.dumps({"node": answer.node, "applied": _from_json(answer.applied), "refused": answer.refused,
-                      "params": _from_json(answer.params)}))
+    held = _from_json(answer.params)  # an applied value comes back as typed; report it as the node holds it
+    applied = {name: held.get(name, value) for name, value in _from_json(answer.applied).items()}
+    print(json.dumps({"node": answer.node, "applied": applied, "refused": answer.refused, "params": held}))
     return 1 if answer.refused else 0
 
 
@@ -88,13 +93,16 @@ def cmd_echo(args: argparse.Namespace) -> int:
     stop_on = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        print_json_lines(echo(session, key, count=args.count, timeout_s=args.timeout,
-                              max_array_elements=None if args.full else 16))
+        printed = print_json_lines(echo(session, key, count=args.count, timeout_s=args.timeout,
+                                        max_array_elements=None if args.full else 16))
     except (KeyboardInterrupt, BrokenPipeError):
-        pass
+        return 0
     finally:
         signal.signal(signal.SIGTERM, stop_on)
         session.close()
+    if not printed:
+        log.error("nothing arrived on %s in %g s", key, args.timeout)
+        return EXIT_NOTHING
     return 0
 
 
@@ -140,7 +148,8 @@ def add_echo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("echo", help="print the messages on a key as JSON lines")
     p.add_argument("key", help="key expression; relative to ar/<rig>/ unless it starts with the namespace")
     p.add_argument("--count", type=int, default=0, help="stop after this many messages")
-    p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds without a message")
+    p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds without a message (exit 1 "
+                   "when none arrived at all)")
     p.add_argument("--full", action="store_true", help="print whole arrays, not just dtype and shape of large ones")
     add_bus_options(p)
     p.set_defaults(func=cmd_echo)

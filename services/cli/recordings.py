@@ -18,6 +18,8 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
+from services.cli.outputs import add_force_option, check_output
+from services.cli.parsing import Parser
 from services.runtime.logs import log_format, setup_logging
 
 if TYPE_CHECKING:
@@ -39,16 +41,19 @@ def _run_as_node(args: argparse.Namespace, kind: str, body: Callable[[Node], obj
 
 
 def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional: dict[str, str], description: str,
-                node: str | None = None) -> M:
+                node: str | None = None, force: bool = False) -> M:
     """``model`` from ``artrack PROG POSITIONAL... [flags]`` (``args.rest``): a flag per field of the model but
-    the positional ones (paths), bus options and ``--name`` when it runs as a ``node``; errors name the flag."""
+    the positional ones (paths), bus options and ``--name`` when it runs as a ``node``, ``--force`` when it
+    may overwrite its output (``args.force``); errors name the flag."""
     from services.launcher.flags import add_flags, explain, flags_for, given_values
 
-    p = argparse.ArgumentParser(prog=f"artrack {prog}", description=description)
+    p = Parser(prog=f"artrack {prog}", description=description)
     for field, metavar in positional.items():
         p.add_argument(field, type=Path, metavar=metavar)
     flags = flags_for(model, set(positional))
     add_flags(p.add_argument_group(f"{prog} options"), flags)
+    if force:
+        add_force_option(p)
     if node is not None:
         p.add_argument("--name", default=node, help=f"node name (default {node})")
         add_bus_options(p)
@@ -119,6 +124,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from services.recorder.reading import EXIT_DAMAGED
 
     if not is_expression(args.key):
+        if args.output is not None:
+            check_output(args.output, args.force, makes_folders=True)
         job = _export_key(args, args.key, args.output)
         log.info("exported %d rows of %s%s", job.rows, args.key, _skipped(job.skipped))
     else:
@@ -126,8 +133,10 @@ def cmd_export(args: argparse.Namespace) -> int:
         folder = args.output or Path(".")
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"-o {folder}: a key expression writes one file per key: give a folder")
-        for key in keys:
-            target = export_path(folder, key, prefix, args.format)
+        targets = {key: export_path(folder, key, prefix, args.format) for key in keys}
+        for target in targets.values():
+            check_output(target, args.force, makes_folders=True)
+        for key, target in targets.items():
             job = _export_key(args, key, target)
             log.info("wrote %s: %d rows of %s%s", target, job.rows, key, _skipped(job.skipped))
         log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
@@ -157,6 +166,7 @@ def _export_key(args: argparse.Namespace, key: str, output: Path | None) -> Expo
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from services.recorder.reading import EXIT_DAMAGED
     from services.recorder.scoring import evaluate, format_evaluation
     from services.recorder.trajectories import load_trajectory
 
@@ -172,7 +182,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(json.dumps(evaluation.to_dict()) if args.json else format_evaluation(evaluation))
     if args.plot is not None:
         log.info("wrote %s", args.plot)
-    return 0
+    damaged = {path: trajectory.damage for path, trajectory in ((args.est, est), (args.gt, gt))
+               if trajectory.damage is not None}
+    for path, damage in damaged.items():
+        log.warning("%s is damaged: %s; scored its intact part", path, damage)
+    return EXIT_DAMAGED if damaged else 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -180,7 +194,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     from services.viewer.convert import convert
     from services.viewer.scene import ViewOptions
 
-    options = _from_flags(args, "view", ViewOptions, {"file": "IN.mcap", "out": "OUT.rrd"}, VIEW_HELP)
+    options = _from_flags(args, "view", ViewOptions, {"file": "IN.mcap", "out": "OUT.rrd"}, VIEW_HELP, force=True)
+    check_output(args.out, args.force)
     done = convert(args.file, args.out, options)
     log.info("wrote %s: %d rows from %d messages%s", args.out, done.rows, done.messages,
              f" ({done.undecodable} undecodable messages skipped)" if done.undecodable else "")
@@ -227,6 +242,7 @@ def add_export(sub: argparse._SubParsersAction) -> None:
                    "a key expression, the folder of the files, each named after its key (default: .)")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
+    add_force_option(p)
     p.set_defaults(func=cmd_export)
 
 
@@ -255,8 +271,8 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gt-child", metavar="FRAME", help="recordings: GT's child frame when it is named otherwise than "
                                                       "EST's (default --child), e.g. a scene's `target` against "
                                                       "the features tracker's `target/NAME`")
-    p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view "
-                                                                "(needs the plot extra: matplotlib)")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="draw both trajectories, top and side view, "
+                                                                "to a PNG")
     p.add_argument("--json", action="store_true", help="one JSON object instead of text")
     p.set_defaults(func=cmd_eval)
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli.bus_options import add_bus_options, bus_config
+from services.cli.parsing import Parser
 
 log = logging.getLogger("artrack")
 
@@ -29,7 +30,7 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     from services.launcher.tracker import Tracker
 
     chosen = Tracker.load(tracker)
-    p = argparse.ArgumentParser(prog=f"artrack run {tracker}", epilog=RUN_EXITS, description=(
+    p = Parser(prog=f"artrack run {tracker}", epilog=RUN_EXITS, description=(
         f"{chosen.summary}. Processes: {chosen.layout()} (messages within a process pass by reference; "
         f"--processes separate or --process NODE= splits them out)"))
     source = flags_for(kind("capture").params, SOURCE_SKIP)
@@ -150,7 +151,7 @@ def _command_line(argv: list[str], without: str) -> str:
 
 
 def _pipeline_job_parser(path: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"artrack run {path}", description="a pipeline file run as one job: its "
+    p = Parser(prog=f"artrack run {path}", description="a pipeline file run as one job: its "
                                 "sources start last, and the job ends when they do")
     _display_options(p.add_argument_group("job"))
     add_bus_options(p)

@@ -4,6 +4,7 @@ image is before it is printed."""
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -11,7 +12,10 @@ if TYPE_CHECKING:
     import numpy as np
 
     from services.detection.keypoints.detector import KeypointParams
+    from services.estimation.targets.check import Trackability
     from services.estimation.targets.library import TargetLibrary
+
+log = logging.getLogger("artrack")
 
 EXIT_WARNINGS = 1
 EXIT_POOR = 2
@@ -33,23 +37,34 @@ def detector_of(feature: str | None) -> KeypointParams:
     return feature_params(feature or DEFAULT_FEATURE)
 
 
+def rating(report: Trackability) -> str:
+    """``VERDICT: N keypoints, coverage C, spread S, repeated R``: a trackability report in one line."""
+    return (f"{report.verdict}: {report.keypoints} keypoints, coverage {report.coverage:.0%}, spread "
+            f"{report.entropy:.2f}, repeated {report.repeated:.0%}")
+
+
 def print_check(image: np.ndarray, detector: KeypointParams) -> int:
     """Print the trackability of ``image`` with ``detector``'s keypoints; the exit status of its verdict."""
     from services.estimation.targets.check import check_image
 
     report = check_image(image, detector)
-    print(f"{report.verdict}: {report.keypoints} keypoints, coverage {report.coverage:.0%}, spread "
-          f"{report.entropy:.2f}, repeated {report.repeated:.0%}")
+    print(rating(report))
     for warning in report.warnings:
         print(f"warning: {warning}")
     return {"good": 0, "fair": EXIT_WARNINGS, "poor": EXIT_POOR}[report.verdict]
 
 
 def cmd_add(args: argparse.Namespace) -> int:
+    from services.estimation.targets.check import check_image
+
     targets = library(args)
-    target = targets.add(args.image, args.width, args.target_name, detector_of(args.feature))
+    detector = detector_of(args.feature)
+    target = targets.add(args.image, args.width, args.target_name, detector)
     print(f"{target.name}: {target.size_px[0]}x{target.size_px[1]} px, {target.width_m:.3f} x {target.height_m:.3f} m, "
           f"{len(target.keypoints)} {target.feature} keypoints; added to {targets.folder}")
+    report = check_image(target.image, detector)
+    if report.verdict != "good":
+        log.warning("%s rates %s (`artrack target check %s` says why)", args.image, rating(report), args.image)
     return 0
 
 

@@ -34,6 +34,7 @@ the last image it sent.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -60,6 +61,8 @@ from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import Node, NodeError
 
 SETTLE_S = 0.2
+STEP_ANSWER_S = 1.0
+"""How long a ``step`` waits for its message to go out before answering (at the end of the file none goes)."""
 _ROLES = {Image.SCHEMA: Role.FRAME, NodeStats.SCHEMA: Role.STATUS, ErrorReport.SCHEMA: Role.STATUS}
 
 
@@ -177,6 +180,7 @@ class _Outputs:
         self._publishers: dict[int, RawPublisher] = {}
         self._restamp = _Restamper() if restamp else None
         self._credits = node.credits()
+        self._went_out = threading.Condition()
         self.published = 0
         self.frames = 0
         self.last_seq = -1
@@ -207,12 +211,20 @@ class _Outputs:
         started = time.perf_counter()
         publisher.put(self._restamp(data) if self._restamp else data)
         self._node.processed(time.perf_counter() - started)
-        self.published += 1
+        with self._went_out:
+            self.published += 1
+            self._went_out.notify_all()
         if seq is not None:
             if self._credits is not None:
                 self._credits.sent(seq)
             self.frames += 1
             self.last_seq = seq
+
+
+    def wait_beyond(self, published: int, timeout_s: float) -> None:
+        """Block until more than ``published`` messages went out, or ``timeout_s`` passed."""
+        with self._went_out:
+            self._went_out.wait_for(lambda: self.published > published, timeout_s)
 
 
 def _frame_seq(payload: bytes) -> int | None:
@@ -255,8 +267,11 @@ def replay(node: Node, params: Params) -> Replayed:
             query.reply_err(encode(ErrorReport(header=now, node=node.name, kind="bad_request", detail=str(exc),
                                                key=str(query.key_expr))))
             return
+        played = outputs.published
         if request.command is not ReplayCommand.STATUS:
             getattr(pacer, request.command.value)()
+        if request.command is ReplayCommand.STEP:  # answer with the state after the step: its message out
+            outputs.wait_beyond(played, STEP_ANSWER_S)
         query.reply(query.key_expr, encode(ReplayStatus(
             header=now, node=node.name, path=str(params.path), state=pacer.state, played=outputs.published,
             passes=done.passes, position_s=max(0, pacer.position_ns()) / 1e9, rate=params.rate)))

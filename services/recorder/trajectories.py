@@ -30,7 +30,7 @@ import numpy as np
 
 from services.geometry.se3 import from_quaternion_translation
 from services.recorder.export import Export
-from services.recorder.reading import MAGIC
+from services.recorder.reading import MAGIC, Damage
 
 __all__ = ["KITTI_TIMES", "TEXT_FORMATS", "Trajectory", "TrajectoryError", "is_recording", "load_trajectory",
            "read_kitti", "read_recording", "read_tum", "text_format"]
@@ -53,12 +53,14 @@ class TrajectoryError(ValueError):
 class Trajectory:
     """(N, 4, 4) float64 ``T_world_body`` poses with (N,) int64 stamps in nanoseconds, or None when the
     source has no stamps (a KITTI file without ``times.txt``), and (N,) int64 frame numbers, or None
-    when it has none (TUM). ``name`` says where it came from."""
+    when it has none (TUM). ``name`` says where it came from; ``damage`` where the damaged recording it was
+    read from stops (its intact part was read), None for an intact file."""
 
     poses: np.ndarray
     stamps_ns: np.ndarray | None
     name: str
     frames: np.ndarray | None = None
+    damage: Damage | None = None
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -154,12 +156,11 @@ def read_recording(path: Path | str, key: str | None, child: str | None = None) 
         raise TrajectoryError(f"{path} is a recording: name the pose key to read (--est-key / --gt-key)")
     job = Export(path, key, "tum", child=child)
     stamped = list(job.transforms())
-    if job.damage is not None:
-        log.warning("%s is damaged: %s; read its intact part", path, job.damage)
     poses = [from_quaternion_translation(np.array(t.rotation), np.array(t.translation)) for _, t in stamped]
     name = f"{path} {key}" + (f" ({child})" if child else "")
     trajectory = _trajectory(name, poses, np.array([header.stamp_ns for header, _ in stamped], dtype=np.int64))
-    return replace(trajectory, frames=np.array([header.seq for header, _ in stamped], dtype=np.int64))
+    return replace(trajectory, frames=np.array([header.seq for header, _ in stamped], dtype=np.int64),
+                   damage=job.damage)
 
 
 def _trajectory(name: Path | str, poses: list[np.ndarray], stamps: np.ndarray | None) -> Trajectory:

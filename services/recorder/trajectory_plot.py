@@ -1,4 +1,4 @@
-"""Both trajectories of an evaluation drawn to a PNG: a top view and a side view (matplotlib, the ``plot`` extra).
+"""Both trajectories of an evaluation drawn to a PNG: a top view and a side view (matplotlib).
 
 The ground truth is drawn as it is; the whole estimate (matched or not) after the evaluation's
 alignment. World frames differ between sources (TUM's mocap is z up, KITTI's and a camera's
@@ -15,13 +15,9 @@ import numpy as np
 from services.geometry.evaluation import apply_similarity
 from services.recorder.scoring import Evaluation
 
-__all__ = ["PlotUnavailable", "plot_evaluation", "view_axes"]
+__all__ = ["plot_evaluation", "view_axes"]
 
 AXES = "xyz"
-
-
-class PlotUnavailable(ValueError):
-    """matplotlib is not installed."""
 
 
 def view_axes(positions: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
@@ -33,14 +29,11 @@ def view_axes(positions: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
 
 def plot_evaluation(evaluation: Evaluation, out: Path | str) -> None:
     """Write the top and side views of ``evaluation``'s trajectories to the PNG ``out``."""
-    try:
-        import matplotlib
+    import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as exc:
-        raise PlotUnavailable("--plot needs matplotlib: pip install 'artrack[plot]' (or pip install matplotlib)") \
-            from exc
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     gt = evaluation.gt.poses[:, :3, 3]
     est = apply_similarity(evaluation.score.ate.alignment, evaluation.est.poses)[:, :3, 3]
     figure, panels = plt.subplots(1, 2, figsize=(12, 5.5))

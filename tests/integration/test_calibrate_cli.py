@@ -81,3 +81,23 @@ def test_unusable_sets_exit_2_with_the_reason_and_write_nothing(procs, tmp_path)
         errors = [line for line in proc.stderr.splitlines() if "ERROR" in line]
         assert len(errors) == 1 and re.search(reason, errors[0]), proc.stderr
         assert not out.exists()
+
+
+def test_an_output_that_cannot_be_written_or_exists_is_refused_before_calibrating(procs, tmp_path):
+    folder = data_dir("calib_chessboard_stereo_opencv")
+    existing = tmp_path / "camera.yaml"
+    existing.write_text("mine\n")
+    for out, reason in ((tmp_path / "nodir" / "x.yaml", f"cannot write {tmp_path / 'nodir' / 'x.yaml'}: folder "
+                                                           f"{tmp_path / 'nodir'} does not exist"),
+                        (existing, f"{existing} exists: give --force to overwrite it")):
+        for mode in ((str(folder), "--glob", "left*.jpg", *CHESSBOARD),
+                     ("--wand", str(tmp_path / "wand.mcap"), "--wand-length", "0.5", "--wand-middle", "0.2")):
+            proc = procs.run("calibrate", *mode, "--out", str(out), timeout=TIMEOUT_S)
+            assert proc.poll() == 2 and "views" not in proc.stdout, proc.describe()  # nothing was calibrated
+            errors = [line for line in proc.stderr.splitlines() if line.strip()]
+            assert len(errors) == 1 and errors[0].endswith(reason), proc.stderr
+    assert existing.read_text() == "mine\n"
+    forced = procs.run("calibrate", str(folder), "--glob", "left*.jpg", *CHESSBOARD, "--out", str(existing),
+                       "--force", timeout=TIMEOUT_S)
+    assert forced.poll() == 0, forced.describe()
+    assert read_camera_info(existing).K[0, 0] > 0

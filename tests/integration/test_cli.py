@@ -38,6 +38,17 @@ def test_help_lists_every_subcommand():
         assert re.search(rf"^\s+{name}\s+\S", done.stdout, re.MULTILINE), f"`artrack --help` does not list {name}"
 
 
+def test_the_installed_command_and_the_example_run_from_outside_the_checkout(tmp_path):
+    bin_dir = Path(sys.executable).parent  # the venv's bin/, where the README says `artrack` is
+    version = subprocess.run([str(bin_dir / "artrack"), "--version"], capture_output=True, text=True, timeout=30,
+                             cwd=tmp_path)
+    assert version.returncode == 0 and version.stdout.startswith("artrack "), version.stderr
+    example = Path(__file__).resolve().parents[2] / "examples" / "track_marker.py"
+    helped = subprocess.run([sys.executable, str(example), "--help"], capture_output=True, text=True, timeout=30,
+                            cwd=tmp_path)
+    assert helped.returncode == 0 and "Follow tracked markers" in helped.stdout, helped.stderr
+
+
 def test_list_shows_the_running_nodes_with_kind_and_pid(bus, procs, session):
     cam = start_node(procs, "capture", "cam", **SMALL_CAMERA)
     echo = start_node(procs, "echo", "relay", camera="cam0")
@@ -109,6 +120,13 @@ def test_echo_shows_the_key_an_error_report_arrived_on_and_keeps_its_own(bus, pr
     assert line["key"] == arrival and line["message_key"] == bus.keys.camera_info("cam0")
     assert (line["schema"], line["node"], line["kind"], line["detail"]) == (
         "artrack.ErrorReport", "marker", "no_calibration", "no CameraInfo")
+
+
+def test_echo_says_when_nothing_arrived_before_its_timeout(bus, procs):
+    quiet = procs.run("echo", "cam7/image", "--timeout", "1")
+    assert quiet.poll() == 1 and quiet.stdout == "", quiet.describe()
+    lines = [line for line in quiet.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].endswith(f"nothing arrived on {bus.keys.image('cam7')} in 1 s"), quiet.stderr
 
 
 def test_echo_refuses_a_bad_key_expression_in_one_line(procs):

@@ -200,6 +200,7 @@ marker_length = 0.05
         done = procs.run("config", "marker", "--set", "corner_sigma_px=2.0", timeout=30)
         assert done.poll() == 0 and json.loads(done.stdout)["refused"] == {}, done.describe()
         assert json.loads(done.stdout)["params"]["corner_sigma_px"] == 2.0  # a value, not JSON text
+        assert json.loads(done.stdout)["applied"] == {"corner_sigma_px": 2.0}  # as the node holds it, not as typed
         applied_by = max(p.header.seq for p in [before, *collect(poses, 0)]) + 1  # frames after it saw the change
         after = _tracking_after(poses, applied_by, before.child_frame_id)
         scale = np.diag(np.reshape(after.covariance, (6, 6))) / np.diag(np.reshape(before.covariance, (6, 6)))

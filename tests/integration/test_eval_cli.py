@@ -221,15 +221,10 @@ def test_two_unrelated_trajectories_are_refused_with_their_counts(tmp_path):
         artrack("eval", unstamped, truth, "--match-by", "index"))
 
 
-def test_plot_draws_both_views_or_says_how_to_install_matplotlib(tmp_path):
+def test_plot_draws_both_views(tmp_path):
     gt = write_tum(tmp_path / "gt.txt", walk(10, 0.2, 0.3))
     out = tmp_path / "eval.png"
     done = artrack("eval", gt, gt, "--plot", out)
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        assert "--plot needs matplotlib: pip install 'artrack[plot]'" in one_error_line(done)
-        return
     assert done.returncode == 0, done.stderr
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
 
@@ -272,3 +267,17 @@ def test_figures_agree_with_evo(tmp_path):
         assert theirs == pytest.approx({k: ours["rpe"]["translation_m"][k] for k in theirs}, abs=2e-6), align
         theirs = evo_figures(rpe, *common, "-r", "angle_deg")
         assert theirs == pytest.approx({k: ours["rpe"]["rotation_deg"][k] for k in theirs}, abs=2e-6), align
+
+
+def test_a_damaged_recording_is_scored_up_to_the_damage_said_once_exit_3(tmp_path):
+    whole = Path(__file__).resolve().parents[2] / "recordings" / "markers.mcap"  # 150 frames of truth
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 6 // 10])
+    keys = ("--est-key", "cam0/truth", "--gt-key", "cam0/truth", "--child", "marker/0")
+    done = artrack("eval", cut, cut, *keys)
+    assert done.returncode == 3, done.stderr
+    warnings = [line for line in done.stderr.splitlines() if "damaged" in line]
+    assert len(warnings) == 1 and f"{cut} is damaged: stopped at byte" in warnings[0], done.stderr
+    matched = int(re.search(r"matched\s+(\d+) poses", done.stdout).group(1))
+    assert 3 <= matched < 150, done.stdout
+    assert artrack("eval", whole, whole, *keys).returncode == 0

@@ -115,11 +115,12 @@ def test_a_group_beside_a_recorder_records_what_separate_processes_record(procs,
 
 
 def test_a_member_that_cannot_run_stops_its_group_and_the_job_says_which_and_why(procs, tmp_path):
-    path = tmp_path / "broken.toml"
-    path.write_text("""
+    path, empty = tmp_path / "broken.toml", tmp_path / "empty"
+    empty.mkdir()  # a folder passes the job's checks; the node finds no image in it
+    path.write_text(f"""
 [nodes.cam]
 kind = "capture"
-source = "camera:99"
+source = "images:{empty}"
 cameras = ["cam0"]
 process = "camera"
 
@@ -131,7 +132,7 @@ process = "camera"
     job = procs.run("run", str(path), "--quiet", timeout=4 * START_S)
     assert job.poll() == 2, job.describe()
     last = job.stderr.strip().splitlines()[-1]
-    assert last.endswith("source camera ended with code 2: node cam: camera:99: cannot open video device 99"), last
+    assert f"source camera ended with code 2: node cam: images:{empty}: no image files in {empty} (" in last, last
 
 
 def test_the_stereo_template_tracks_alike_grouped_and_split(procs, tmp_path):

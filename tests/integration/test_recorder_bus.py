@@ -333,10 +333,14 @@ def test_a_paused_replay_steps_and_resumes_on_control_commands(bus, procs, sessi
             assert reason in refusal.detail, refusal
         time.sleep(0.5)
         assert collector.count() == 0
-        assert control("step")["state"] == "paused"
+        stepped = control("step")  # answered once the message went out: the state after the step
+        assert (stepped["state"], stepped["played"], stepped["position_s"]) == ("paused", 1, 0.0), stepped
         wait_until(lambda: collector.count() == 1, 5.0, "the stepped message")
+        stepped = control("step")
+        assert (stepped["state"], stepped["played"], stepped["position_s"]) == ("paused", 2, 0.1), stepped
+        wait_until(lambda: collector.count() == 2, 5.0, "the second stepped message")
         time.sleep(0.4)  # more than the recorded gap: still paused
-        assert collector.count() == 1
+        assert collector.count() == 2
         assert control("resume")["state"] == "playing"
         assert replay.wait(10) == 0, replay.describe()
         wait_until(lambda: collector.count() == 5, 5.0, "the rest of the messages")

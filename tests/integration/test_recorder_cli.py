@@ -107,6 +107,23 @@ def test_export_of_a_key_expression_writes_one_file_per_matching_key(tmp_path):
     assert none.stderr.count("\n") == 1, none.stderr
 
 
+def test_export_keeps_existing_files_unless_forced(recording, tmp_path):
+    out = tmp_path / "wand.tum"
+    out.write_text("mine\n")
+    kept = artrack("export", str(recording), "--key", "pose/wand", "--format", "tum", "-o", str(out))
+    assert kept.returncode == 2 and kept.stderr.strip().endswith(f"{out} exists: give --force to overwrite it")
+    assert out.read_text() == "mine\n"
+    folder = tmp_path / "all"
+    (folder / "pose").mkdir(parents=True)
+    (folder / "pose" / "wand.tum").write_text("mine\n")
+    expression = artrack("export", str(recording), "--key", "pose/*", "--format", "tum", "-o", str(folder))
+    assert expression.returncode == 2 and f"{folder / 'pose' / 'wand.tum'} exists" in expression.stderr
+    assert (folder / "pose" / "wand.tum").read_text() == "mine\n"
+    forced = artrack("export", str(recording), "--key", "pose/wand", "--format", "tum", "-o", str(out), "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert len(out.read_text().splitlines()) == 60
+
+
 def test_export_jsonl_and_csv_carry_every_message(recording):
     lines = artrack("export", str(recording), "--key", "pose/wand", "--format", "jsonl")
     assert lines.returncode == 0, lines.stderr

@@ -96,6 +96,13 @@ def test_run_refuses_what_its_nodes_could_not_start_with_before_starting_any(pro
     assert len(lines) == 1 and expected.format(existing=existing) in lines[0], job.stderr
 
 
+def test_run_refuses_a_camera_that_does_not_open_before_saying_it_runs(procs):
+    job = procs.run("run", "marker", "--source", "camera:97", "--marker-length", "0.05")
+    assert job.poll() == 2, job.describe()
+    lines = [line for line in job.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "nodes.capture: camera:97: cannot open video device 97" in lines[0], job.stderr
+
+
 WRONG_SIZE = "calibrated for 1280x720, the frames are 640x480 (another aspect ratio): use a calibration made at 640x480"
 
 

@@ -87,6 +87,13 @@ def test_check_verdicts_are_exit_codes(procs, tmp_path, texture):
         checked = procs.run("target", "check", str(path))
         assert checked.poll() == status and checked.stdout.startswith(f"{verdict}: "), checked.describe()
         assert (verdict == "good") == ("warning:" not in checked.stdout)
+        added = procs.run("target", "add", str(path), "--width", "0.2", "--targets", str(tmp_path / "targets"))
+        warned = [line for line in added.stderr.splitlines() if "WARNING" in line]
+        assert added.poll() == 0 and added.stdout.startswith(f"{verdict}: "), added.describe()
+        rating = checked.stdout.splitlines()[0]
+        assert warned == ([] if verdict == "good" else [warned[0]]), added.stderr
+        said = f"{path} rates {rating} (`artrack target check {path}` says why)"
+        assert verdict == "good" or warned[0].endswith(said), warned
     one_line_error(procs.run("target", "check", str(tmp_path / "missing.png")), "missing.png: no such file")
 
 

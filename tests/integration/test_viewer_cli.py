@@ -78,3 +78,11 @@ def test_view_exit_codes_say_what_went_wrong(procs, tmp_path):
     missing = procs.run("view", str(tmp_path / "none.mcap"), str(tmp_path / "none.rrd"))
     assert missing.poll() == 2 and "none.mcap" in missing.stderr
     assert not (tmp_path / "none.rrd").exists()
+    before = (tmp_path / "cut.rrd").read_bytes()
+    kept = procs.run("view", str(whole), str(tmp_path / "cut.rrd"))
+    assert kept.poll() == 2 and kept.stderr.strip().endswith(f"{tmp_path / 'cut.rrd'} exists: give --force to "
+                                                              "overwrite it"), kept.describe()
+    assert (tmp_path / "cut.rrd").read_bytes() == before
+    forced = procs.run("view", str(whole), str(tmp_path / "cut.rrd"), "--force")
+    assert forced.poll() == 0, forced.describe()
+    assert len(RrdContents(tmp_path / "cut.rrd").rows("world/cam0/image", "Image:buffer")) == 40

@@ -69,3 +69,26 @@ def test_bodies_check_exits_by_what_it_finds(tmp_path, capsys):
     assert "warning: body 'copy' is too like body 'tool'" in out and "warning(s)" in out
     assert main(["bodies", "check", str(bad)]) == 2
     assert capsys.readouterr().out == ""
+
+
+def test_define_refuses_a_time_outside_the_recording_naming_its_span(tmp_path, capsys):
+    from protocol import Header, Points3D, encode
+    from services.recorder.writing import RecordingWriter
+
+    record = tmp_path / "seen.mcap"
+    writer = RecordingWriter(record, metadata={"namespace": "ar", "rig": "rig0"})
+    spheres = seen(LAYOUTS["tool"], seed=3)
+    for i in range(60):  # 2 s at 30 Hz: the last message 59/30 = 1.967 s after the first
+        n = len(spheres)
+        points = Points3D(header=Header(stamp_ns=10**18 + i * 10**9 // 30, frame_id="world", seq=i), points=spheres,
+                          residual_px=np.zeros(n, np.float32), views=np.full(n, 2, np.uint8),
+                          covariances=np.zeros((n, 3, 3)), body=np.full(n, -1, np.int32))
+        writer.write("ar/rig0/points", encode(points), i)
+    writer.close()
+    bodies = tmp_path / "bodies.yaml"
+    for at in ("99", "-1"):
+        assert main(["bodies", "define", "probe", "--from", str(record), "--at", at, "--bodies", str(bodies)]) == 2
+        assert f"--at {at}: {record} holds points from 0 to 1.967 s" in capsys.readouterr().err
+    assert not bodies.exists()
+    assert main(["bodies", "define", "probe", "--from", str(record), "--at", "1.967", "--bodies", str(bodies)]) == 0
+    assert "probe: 4 spheres" in capsys.readouterr().out

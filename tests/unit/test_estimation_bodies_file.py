@@ -102,3 +102,20 @@ def test_two_alike_bodies_are_warned_both_ways():
     assert len(warnings) == 2
     assert "body 'tool' is too like body 'copy'" in warnings[0]
     assert "body 'copy' is too like body 'tool'" in warnings[1]
+
+
+@pytest.mark.parametrize(("scale", "unit"), [(1000, "millimetres"), (100, "centimetres")])
+def test_a_body_wider_than_plausible_is_warned_naming_the_likely_unit(scale, unit):
+    spheres = LAYOUTS["tool"]
+    across = max(np.linalg.norm(a - b) for a in spheres for b in spheres)
+    assert check_bodies({"probe": spheres}) == [] and 0.1 < across < 2
+    warnings = check_bodies({"probe": spheres * scale})
+    assert len(warnings) == 1 and warnings[0].startswith(f"body 'probe' is {across * scale:.3g} m across (at most "
+                                                         "2 m is plausible)"), warnings
+    assert f"typed in {unit}? It would be {across:.3g} m across" in warnings[0]
+
+
+def test_a_body_wider_than_any_unit_explains_is_warned_with_the_unit_of_the_file():
+    warnings = check_bodies({"huge": np.array([[0.0, 0.0, 0.0], [5e3, 0.0, 0.0], [0.0, 4e3, 0.0]])})
+    assert len(warnings) == 1 and warnings[0].endswith("m across (at most 2 m is plausible): a bodies file is in "
+                                                       "metres"), warnings

@@ -68,7 +68,6 @@ def pdf_images_pt(path: Path) -> tuple[list[float], list[tuple[float, float]]]:
 
 @pytest.mark.parametrize("paper", ["a4", "letter"])
 def test_pdf_page_is_the_paper_and_markers_are_placed_at_their_length(tmp_path, paper):
-    pytest.importorskip("matplotlib")
     length = 0.05
     path = tmp_path / "sheet.pdf"
     write_pdf(marker_sheet([1, 2, 3], "DICT_5X5_100", length, paper), path)
@@ -135,6 +134,18 @@ def test_the_cli_writes_a_sheet_and_a_board_file_the_tracker_reads(tmp_path):
     assert sorted(loaded.markers) == [4, 5, 6, 7, 8, 9]
     assert {m.length for m in loaded.markers.values()} == {0.05}
     np.testing.assert_allclose(loaded.markers[4].T_map_marker[:3, 3], [-0.03125, 0.0625, 0.0])
+
+
+def test_the_cli_keeps_an_existing_sheet_or_board_file_unless_forced(tmp_path, capsys):
+    out, board_file = tmp_path / "grid.png", tmp_path / "grid.yaml"
+    grid = ["markers", "print", "-o", str(out), "--board", "grid", "--columns", "2", "--rows", "3", "--length", "0.05"]
+    board_file.write_text("mine\n")
+    assert main(grid) == 2
+    assert capsys.readouterr().err.strip().endswith(f"{board_file} exists: give --force to overwrite it")
+    assert not out.exists() and board_file.read_text() == "mine\n"  # refused before the sheet was written
+    assert main([*grid, "--force"]) == 0 and load_marker_map(board_file).name == "board"
+    assert main(grid) == 2
+    assert f"{out} exists" in capsys.readouterr().err
 
 
 def test_bad_sheets_are_refused_in_one_line(tmp_path, capsys):

@@ -141,6 +141,21 @@ def test_truncated_garbage_and_missing_files_are_refused(saved, tmp_path):
     assert "no such file" in refusal(tmp_path / "absent.npz", camera())
 
 
+@pytest.mark.parametrize(("start", "what"), [
+    (b"\x89MCAP0\r\n", "an MCAP recording"), (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+    (b"\xff\xd8\xff\xe0", "a JPEG image"), (b"%PDF-1.4", "a PDF document"),
+])
+def test_a_file_given_by_mistake_is_named_for_what_it_is(tmp_path, start, what):
+    wrong = tmp_path / "run.mcap"
+    wrong.write_bytes(start + bytes(200))
+    message = refusal(wrong, camera())
+    assert message == f"map file {wrong}: not a map file: {what} (a map file is the .npz archive --save-map writes)"
+    assert "pickle" not in message
+    empty = tmp_path / "empty.npz"
+    empty.write_bytes(b"")
+    assert refusal(empty, camera()).endswith("not a readable map file (not an .npz archive, which --save-map writes)")
+
+
 def test_inconsistent_arrays_are_refused(saved, tmp_path):
     broken = tmp_path / "broken.npz"
     rewritten(saved, broken, lambda header, arrays: arrays.update(

@@ -13,7 +13,8 @@ A body is named and holds its sphere centres, metres, in its own frame (the fram
 A file is refused (``BodiesFileError``, one line naming the file, the body and why) when a body has
 fewer than three spheres, all its spheres lie on one line, two of its spheres are closer than the
 minimum separation, or two bodies share a name. ``check_bodies`` finds what is legal but makes
-tracking unreliable (a symmetric body, two bodies alike) and returns warnings.
+tracking unreliable (a symmetric body, two bodies alike) or is likely a mistake (a body more than
+``MAX_EXTENT`` across: coordinates in millimetres or centimetres) and returns warnings.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from services.calibration.yaml_file import read_yaml
 from services.estimation.bodies.rigid import DEFAULT_OPTIONS, MatchOptions, body_candidates, pairwise_distances
 
 __all__ = [
+    "MAX_EXTENT",
     "MIN_SEPARATION",
     "NAME_PATTERN",
     "BodiesFileError",
@@ -43,6 +45,11 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 """Body names: one key-expression chunk (the pose is published under the body's name)."""
 MIN_SEPARATION = 0.01
 """Default smallest distance (m) between two sphere centres of one body: closer spheres merge into one blob."""
+MAX_EXTENT = 2.0
+"""Largest plausible distance (m) between two spheres of one body: a body wider than a person is likely given in
+millimetres or centimetres."""
+UNITS = ((1e-3, "millimetres"), (1e-2, "centimetres"))
+"""Units a body's coordinates may have been typed in instead of metres, the likelier first: (metres per unit, name)."""
 COLLINEAR_RATIO = 1e-3
 """A body whose centred spheres' second singular value is below this fraction of the first lies on a line."""
 
@@ -121,6 +128,10 @@ def check_bodies(bodies: Mapping[str, np.ndarray], options: MatchOptions = DEFAU
     warnings = []
     for name, spheres in bodies.items():
         spheres = np.asarray(spheres, dtype=np.float64)
+        extent = float(pairwise_distances(spheres).max())
+        if extent > MAX_EXTENT:
+            warnings.append(f"body {name!r} is {extent:.3g} m across (at most {MAX_EXTENT:g} m is plausible): "
+                            f"{unit_mistake(extent)}")
         views = [("all spheres seen", spheres, len(spheres))]
         if options.allow_missing and len(spheres) >= 4:
             views += [(f"sphere {k} hidden", np.delete(spheres, k, axis=0), len(spheres) - 1)
@@ -139,3 +150,12 @@ def check_bodies(bodies: Mapping[str, np.ndarray], options: MatchOptions = DEFAU
                 warnings.append(f"body {name!r} is too like body {other!r}: it fits {other!r}'s spheres "
                                 f"{found[0].used.tolist()} to {found[0].fit.residual_rms * 1e3:.1f} mm RMS")
     return warnings
+
+
+def unit_mistake(extent: float) -> str:
+    """The likely unit mistake of a body ``extent`` m across (more than ``MAX_EXTENT``), said to the user."""
+    for scale, unit in UNITS:
+        if 10 * MIN_SEPARATION <= extent * scale <= MAX_EXTENT:
+            return (f"were its coordinates typed in {unit}? It would be {extent * scale:.3g} m across; a bodies "
+                    f"file is in metres")
+    return "a bodies file is in metres"

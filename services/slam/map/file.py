@@ -26,7 +26,8 @@ recomputes them from the observations (``MapDatabase.update_point``), as the map
 renumbers keyframes and points in their saved order.
 
 A file is refused with ``MapFileError`` (a ValueError), one line naming the file and what is
-wrong: not a map file (truncated, damaged, garbage, another format), another version, another
+wrong: not a map file (truncated, damaged, garbage, another format; a recording or an image given by
+mistake is named as such), another version, another
 camera (image size, or ``K`` entries more than ``K_TOLERANCE_PX`` apart, or distortion more than
 ``DIST_TOLERANCE``), or arrays that do not agree with each other. A file that cannot be written
 raises it too.
@@ -57,6 +58,13 @@ K_TOLERANCE_PX = 0.5
 """Largest difference of focal lengths and principal point (px) between the file's camera and the one given."""
 DIST_TOLERANCE = 1e-4
 DESCRIPTOR_BYTES = 32
+
+
+ZIP_SIGNATURE = b"PK\x03\x04"
+"""How an .npz archive (a zip file) starts."""
+OTHER_FILES = ((b"\x89MCAP", "an MCAP recording"), (b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+               (b"%PDF", "a PDF document"))
+"""How files given by mistake for a map start, and what they are: (leading bytes, what to call it)."""
 
 
 class MapFileError(ValueError):
@@ -121,6 +129,17 @@ def _stack(parts: list[np.ndarray], empty: tuple[int, ...], dtype: type) -> np.n
 
 
 def _open(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    try:
+        with open(path, "rb") as stream:
+            start = stream.read(8)
+    except FileNotFoundError:
+        raise MapFileError(path, "no such file") from None
+    except OSError as error:
+        raise MapFileError(path, f"cannot be read ({error.strerror or error})") from None
+    if not start.startswith(ZIP_SIGNATURE):
+        what = next((name for signature, name in OTHER_FILES if start.startswith(signature)), None)
+        raise MapFileError(path, f"not a map file: {what} (a map file is the .npz archive --save-map writes)"
+                           if what else "not a readable map file (not an .npz archive, which --save-map writes)")
     try:
         with np.load(path, allow_pickle=False) as archive:
             return {name: archive[name] for name in archive.files}
