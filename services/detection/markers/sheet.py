@@ -376,12 +376,9 @@ def write_png(sheet: Sheet, path: str | Path, dpi: float = 300) -> np.ndarray:
 
 def write_pdf(sheet: Sheet, path: str | Path, dpi: float = 300) -> None:
     """Write the page as a one-page PDF of the paper's size, each item's image (drawn at ``dpi``) placed at its
-    exact size, text and scale bar as vectors. Needs matplotlib (the ``plot`` extra)."""
-    try:
-        from matplotlib.figure import Figure
-        from matplotlib.patches import Rectangle
-    except ImportError as exc:
-        raise ValueError("a PDF sheet needs matplotlib: pip install 'artrack[plot]' (or write a .png)") from exc
+    exact size, text and scale bar as vectors."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
 
     width, height = sheet.size
     figure = Figure(figsize=(width / INCH_M, height / INCH_M))
