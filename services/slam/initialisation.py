@@ -49,10 +49,10 @@ from services.slam.two_view import (
     fit_homography,
     fit_relative_pose,
     homography_support,
-    parallax_deg,
     pose_from_essential,
     pose_std_deg,
     poses_from_homography,
+    ray_parallax_deg,
     support_gain,
     triangulate_pair,
 )
@@ -169,28 +169,32 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
         return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     support_E = essential_support(E, K, first, second, s.sigma_px) if E is not None else 0.0
     support_H = homography_support(H, first, second, s.sigma_px) if H is not None else 0.0
-    planar = support_H > s.planar_ratio * (support_H + support_E)
-    if planar:
-        model_inliers = homography_inliers
-    else:
-        T, model_inliers = _best_essential_pose(E, essential_inliers, first, second, K, s)
+    planar = E is None or support_H > s.planar_ratio * (support_H + support_E)
+    wait.model = InitialisationModel.HOMOGRAPHY if planar else InitialisationModel.ESSENTIAL
+    homography_poses = poses_from_homography(H, K) if H is not None else []
+    T_usac = pose_from_essential(E, first, second, K, essential_inliers) if E is not None else None
+    largest = _largest_parallax_deg(T_usac, essential_inliers, homography_poses, homography_inliers, first, second,
+                                    K, s.min_matches)
+    if largest < s.min_parallax_deg:
+        wait.T, wait.parallax = None if planar else T_usac, largest
+        return wait.result(InitialisationStatus.LOW_PARALLAX)
+    model_inliers = homography_inliers if planar else essential_inliers
+    if not planar:
+        assert T_usac is not None
+        T, model_inliers = _best_essential_pose(T_usac, essential_inliers, first, second, K, s)
     if model_inliers.sum() < s.min_matches:
         return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     a, b = first[model_inliers], second[model_inliers]
     ambiguous = uncertain = False
     if planar:
-        assert H is not None
-        wait.model = InitialisationModel.HOMOGRAPHY
-        T, found, ambiguous = _pick_homography_pose(H, K, a, b, s.ambiguity_ratio)
+        T, found, ambiguous = _pick_homography_pose(homography_poses, K, a, b, s.ambiguity_ratio)
     else:
-        wait.model = InitialisationModel.ESSENTIAL
         found = triangulate_pair(K, T, a, b)
         wait.pose_std = pose_std_deg(T, K, a, b, s.sigma_px)
         uncertain = not wait.pose_std[0] <= s.max_rotation_std_deg
     wait.T = T
     wait.in_front = float(found.in_front.mean())
-    finite = np.all(np.isfinite(found.points), axis=1)
-    wait.parallax = float(np.median(parallax_deg(found.points[finite], T))) if finite.any() else 0.0
+    wait.parallax = _median_parallax_deg(T, K, a, b)
     if wait.parallax < s.min_parallax_deg:
         return wait.result(InitialisationStatus.LOW_PARALLAX)
     if wait.in_front < s.min_in_front:
@@ -207,28 +211,46 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     return wait.result(InitialisationStatus.INITIALISED, inliers, points)
 
 
-def _best_essential_pose(E: np.ndarray | None, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
+def _largest_parallax_deg(T_essential: np.ndarray | None, essential_inliers: np.ndarray,
+                          homography_poses: list[np.ndarray], homography_inliers: np.ndarray, first: np.ndarray,
+                          second: np.ndarray, K: np.ndarray, min_matches: int) -> float:
+    """The largest median parallax, degrees, under which a pose the two fits offer sees its inliers
+    of the matches ``first``, ``second`` (N, 2): the essential matrix's ``T_essential`` (4, 4) over its
+    inliers, each of the homography's decompositions over its own; a pose with under ``min_matches``
+    inliers is not counted (NaN when none is left). A wrong essential matrix can explain a near-planar
+    view (a wall) as a rotation: the homography's decompositions then show the baseline."""
+    offered = [(T, homography_inliers) for T in homography_poses]
+    if T_essential is not None:
+        offered.append((T_essential, essential_inliers))
+    medians = [_median_parallax_deg(T, K, first[inliers], second[inliers]) for T, inliers in offered
+               if inliers.sum() >= min_matches]
+    return max(medians, default=float("nan"))
+
+
+def _median_parallax_deg(T_b_a: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Median over the matches ``a``, ``b`` (N, 2) of the angle between their rays under the pose
+    ``T_b_a`` (4, 4) (``two_view.ray_parallax_deg``), degrees."""
+    return float(np.median(ray_parallax_deg(T_b_a[:3, :3], K, a, b)))
+
+
+def _best_essential_pose(T_usac: np.ndarray, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
                          K: np.ndarray, s: InitialisationSettings) -> tuple[np.ndarray, np.ndarray]:
-    """``(T_second_first, its inliers (N,) bool)``: the pose of USAC's essential matrix ``E``, or
-    pycolmap's refined relative pose (``two_view.fit_relative_pose``) when there is no ``E`` or when
-    its support over all matches is larger by more than ``min_support_gain`` standard deviations
-    (``two_view.support_gain``). (No pose and no inliers when neither was found.)"""
+    """``(T_second_first, its inliers (N,) bool)``: ``T_usac``, the pose of USAC's essential matrix, or
+    pycolmap's refined relative pose (``two_view.fit_relative_pose``) when its support over all
+    matches is larger by more than ``min_support_gain`` standard deviations (``two_view.support_gain``)."""
     T, inliers = fit_relative_pose(first, second, K, s.threshold_px, s.confidence)
-    if E is None:
-        return (np.eye(4), np.zeros(len(first), bool)) if T is None else (T, inliers)
-    T_usac = pose_from_essential(E, first, second, K, essential_inliers)
     if T is not None and support_gain(T_usac, T, K, first, second, s.sigma_px) > s.min_support_gain:
         return T, inliers
     return T_usac, essential_inliers
 
 
-def _pick_homography_pose(H: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray,
+def _pick_homography_pose(poses: list[np.ndarray], K: np.ndarray, a: np.ndarray, b: np.ndarray,
                           ambiguity_ratio: float) -> tuple[np.ndarray, Triangulated, bool]:
-    """``(T_b_a, its triangulation, ambiguous)``: the homography decomposition with the most of the
-    matches ``a``, ``b`` in front of both cameras; ambiguous when the runner-up has more than
-    ``ambiguity_ratio`` as many in front."""
+    """``(T_b_a, its triangulation, ambiguous)``: of a homography's decompositions ``poses`` ((4, 4)
+    each), the one with the most of the matches ``a``, ``b`` in front of both cameras; ambiguous when
+    the runner-up has more than ``ambiguity_ratio`` as many in front."""
     scored = []
-    for T in poses_from_homography(H, K):
+    for T in poses:
         found = triangulate_pair(K, T, a, b)
         scored.append((int(found.in_front.sum()), T, found))
     scored.sort(key=lambda item: item[0], reverse=True)
