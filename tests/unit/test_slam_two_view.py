@@ -6,7 +6,7 @@ import pytest
 from services.geometry.camera import intrinsics, project_points
 from services.geometry.rotation import matrix_from_rotvec
 from services.geometry.se3 import make_transform, transform_points
-from services.slam.two_view import parallax_deg, ray_parallax_deg, triangulate_pair
+from services.slam.two_view import ray_parallax_deg, triangulate_pair
 
 K = intrinsics(640, 480, 64.0)
 
@@ -31,7 +31,7 @@ def test_ray_parallax_is_the_angle_each_point_sees_the_baseline_under(seed):
     centre_b = -T_b_a[:3, :3].T @ T_b_a[:3, 3]
     np.testing.assert_allclose(found, true_parallax_deg(points_a, centre_b), atol=1e-6)
     triangulated = triangulate_pair(K, T_b_a, pixels_a, pixels_b).points
-    np.testing.assert_allclose(found, parallax_deg(triangulated, T_b_a), atol=1e-6)
+    np.testing.assert_allclose(found, true_parallax_deg(triangulated, centre_b), atol=1e-6)
 
 
 def test_ray_parallax_of_a_rotation_is_zero():
