@@ -15,14 +15,14 @@ for the same noise, and on a plane the homography then won only two matches in t
 Low parallax is told first, from the fits' own poses, before anything costly: the parallax of a
 match under a pose is the angle between its two rays (``two_view.ray_parallax_deg``: the angle
 its triangulated point sees the baseline under, with no triangulation). When every pose the fits
-offer, the essential matrix's (``cv2.recoverPose``) over its inliers and each decomposition of the
-homography over its own, sees its inliers under a median parallax below ``min_parallax_deg``, the
-pair is ``low_parallax`` with no refined pose, no triangulation and no spread measured: the full
-fit below checks the parallax first, under one of those poses or pycolmap's refinement of the
-essential one (near USAC's), and on such pairs ends in the same status. The homography's
-decompositions are there because a wrong essential matrix can explain a near-planar view (a wall)
-as a rotation: on room frames 300 / 345, in 2 of 16 noise draws, USAC's pose sees 0.5-0.7 deg
-where the refined pose sees 6-8 deg.
+offer sees its inliers under a median parallax below ``min_parallax_deg`` (the essential matrix
+under the rotation of its decomposition that brings the rays closer, each decomposition of the
+homography under its own), the pair is ``low_parallax`` with no pose, no triangulation and no
+spread measured: the full fit below checks the parallax first, under one of those poses or
+pycolmap's refinement of the essential one, and on such pairs ends in the same status. The
+homography's decompositions are there because a wrong essential matrix can explain a near-planar
+view (a wall) as a rotation: on room frames 300 / 345, in 2 of 16 noise draws, USAC's pose sees
+0.5-0.7 deg where the refined pose sees 6-8 deg.
 
 The chosen model's pose is used to triangulate the model's inliers. From the essential matrix, it
 is ``cv2.recoverPose`` on USAC's matrix, or pycolmap's refined LO-RANSAC pose
@@ -66,6 +66,7 @@ from services.slam.two_view import (
     pose_std_deg,
     poses_from_homography,
     ray_parallax_deg,
+    rotations_from_essential,
     support_gain,
     triangulate_pair,
 )
@@ -138,8 +139,8 @@ class TwoViewInitialisation:
     """The outcome for N matches.
 
     ``status``; ``model``; ``T_second_first`` (4, 4) float64, translation of unit norm (None when no
-    pose was found or chosen, as in a homography's ``low_parallax`` told before the full fit; given
-    in the other waiting statuses when one was); ``inliers`` (N,) bool, the matches
+    pose was found or chosen, as in a ``low_parallax`` told before the full fit; given in the other
+    waiting statuses when one was); ``inliers`` (N,) bool, the matches
     triangulated in front of both cameras within ``max_rms_px`` (all False unless initialised);
     ``points`` (N, 3) float64, first camera's frame, NaN where not an inlier; ``parallax_deg``
     median parallax of the model's inliers under its pose (``two_view.ray_parallax_deg``), degrees; for
@@ -188,15 +189,16 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     planar = E is None or support_H > s.planar_ratio * (support_H + support_E)
     wait.model = InitialisationModel.HOMOGRAPHY if planar else InitialisationModel.ESSENTIAL
     homography_poses = poses_from_homography(H, K) if H is not None else []
-    T_usac = pose_from_essential(E, first, second, K, essential_inliers) if E is not None else None
-    largest = _largest_parallax_deg(T_usac, essential_inliers, homography_poses, homography_inliers, first, second,
-                                    K, s.min_matches)
+    essential_rotations = rotations_from_essential(E) if E is not None else []
+    largest = _largest_parallax_deg(essential_rotations, essential_inliers, homography_poses, homography_inliers,
+                                    first, second, K, s.min_matches)
     if largest < s.min_parallax_deg:
-        wait.T, wait.parallax = None if planar else T_usac, largest
+        wait.parallax = largest
         return wait.result(InitialisationStatus.LOW_PARALLAX)
     model_inliers = homography_inliers if planar else essential_inliers
     if not planar:
-        assert T_usac is not None
+        assert E is not None
+        T_usac = pose_from_essential(E, first, second, K, essential_inliers)
         T, model_inliers = _best_essential_pose(T_usac, essential_inliers, first, second, K, s)
     if model_inliers.sum() < s.min_matches:
         return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
@@ -210,7 +212,7 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
         uncertain = not wait.pose_std[0] <= s.max_rotation_std_deg
     wait.T = T
     wait.in_front = float(found.in_front.mean())
-    wait.parallax = _median_parallax_deg(T, K, a, b)
+    wait.parallax = _median_parallax_deg(T[:3, :3], K, a, b)
     if wait.parallax < s.min_parallax_deg:
         return wait.result(InitialisationStatus.LOW_PARALLAX)
     if wait.in_front < s.min_in_front:
@@ -227,26 +229,31 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     return wait.result(InitialisationStatus.INITIALISED, inliers, points)
 
 
-def _largest_parallax_deg(T_essential: np.ndarray | None, essential_inliers: np.ndarray,
+def _largest_parallax_deg(essential_rotations: list[np.ndarray], essential_inliers: np.ndarray,
                           homography_poses: list[np.ndarray], homography_inliers: np.ndarray, first: np.ndarray,
                           second: np.ndarray, K: np.ndarray, min_matches: int) -> float:
     """The largest median parallax, degrees, under which a pose the two fits offer sees its inliers
-    of the matches ``first``, ``second`` (N, 2): the essential matrix's ``T_essential`` (4, 4) over its
-    inliers, each of the homography's decompositions over its own; a pose with under ``min_matches``
-    inliers is not counted (NaN when none is left). A wrong essential matrix can explain a near-planar
-    view (a wall) as a rotation: the homography's decompositions then show the baseline."""
-    offered = [(T, homography_inliers) for T in homography_poses]
-    if T_essential is not None:
-        offered.append((T_essential, essential_inliers))
-    medians = [_median_parallax_deg(T, K, first[inliers], second[inliers]) for T, inliers in offered
-               if inliers.sum() >= min_matches]
+    of the matches ``first``, ``second`` (N, 2): the essential matrix over its inliers, under the one of
+    its two ``essential_rotations`` (3, 3) that brings the rays closer, and each of the homography's
+    decompositions ``homography_poses`` (4, 4) over its own inliers; a model with under ``min_matches``
+    inliers is not counted (NaN when none is left). The other rotation of the essential matrix, its
+    twisted pair, turns the rays apart by tens of degrees; at a short baseline the cheirality check
+    can pick it (room frames 0 / 7: 92 deg). A wrong essential matrix can explain a near-planar view
+    (a wall) as a rotation: the homography's decompositions then show the baseline."""
+    medians = []
+    if homography_inliers.sum() >= min_matches:
+        a, b = first[homography_inliers], second[homography_inliers]
+        medians += [_median_parallax_deg(T[:3, :3], K, a, b) for T in homography_poses]
+    if essential_rotations and essential_inliers.sum() >= min_matches:
+        a, b = first[essential_inliers], second[essential_inliers]
+        medians.append(min(_median_parallax_deg(R, K, a, b) for R in essential_rotations))
     return max(medians, default=float("nan"))
 
 
-def _median_parallax_deg(T_b_a: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    """Median over the matches ``a``, ``b`` (N, 2) of the angle between their rays under the pose
-    ``T_b_a`` (4, 4) (``two_view.ray_parallax_deg``), degrees."""
-    return float(np.median(ray_parallax_deg(T_b_a[:3, :3], K, a, b)))
+def _median_parallax_deg(R_b_a: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Median over the matches ``a``, ``b`` (N, 2) of the angle between their rays under the rotation
+    ``R_b_a`` (3, 3) (``two_view.ray_parallax_deg``), degrees."""
+    return float(np.median(ray_parallax_deg(R_b_a, K, a, b)))
 
 
 def _best_essential_pose(T_usac: np.ndarray, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,

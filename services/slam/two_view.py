@@ -37,7 +37,7 @@ from services.geometry.triangulation import triangulate_many
 
 __all__ = ["ESSENTIAL_METHOD", "Triangulated", "fit_essential", "fit_homography", "fit_relative_pose",
            "essential_support", "homography_support", "support_gain", "pose_std_deg", "pose_from_essential",
-           "poses_from_homography", "triangulate_pair", "ray_parallax_deg"]
+           "rotations_from_essential", "poses_from_homography", "triangulate_pair", "ray_parallax_deg"]
 
 ESSENTIAL_METHOD = cv2.USAC_ACCURATE
 HOMOGRAPHY_METHOD = cv2.USAC_MAGSAC
@@ -184,6 +184,13 @@ def pose_from_essential(E: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarra
     mask = inliers.astype(np.uint8).reshape(-1, 1)
     _, R, t, _ = cv2.recoverPose(E, pixels_a, pixels_b, K, mask=mask)
     return make_transform(R, t.ravel() / np.linalg.norm(t))
+
+
+def rotations_from_essential(E: np.ndarray) -> list[np.ndarray]:
+    """The two (3, 3) rotations ``R_b_a`` of the decomposition of ``E`` (``cv2.decomposeEssentialMat``);
+    with ``t`` or ``-t`` each makes one of the four poses, which the cheirality check tells apart."""
+    R1, R2, _ = cv2.decomposeEssentialMat(E)
+    return [R1, R2]
 
 
 def poses_from_homography(H: np.ndarray, K: np.ndarray) -> list[np.ndarray]:
