@@ -104,14 +104,15 @@ class _Try:
     parallax_deg: float
     skipped: int = 0
 
-    def skips(self, stamp_ns: int, s: SlamSettings) -> bool:
+    def skips(self, stamp_ns: int, s: SlamSettings, min_parallax_deg: float) -> bool:
         """Whether the frame at ``stamp_ns`` is not worth a try (and is counted as skipped): at most
         ``init_skip_frames`` in a row, while the parallax grown in proportion to the time since the
-        reference (the baseline at a steady speed) stays under ``init_skip_below`` times the bound."""
+        reference (the baseline at a steady speed) stays under ``init_skip_below`` times
+        ``min_parallax_deg``, the bound of a try."""
         elapsed, tried = stamp_ns - self.reference_ns, self.stamp_ns - self.reference_ns
         if self.skipped >= s.init_skip_frames or not (tried > 0 and np.isfinite(self.parallax_deg)):
             return False
-        if self.parallax_deg * elapsed / tried >= s.init_skip_below * InitialisationSettings().min_parallax_deg:
+        if self.parallax_deg * elapsed / tried >= s.init_skip_below * min_parallax_deg:
             return False
         self.skipped += 1
         return True
@@ -132,6 +133,7 @@ class Tracker:
         self.mapper = mapper
         self._index = -1
         self._reference: _Frame | None = None
+        self._two_view = InitialisationSettings()
         self._last_try: _Try | None = None
         """The last initialisation try against the reference, while it ended in ``low_parallax``."""
         self._last: _Frame | None = None
@@ -168,7 +170,7 @@ class Tracker:
         if reference is None or self._index - reference.index > s.reference_max_age:
             self._reference, self._last_try = frame, None
             return Tracked(TrackingState.INITIALISING, "new_reference")
-        if self._last_try is not None and self._last_try.skips(stamp_ns, s):
+        if self._last_try is not None and self._last_try.skips(stamp_ns, s, self._two_view.min_parallax_deg):
             return Tracked(TrackingState.INITIALISING, InitialisationStatus.LOW_PARALLAX.value)
         with stage_timer(timings, "match"):
             first = reference.features
@@ -178,7 +180,7 @@ class Tracker:
             consistent = rotation_consistent(reference.features.angles[a], features.angles[b])
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
-            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
+            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5), self._two_view)
         self._last_try = _Try(reference.stamp_ns, stamp_ns, found.parallax_deg) if (
             found.status is InitialisationStatus.LOW_PARALLAX) else None
         if found.status is InitialisationStatus.TOO_FEW_MATCHES:
