@@ -14,15 +14,15 @@ for the same noise, and on a plane the homography then won only two matches in t
 
 Low parallax is told first, from the fits' own poses, before anything costly: the parallax of a
 match under a pose is the angle between its two rays (``two_view.ray_parallax_deg``: the angle
-its triangulated point sees the baseline under, with no triangulation). When every pose the fits
-offer sees its inliers under a median parallax below ``min_parallax_deg`` (the essential matrix
-under the rotation of its decomposition that brings the rays closer, each decomposition of the
-homography under its own), the pair is ``low_parallax`` with no pose, no triangulation and no
-spread measured: the full fit below checks the parallax first, under one of those poses or
-pycolmap's refinement of the essential one, and on such pairs ends in the same status. The
-homography's decompositions are there because a wrong essential matrix can explain a near-planar
-view (a wall) as a rotation: on room frames 300 / 345, in 2 of 16 noise draws, USAC's pose sees
-0.5-0.7 deg where the refined pose sees 6-8 deg.
+its triangulated point sees the baseline under, with no triangulation). When the chosen model has
+``min_matches`` inliers or more and every pose the fits offer sees its inliers under a median
+parallax below ``min_parallax_deg`` (the essential matrix under the rotation of its decomposition
+that brings the rays closer, each decomposition of the homography under its own), the pair is
+``low_parallax`` with no pose, no triangulation and no spread measured: the full fit below checks
+the parallax first, under one of those poses or pycolmap's refinement of the essential one, and on
+such pairs ends in the same status. The homography's decompositions are there because a wrong
+essential matrix can explain a near-planar view (a wall) as a rotation: on room frames 300 / 345,
+in 2 of 16 noise draws, USAC's pose sees 0.5-0.7 deg where the refined pose sees 6-8 deg.
 
 The chosen model's pose is used to triangulate the model's inliers. From the essential matrix, it
 is ``cv2.recoverPose`` on USAC's matrix, or pycolmap's refined LO-RANSAC pose
@@ -189,13 +189,14 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     planar = E is None or support_H > s.planar_ratio * (support_H + support_E)
     wait.model = InitialisationModel.HOMOGRAPHY if planar else InitialisationModel.ESSENTIAL
     homography_poses = poses_from_homography(H, K) if H is not None else []
-    essential_rotations = rotations_from_essential(E) if E is not None else []
-    largest = _largest_parallax_deg(essential_rotations, essential_inliers, homography_poses, homography_inliers,
-                                    first, second, K, s.min_matches)
-    if largest < s.min_parallax_deg:
-        wait.parallax = largest
-        return wait.result(InitialisationStatus.LOW_PARALLAX)
     model_inliers = homography_inliers if planar else essential_inliers
+    if model_inliers.sum() >= s.min_matches:
+        essential_rotations = rotations_from_essential(E) if E is not None else []
+        largest = _largest_parallax_deg(essential_rotations, essential_inliers, homography_poses, homography_inliers,
+                                        first, second, K, s.min_matches)
+        if largest < s.min_parallax_deg:
+            wait.parallax = largest
+            return wait.result(InitialisationStatus.LOW_PARALLAX)
     if not planar:
         assert E is not None
         T_usac = pose_from_essential(E, first, second, K, essential_inliers)
