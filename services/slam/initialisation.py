@@ -12,14 +12,27 @@ the homography is taken when ``S_H / (S_H + S_E) > planar_ratio``. Counting inli
 threshold instead does not work: a point-to-point transfer error exceeds a point-to-line distance
 for the same noise, and on a plane the homography then won only two matches in three.
 
+Low parallax is told first, from the fits' own poses, before anything costly: the parallax of a
+match under a pose is the angle between its two rays (``two_view.ray_parallax_deg``: the angle
+its triangulated point sees the baseline under, with no triangulation). When the chosen model has
+``min_matches`` inliers or more and every pose the fits offer sees its inliers under a median
+parallax below ``min_parallax_deg`` (the essential matrix under the rotation of its decomposition
+that brings the rays closer, each decomposition of the homography under its own), the pair is
+``low_parallax`` with no pose, no triangulation and no spread measured: the full fit below checks
+the parallax first, under one of those poses or pycolmap's refinement of the essential one, and on
+such pairs ends in the same status. The homography's decompositions are there because a wrong
+essential matrix can explain a near-planar view (a wall) as a rotation: on room frames 300 / 345,
+in 2 of 16 noise draws, USAC's pose sees 0.5-0.7 deg where the refined pose sees 6-8 deg.
+
 The chosen model's pose is used to triangulate the model's inliers. From the essential matrix, it
 is ``cv2.recoverPose`` on USAC's matrix, or pycolmap's refined LO-RANSAC pose
 (``two_view.fit_relative_pose``) when that is clearly better supported (``two_view.support_gain``):
 USAC alone settles, in some draws facing a wall, on a model clearly less supported than the true
 pose and degrees off.
 From the homography, it is the decomposition of ``cv2.decomposeHomographyMat`` with the most points
-in front of both cameras. It is accepted only with a median triangulation angle (parallax) large enough
-for depth to be measured, enough points in front of both cameras and, from a homography, a runner-up
+in front of both cameras. It is accepted only with a median parallax (of the model's inliers under
+the chosen pose) large enough for depth to be measured, enough points in front of both cameras and,
+from a homography, a runner-up
 decomposition with clearly fewer points in front: two decompositions explain a plane's matches
 equally well, and when both put the points in front nothing tells them apart, so the result is
 ``planar_wait`` rather than a guess. An essential pose whose predicted rotation standard deviation
@@ -49,10 +62,11 @@ from services.slam.two_view import (
     fit_homography,
     fit_relative_pose,
     homography_support,
-    parallax_deg,
     pose_from_essential,
     pose_std_deg,
     poses_from_homography,
+    ray_parallax_deg,
+    rotations_from_essential,
     support_gain,
     triangulate_pair,
 )
@@ -68,7 +82,7 @@ class InitialisationStatus(StrEnum):
     TOO_FEW_MATCHES = "too_few_matches"
     """Fewer matches, or model inliers, than ``min_matches`` (or no model at all)."""
     LOW_PARALLAX = "low_parallax"
-    """Median triangulation angle under ``min_parallax_deg``: pure rotation or too short a baseline."""
+    """Median parallax under ``min_parallax_deg``: pure rotation or too short a baseline."""
     PLANAR_WAIT = "planar_wait"
     """A plane dominates and its homography's two best decompositions cannot be told apart."""
     POSE_UNCERTAIN = "pose_uncertain"
@@ -125,12 +139,15 @@ class TwoViewInitialisation:
     """The outcome for N matches.
 
     ``status``; ``model``; ``T_second_first`` (4, 4) float64, translation of unit norm (None when no
-    pose was found; given in the waiting statuses too when one was); ``inliers`` (N,) bool, the matches
+    pose was found or chosen, as in a ``low_parallax`` told before the full fit; given in the other
+    waiting statuses when one was); ``inliers`` (N,) bool, the matches
     triangulated in front of both cameras within ``max_rms_px`` (all False unless initialised);
     ``points`` (N, 3) float64, first camera's frame, NaN where not an inlier; ``parallax_deg``
-    median triangulation angle of the model's inliers, degrees (NaN when not measured); ``in_front`` fraction
-    of the model's inliers in front of both cameras; ``pose_std_deg`` the essential pose's predicted
-    standard deviation (rotation, translation direction), degrees (NaN when not measured);
+    median parallax of the model's inliers under its pose (``two_view.ray_parallax_deg``), degrees; for
+    a ``low_parallax`` told before the full fit, the largest such median over the poses the fits
+    offered (NaN when not measured); ``in_front`` fraction of the model's inliers in front of both
+    cameras (0 when not triangulated); ``pose_std_deg`` the essential pose's predicted standard
+    deviation (rotation, translation direction), degrees (NaN when not measured);
     ``essential_inliers`` / ``homography_inliers`` the two USAC inlier counts.
     """
 
@@ -169,28 +186,34 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
         return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     support_E = essential_support(E, K, first, second, s.sigma_px) if E is not None else 0.0
     support_H = homography_support(H, first, second, s.sigma_px) if H is not None else 0.0
-    planar = support_H > s.planar_ratio * (support_H + support_E)
-    if planar:
-        model_inliers = homography_inliers
-    else:
-        T, model_inliers = _best_essential_pose(E, essential_inliers, first, second, K, s)
+    planar = E is None or support_H > s.planar_ratio * (support_H + support_E)
+    wait.model = InitialisationModel.HOMOGRAPHY if planar else InitialisationModel.ESSENTIAL
+    homography_poses = poses_from_homography(H, K) if H is not None else []
+    model_inliers = homography_inliers if planar else essential_inliers
+    if model_inliers.sum() >= s.min_matches:
+        essential_rotations = rotations_from_essential(E) if E is not None else []
+        largest = _largest_parallax_deg(essential_rotations, essential_inliers, homography_poses, homography_inliers,
+                                        first, second, K, s.min_matches)
+        if largest < s.min_parallax_deg:
+            wait.parallax = largest
+            return wait.result(InitialisationStatus.LOW_PARALLAX)
+    if not planar:
+        assert E is not None
+        T_usac = pose_from_essential(E, first, second, K, essential_inliers)
+        T, model_inliers = _best_essential_pose(T_usac, essential_inliers, first, second, K, s)
     if model_inliers.sum() < s.min_matches:
         return wait.result(InitialisationStatus.TOO_FEW_MATCHES)
     a, b = first[model_inliers], second[model_inliers]
     ambiguous = uncertain = False
     if planar:
-        assert H is not None
-        wait.model = InitialisationModel.HOMOGRAPHY
-        T, found, ambiguous = _pick_homography_pose(H, K, a, b, s.ambiguity_ratio)
+        T, found, ambiguous = _pick_homography_pose(homography_poses, K, a, b, s.ambiguity_ratio)
     else:
-        wait.model = InitialisationModel.ESSENTIAL
         found = triangulate_pair(K, T, a, b)
         wait.pose_std = pose_std_deg(T, K, a, b, s.sigma_px)
         uncertain = not wait.pose_std[0] <= s.max_rotation_std_deg
     wait.T = T
     wait.in_front = float(found.in_front.mean())
-    finite = np.all(np.isfinite(found.points), axis=1)
-    wait.parallax = float(np.median(parallax_deg(found.points[finite], T))) if finite.any() else 0.0
+    wait.parallax = _median_parallax_deg(T[:3, :3], K, a, b)
     if wait.parallax < s.min_parallax_deg:
         return wait.result(InitialisationStatus.LOW_PARALLAX)
     if wait.in_front < s.min_in_front:
@@ -207,28 +230,51 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     return wait.result(InitialisationStatus.INITIALISED, inliers, points)
 
 
-def _best_essential_pose(E: np.ndarray | None, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
+def _largest_parallax_deg(essential_rotations: list[np.ndarray], essential_inliers: np.ndarray,
+                          homography_poses: list[np.ndarray], homography_inliers: np.ndarray, first: np.ndarray,
+                          second: np.ndarray, K: np.ndarray, min_matches: int) -> float:
+    """The largest median parallax, degrees, under which a pose the two fits offer sees its inliers
+    of the matches ``first``, ``second`` (N, 2): the essential matrix over its inliers, under the one of
+    its two ``essential_rotations`` (3, 3) that brings the rays closer, and each of the homography's
+    decompositions ``homography_poses`` (4, 4) over its own inliers; a model with under ``min_matches``
+    inliers is not counted (NaN when none is left). The other rotation of the essential matrix, its
+    twisted pair, turns the rays apart by tens of degrees; at a short baseline the cheirality check
+    can pick it (room frames 0 / 7: 92 deg). A wrong essential matrix can explain a near-planar view
+    (a wall) as a rotation: the homography's decompositions then show the baseline."""
+    medians = []
+    if homography_inliers.sum() >= min_matches:
+        a, b = first[homography_inliers], second[homography_inliers]
+        medians += [_median_parallax_deg(T[:3, :3], K, a, b) for T in homography_poses]
+    if essential_rotations and essential_inliers.sum() >= min_matches:
+        a, b = first[essential_inliers], second[essential_inliers]
+        medians.append(min(_median_parallax_deg(R, K, a, b) for R in essential_rotations))
+    return max(medians, default=float("nan"))
+
+
+def _median_parallax_deg(R_b_a: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Median over the matches ``a``, ``b`` (N, 2) of the angle between their rays under the rotation
+    ``R_b_a`` (3, 3) (``two_view.ray_parallax_deg``), degrees."""
+    return float(np.median(ray_parallax_deg(R_b_a, K, a, b)))
+
+
+def _best_essential_pose(T_usac: np.ndarray, essential_inliers: np.ndarray, first: np.ndarray, second: np.ndarray,
                          K: np.ndarray, s: InitialisationSettings) -> tuple[np.ndarray, np.ndarray]:
-    """``(T_second_first, its inliers (N,) bool)``: the pose of USAC's essential matrix ``E``, or
-    pycolmap's refined relative pose (``two_view.fit_relative_pose``) when there is no ``E`` or when
-    its support over all matches is larger by more than ``min_support_gain`` standard deviations
-    (``two_view.support_gain``). (No pose and no inliers when neither was found.)"""
+    """``(T_second_first, its inliers (N,) bool)``: ``T_usac``, the pose of USAC's essential matrix, or
+    pycolmap's refined relative pose (``two_view.fit_relative_pose``) when its support over all
+    matches is larger by more than ``min_support_gain`` standard deviations (``two_view.support_gain``)."""
     T, inliers = fit_relative_pose(first, second, K, s.threshold_px, s.confidence)
-    if E is None:
-        return (np.eye(4), np.zeros(len(first), bool)) if T is None else (T, inliers)
-    T_usac = pose_from_essential(E, first, second, K, essential_inliers)
     if T is not None and support_gain(T_usac, T, K, first, second, s.sigma_px) > s.min_support_gain:
         return T, inliers
     return T_usac, essential_inliers
 
 
-def _pick_homography_pose(H: np.ndarray, K: np.ndarray, a: np.ndarray, b: np.ndarray,
+def _pick_homography_pose(poses: list[np.ndarray], K: np.ndarray, a: np.ndarray, b: np.ndarray,
                           ambiguity_ratio: float) -> tuple[np.ndarray, Triangulated, bool]:
-    """``(T_b_a, its triangulation, ambiguous)``: the homography decomposition with the most of the
-    matches ``a``, ``b`` in front of both cameras; ambiguous when the runner-up has more than
-    ``ambiguity_ratio`` as many in front."""
+    """``(T_b_a, its triangulation, ambiguous)``: of a homography's decompositions ``poses`` ((4, 4)
+    each), the one with the most of the matches ``a``, ``b`` in front of both cameras; ambiguous when
+    the runner-up has more than ``ambiguity_ratio`` as many in front."""
     scored = []
-    for T in poses_from_homography(H, K):
+    for T in poses:
         found = triangulate_pair(K, T, a, b)
         scored.append((int(found.in_front.sum()), T, found))
     scored.sort(key=lambda item: item[0], reverse=True)

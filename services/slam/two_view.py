@@ -37,7 +37,7 @@ from services.geometry.triangulation import triangulate_many
 
 __all__ = ["ESSENTIAL_METHOD", "Triangulated", "fit_essential", "fit_homography", "fit_relative_pose",
            "essential_support", "homography_support", "support_gain", "pose_std_deg", "pose_from_essential",
-           "poses_from_homography", "triangulate_pair", "parallax_deg"]
+           "rotations_from_essential", "poses_from_homography", "triangulate_pair", "ray_parallax_deg"]
 
 ESSENTIAL_METHOD = cv2.USAC_ACCURATE
 HOMOGRAPHY_METHOD = cv2.USAC_MAGSAC
@@ -186,6 +186,13 @@ def pose_from_essential(E: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarra
     return make_transform(R, t.ravel() / np.linalg.norm(t))
 
 
+def rotations_from_essential(E: np.ndarray) -> list[np.ndarray]:
+    """The two (3, 3) rotations ``R_b_a`` of the decomposition of ``E`` (``cv2.decomposeEssentialMat``);
+    with ``t`` or ``-t`` each makes one of the four poses, which the cheirality check tells apart."""
+    R1, R2, _ = cv2.decomposeEssentialMat(E)
+    return [R1, R2]
+
+
 def poses_from_homography(H: np.ndarray, K: np.ndarray) -> list[np.ndarray]:
     """Every (4, 4) ``T_b_a`` of ``cv2.decomposeHomographyMat`` (up to four; translations scaled to unit
     norm, left as they are when zero): which one is right is for the caller's cheirality check."""
@@ -220,11 +227,15 @@ def triangulate_pair(K: np.ndarray, T_b_a: np.ndarray, pixels_a: np.ndarray, pix
     return Triangulated(found.points, found.rms_px, in_front)
 
 
-def parallax_deg(points_a: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
-    """(N,) angle, degrees, at each (N, 3) point (view a's frame) between its rays to the two camera
-    centres; zero where a ray has no length (coincident centres: a rotation only)."""
-    centre_b = invert(T_b_a)[:3, 3]
-    to_a, to_b = -points_a, centre_b - points_a
-    lengths = np.linalg.norm(to_a, axis=1) * np.linalg.norm(to_b, axis=1)
-    cos = np.sum(to_a * to_b, axis=1) / np.where(lengths > 0, lengths, 1.0)
-    return np.where(lengths > 0, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), 0.0)
+def ray_parallax_deg(R_b_a: np.ndarray, K: np.ndarray, pixels_a: np.ndarray, pixels_b: np.ndarray) -> np.ndarray:
+    """(N,) angle, degrees, between each match's two rays: ``K^-1 x_a`` of view a and ``R_b_a^T K^-1 x_b``
+    of view b turned into view a's frame, ``R_b_a`` (3, 3) the rotation of ``T_b_a``. For a point in front
+    of both cameras it is the angle at the triangulated point between its directions to the two camera
+    centres (its parallax), with no triangulation: on exact matches the two agree to numerical
+    precision; a match triangulating behind one camera gives the supplement. A rotation only: the rays
+    of a match coincide (0)."""
+    K_inv = np.linalg.inv(K)
+    rays_a = np.column_stack([pixels_a, np.ones(len(pixels_a))]) @ K_inv.T
+    rays_b = np.column_stack([pixels_b, np.ones(len(pixels_b))]) @ K_inv.T @ R_b_a
+    cos = np.sum(rays_a * rays_b, axis=1) / (np.linalg.norm(rays_a, axis=1) * np.linalg.norm(rays_b, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -12,7 +12,7 @@ from services.geometry.camera import intrinsics, project_points
 from services.geometry.rotation import matrix_from_rotvec, rotation_angle
 from services.geometry.se3 import invert, make_transform, transform_points
 from services.slam.initialisation import InitialisationModel, InitialisationStatus, initialise
-from services.slam.two_view import pose_std_deg
+from services.slam.two_view import fit_relative_pose, pose_std_deg, triangulate_pair
 from services.synthetic import make_scene
 
 NOISE_PX = 0.5
@@ -168,6 +168,35 @@ def test_room_frames_too_close_wait_for_parallax(room):
     T_first_world, T_second_world = (invert(scene.camera_pose(i)) for i in (0, 2))
     pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 5, 0.2)
     assert initialise(pixels_first, pixels_second, K, np.zeros(5)).status is InitialisationStatus.LOW_PARALLAX
+
+
+def full_fit_parallax_deg(pixels_first: np.ndarray, pixels_second: np.ndarray) -> float:
+    """The median parallax the full fit measures: pycolmap's refined pose, its inliers triangulated, the
+    angle at each point between its directions to the two camera centres."""
+    T, inliers = fit_relative_pose(pixels_first, pixels_second, K, 1.0, 0.999)
+    assert T is not None
+    points = triangulate_pair(K, T, pixels_first[inliers], pixels_second[inliers]).points
+    to_first, to_second = -points, -T[:3, :3].T @ T[:3, 3] - points
+    cos = np.sum(to_first * to_second, axis=1) / np.linalg.norm(to_first, axis=1) / np.linalg.norm(to_second, axis=1)
+    return float(np.degrees(np.arccos(np.clip(np.median(cos), -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("pair", ["rotation", "frames 0 / 2", "frames 0 / 4"])
+def test_low_parallax_is_told_before_the_full_fit_as_the_full_fit_tells_it(room, pair):
+    """Pairs whose parallax is under the bound end in ``low_parallax`` from the fits' own poses, before
+    pycolmap's pose, the triangulation and the pose's spread (none of them measured: NaN spread, no
+    point in front), the status the full fit gives them: its median parallax is under the bound too."""
+    scene, points_world = room
+    T_first_world = invert(scene.camera_pose(0))
+    if pair == "rotation":
+        T_second_world = make_transform(matrix_from_rotvec([0.0, 0.1, 0.02]), np.zeros(3)) @ T_first_world
+    else:
+        T_second_world = invert(scene.camera_pose(int(pair[-1])))
+    pixels_first, pixels_second, _, _ = observe(T_first_world, T_second_world, points_world, 4, 0.2)
+    result = initialise(pixels_first, pixels_second, K, np.zeros(5))
+    assert result.status is InitialisationStatus.LOW_PARALLAX
+    assert np.isnan(result.pose_std_deg[0]) and result.in_front == 0.0
+    assert result.parallax_deg < 1.0 and full_fit_parallax_deg(pixels_first, pixels_second) < 1.0
 
 
 @pytest.mark.parametrize("seed", range(6))
