@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.message import Message
 from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind
-from services.runtime.node import Node
+from services.runtime.node import Node, NodeError
 from services.viewer import node as viewer_node
 from services.viewer.foxglove_messages import FoxgloveOptions, to_foxglove
 from services.viewer.images import RateGate
@@ -46,11 +46,15 @@ class Params(BaseModel):
 
 
 class Server:
-    """A Foxglove WebSocket server with a channel per topic, images gated to ``image_hz`` per topic."""
+    """A Foxglove WebSocket server with a channel per topic, images gated to ``image_hz`` per topic; ``sent``
+    counts the messages logged on its channels. NodeError when the server cannot bind."""
 
     def __init__(self, params: Params, name: str):
         self.context = foxglove.Context()
-        self.server = foxglove.start_server(name=name, host=params.bind, port=params.port, context=self.context)
+        try:
+            self.server = foxglove.start_server(name=name, host=params.bind, port=params.port, context=self.context)
+        except RuntimeError as exc:  # foxglove's FoxgloveError: the port is taken, the address is not this host's
+            raise NodeError(f"cannot serve Foxglove on {params.bind}:{params.port}: {exc}") from exc
         self.options = FoxgloveOptions(compressed=params.compressed, jpeg_quality=params.jpeg_quality)
         self.sent = 0
         self._gate = RateGate(params.image_hz)
