@@ -68,7 +68,9 @@ def _from_flags(args: argparse.Namespace, prog: str, model: type[M], positional:
 RECORD_HELP = "record the rig's keys to MCAP until Ctrl-C (a node: `list` shows it)"
 REPLAY_HELP = "publish a recording's bytes on their keys with their timing; exit 3 if damaged"
 VIEW_HELP = ("a recording as a Rerun .rrd file, drawn as the live viewer draws it (open it with `rerun OUT.rrd`; "
-             "exit 3 if damaged)")
+             "exit 3 if damaged); with --foxglove, the rig served live to Foxglove")
+FOXGLOVE_HELP = ("serve the rig live over Foxglove's WebSocket protocol until Ctrl-C (a node: `list` shows it); "
+                 "connect Foxglove to ws://127.0.0.1:8765")
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -123,6 +125,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     from services.recorder.export import export_path, is_expression, matching_keys
     from services.recorder.reading import EXIT_DAMAGED
 
+    if args.format == "foxglove":
+        return _export_foxglove(args)
+    if args.compressed:
+        raise ValueError("--compressed is for --format foxglove")
+    if args.key is None:
+        raise ValueError(f"--format {args.format} exports one key or a key expression: give --key")
     if not is_expression(args.key):
         if args.output is not None:
             check_output(args.output, args.force, makes_folders=True)
@@ -142,6 +150,27 @@ def cmd_export(args: argparse.Namespace) -> int:
         log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
     if job.damage is not None:
         log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
+        return EXIT_DAMAGED
+    return 0
+
+
+def _export_foxglove(args: argparse.Namespace) -> int:
+    """The whole recording ``args.file`` rewritten with Foxglove's schemas into ``args.output``."""
+    from services.recorder.reading import EXIT_DAMAGED
+    from services.viewer.foxglove_export import export_foxglove
+    from services.viewer.foxglove_messages import FoxgloveOptions
+
+    given = [flag for flag, value in (("--key", args.key), ("--child", args.child), ("--full", args.full)) if value]
+    if given:
+        raise ValueError(f"--format foxglove converts the whole recording: {', '.join(given)} does not apply")
+    if args.output is None:
+        raise ValueError("--format foxglove writes an MCAP file: give -o OUT.mcap")
+    check_output(args.output, args.force)
+    done = export_foxglove(args.file, args.output, FoxgloveOptions(compressed=args.compressed))
+    log.info("wrote %s: %d messages on %d topics from %d recorded%s", args.output, done.written.total(),
+             len(done.written), done.read, _skipped(done.undecodable))
+    if done.damage is not None:
+        log.warning("%s is damaged: %s; exported its intact part", args.file, done.damage)
         return EXIT_DAMAGED
     return 0
 
@@ -191,6 +220,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_view(args: argparse.Namespace) -> int:
     from services.recorder.reading import EXIT_DAMAGED
+
+    if "--foxglove" in args.rest:
+        args.rest.remove("--foxglove")
+        return _serve_foxglove(args)
     from services.viewer.convert import convert
     from services.viewer.scene import ViewOptions
 
@@ -203,6 +236,13 @@ def cmd_view(args: argparse.Namespace) -> int:
         log.warning("%s is damaged: %s; converted its intact part", args.file, done.damage)
         return EXIT_DAMAGED
     return 0
+
+
+def _serve_foxglove(args: argparse.Namespace) -> int:
+    from services.viewer.foxglove_node import Params, run
+
+    params = _from_flags(args, "view --foxglove", Params, {}, FOXGLOVE_HELP, node="foxglove")
+    return _run_as_node(args, "foxglove", lambda node: run(node, params))
 
 
 def add_record(sub: argparse._SubParsersAction) -> None:
@@ -233,15 +273,19 @@ def add_info(sub: argparse._SubParsersAction) -> None:
 
 
 def add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines")
+    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines; the whole "
+                                      "recording for Foxglove")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", required=True, help="a recorded key, or a key expression (pose/cam0/**) for one file "
-                   "per matching key; absolute or relative to the recording's ar/<rig>/")
-    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
+    p.add_argument("--key", help="a recorded key, or a key expression (pose/cam0/**) for one file "
+                   "per matching key; absolute or relative to the recording's ar/<rig>/ (all formats but foxglove)")
+    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl", "foxglove"),
+                   help="foxglove: every message as Foxglove's schemas (images, calibrations, transforms, poses, "
+                        "points, detections, logs) into one MCAP file, -o OUT.mcap")
     p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
                    "a key expression, the folder of the files, each named after its key (default: .)")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
+    p.add_argument("--compressed", action="store_true", help="foxglove: images as JPEG (mono16 as PNG), not raw")
     add_force_option(p)
     p.set_defaults(func=cmd_export)
 

@@ -88,6 +88,12 @@ class Row:
     static: bool = False
 
 
+def error_text(report: ErrorReport) -> str:
+    """One line saying what a node skipped, where, and how often so far."""
+    where = f" on {report.key}" if report.key else ""
+    return f"{report.kind}{where}: {report.detail} ({report.count} so far)"
+
+
 def frame_seq(message: Message) -> int | None:
     """The ``seq`` timeline value of ``message``: its frame's number; None for node health."""
     return None if isinstance(message, NodeStats | ErrorReport) else message.header.seq
@@ -242,9 +248,7 @@ class Scene:
         return [Row(entity, (rr.Scalars(value),)) for entity, value in figures if value is not None]
 
     def _error(self, report: ErrorReport) -> list[Row]:
-        where = f" on {report.key}" if report.key else ""
-        text = f"{report.kind}{where}: {report.detail} ({report.count} so far)"
-        return [Row(layout.log(report.node), (rr.TextLog(text, level=rr.TextLogLevel.WARN),))]
+        return [Row(layout.log(report.node), (rr.TextLog(error_text(report), level=rr.TextLogLevel.WARN),))]
 
 
 class Trail:
