@@ -92,7 +92,7 @@ class Params(BaseModel):
 
     source: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
         default=("synthetic:pattern",), min_length=1,
-        description="camera:N, video:PATH, images:DIR or synthetic:SCENE; several make a rig")
+        description="camera:N, video:PATH, images:DIR, synthetic:SCENE or rosbag2:DIR; several make a rig")
     cameras: Annotated[tuple[KeyName, ...], BeforeValidator(_as_tuple)] = Field(
         default=(), description="camera names; default: the scene's own, else cam0, cam1, ...")
     fps: float | None = Field(default=None, ge=0, le=1000, description="pace (a ceiling in a lossless run); "

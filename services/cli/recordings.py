@@ -18,7 +18,7 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
-from services.cli.outputs import add_force_option, check_output
+from services.cli.outputs import add_force_option, check_output, check_output_folder
 from services.cli.parsing import Parser
 from services.runtime.logs import log_format, setup_logging
 
@@ -123,6 +123,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     from services.recorder.export import export_path, is_expression, matching_keys
     from services.recorder.reading import EXIT_DAMAGED
 
+    if args.format == "rosbag2":
+        return _export_rosbag(args)
+    if args.key is None:
+        raise ValueError(f"--format {args.format} exports one key or a key expression: give --key")
     if not is_expression(args.key):
         if args.output is not None:
             check_output(args.output, args.force, makes_folders=True)
@@ -142,6 +146,32 @@ def cmd_export(args: argparse.Namespace) -> int:
         log.info("exported %d keys matching %s into %s", len(keys), args.key, folder)
     if job.damage is not None:
         log.warning("%s is damaged: %s; exported its intact part", args.file, job.damage)
+        return EXIT_DAMAGED
+    return 0
+
+
+def _export_rosbag(args: argparse.Namespace) -> int:
+    """``export --format rosbag2``: the whole recording as a ROS 2 bag in folder ``-o``."""
+    import shutil
+
+    from services.recorder.reading import EXIT_DAMAGED, Scan
+    from services.recorder.rosbag import export_rosbag
+
+    if args.key is not None or args.output is None:
+        raise ValueError("--format rosbag2 writes the whole recording into the bag folder -o DIR: give -o and no --key")
+    check_output_folder(args.output, args.force, marker="metadata.yaml")
+    Scan(args.file)  # a missing or non-MCAP file fails here, before the old bag is removed
+    if args.output.exists():
+        shutil.rmtree(args.output)
+    done = export_rosbag(args.file, args.output)
+    for topic, count in sorted(done.topics.items()):
+        log.info("%s: %d %s", topic, count, done.types[topic])
+    if done.left_out:
+        log.info("left out (no ROS form): %s", ", ".join(f"{key} ({n})" for key, n in sorted(done.left_out.items())))
+    log.info("wrote %s: %d messages on %d topics%s", args.output, sum(done.topics.values()), len(done.topics),
+             _skipped(done.undecodable))
+    if done.damage is not None:
+        log.warning("%s is damaged: %s; exported its intact part", args.file, done.damage)
         return EXIT_DAMAGED
     return 0
 
@@ -233,13 +263,16 @@ def add_info(sub: argparse._SubParsersAction) -> None:
 
 
 def add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines")
+    p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines; the whole "
+                                      "recording as a ROS 2 bag")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", required=True, help="a recorded key, or a key expression (pose/cam0/**) for one file "
-                   "per matching key; absolute or relative to the recording's ar/<rig>/")
-    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl"))
+    p.add_argument("--key", help="a recorded key, or a key expression (pose/cam0/**) for one file per matching "
+                   "key; absolute or relative to the recording's ar/<rig>/ (not with rosbag2)")
+    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl", "rosbag2"),
+                   help="rosbag2: every message with a ROS 2 form, into the bag folder -o (docs/ros2.md)")
     p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
-                   "a key expression, the folder of the files, each named after its key (default: .)")
+                   "a key expression, the folder of the files, each named after its key (default: .); "
+                   "rosbag2: the bag's folder")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     add_force_option(p)
