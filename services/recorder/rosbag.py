@@ -179,10 +179,9 @@ def point_cloud2(header: Header, points: np.ndarray, colors: np.ndarray | None =
     if colors is not None:
         bgr = colors.astype(np.uint32)
         table["rgb"] = (bgr[:, 2] << 16) | (bgr[:, 1] << 8) | bgr[:, 0]
-    offsets = {name: layout.fields[name][1] for name in names} if layout.fields else {}
-    fields = [_T["sensor_msgs/msg/PointField"](name=name, offset=offsets[name],
+    fields = [_T["sensor_msgs/msg/PointField"](name=name, offset=4 * index,  # every field 4 bytes, packed
                                                datatype=_UINT32 if name == "rgb" else _FLOAT32, count=1)
-              for name in names]
+              for index, name in enumerate(names)]
     return _T["sensor_msgs/msg/PointCloud2"](
         header=ros_header(header), height=1, width=len(points), fields=fields, is_bigendian=False,
         point_step=layout.itemsize, row_step=layout.itemsize * len(points), data=table.view(np.uint8),
