@@ -376,7 +376,10 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
             own.append(tuple(folder.name for folder in folders))
             continue
         if scheme == "rosbag2":
-            own.append(tuple(_bag(uri, rest).cameras.values()))
+            try:
+                own.append(tuple(_bag(uri, rest).cameras.values()))
+            except SourceError:  # one camera here: the pre-start check (``check_source``) says why it does not open
+                own.append(("cam0",))
             continue
         if scheme != "synthetic":
             own.append(("cam0",))
