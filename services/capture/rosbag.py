@@ -11,8 +11,9 @@ every camera has an image at (``header.stamp``); images without a partner are le
 A frame's time is its header stamp (int ns). A camera's calibration is the first
 ``sensor_msgs/msg/CameraInfo`` on the ``camera_info`` topic beside its images (``/cam0/camera_info``),
 ``plumb_bob`` distortion; its frame is the ROS optical frame, which is OpenCV's camera frame, so K and the
-distortion are taken as they are. A CameraInfo whose K is zero (an uncalibrated driver's) is none. Pure: no
-bus here.
+distortion are taken as they are. A CameraInfo whose K is zero (an uncalibrated driver's) is none. A camera's
+place in its rig, ``T_rig_camera``, is the ``/tf_static`` transform from ``rig`` to the CameraInfo's frame
+(what ``artrack export --format rosbag2`` writes), the identity without one. Pure: no bus here.
 """
 
 from __future__ import annotations
@@ -30,10 +31,14 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from services.geometry.camera import CameraModel
+from services.geometry.se3 import from_quaternion_translation
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+TF_STATIC, TF_TYPE = "/tf_static", "tf2_msgs/msg/TFMessage"
+RIG_FRAME = "rig"
+"""The frame cameras are placed in on ``/tf_static`` (artrack's rig frame)."""
 _LAYOUTS = {"mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1),
             "bgr8": (np.uint8, 3), "8UC3": (np.uint8, 3), "rgb8": (np.uint8, 3), "bgra8": (np.uint8, 4),
             "8UC4": (np.uint8, 4), "rgba8": (np.uint8, 4)}
@@ -77,10 +82,10 @@ def image_array(message: Any) -> np.ndarray:
     return cv2.cvtColor(image, _TO_BGR[message.encoding]) if message.encoding in _TO_BGR else image
 
 
-def camera_from_info(message: Any, name: str) -> CameraModel | None:
-    """CameraModel ``name`` of a ``sensor_msgs/msg/CameraInfo`` (K row-major, plumb_bob ``d`` padded to 5,
-    ``T_rig_camera`` the identity); None when K is zero (no calibration); ValueError for another distortion
-    model."""
+def camera_from_info(message: Any, name: str, T_rig_camera: np.ndarray | None = None) -> CameraModel | None:
+    """CameraModel ``name`` of a ``sensor_msgs/msg/CameraInfo`` (K row-major, plumb_bob ``d`` padded to 5) placed
+    at ``T_rig_camera`` ((4, 4), default the identity); None when K is zero (no calibration); ValueError for
+    another distortion model."""
     K = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
@@ -89,7 +94,20 @@ def camera_from_info(message: Any, name: str) -> CameraModel | None:
         raise ValueError(f"camera {name}: distortion model {message.distortion_model!r} with {len(d)} coefficients "
                          "is not supported (plumb_bob only)")
     return CameraModel(name=name, width=int(message.width), height=int(message.height), K=K,
-                       dist=np.pad(d, (0, 5 - len(d))), T_rig_camera=np.eye(4))
+                       dist=np.pad(d, (0, 5 - len(d))),
+                       T_rig_camera=np.eye(4) if T_rig_camera is None else T_rig_camera)
+
+
+def placements(message: Any) -> dict[str, np.ndarray]:
+    """``{child frame: T_rig_child (4, 4)}`` of the transforms of a ``tf2_msgs/msg/TFMessage`` whose parent is
+    ``rig``."""
+    found = {}
+    for edge in message.transforms:
+        if edge.header.frame_id == RIG_FRAME:
+            t, q = edge.transform.translation, edge.transform.rotation
+            found[edge.child_frame_id] = from_quaternion_translation(np.array([q.x, q.y, q.z, q.w]),
+                                                                     np.array([t.x, t.y, t.z]))
+    return found
 
 
 def stamp_ns(message: Any) -> int:
@@ -140,18 +158,21 @@ class Bag:
         return beside if self.types.get(beside) == CAMERA_INFO_TYPE else None
 
     def calibration(self) -> dict[str, CameraModel]:
-        """Each camera's model from the first CameraInfo beside its images (cameras without one left out)."""
+        """Each camera's model from the first calibrated CameraInfo beside its images (cameras without one left
+        out), placed in the rig by the ``/tf_static`` transform from ``rig`` to its frame when the bag has one."""
         wanted = {info: self.cameras[topic] for topic in self.topics if (info := self.info_topic(topic))}
-        found: dict[str, CameraModel] = {}
+        infos: dict[str, Any] = {}
         for topic, message in self._messages(set(wanted)):
-            name = wanted[topic]
-            if name not in found:
-                camera = camera_from_info(message, name)
-                if camera is not None:
-                    found[name] = camera
-            if len(found) == len(wanted):
+            if wanted[topic] not in infos and np.asarray(message.k).any():
+                infos[wanted[topic]] = message
+            if len(infos) == len(wanted):
                 break
-        return found
+        placed: dict[str, np.ndarray] = {}
+        if self.types.get(TF_STATIC) == TF_TYPE:
+            for _, message in self._messages({TF_STATIC}):
+                placed.update(placements(message))
+        found = {name: camera_from_info(info, name, placed.get(info.header.frame_id)) for name, info in infos.items()}
+        return {name: camera for name, camera in found.items() if camera is not None}
 
     def first_sizes(self) -> list[tuple[int, int] | None]:
         """``(width, height)`` of each camera's first image, in camera order (None when it does not read)."""

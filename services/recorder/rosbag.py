@@ -11,7 +11,9 @@ artrack                     ROS 2 type                         topic (keys relat
 ``Pose``                    ``geometry_msgs/msg/PoseStamped``  ``/pose/...`` (one topic per pose key), and
                             ``tf2_msgs/msg/TFMessage``         each one a transform on ``/tf``
 ``RigidBodies``             ``tf2_msgs/msg/TFMessage``         ``/tf``
-``StaticTransforms``        ``tf2_msgs/msg/TFMessage``         ``/tf_static`` (transient local, as tf2's)
+``StaticTransforms``        ``tf2_msgs/msg/TFMessage``         ``/tf_static`` (transient local, as tf2's), and
+                                                               each camera's ``T_rig_camera`` (its first
+                                                               ``CameraInfo``'s): parent ``rig``
 ``GroundTruth``             ``tf2_msgs/msg/TFMessage``         ``/<camera>/truth`` (not ``/tf``: the truth
                                                                would fight the estimates for the frames)
 ``Points3D``, ``PointCloud``  ``sensor_msgs/msg/PointCloud2``  ``/points``, ``/map``, ``/<camera>/map``
@@ -49,7 +51,7 @@ from protocol.message import Header, Message
 from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, RigidBodies
 from protocol.sensors import CameraInfo, Image
-from protocol.spatial import StaticTransforms, Transform
+from protocol.spatial import RIG_FRAME, StaticTransforms, Transform
 from services.recorder.export import ESTIMATED
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA
@@ -155,6 +157,12 @@ def static_transforms_message(message: StaticTransforms) -> Any:
                       for edge in message.transforms)
 
 
+def camera_placement_message(info: CameraInfo) -> Any:
+    """The camera's place in its rig, ``T_rig_camera`` (parent ``rig``, child the camera's optical frame), as
+    ``/tf_static`` has it: what a ``sensor_msgs/msg/CameraInfo`` cannot say."""
+    return tf_message([transform_message(info.header.stamp_ns, RIG_FRAME, info.header.frame_id, info.T_rig_camera)])
+
+
 def ground_truth_message(truth: GroundTruth) -> Any:
     """The exact transforms of one frame (``T_parent_child`` each) under the frame's stamp."""
     return tf_message(transform_message(truth.header.stamp_ns, edge.parent_frame, edge.child_frame, edge.transform)
@@ -229,6 +237,8 @@ class _Bag:
         self.writer = writer
         self.done = done
         self.connections: dict[str, Any] = {}
+        self.placed: set[str] = set()
+        """Cameras whose ``T_rig_camera`` is on ``/tf_static`` already."""
 
     def write(self, topic: str, msgtype: str, message: Any, time_ns: int) -> None:
         connection = self.connections.get(topic)
@@ -277,6 +287,9 @@ def _write(bag: _Bag, key: str, message: Message, time_ns: int) -> bool:
     if isinstance(message, StaticTransforms):
         bag.write("/tf_static", "tf2_msgs/msg/TFMessage", static_transforms_message(message), time_ns)
         return True
+    if isinstance(message, CameraInfo) and message.header.frame_id not in bag.placed:
+        bag.placed.add(message.header.frame_id)
+        bag.write("/tf_static", "tf2_msgs/msg/TFMessage", camera_placement_message(message), time_ns)
     conversion = CONVERSIONS.get(type(message))
     if conversion is None:
         return False

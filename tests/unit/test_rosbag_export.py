@@ -14,7 +14,7 @@ from protocol.codec import decode, encode
 from protocol.maps import PointCloud
 from protocol.message import Header
 from protocol.mocap import Points3D
-from protocol.poses import GroundTruth, Pose
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import FrameTransform, StaticTransforms, Transform
 from protocol.tracking_state import TrackingState
@@ -137,7 +137,9 @@ def test_a_shipped_recording_reads_back_from_its_bag(tmp_path):
     bag = bag_messages(tmp_path / "bag")
     assert {topic: (msgtype, len(messages)) for topic, (msgtype, messages) in bag.items()} == {
         "/cam0/image_raw": ("sensor_msgs/msg/Image", 150), "/cam0/camera_info": ("sensor_msgs/msg/CameraInfo", 150),
-        "/cam0/truth": ("tf2_msgs/msg/TFMessage", 150)}
+        "/cam0/truth": ("tf2_msgs/msg/TFMessage", 150), "/tf_static": ("tf2_msgs/msg/TFMessage", 1)}
+    placed = bag["/tf_static"][1][0].transforms
+    assert [(e.header.frame_id, e.child_frame_id) for e in placed] == [("rig", "cam0")]
     assert done.left_out == {"node/capture/stats": 5, "node/recorder/stats": 8} and done.damage is None
     image, info, truth = (recorded(MARKERS, key)[-1] for key in ("cam0/image", "cam0/camera_info", "cam0/truth"))
     ros_image = bag["/cam0/image_raw"][1][-1]

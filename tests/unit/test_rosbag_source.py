@@ -11,6 +11,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from protocol.codec import decode
 from services.capture.rosbag import camera_from_info, camera_name, image_array
 from services.capture.sources import SourceError, camera_names, check_source, frame_count, frame_sizes, open_source
+from services.geometry.se3 import from_quaternion_translation
 from services.recorder.reading import Scan
 from services.recorder.rosbag import TYPESTORE, export_rosbag, ros_time
 from tests.integration.support import ROOT
@@ -133,3 +134,13 @@ def test_a_missing_folder_a_folder_that_is_no_bag_and_a_bag_without_images_are_r
     with pytest.raises(SourceError, match=r"no image topic .* \(topics: /tf \(tf2_msgs/msg/TFMessage\)\)$") as raised:
         check_source(f"rosbag2:{tmp_path / 'tf_only'}")
     assert "\n" not in str(raised.value)
+
+
+def test_a_rig_bag_places_its_cameras_as_the_recording_did(bags):
+    calibration = open_source(f"rosbag2:{bags / 'ir_rig'}").calibration
+    for camera in ("cam0", "cam1"):
+        info = recorded(RECORDINGS / "ir_rig.mcap", f"{camera}/camera_info")[0]
+        expected = from_quaternion_translation(np.array(info.T_rig_camera.rotation),
+                                               np.array(info.T_rig_camera.translation))
+        assert np.allclose(calibration[camera].T_rig_camera, expected, atol=1e-12), camera
+    assert not np.allclose(calibration["cam1"].T_rig_camera, np.eye(4))  # a rig: the second camera is elsewhere
