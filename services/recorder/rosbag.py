@@ -82,7 +82,8 @@ def ros_header(header: Header) -> Any:
 def ros_topic(key: str) -> str:
     """The ROS 2 topic of ``key`` (relative to the rig prefix): ``/`` + its segments, a camera's ``image``
     as ``image_raw``, characters ROS refuses (``-``, ``.``) as ``_``, and a segment that starts with a digit
-    joined to the one before by ``_`` (``marker/3`` -> ``marker_3``; ROS tokens may not start with one)."""
+    joined to the one before by ``_`` (``marker/3`` -> ``marker_3``; ROS tokens may not start with one), or
+    prefixed with ``n`` when it is the first."""
     segments = [re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9_]", "_", s)) for s in key.split("/")]
     if len(segments) == 2 and segments[1] == "image":
         segments[1] = "image_raw"
