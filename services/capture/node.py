@@ -19,9 +19,9 @@ source ends, one line says the rate it delivered against the one asked. Stamps a
 wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
 evaluating against a data set's ground truth). CameraInfo comes from ``calib`` files (ROS
 camera_info YAML, one per camera), else from the source (synthetic scenes know theirs, a KITTI
-folder reads its ``calib.txt``, a ROS 2 bag has its ``camera_info`` topics); a camera with neither publishes no CameraInfo, and trackers
-report it uncalibrated. Each
-calibrated camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
+folder reads its ``calib.txt``, a ROS 2 bag has its ``camera_info`` topics); a camera with neither
+publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated camera's CameraInfo is
+also answered on its ``<camera>/calibration`` queryable.
 
 The calibrated cameras' ``T_rig_camera`` (parent frame ``rig``, child the camera's name) go
 out once as ``StaticTransforms`` on ``tf_static/<node name>`` before the first frame, and are
