@@ -283,7 +283,9 @@ def _write(bag: _Bag, key: str, message: Message, time_ns: int) -> bool:
             bag.write("/tf", "tf2_msgs/msg/TFMessage", pose_transforms(message), time_ns)
         return True
     if isinstance(message, RigidBodies):
-        bag.write("/tf", "tf2_msgs/msg/TFMessage", rigid_bodies_message(message), time_ns)
+        transforms = rigid_bodies_message(message)
+        if transforms.transforms:
+            bag.write("/tf", "tf2_msgs/msg/TFMessage", transforms, time_ns)
         return True
     if isinstance(message, StaticTransforms):
         bag.write("/tf_static", "tf2_msgs/msg/TFMessage", static_transforms_message(message), time_ns)

@@ -14,7 +14,7 @@ from protocol.codec import decode, encode
 from protocol.maps import PointCloud
 from protocol.message import Header
 from protocol.mocap import Points3D
-from protocol.poses import Pose
+from protocol.poses import Pose, RigidBodies, RigidBody
 from protocol.sensors import CameraInfo, Image
 from protocol.spatial import FrameTransform, StaticTransforms, Transform
 from protocol.tracking_state import TrackingState
@@ -28,6 +28,7 @@ from services.recorder.rosbag import (
     map_message,
     points_message,
     pose_message,
+    rigid_bodies_message,
     ros_topic,
     static_transforms_message,
 )
@@ -84,6 +85,14 @@ def test_static_transforms_become_tf_static_edges():
     moved = ros.transforms[1].transform
     assert (moved.translation.x, moved.translation.y, moved.translation.z) == TURN.translation
     assert (moved.rotation.x, moved.rotation.y, moved.rotation.z, moved.rotation.w) == TURN.rotation
+
+
+def test_estimated_rigid_bodies_become_world_to_body_transforms():
+    bodies = RigidBodies(header=HEADER.model_copy(update={"frame_id": "world"}), bodies=(
+        RigidBody(name="wand", transform=TURN), RigidBody(name="tool", state=TrackingState.LOST)))
+    ros = round_trip(rigid_bodies_message(bodies), "tf2_msgs/msg/TFMessage")
+    assert [(t.header.frame_id, t.child_frame_id) for t in ros.transforms] == [("world", "body/wand")]
+    assert ros.transforms[0].transform.translation.z == TURN.translation[2]
 
 
 def cloud_table(ros) -> np.ndarray:
