@@ -64,9 +64,8 @@ _DEFAULT_TIME = QosTime(sec=0, nsec=0)
 TF_STATIC_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _DEFAULT_TIME,
                     _DEFAULT_TIME, QosLiveliness.AUTOMATIC, _DEFAULT_TIME, False)
 """What tf2's static broadcaster offers on ``/tf_static``: a late subscriber still gets the transforms."""
-
-_FLOAT32 = 7
-_UINT32 = 6
+_FIELD: Any = _T["sensor_msgs/msg/PointField"]
+"""``sensor_msgs/msg/PointField``, with its datatype constants (``FLOAT32``, ``UINT32``)."""
 
 
 def ros_time(stamp_ns: int) -> Any:
@@ -188,8 +187,8 @@ def point_cloud2(header: Header, points: np.ndarray, colors: np.ndarray | None =
     if colors is not None:
         bgr = colors.astype(np.uint32)
         table["rgb"] = (bgr[:, 2] << 16) | (bgr[:, 1] << 8) | bgr[:, 0]
-    fields = [_T["sensor_msgs/msg/PointField"](name=name, offset=4 * index,  # every field 4 bytes, packed
-                                               datatype=_UINT32 if name == "rgb" else _FLOAT32, count=1)
+    fields = [_FIELD(name=name, offset=4 * index,  # every field 4 bytes, packed
+                     datatype=_FIELD.UINT32 if name == "rgb" else _FIELD.FLOAT32, count=1)
               for index, name in enumerate(names)]
     return _T["sensor_msgs/msg/PointCloud2"](
         header=ros_header(header), height=1, width=len(points), fields=fields, is_bigendian=False,
