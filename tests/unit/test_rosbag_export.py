@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 from mcap.writer import Writer
 from rosbags.rosbag2 import Reader
 
@@ -150,6 +151,12 @@ def test_a_shipped_recording_reads_back_from_its_bag(tmp_path):
     placed = bag["/tf_static"][1][0].transforms
     assert [(e.header.frame_id, e.child_frame_id) for e in placed] == [("rig", "cam0")]
     assert done.left_out == {"node/capture/stats": 5, "node/recorder/stats": 8} and done.damage is None
+    with open(tmp_path / "bag" / "bag.mcap", "rb") as file:  # what a stock MCAP reader (Foxglove's) sees
+        reader = make_reader(file)
+        summary = reader.get_summary()
+        assert reader.get_header().profile == "ros2" and summary is not None
+        assert {(c.message_encoding, summary.schemas[c.schema_id].encoding) for c in summary.channels.values()} \
+            == {("cdr", "ros2msg")}
     image, info, truth = (recorded(MARKERS, key)[-1] for key in ("cam0/image", "cam0/camera_info", "cam0/truth"))
     ros_image = bag["/cam0/image_raw"][1][-1]
     assert (ros_image.encoding, ros_image.width, ros_image.height) == ("mono8", 640, 480)
