@@ -144,3 +144,15 @@ def test_a_rig_bag_places_its_cameras_as_the_recording_did(bags):
                                                np.array(info.T_rig_camera.translation))
         assert np.allclose(calibration[camera].T_rig_camera, expected, atol=1e-12), camera
     assert not np.allclose(calibration["cam1"].T_rig_camera, np.eye(4))  # a rig: the second camera is elsewhere
+
+
+def test_a_truncated_bag_is_refused_in_one_line(tmp_path, bags):
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / "metadata.yaml").write_text((bags / "markers" / "metadata.yaml").read_text().replace("markers.mcap",
+                                                                                                 "cut.mcap"))
+    whole = (bags / "markers" / "markers.mcap").read_bytes()
+    (cut / "cut.mcap").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(SourceError, match=f"^rosbag2:{cut}: cannot read the bag ") as raised:
+        check_source(f"rosbag2:{cut}")
+    assert "\n" not in str(raised.value)
