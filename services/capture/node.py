@@ -19,9 +19,9 @@ source ends, one line says the rate it delivered against the one asked. Stamps a
 wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
 evaluating against a data set's ground truth). CameraInfo comes from ``calib`` files (ROS
 camera_info YAML, one per camera), else from the source (synthetic scenes know theirs, a KITTI
-folder reads its ``calib.txt``); a camera with neither publishes no CameraInfo, and trackers
-report it uncalibrated. Each
-calibrated camera's CameraInfo is also answered on its ``<camera>/calibration`` queryable.
+folder reads its ``calib.txt``, a ROS 2 bag has its ``camera_info`` topics); a camera with neither
+publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated camera's CameraInfo is
+also answered on its ``<camera>/calibration`` queryable.
 
 The calibrated cameras' ``T_rig_camera`` (parent frame ``rig``, child the camera's name) go
 out once as ``StaticTransforms`` on ``tf_static/<node name>`` before the first frame, and are
@@ -92,7 +92,7 @@ class Params(BaseModel):
 
     source: Annotated[tuple[str, ...], BeforeValidator(_as_tuple)] = Field(
         default=("synthetic:pattern",), min_length=1,
-        description="camera:N, video:PATH, images:DIR or synthetic:SCENE; several make a rig")
+        description="camera:N, video:PATH, images:DIR, synthetic:SCENE or rosbag2:DIR; several make a rig")
     cameras: Annotated[tuple[KeyName, ...], BeforeValidator(_as_tuple)] = Field(
         default=(), description="camera names; default: the scene's own, else cam0, cam1, ...")
     fps: float | None = Field(default=None, ge=0, le=1000, description="pace (a ceiling in a lossless run); "

@@ -12,6 +12,8 @@
                             ``image_<i>`` is calibrated by the ``P<i>`` line of the ``calib.txt``
                             beside it (``services.calibration.kitti``)
 ``synthetic:SCENE``         a rendered scene with exact ground truth (services.synthetic)
+``rosbag2:DIR``             a ROS 2 bag's image topics, calibrated by their ``camera_info`` topics;
+                            ``rosbag2:DIR?topic=/cam0/image_raw`` takes that one (services.capture.rosbag)
 ==========================  ==============================================================
 
 A source that cannot start (no device, missing or unreadable file, empty folder) raises
@@ -42,6 +44,7 @@ from services.calibration.image_folder import (
     read_image,
 )
 from services.calibration.kitti import folder_camera
+from services.capture.rosbag import Bag, BagError, Frame, split_uri
 from services.geometry.camera import CameraModel
 from services.synthetic import make_scene
 from services.synthetic.base import Truth
@@ -312,14 +315,46 @@ class SceneSource(Source):
             index += 1
 
 
-SCHEMES = ("camera", "video", "images", "synthetic")
+class RosbagSource(Source):
+    """The image topics of a ROS 2 bag, in step, timed by their header stamps (``services.capture.rosbag``)."""
+
+    def __init__(self, uri: str, rest: str):
+        self.uri = uri
+        self.bag = _bag(uri, rest)
+        self.camera_names = tuple(self.bag.cameras.values())
+
+    @property
+    def calibration(self) -> dict[str, CameraModel]:
+        try:
+            return self.bag.calibration()
+        except ValueError as exc:
+            raise SourceError(f"{self.uri}: {exc}") from exc
+
+    def frames(self) -> Iterator[SourceFrame | FrameFault]:
+        for index, frame in enumerate(self.bag.frames()):
+            if isinstance(frame, Frame):
+                yield SourceFrame(index, frame.time_ns, frame.images)
+            else:
+                yield FrameFault(index, frame[1])
+
+
+def _bag(uri: str, rest: str) -> Bag:
+    """The bag of a ``rosbag2:`` URI; SourceError naming the URI and why when it cannot be one."""
+    try:
+        return Bag(*split_uri(rest))
+    except BagError as exc:
+        raise SourceError(f"{uri}: {exc}") from exc
+
+
+SCHEMES = ("camera", "video", "images", "synthetic", "rosbag2")
 
 
 def check_uri(uri: str) -> tuple[str, str]:
     """``(scheme, rest)`` of a well-formed source URI; ValueError saying what a URI looks like otherwise."""
     scheme, _, rest = uri.partition(":")
     if not rest or scheme not in SCHEMES:
-        raise ValueError(f"{uri!r} is not a source URI (camera:N, video:PATH, images:DIR or synthetic:SCENE)")
+        raise ValueError(f"{uri!r} is not a source URI (camera:N, video:PATH, images:DIR, synthetic:SCENE or "
+                         "rosbag2:DIR)")
     if scheme == "camera" and not rest.isdigit():
         raise ValueError(f"{uri!r}: the camera is a device number, e.g. camera:0")
     return scheme, rest
@@ -339,6 +374,12 @@ def camera_names(uris: tuple[str, ...], scene_options: dict) -> list[str]:
         folders = camera_folders(Path(rest).expanduser()) if scheme == "images" else []
         if folders:
             own.append(tuple(folder.name for folder in folders))
+            continue
+        if scheme == "rosbag2":
+            try:
+                own.append(tuple(_bag(uri, rest).cameras.values()))
+            except SourceError:  # one camera here: the pre-start check (``check_source``) says why it does not open
+                own.append(("cam0",))
             continue
         if scheme != "synthetic":
             own.append(("cam0",))
@@ -367,6 +408,8 @@ def frame_sizes(uris: tuple[str, ...], scene_options: dict) -> list[tuple[int, i
             sizes.extend(CameraFoldersSource(uri, camera_folders(path)).first_image_sizes())
         elif scheme == "images":
             sizes.append(ImageFolderSource(uri, path).first_image_size())
+        elif scheme == "rosbag2":
+            sizes.extend(_bag(uri, rest).first_sizes())
         elif scheme == "video":
             capture = cv2.VideoCapture(str(path))
             width, height = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
@@ -385,6 +428,8 @@ def frame_count(uri: str) -> int | None:
     except SourceError:
         return None
     path = Path(rest).expanduser()
+    if scheme == "rosbag2":
+        return _bag(uri, rest).frame_count()
     if scheme == "images":
         listing = path / "rgb.txt"
         if listing.is_file():
@@ -420,6 +465,8 @@ def check_source(uri: str) -> tuple[str, str]:
         raise SourceError(f"{uri}: no such folder")
     if scheme == "images" and camera_folders(path):
         CameraFoldersSource(uri, camera_folders(path))  # folders that do not pair up are refused here
+    if scheme == "rosbag2":
+        _bag(uri, rest)  # a missing folder, a folder that is no bag, a bag with no image topic
     return scheme, rest
 
 
@@ -435,4 +482,6 @@ def open_source(uri: str, *, frames: int = 0, scene_options: dict | None = None,
         return CameraFoldersSource(uri, camera_folders(Path(rest).expanduser()))
     if scheme == "images":
         return ImageFolderSource(uri, Path(rest).expanduser())
+    if scheme == "rosbag2":
+        return RosbagSource(uri, rest)
     return SceneSource(uri, rest, frames, scene_options or {}, prerender)

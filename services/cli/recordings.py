@@ -18,7 +18,7 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
-from services.cli.outputs import add_force_option, check_output
+from services.cli.outputs import add_force_option, check_output, check_output_folder
 from services.cli.parsing import Parser
 from services.runtime.logs import log_format, setup_logging
 
@@ -129,6 +129,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         return _export_foxglove(args)
     if args.compressed:
         raise ValueError("--compressed is for --format foxglove")
+    if args.format == "rosbag2":
+        return _export_rosbag(args)
     if args.key is None:
         raise ValueError(f"--format {args.format} exports one key or a key expression: give --key")
     if not is_expression(args.key):
@@ -156,7 +158,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def _export_foxglove(args: argparse.Namespace) -> int:
     """The whole recording ``args.file`` rewritten with Foxglove's schemas into ``args.output``."""
-    from services.recorder.reading import EXIT_DAMAGED
     from services.viewer.foxglove_export import export_foxglove
     from services.viewer.foxglove_messages import FoxgloveOptions
 
@@ -169,10 +170,41 @@ def _export_foxglove(args: argparse.Namespace) -> int:
     done = export_foxglove(args.file, args.output, FoxgloveOptions(compressed=args.compressed))
     log.info("wrote %s: %d messages on %d topics from %d recorded%s", args.output, done.written.total(),
              len(done.written), done.read, _skipped(done.undecodable))
-    if done.damage is not None:
-        log.warning("%s is damaged: %s; exported its intact part", args.file, done.damage)
-        return EXIT_DAMAGED
-    return 0
+    return _outcome(args.file, done.damage, "exported")
+
+
+def _export_rosbag(args: argparse.Namespace) -> int:
+    """``export --format rosbag2``: the whole recording as a ROS 2 bag in folder ``-o``."""
+    import shutil
+
+    from services.recorder.reading import Scan
+    from services.recorder.rosbag import export_rosbag
+
+    if args.key is not None or args.output is None:
+        raise ValueError("--format rosbag2 writes the whole recording into the bag folder -o DIR: give -o and no --key")
+    check_output_folder(args.output, args.force, marker="metadata.yaml")
+    Scan(args.file)  # a missing or non-MCAP file fails here, before the old bag is removed
+    if args.output.exists():
+        shutil.rmtree(args.output)
+    done = export_rosbag(args.file, args.output)
+    for topic, count in sorted(done.topics.items()):
+        log.info("%s: %d %s", topic, count, done.types[topic])
+    if done.left_out:
+        log.info("left out (no ROS form): %s", ", ".join(f"{key} ({n})" for key, n in sorted(done.left_out.items())))
+    log.info("wrote %s: %d messages on %d topics%s", args.output, sum(done.topics.values()), len(done.topics),
+             _skipped(done.undecodable))
+    return _outcome(args.file, done.damage, "exported")
+
+
+def _outcome(source: Path, damage: object, done: str) -> int:
+    """The exit code of a file tool that read ``source``: 0, or ``EXIT_DAMAGED`` after one warning line saying
+    ``damage`` (None: intact) and that the intact part was ``done`` (exported, converted)."""
+    from services.recorder.reading import EXIT_DAMAGED
+
+    if damage is None:
+        return 0
+    log.warning("%s is damaged: %s; %s its intact part", source, damage, done)
+    return EXIT_DAMAGED
 
 
 def _skipped(count: int) -> str:
@@ -219,7 +251,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from services.recorder.reading import EXIT_DAMAGED
 
     if "--foxglove" in args.rest:
         args.rest.remove("--foxglove")
@@ -230,12 +261,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     options = _from_flags(args, "view", ViewOptions, {"file": "IN.mcap", "out": "OUT.rrd"}, VIEW_HELP, force=True)
     check_output(args.out, args.force)
     done = convert(args.file, args.out, options)
-    log.info("wrote %s: %d rows from %d messages%s", args.out, done.rows, done.messages,
-             f" ({done.undecodable} undecodable messages skipped)" if done.undecodable else "")
-    if done.damage is not None:
-        log.warning("%s is damaged: %s; converted its intact part", args.file, done.damage)
-        return EXIT_DAMAGED
-    return 0
+    log.info("wrote %s: %d rows from %d messages%s", args.out, done.rows, done.messages, _skipped(done.undecodable))
+    return _outcome(args.file, done.damage, "converted")
 
 
 def _serve_foxglove(args: argparse.Namespace) -> int:
@@ -274,15 +301,17 @@ def add_info(sub: argparse._SubParsersAction) -> None:
 
 def add_export(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="keys of a recording as TUM trajectories, CSV or JSON lines; the whole "
-                                      "recording for Foxglove")
+                                      "recording for Foxglove or as a ROS 2 bag")
     p.add_argument("file", type=Path, metavar="IN.mcap")
-    p.add_argument("--key", help="a recorded key, or a key expression (pose/cam0/**) for one file "
-                   "per matching key; absolute or relative to the recording's ar/<rig>/ (all formats but foxglove)")
-    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl", "foxglove"),
+    p.add_argument("--key", help="a recorded key, or a key expression (pose/cam0/**) for one file per matching "
+                   "key; absolute or relative to the recording's ar/<rig>/ (not with foxglove or rosbag2)")
+    p.add_argument("--format", required=True, choices=("tum", "csv", "jsonl", "foxglove", "rosbag2"),
                    help="foxglove: every message as Foxglove's schemas (images, calibrations, transforms, poses, "
-                        "points, detections, logs) into one MCAP file, -o OUT.mcap")
+                        "points, detections, logs) into one MCAP file, -o OUT.mcap; rosbag2: every message with "
+                        "a ROS 2 form, into the bag folder -o (docs/ros2.md)")
     p.add_argument("-o", "--output", type=Path, metavar="OUT", help="output file (default: standard output); with "
-                   "a key expression, the folder of the files, each named after its key (default: .)")
+                   "a key expression, the folder of the files, each named after its key (default: .); "
+                   "rosbag2: the bag's folder")
     p.add_argument("--child", metavar="FRAME", help="TUM: the child frame to export (needed for GroundTruth)")
     p.add_argument("--full", action="store_true", help="CSV / JSON lines: whole arrays, not dtype and shape")
     p.add_argument("--compressed", action="store_true", help="foxglove: images as JPEG (mono16 as PNG), not raw")

@@ -118,7 +118,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     run_args = p.parse_args(args.rest, namespace=args)
     given = given_values(run_args, source_flags)
     if not given.get("source"):
-        p.error("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
+        p.error("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE, rosbag2:DIR or "
+                "recording:PATH.mcap)")
     bus, spec = assemble(JobRequest(
         tracker=args.tracker, source=given, bus=lambda defaults: bus_config(run_args, defaults=defaults),
         scene=scene_option_texts(run_args.scene_option), options=given_values(run_args, own_flags), flags=own_flags,

@@ -59,7 +59,8 @@ def assemble(request: JobRequest) -> tuple[BusConfig, PipelineSpec]:
     """The bus and the resolved pipeline of ``request``; JobError (or ValueError) naming what is wrong."""
     uris = request.source.get("source", [])
     if not uris:
-        raise JobError("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE or recording:PATH.mcap)")
+        raise JobError("give a --source (camera:N, video:PATH, images:DIR, synthetic:SCENE, rosbag2:DIR or "
+                       "recording:PATH.mcap)")
     options = _with_scene_targets(request.options, request.flags)
     if any(uri.startswith(RECORDING_SCHEME) for uri in uris):
         if len(uris) > 1 or len(request.source) > 1 or request.scene:

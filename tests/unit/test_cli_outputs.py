@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.cli.outputs import check_output
+from services.cli.outputs import check_output, check_output_folder
 
 
 def test_an_existing_file_is_refused_unless_forced(tmp_path):
@@ -34,3 +34,21 @@ def test_a_folder_or_a_file_in_place_of_a_folder_is_refused(tmp_path):
         check_output(blocker / "y", force=False)
     with pytest.raises(ValueError, match=f"^cannot write {blocker / 'x' / 'y'}: {blocker} is not a folder$"):
         check_output(blocker / "x" / "y", force=False, makes_folders=True)
+
+
+def test_an_output_folder_is_kept_unless_forced_and_only_one_of_ours_is_ever_replaced(tmp_path):
+    out = tmp_path / "bag"
+    check_output_folder(out, force=False, marker="metadata.yaml")  # nothing there yet
+    out.mkdir()
+    with pytest.raises(ValueError, match=f"^{out} exists: give --force to overwrite it$"):
+        check_output_folder(out, force=False, marker="metadata.yaml")
+    check_output_folder(out, force=True, marker="metadata.yaml")  # empty: nothing to lose
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=f"^{out} exists and has no metadata.yaml: not overwriting"):
+        check_output_folder(out, force=True, marker="metadata.yaml")
+    (out / "metadata.yaml").write_text("")
+    check_output_folder(out, force=True, marker="metadata.yaml")
+    with pytest.raises(ValueError, match=f"^{out / 'notes.txt'} is a file: give a folder name$"):
+        check_output_folder(out / "notes.txt", force=True, marker="metadata.yaml")
+    with pytest.raises(ValueError, match=f"^cannot write {tmp_path / 'a' / 'b'}: folder {tmp_path / 'a'} does not"):
+        check_output_folder(tmp_path / "a" / "b", force=False, marker="metadata.yaml")
