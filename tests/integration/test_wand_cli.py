@@ -50,9 +50,16 @@ def record(path: Path, camera_count: int, frames: range = FRAMES, with_info: boo
     return scene
 
 
-def test_wand_recording_gives_the_rig_extrinsics(tmp_path):
-    recording, out = tmp_path / "wand.mcap", tmp_path / "rig.yaml"
-    scene = record(recording, 3)
+@pytest.fixture(scope="module")
+def three_cameras(tmp_path_factory) -> tuple[Path, object]:
+    """The three-camera wand recording (read only) and its scene, made once for the tests that calibrate it."""
+    recording = tmp_path_factory.mktemp("wand") / "wand.mcap"
+    return recording, record(recording, 3)
+
+
+def test_wand_recording_gives_the_rig_extrinsics(tmp_path, three_cameras):
+    recording, scene = three_cameras
+    out = tmp_path / "rig.yaml"
     done = artrack("calibrate", "--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15",
                    "-o", str(out))
     assert done.returncode == 0, done.stderr
@@ -67,9 +74,9 @@ def test_wand_recording_gives_the_rig_extrinsics(tmp_path):
         assert np.array_equal(rig.camera(camera.name).K, camera.K)
 
 
-def test_floor_frame_from_a_recorded_lframe(tmp_path):
-    recording, floor, out = tmp_path / "wand.mcap", tmp_path / "lframe.mcap", tmp_path / "rig.yaml"
-    record(recording, 3)
+def test_floor_frame_from_a_recorded_lframe(tmp_path, three_cameras):
+    recording, _ = three_cameras
+    floor, out = tmp_path / "lframe.mcap", tmp_path / "rig.yaml"
     scene = record(floor, 3, frames=range(10), motion="lframe")
     done = artrack("calibrate", "--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15",
                    "--floor", str(floor), "-o", str(out))
