@@ -20,12 +20,17 @@ demo: $(STAMP)
 # Three workers on two cores: most integration tests wait on the processes they start (measured: the
 # suite took 13 min on two workers, 8.3 min on three). `make test` runs every test (CI does);
 # `make test-fast` only the unit tests: no process, no Zenoh session, no whole sequence (markers in
-# pyproject.toml, held by tests/conftest.py).
+# pyproject.toml, held by tests/conftest.py). Work stealing: xdist's default hands out the tests in
+# file order by the block, and the first block held every accuracy and most integration tests, so one
+# worker ran them all while the other two, done with the unit tests, stood idle; with `worksteal` an
+# idle worker takes half of the others' tests still waiting.
+PYTEST := $(BIN)/python -m pytest -q -n 3 --dist worksteal
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 3
+	$(PYTEST)
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -n 3 -m "not integration and not slow"
+	$(PYTEST) -m "not integration and not slow"
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.bench $(BENCH)

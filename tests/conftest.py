@@ -126,7 +126,10 @@ class Bus:
 
 @pytest.fixture
 def router():
-    """An in-process Zenoh router on a free 127.0.0.1 port; yields its endpoint ``tcp/127.0.0.1:PORT``."""
+    """An in-process Zenoh router on a free 127.0.0.1 port; yields its endpoint ``tcp/127.0.0.1:PORT``.
+
+    It opens without Zenoh's scouting delay (500 ms by default): with multicast off and nothing to
+    connect to it has no one to scout, and every integration test would wait that long to start."""
     import zenoh
 
     from services.launcher.router import router_config
@@ -136,7 +139,9 @@ def router():
     for _ in range(5):  # another process may grab the port between free_port() and open()
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         try:
-            session = zenoh.open(router_config((endpoint,), (), None))
+            config = router_config((endpoint,), (), None)
+            config.insert_json5("scouting/delay", "0")
+            session = zenoh.open(config)
             break
         except zenoh.ZError as exc:
             last_error = exc

@@ -94,29 +94,39 @@ def test_held_out_pairs_fall_on_rows_after_rectification():
     assert np.degrees(rotation_angle(invert(stereo.T_second_first)[:3, :3], np.eye(3))) < 2.0
 
 
-def test_unusable_input_exits_2_with_one_line(procs, tmp_path):
+UNUSABLE = {
+    "no images": (("--stereo", "{empty}", "{empty}", *CHESSBOARD), "no images .* match"),
+    "one folder for both": (("--stereo", "{folder}", "{folder}", "--glob", "*.jpg", *CHESSBOARD),
+                            "left01.jpg is an image of both cameras"),
+    "unequal counts": (("--stereo", "{left}", "{folder}/right0*.jpg", *CHESSBOARD),
+                       "13 images of cam0 .* but 9 of cam1 .*: images are paired in name order"),
+    "board not found": (("--stereo", "{left}", "{right}", "--pattern", "chessboard", "--size", "7x6", "--square",
+                         "0.025"),
+                        "camera cam0: the chessboard of 7x6 inner corners was found in none of the 13 images"),
+    "one camera": (("--stereo", "{left}", *CHESSBOARD),
+                   r"--stereo needs the images of two cameras \(LEFT RIGHT\), got 1"),
+    "two globs without --stereo": (("{left}", "{right}", *CHESSBOARD), "one camera takes one DIR_OR_GLOB, got 2"),
+    "one name": (("--stereo", "{left}", "{right}", *CHESSBOARD, "--names", "left"),
+                 "--names 'left': give two camera names"),
+    "unknown rig frame": (("--stereo", "{left}", "{right}", *CHESSBOARD, "--rig-frame", "cam2"),
+                          "--rig-frame 'cam2' is none of the cameras"),
+    "names without --stereo": (("{left}", *CHESSBOARD, "--names", "a,b"), "--names is for --stereo"),
+}
+"""Case -> (``artrack calibrate`` options, ``{folder}``, ``{left}``, ``{right}`` (the sample's globs) and ``{empty}``
+(an empty folder) filled in; a pattern of the one ERROR line)."""
+
+
+@pytest.mark.parametrize("case", list(UNUSABLE))
+def test_unusable_input_exits_2_with_one_line(procs, tmp_path, case):
     folder = data_dir("calib_chessboard_stereo_opencv")
     empty = tmp_path / "empty"
     empty.mkdir()
     out = tmp_path / "rig.yaml"
-    left, right = str(folder / "left*.jpg"), str(folder / "right*.jpg")
-    cases = [
-        (("--stereo", str(empty), str(empty), *CHESSBOARD), "no images .* match"),
-        (("--stereo", str(folder), str(folder), "--glob", "*.jpg", *CHESSBOARD),
-         "left01.jpg is an image of both cameras"),
-        (("--stereo", left, str(folder / "right0*.jpg"), *CHESSBOARD),
-         "13 images of cam0 .* but 9 of cam1 .*: images are paired in name order"),
-        (("--stereo", left, right, "--pattern", "chessboard", "--size", "7x6", "--square", "0.025"),
-         "camera cam0: the chessboard of 7x6 inner corners was found in none of the 13 images"),
-        (("--stereo", left, *CHESSBOARD), r"--stereo needs the images of two cameras \(LEFT RIGHT\), got 1"),
-        ((left, right, *CHESSBOARD), "one camera takes one DIR_OR_GLOB, got 2"),
-        (("--stereo", left, right, *CHESSBOARD, "--names", "left"), "--names 'left': give two camera names"),
-        (("--stereo", left, right, *CHESSBOARD, "--rig-frame", "cam2"), "--rig-frame 'cam2' is none of the cameras"),
-        ((left, *CHESSBOARD, "--names", "a,b"), "--names is for --stereo"),
-    ]
-    for options, reason in cases:
-        proc = procs.run("calibrate", *options, "--out", str(out), timeout=TIMEOUT_S)
-        assert proc.poll() == 2, proc.describe()
-        errors = [line for line in proc.stderr.splitlines() if "ERROR" in line]
-        assert len(errors) == 1 and re.search(reason, errors[0]), proc.stderr
-        assert not out.exists()
+    template, reason = UNUSABLE[case]
+    options = [option.format(folder=folder, left=folder / "left*.jpg", right=folder / "right*.jpg", empty=empty)
+               for option in template]
+    proc = procs.run("calibrate", *options, "--out", str(out), timeout=TIMEOUT_S)
+    assert proc.poll() == 2, proc.describe()
+    errors = [line for line in proc.stderr.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and re.search(reason, errors[0]), proc.stderr
+    assert not out.exists()

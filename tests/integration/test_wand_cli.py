@@ -50,9 +50,16 @@ def record(path: Path, camera_count: int, frames: range = FRAMES, with_info: boo
     return scene
 
 
-def test_wand_recording_gives_the_rig_extrinsics(tmp_path):
-    recording, out = tmp_path / "wand.mcap", tmp_path / "rig.yaml"
-    scene = record(recording, 3)
+@pytest.fixture(scope="module")
+def three_cameras(tmp_path_factory) -> tuple[Path, object]:
+    """The three-camera wand recording (read only) and its scene, made once for the tests that calibrate it."""
+    recording = tmp_path_factory.mktemp("wand") / "wand.mcap"
+    return recording, record(recording, 3)
+
+
+def test_wand_recording_gives_the_rig_extrinsics(tmp_path, three_cameras):
+    recording, scene = three_cameras
+    out = tmp_path / "rig.yaml"
     done = artrack("calibrate", "--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15",
                    "-o", str(out))
     assert done.returncode == 0, done.stderr
@@ -67,9 +74,9 @@ def test_wand_recording_gives_the_rig_extrinsics(tmp_path):
         assert np.array_equal(rig.camera(camera.name).K, camera.K)
 
 
-def test_floor_frame_from_a_recorded_lframe(tmp_path):
-    recording, floor, out = tmp_path / "wand.mcap", tmp_path / "lframe.mcap", tmp_path / "rig.yaml"
-    record(recording, 3)
+def test_floor_frame_from_a_recorded_lframe(tmp_path, three_cameras):
+    recording, _ = three_cameras
+    floor, out = tmp_path / "lframe.mcap", tmp_path / "rig.yaml"
     scene = record(floor, 3, frames=range(10), motion="lframe")
     done = artrack("calibrate", "--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15",
                    "--floor", str(floor), "-o", str(out))
@@ -100,25 +107,37 @@ def test_intrinsics_from_files_and_their_order(tmp_path):
     assert np.linalg.norm(rig.camera("cam0").T_rig_camera[:3, 3] - T_cam1_cam0[:3, 3]) < 1e-3
 
 
-def test_bad_wand_input_is_one_clear_line(tmp_path):
-    recording = tmp_path / "wand.mcap"
+@pytest.fixture(scope="module")
+def short_two_cameras(tmp_path_factory) -> Path:
+    """A four-frame wand recording of two cameras without camera_info (read only)."""
+    recording = tmp_path_factory.mktemp("short") / "wand.mcap"
     record(recording, 2, frames=range(0, 20, 5), with_info=False)
+    return recording
+
+
+BAD_INPUT = {
+    "no wand length": (["--wand", "{recording}"], "--wand needs --wand-length"),
+    "middle marker at the centre": (["--wand", "{recording}", "--wand-length", "0.5", "--wand-middle", "0.25"],
+                                    "off the wand's centre"),
+    "no intrinsics": (["--wand", "{recording}", "--wand-length", "0.5", "--wand-middle", "0.15"],
+                      "no intrinsics for camera 'cam0'"),
+    "missing recording": (["--wand", "{tmp}/none.mcap", "--wand-length", "0.5", "--wand-middle", "0.15"],
+                          "none.mcap"),
+    "no input": ([], "calibrate needs DIR_OR_GLOB, --pattern, --size, --square"),
+    "missing intrinsics file": (["--wand", "{recording}", "--wand-length", "0.5", "--wand-middle", "0.15", "--floor",
+                                 "{recording}", "--intrinsics", "{tmp}/none.yaml"], "none.yaml"),
+}
+"""Case -> (``artrack calibrate`` arguments before ``-o``, with ``{recording}`` and ``{tmp}`` filled in; what the
+one line of stderr says)."""
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUT))
+def test_bad_wand_input_is_one_clear_line(tmp_path, short_two_cameras, case):
+    template, message = BAD_INPUT[case]
     out = str(tmp_path / "rig.yaml")
-    cases = [
-        (["--wand", str(recording), "-o", out], "--wand needs --wand-length"),
-        (["--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.25", "-o", out],
-         "off the wand's centre"),
-        (["--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15", "-o", out],
-         "no intrinsics for camera 'cam0'"),
-        (["--wand", str(tmp_path / "none.mcap"), "--wand-length", "0.5", "--wand-middle", "0.15", "-o", out],
-         "none.mcap"),
-        (["-o", out], "calibrate needs DIR_OR_GLOB, --pattern, --size, --square"),
-        (["--wand", str(recording), "--wand-length", "0.5", "--wand-middle", "0.15", "--floor", str(recording),
-          "--intrinsics", str(tmp_path / "none.yaml"), "-o", out], "none.yaml"),
-    ]
-    for args, message in cases:
-        done = artrack("calibrate", *args)
-        assert done.returncode == 2, (args, done.stdout)
-        assert message in done.stderr and "Traceback" not in done.stderr, done.stderr
-        assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    args = [arg.format(recording=short_two_cameras, tmp=tmp_path) for arg in template]
+    done = artrack("calibrate", *args, "-o", out)
+    assert done.returncode == 2, (args, done.stdout)
+    assert message in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert not Path(out).exists()

@@ -1,6 +1,7 @@
 """Stereo calibration on boards rendered into two cameras of a known rig: the pose between them is recovered,
 the rig file holds it, and sets that cannot calibrate the pair are refused naming why."""
 
+import hashlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,8 +20,25 @@ K_LEFT = np.array([[620.0, 0.0, 331.0], [0.0, 612.0, 236.0], [0.0, 0.0, 1.0]])
 K_RIGHT = np.array([[580.0, 0.0, 315.0], [0.0, 583.0, 244.0], [0.0, 0.0, 1.0]])
 T_LEFT_RIGHT = make_transform(matrix_from_rotvec(np.radians([1.5, -4.0, 0.8])), np.array([0.08, 0.003, -0.004]))
 """The right camera's pose in the left camera's frame: 8 cm to its right, turned 4.4 deg towards it."""
-BOARD = Chessboard(9, 6, 0.025)
 PAIRS = 20
+
+
+class RecalledChessboard(Chessboard):
+    """A chessboard whose corners are searched once per distinct image in this module: the same rendered
+    pairs go through several calibrations (and every blank image is the same), and the search is most of
+    a calibration's time. ``find`` answers what ``Chessboard.find`` answered for the same pixels."""
+
+    found: dict[tuple[tuple[int, ...], str], tuple[np.ndarray, np.ndarray] | None] = {}
+
+    def find(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        key = (grey.shape, hashlib.sha256(grey.tobytes()).hexdigest())
+        if key not in self.found:
+            self.found[key] = super().find(grey)
+        answer = self.found[key]
+        return None if answer is None else (answer[0].copy(), answer[1].copy())
+
+
+BOARD = RecalledChessboard(9, 6, 0.025)
 
 
 def board_poses(count: int, seed: int = 1) -> list[np.ndarray]:
