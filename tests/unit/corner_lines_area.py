@@ -1,0 +1,189 @@
+"""Marker corners as the intersections of straight lines fitted to the quad's four sides.
+
+Each side of a detected quad is sampled at ``SAMPLES`` points along its middle (clear of the
+corners, where the neighbouring side's edge blurs into the profile). At each point the image is
+read along the side's normal, ``search_px`` either way, at ``2 * STEPS + 1`` evenly spaced
+offsets (``cv2.remap``, bicubic). The edge is located by the profile's area: with the levels on
+either side (each the mean of the ``PLATEAU`` samples at that end) the profile is scaled to run
+from 0 to 1, and the edge sits where a sharp step of the same area would,
+``e = search_px - integral of the scaled profile`` (trapezoids). A symmetric blur moves no area
+across the edge, so the estimate is unbiased whatever the blur's width, and it has no
+preference for pixel centres (a gradient-peak fit on interpolated samples locks onto the pixel
+grid by up to a few tenths of a pixel on axis-aligned sides, where every sample of a side has the
+same phase). The sign of the edge (dark inside for ordinary markers, light inside for inverted
+ones) comes from each marker's mean contrast, so both polarities work. A line is fitted to each
+side's edge points by total least squares with Tukey's biweight (``fit_lines``: points off the
+edge, from glare or a neighbouring bit, lose their weight), and adjacent sides' lines meet in
+the corners.
+
+Corner detectors that look at the corner's own neighbourhood (``cv2.cornerSubPix``) drift
+inwards as blur rounds the corner; lines fitted to the sides away from it do not.
+
+Lens distortion: the edges are always searched in the image as it is, along the straight
+sides of the input quad (a side bent by distortion stays well within the search window). Without
+a calibration the lines are fitted there too, which holds on short sides near the image centre;
+with one (``K``, ``dist``) the edge points are undistorted first, the lines fitted and
+intersected in undistorted pixels, and the corners distorted back. A marker whose sides cannot
+all be measured (too few edge points, an edge outside the search window,
+lines that do not meet near the input corners) keeps its input corners.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.geometry.camera import UNDISTORT_CRITERIA, project_points
+from services.geometry.shapes import check_shape
+
+__all__ = ["SAMPLES", "STEPS", "fit_lines", "refine_corners"]
+
+SAMPLES = 32
+"""Edge points sampled per side."""
+STEPS = 8
+"""Profile samples on each side of the input edge along its normal (``2 * STEPS + 1`` in all)."""
+END_MARGIN = 0.12
+"""Fraction of a side left out at each end, at least ``2 * search_px`` px."""
+MIN_POINTS = 0.4
+"""Share of a side's samples that must give an edge point."""
+MIN_CONTRAST = 0.3
+"""An edge point's contrast must reach this fraction of its side's median contrast."""
+TUKEY_K = 4.685
+"""Tukey's biweight cut-off in robust standard deviations of the residuals (95 % efficiency for Gaussian noise)."""
+REWEIGHTS = 2
+"""Reweighted refits of each side's line after the first, unweighted one."""
+MIN_SCALE_PX = 0.01
+"""Floor of the robust residual scale, px."""
+PLATEAU = 2
+"""Profile samples at each end averaged for the levels on either side of the edge."""
+
+
+def refine_corners(image: np.ndarray, corners: np.ndarray, search_px: float | np.ndarray = 2.0,
+                   iterations: int = 1, K: np.ndarray | None = None, dist: np.ndarray | None = None) -> np.ndarray:
+    """Corners of quads in ``image`` refined to the intersections of lines fitted to their sides.
+
+    ``image``: (H, W) uint8 or float grey; ``corners``: (N, 4, 2) float px (centre of the top-left
+    pixel at (0, 0)), in order around each quad (ArUco's TL, TR, BR, BL); ``search_px``: how far
+    from each input side its edge is looked for along the normal, one number or (N,) per quad;
+    keep it below half the width of the quad's dark border so inner edges stay out of reach.
+    ``iterations``: refinement passes, each starting from the previous one's corners (one is enough
+    from cornerSubPix's corners; rougher starts gain from a second). ``K`` (3, 3) and ``dist``
+    (OpenCV distortion coefficients), when both are given and ``dist`` is not all zero: the edge
+    points are undistorted before the lines are fitted and the corners distorted back, so sides
+    that distortion bends still meet where they should. Returns (N, 4, 2) float32 px of
+    ``image``; a quad that cannot be refined keeps its input.
+    """
+    corners = check_shape(corners, "N,4,2", "corners", np.float64)
+    if not np.isfinite(corners).all():
+        raise ValueError("corners must be finite")
+    image = check_shape(image, "H,W", "image")
+    search = np.broadcast_to(np.asarray(search_px, dtype=np.float64), (len(corners),)).copy()
+    if len(corners) == 0:
+        return corners.astype(np.float32)
+    reach = search.max() * (iterations + 1) + 4.0
+    low = np.clip(np.floor(corners.min(axis=(0, 1)) - reach), 0, None).astype(int)
+    high = np.clip(np.ceil(corners.max(axis=(0, 1)) + reach), 0, image.shape[::-1]).astype(int)
+    grey = image[low[1]:high[1], low[0]:high[0]].astype(np.float32)
+    if grey.size == 0:
+        return corners.astype(np.float32)
+    current = corners - low
+    lens = None
+    if K is not None and dist is not None and np.any(dist):
+        lens = (np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel())
+    for _ in range(iterations):
+        refined, ok = _refine_once(grey, current, search, low, lens)
+        current[ok] = refined[ok]
+    current += low
+    moved = np.linalg.norm(current - corners, axis=2).max(axis=1)
+    keep = np.isfinite(current).all(axis=(1, 2)) & (moved <= 2 * np.broadcast_to(search_px, moved.shape) + 1.0)
+    return np.where(keep[:, None, None], current, corners).astype(np.float32)
+
+
+def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, origin: np.ndarray,
+                 lens: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """One pass on ``grey``, the image window whose top-left pixel is ``origin`` (x, y): (N, 4, 2) refined
+    corners (window px) and (N,) bool, whether each quad's four lines were found. ``lens``: (K, dist)
+    to fit the lines in undistorted pixels, or None."""
+    start = corners
+    end = np.roll(corners, -1, axis=1)
+    length = np.linalg.norm(end - start, axis=2)
+    along = (end - start) / np.maximum(length, 1e-9)[..., None]
+    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)  # outwards when the quad turns clockwise
+    margin = np.maximum(END_MARGIN * length, 2 * search[:, None])
+    spread = np.linspace(0.0, 1.0, SAMPLES)
+    position = margin[..., None] + spread * (length - 2 * margin)[..., None]
+    base = start[:, :, None, :] + position[..., None] * along[:, :, None, :]
+    offsets = np.linspace(-1.0, 1.0, 2 * STEPS + 1)[None, :] * search[:, None]
+    shape = (len(corners) * 4 * SAMPLES, 2 * STEPS + 1)
+    x, y = ((base[..., None, i] + offsets[:, None, None, :] * normal[:, :, None, None, i]).astype(np.float32)
+            for i in (0, 1))
+    profile = cv2.remap(grey, x.reshape(shape), y.reshape(shape), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    profile = profile.reshape(x.shape).astype(np.float64)
+    first = profile[..., :PLATEAU].mean(axis=-1)
+    contrast = profile[..., -PLATEAU:].mean(axis=-1) - first
+    polarity = np.sign(contrast.sum(axis=(1, 2)))
+    scaled = (profile - first[..., None]) / np.where(contrast == 0, 1.0, contrast)[..., None]
+    area = 0.5 * (scaled[..., 1:] + scaled[..., :-1]).sum(axis=-1)
+    offset = (STEPS - area) * (search / STEPS)[:, None, None]
+    edge = base + offset[..., None] * normal[:, :, None, :]
+    strong = contrast * polarity[:, None, None] >= MIN_CONTRAST * np.median(np.abs(contrast), axis=2, keepdims=True)
+    reach = STEPS - PLATEAU
+    long_enough = (length > 2 * margin + 2.0)[..., None]
+    valid = strong & (np.abs(STEPS - area) < reach) & (polarity != 0)[:, None, None] & long_enough
+    enough = valid.sum(axis=2) >= MIN_POINTS * SAMPLES
+    if lens is not None:
+        edge = undistort_pixels(edge + origin, *lens)
+    lines = fit_lines(edge, valid)
+    lines[~enough] = np.nan
+    meet = np.cross(np.roll(lines, 1, axis=1), lines)
+    ok = np.all(np.isfinite(meet), axis=(1, 2)) & (np.abs(meet[..., 2]) > 1e-9).all(axis=1)
+    refined = meet[..., :2] / np.where(ok[:, None, None], meet[..., 2:], 1.0)
+    if lens is not None:
+        refined = distort_pixels(np.where(ok[:, None, None], refined, corners + origin), *lens) - origin
+    return refined, ok
+
+
+def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(..., 2) undistorted pixels (same ``K``) of (..., 2) distorted ones (cv2.undistortPoints)."""
+    flat = pixels.reshape(-1, 1, 2).astype(np.float64)
+    return cv2.undistortPoints(flat, K, dist, P=K, criteria=UNDISTORT_CRITERIA).reshape(pixels.shape)
+
+
+def distort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(..., 2) distorted pixels of (..., 2) undistorted ones (same ``K``), ``project_points`` of their rays."""
+    rays = np.linalg.solve(K, np.c_[pixels.reshape(-1, 2), np.ones(pixels[..., 0].size)].T).T
+    return project_points(rays, K, dist).reshape(pixels.shape)
+
+
+def fit_lines(points: np.ndarray, valid: np.ndarray, iterations: int = REWEIGHTS) -> np.ndarray:
+    """Robust total-least-squares lines through batches of 2-D points: a plain fit, then ``iterations``
+    refits with Tukey's biweight of the residuals (scale: 1.4826 x their median absolute value).
+
+    ``points``: (..., S, 2) float px; ``valid``: (..., S) bool, the points to use. Returns (..., 3)
+    float64 lines ``(a, b, c)`` with ``a * x + b * y + c = 0`` and ``a**2 + b**2 = 1``; NaN where
+    fewer than two points are valid. A robust ``cv2.fitLine`` for every batch at once (one call
+    instead of one per line).
+    """
+    x, y = np.ascontiguousarray(points[..., 0]), np.ascontiguousarray(points[..., 1])
+    weight = valid.astype(np.float64)
+    count = valid.sum(axis=-1)
+    middle_index = np.maximum(count - 1, 0)[..., None] // 2
+    for refit in range(iterations + 1):
+        total = weight.sum(axis=-1)
+        total = np.where(total > 0, total, 1.0)
+        mean_x, mean_y = (weight * x).sum(axis=-1) / total, (weight * y).sum(axis=-1) / total
+        dx, dy = x - mean_x[..., None], y - mean_y[..., None]
+        cxx, cyy, cxy = ((weight * dx * dx).sum(axis=-1), (weight * dy * dy).sum(axis=-1),
+                         (weight * dx * dy).sum(axis=-1))
+        angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+        normal_x, normal_y = -np.sin(angle), np.cos(angle)
+        if refit == iterations:
+            break
+        residual = np.abs(dx * normal_x[..., None] + dy * normal_y[..., None])
+        ordered = np.sort(np.where(valid, residual, np.inf), axis=-1)
+        middle = np.take_along_axis(ordered, middle_index, axis=-1)
+        scale = np.maximum(1.4826 * np.where(np.isfinite(middle), middle, 0.0), MIN_SCALE_PX)
+        weight = valid * np.clip(1.0 - (residual / (TUKEY_K * scale)) ** 2, 0.0, None) ** 2
+    lines = np.stack([normal_x, normal_y, -(normal_x * mean_x + normal_y * mean_y)], axis=-1)
+    lines[count < 2] = np.nan
+    return lines
