@@ -1,13 +1,14 @@
 """Corners from lines fitted to a quad's sides: on anti-aliased, blurred quads rendered at subpixel
-positions with exact corners, against cv2.cornerSubPix on the same images; the batch line fit
-against cv2.fitLine."""
+positions with exact corners, against cv2.cornerSubPix on the same images; on small markers (a dark
+border around a light inside) blurred so much that no profile reaches its plateaus, started where
+cv2.cornerSubPix leaves them, 0.3 px inside: no side measured more than 0.05 px too large or too
+small on average; the batch line fit against cv2.fitLine."""
 
 import cv2
 import numpy as np
 import pytest
 
 from services.detection.markers.corner_lines import fit_lines, refine_corners
-from tests.unit import corner_lines_area
 
 SIZE = 120
 SUPERSAMPLE = 8
@@ -99,26 +100,14 @@ def small_blurred_markers(count: int) -> list[tuple[np.ndarray, np.ndarray, np.n
     return cases
 
 
-def test_midpoint_edges_agree_with_area_edges_where_both_hold_and_drop_their_pull_where_they_do_not():
-    rng = np.random.default_rng(3)
-    ours_errors, area_errors = [], []
-    for _ in range(12):
-        truth = random_quad(rng)
-        image = render_quad(truth)
-        start = truth + rng.normal(0, START_NOISE_PX, truth.shape)
-        ours = refine_corners(image, start[None], 2.0, iterations=2)[0]
-        area = corner_lines_area.refine_corners(image, start[None], 2.0, iterations=2)[0]
-        assert np.abs(ours - area).max() < 0.06
-        ours_errors.append(np.linalg.norm(ours - truth, axis=1))
-        area_errors.append(np.linalg.norm(area - truth, axis=1))
-    assert np.median(ours_errors) <= np.median(area_errors)
-    ours_offsets, area_offsets = [], []
+def test_small_blurred_markers_are_measured_neither_too_small_nor_too_large():
+    offsets = []
     for truth, image, start in small_blurred_markers(12):
         search = 0.4 * np.linalg.norm(truth[1] - truth[0]) / 8
-        ours_offsets.append(outward_offsets(refine_corners(image, start[None], search)[0], truth))
-        area_offsets.append(outward_offsets(corner_lines_area.refine_corners(image, start[None], search)[0], truth))
-    assert abs(np.mean(ours_offsets)) < 0.05 < 0.1 < -np.mean(area_offsets)
-    assert abs(np.mean(ours_offsets)) < 0.5 * abs(np.mean(area_offsets))
+        refined = refine_corners(image, start[None], search, level_px=0.5 * search / 0.4)[0]
+        assert np.abs(refined - truth).max() < 2 * MAX_ERROR_PX
+        offsets.append(outward_offsets(refined, truth))
+    assert abs(np.mean(offsets)) < 0.05 and np.abs(np.mean(offsets, axis=0)).max() < 0.05
 
 
 def test_light_quads_on_dark_and_several_at_once():
