@@ -128,11 +128,12 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, leve
     polarity = np.sign(contrast.sum(axis=(1, 2)))[:, None, None]
     strong = (contrast * polarity >= MIN_CONTRAST * np.median(np.abs(contrast), axis=2, keepdims=True)) \
         & (polarity != 0) & (length > 2 * margin + 2.0)[..., None]
-    offset, found = _crossings(profile, 0.5 * (samples[..., 0] + samples[..., -1]), polarity, search)
-    middle = _lower_median(offset, strong & found)
+    middle, found = _crossings(profile.mean(axis=2), 0.5 * (samples[..., 0] + samples[..., -1]).mean(axis=2),
+                               polarity[..., 0], search[:, None])
+    middle = np.where(found, middle, 0.0)
     levels = _sample(grey, base + middle[..., None, None] * normal[:, :, None, :], normal,
                      np.stack([-level, level], axis=1))
-    offset, found = _crossings(profile, levels.mean(axis=-1), polarity, search)
+    offset, found = _crossings(profile, levels.mean(axis=-1), polarity, search[:, None, None])
     edge = base + offset[..., None] * normal[:, :, None, :]
     valid = strong & found
     enough = valid.sum(axis=2) >= MIN_POINTS * SAMPLES
@@ -148,38 +149,30 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, leve
     return refined, ok
 
 
-def _lower_median(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(...) the lower median of the ``valid`` ones of ``values`` (..., S) along the last axis; 0 where none is."""
-    count = valid.sum(axis=-1)
-    ordered = np.sort(np.where(valid, values, np.inf), axis=-1)
-    middle = np.take_along_axis(ordered, (np.maximum(count - 1, 0) // 2)[..., None], axis=-1)[..., 0]
-    return np.where(count > 0, middle, 0.0)
-
-
 def _sample(grey: np.ndarray, points: np.ndarray, normal: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(N, 4, S, M) float64 bicubic samples of ``grey`` at ``points`` (N, 4, S, 2) moved by ``offsets`` (N, M) px
+    """(N, 4, S, M) float32 bicubic samples of ``grey`` at ``points`` (N, 4, S, 2) moved by ``offsets`` (N, M) px
     along their side's ``normal`` (N, 4, 2)."""
     x, y = ((points[..., None, i] + offsets[:, None, None, :] * normal[:, :, None, None, i]).astype(np.float32)
             for i in (0, 1))
     shape = (x.size // x.shape[-1], x.shape[-1])
     samples = cv2.remap(grey, x.reshape(shape), y.reshape(shape), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    return samples.reshape(x.shape).astype(np.float64)
+    return samples.reshape(x.shape)
 
 
 def _crossings(profile: np.ndarray, threshold: np.ndarray, polarity: np.ndarray,
                search: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where each profile (N, 4, S, 2 * STEPS + 1), read outwards over ``-search .. search`` px (N,), crosses its
-    ``threshold`` (N, 4, S) towards the outside's level (``polarity`` (N, 1, 1): +1 for a dark inside): the
-    offset (N, 4, S) px along the normal, interpolated linearly between the samples either side of the
-    steepest such crossing, and (N, 4, S) bool, whether there is one."""
+    """Where profiles (..., 2 * STEPS + 1), read outwards over ``-search .. search`` px, cross their
+    ``threshold`` (...) towards the outside's level (``polarity``: +1 for a dark inside; it and ``search``
+    broadcast to the profiles' leading shape): the offset (...) px along the normal, interpolated linearly
+    between the two samples either side, and (...) bool, whether the profile crosses there (a profile that
+    rises steadily crosses after as many samples as it has below the threshold)."""
     rising = (profile - threshold[..., None]) * polarity[..., None]
-    jump = rising[..., 1:] - rising[..., :-1]
-    crossing = (rising[..., :-1] < 0) & (rising[..., 1:] >= 0)
-    k = np.argmax(np.where(crossing, jump, -np.inf), axis=-1)[..., None]
+    k = np.minimum(np.maximum(np.count_nonzero(rising < 0, axis=-1) - 1, 0), profile.shape[-1] - 2)[..., None]
     below = np.take_along_axis(rising, k, axis=-1)[..., 0]
-    step_up = np.take_along_axis(jump, k, axis=-1)[..., 0]
-    fraction = -below / np.where(step_up > 0, step_up, 1.0)
-    return (k[..., 0] + fraction) * (search / STEPS)[:, None, None] - search[:, None, None], crossing.any(axis=-1)
+    above = np.take_along_axis(rising, k + 1, axis=-1)[..., 0]
+    found = (below < 0) & (above >= 0)
+    fraction = below / np.where(found, below - above, -1.0)
+    return (k[..., 0] + fraction) * (search / STEPS) - search, found
 
 
 def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
