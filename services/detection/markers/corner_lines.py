@@ -4,17 +4,30 @@ Each side of a detected quad is sampled at ``SAMPLES`` points along its middle (
 corners, where the neighbouring side's edge blurs into the profile). At each point the image is
 read along the side's normal (``cv2.remap``, bicubic): a profile of ``2 * STEPS + 1`` evenly
 spaced samples ``search_px`` either way, and two level samples ``level_px`` either way, the
-middle of the marker's dark border inside and the white margin outside. The edge point is where
-the profile crosses the mean of the two levels, interpolated linearly between the samples either
-side of the steepest crossing. A blur symmetric about the edge leaves that midpoint where the
-sharp edge was, whatever its width, and so does a window too short to reach either plateau (a
-blurred edge whose profile is normalised by the window's ends is pulled towards the window's
-centre, which made small, blurred markers measure too small); as the input edge may sit a few
-tenths of a pixel off (OpenCV's subpixel corners sit inside), the levels are read a second time
-centred on the side's median edge offset, so neither level reads further into the edge's blur
-than the other. The sign of the edge (dark inside for ordinary markers, light inside for
-inverted ones) comes from each marker's mean contrast, so both polarities work. A line is
-fitted to each side's edge points by total least squares with Tukey's biweight (``fit_lines``:
+middle of the marker's dark border inside and the white margin outside. The edge is located in
+three steps:
+
+1. a first edge per side, where the side's mean profile crosses the mean of its levels; as the
+   input edge may sit a few tenths of a pixel off (OpenCV's subpixel corners sit inside), the
+   levels are then read again ``level_px`` either side of that edge, so that neither reads
+   further into the edge's blur than the other;
+2. per point, where its profile crosses the midpoint of its two levels (linear between samples);
+3. per point, the edge a sharp step of the same area would have over a window centred on that
+   crossing (at least half the profile's width), the profile scaled from its inside level (0) to
+   its outside one (1).
+
+A blur symmetric about the edge moves neither the midpoint nor the area of a window centred on
+the edge, whatever its width, and levels read away from the profile's ends are the plateaus the
+window's ends may not reach (a profile normalised by its own ends is pulled towards the window's
+centre, which made small, blurred markers measure too small). The area, unlike the crossing of
+interpolated samples, has no preference for pixel centres on sharp edges (on axis-aligned sides
+every sample of a side has the same phase). Light bits next to the dark border lift its level
+once the blur's sigma nears a quarter of a cell, which moves the edge outwards by a few
+hundredths of a pixel.
+
+The sign of the edge (dark inside for ordinary markers, light inside for inverted ones) comes
+from each marker's mean contrast, so both polarities work. A line is fitted to each side's edge
+points by total least squares with Tukey's biweight (``fit_lines``:
 points off the edge, from glare or a neighbouring bit, lose their weight), and adjacent sides'
 lines meet in the corners.
 
@@ -133,7 +146,8 @@ def _refine_once(grey: np.ndarray, corners: np.ndarray, search: np.ndarray, leve
     middle = np.where(found, middle, 0.0)
     levels = _sample(grey, base + middle[..., None, None] * normal[:, :, None, :], normal,
                      np.stack([-level, level], axis=1))
-    offset, found = _crossings(profile, levels.mean(axis=-1), polarity, search[:, None, None])
+    crossing, found = _crossings(profile, levels.mean(axis=-1), polarity, search[:, None, None])
+    offset = _centred_area_edges(profile, levels, crossing, search[:, None, None])
     edge = base + offset[..., None] * normal[:, :, None, :]
     valid = strong & found
     enough = valid.sum(axis=2) >= MIN_POINTS * SAMPLES
@@ -167,12 +181,39 @@ def _crossings(profile: np.ndarray, threshold: np.ndarray, polarity: np.ndarray,
     between the two samples either side, and (...) bool, whether the profile crosses there (a profile that
     rises steadily crosses after as many samples as it has below the threshold)."""
     rising = (profile - threshold[..., None]) * polarity[..., None]
-    k = np.minimum(np.maximum(np.count_nonzero(rising < 0, axis=-1) - 1, 0), profile.shape[-1] - 2)[..., None]
-    below = np.take_along_axis(rising, k, axis=-1)[..., 0]
-    above = np.take_along_axis(rising, k + 1, axis=-1)[..., 0]
+    k = np.minimum(np.maximum(np.count_nonzero(rising < 0, axis=-1) - 1, 0), profile.shape[-1] - 2)
+    pair = _pick(rising, np.stack([k, k + 1], axis=-1))
+    below, above = pair[..., 0], pair[..., 1]
     found = (below < 0) & (above >= 0)
     fraction = below / np.where(found, below - above, -1.0)
-    return (k[..., 0] + fraction) * (search / STEPS) - search, found
+    return (k + fraction) * (search / STEPS) - search, found
+
+
+def _centred_area_edges(profile: np.ndarray, levels: np.ndarray, centre: np.ndarray, search: np.ndarray) -> np.ndarray:
+    """Edge offsets (N, 4, S) px from profiles (N, 4, S, 2 * STEPS + 1) read outwards over ``-search .. search``
+    px (``search`` broadcast to (N, 4, S)), their inside and outside ``levels`` (N, 4, S, 2) and a first
+    estimate ``centre`` (N, 4, S) of each edge: where a sharp step would have the same area under the
+    profile, scaled to run from 0 (inside) to 1 (outside), as the profile has over a window centred on
+    ``centre`` (half-width: at least half of ``search``, else up to 1 px and within the samples); the window's
+    ends fall between samples, where the profile's integral is interpolated linearly."""
+    inside, outside = levels[..., 0], levels[..., 1]
+    scaled = (profile - inside[..., None]) / np.where(outside == inside, 1.0, outside - inside)[..., None]
+    step = search / STEPS
+    integral = np.concatenate([np.zeros((*scaled.shape[:-1], 1), np.float32),
+                               np.cumsum(0.5 * (scaled[..., 1:] + scaled[..., :-1]), axis=-1)], axis=-1)
+    half = np.maximum(0.5 * search, np.minimum(search - np.abs(centre), 1.0))
+    position = (centre[..., None] + np.stack([-half, half], axis=-1) + search[..., None]) / step[..., None]
+    below = np.minimum(np.maximum(np.floor(position).astype(np.intp), 0), 2 * STEPS - 1)
+    ends = _pick(integral, np.concatenate([below, below + 1], axis=-1))
+    at = ends[..., :2] + (position - below) * (ends[..., 2:] - ends[..., :2])
+    return centre + half - (at[..., 1] - at[..., 0]) * step
+
+
+def _pick(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``values`` (..., M) at ``index`` (..., K) ints along the last axis: (..., K)."""
+    flat = values.reshape(-1, values.shape[-1])
+    rows = np.arange(len(flat))[:, None]
+    return flat[rows, index.reshape(len(flat), -1)].reshape(index.shape)
 
 
 def undistort_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

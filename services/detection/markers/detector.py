@@ -162,9 +162,9 @@ class MarkerDetector:
     ``marker_length``: side of every marker's black square in metres (0 = unknown);
     ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS`` (default ``lines``:
     OpenCV's ``subpix`` corners moved to the intersections of lines fitted to each side's edge,
-    searched ``SEARCH_CELLS`` of a cell either side, each edge point where the side's profile crosses
-    the mean of the levels read ``LEVEL_CELLS`` of a cell either side; the lines are fitted in the
-    distorted image unless ``detect`` is given the calibration).
+    searched ``SEARCH_CELLS`` of a cell either side, the black and white levels read ``LEVEL_CELLS`` of
+    a cell either side (see ``corner_lines``); the lines are fitted in the distorted image unless
+    ``detect`` is given the calibration).
     ``parameters``: cv2.aruco.DetectorParameters fields to override, by their OpenCV names
     (e.g. ``{"adaptiveThreshWinSizeMax": 33, "detectInvertedMarker": True}``); the corner
     refinement method is set through ``refinement`` only. Raises ValueError naming whatever
