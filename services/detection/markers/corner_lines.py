@@ -168,7 +168,7 @@ def _sample(grey: np.ndarray, points: np.ndarray, normal: np.ndarray, offsets: n
     along their side's ``normal`` (N, 4, 2)."""
     x, y = ((points[..., None, i] + offsets[:, None, None, :] * normal[:, :, None, None, i]).astype(np.float32)
             for i in (0, 1))
-    shape = (x.size // x.shape[-1], x.shape[-1])
+    shape = (x.shape[0] * x.shape[1], x.shape[2] * x.shape[3])  # one row per side: few rows, little threading cost
     samples = cv2.remap(grey, x.reshape(shape), y.reshape(shape), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     return samples.reshape(x.shape)
 
@@ -182,7 +182,7 @@ def _crossings(profile: np.ndarray, threshold: np.ndarray, polarity: np.ndarray,
     rises steadily crosses after as many samples as it has below the threshold)."""
     rising = (profile - threshold[..., None]) * polarity[..., None]
     k = np.minimum(np.maximum(np.count_nonzero(rising < 0, axis=-1) - 1, 0), profile.shape[-1] - 2)
-    pair = _pick(rising, np.stack([k, k + 1], axis=-1))
+    pair = _pick(rising, k[..., None] + np.arange(2))
     below, above = pair[..., 0], pair[..., 1]
     found = (below < 0) & (above >= 0)
     fraction = below / np.where(found, below - above, -1.0)
@@ -199,11 +199,11 @@ def _centred_area_edges(profile: np.ndarray, levels: np.ndarray, centre: np.ndar
     inside, outside = levels[..., 0], levels[..., 1]
     scaled = (profile - inside[..., None]) / np.where(outside == inside, 1.0, outside - inside)[..., None]
     step = search / STEPS
-    integral = np.concatenate([np.zeros((*scaled.shape[:-1], 1), np.float32),
-                               np.cumsum(0.5 * (scaled[..., 1:] + scaled[..., :-1]), axis=-1)], axis=-1)
+    integral = np.zeros(scaled.shape, np.float32)
+    np.cumsum(0.5 * (scaled[..., 1:] + scaled[..., :-1]), axis=-1, out=integral[..., 1:])
     half = np.maximum(0.5 * search, np.minimum(search - np.abs(centre), 1.0))
     position = (centre[..., None] + np.stack([-half, half], axis=-1) + search[..., None]) / step[..., None]
-    below = np.minimum(np.maximum(np.floor(position).astype(np.intp), 0), 2 * STEPS - 1)
+    below = np.minimum(np.maximum(position, 0.0).astype(np.intp), 2 * STEPS - 1)
     ends = _pick(integral, np.concatenate([below, below + 1], axis=-1))
     at = ends[..., :2] + (position - below) * (ends[..., 2:] - ends[..., :2])
     return centre + half - (at[..., 1] - at[..., 0]) * step
