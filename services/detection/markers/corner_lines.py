@@ -13,8 +13,8 @@ three steps:
    further into the edge's blur than the other;
 2. per point, where its profile crosses the midpoint of its two levels (linear between samples);
 3. per point, the edge a sharp step of the same area would have over a window centred on that
-   crossing (at least half the profile's width), the profile scaled from its inside level (0) to
-   its outside one (1).
+   crossing (1 px either way, or as far as the profile reaches, but at least a quarter of its
+   span), the profile scaled from its inside level (0) to its outside one (1).
 
 A blur symmetric about the edge moves neither the midpoint nor the area of a window centred on
 the edge, whatever its width, and levels read away from the profile's ends are the plateaus the
@@ -194,8 +194,8 @@ def _centred_area_edges(profile: np.ndarray, levels: np.ndarray, centre: np.ndar
     px (``search`` broadcast to (N, 4, S)), their inside and outside ``levels`` (N, 4, S, 2) and a first
     estimate ``centre`` (N, 4, S) of each edge: where a sharp step would have the same area under the
     profile, scaled to run from 0 (inside) to 1 (outside), as the profile has over a window centred on
-    ``centre`` (half-width: at least half of ``search``, else up to 1 px and within the samples); the window's
-    ends fall between samples, where the profile's integral is interpolated linearly."""
+    ``centre`` (half-width: 1 px, or as far as the samples reach, but at least half of ``search``); the
+    profile's integral is interpolated linearly between samples and extrapolated past the last ones."""
     inside, outside = levels[..., 0], levels[..., 1]
     scaled = (profile - inside[..., None]) / np.where(outside == inside, 1.0, outside - inside)[..., None]
     step = search / STEPS
