@@ -8,6 +8,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from services.geometry.trajectory import SinePath
+
+LIGHT_PERIOD_RANGE_S = (6.0, 15.0)
+
 
 def finish(image: np.ndarray, exposure: float, blur_px: float, noise_std: float, noise_seed: int) -> np.ndarray:
     """Apply the gain ``exposure``, a gaussian blur of sigma ``blur_px`` and noise of ``noise_std`` grey levels.
@@ -34,3 +38,26 @@ def gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 def apply_gain(image: np.ndarray, gain: np.ndarray) -> np.ndarray:
     """``image * gain`` with ``gain`` a float32 array broadcastable to the image, e.g. (H, 1) + (1, W) terms."""
     return cv2.multiply(image, np.broadcast_to(gain, image.shape).astype(np.float32), dtype=cv2.CV_8U)
+
+
+class Lighting:
+    """Light that changes slowly over time: a global gain around 1 and a gain gradient across the image.
+
+    The gain, and the gain differences between the left and right and between the top and bottom
+    image borders, each stay within ``amplitude`` of 1, 0 and 0 (sums of sines of 6-15 s periods
+    drawn from ``rng``). ``amplitude`` 0: constant light, images unchanged.
+    """
+
+    def __init__(self, rng: np.random.Generator, amplitude: float):
+        self.amplitude = amplitude
+        self.path = SinePath.random(rng, (1.0, 0.0, 0.0), (amplitude, amplitude, amplitude), LIGHT_PERIOD_RANGE_S)
+        """(gain, horizontal slope, vertical slope) over time."""
+
+    def apply(self, image: np.ndarray, time_s: float) -> np.ndarray:
+        """(H, W) uint8 ``image`` lit as at ``time_s``."""
+        if self.amplitude == 0.0:
+            return image
+        gain, slope_u, slope_v = self.path(time_s)
+        u = np.linspace(-0.5, 0.5, image.shape[1], dtype=np.float32)[None, :]
+        v = np.linspace(-0.5, 0.5, image.shape[0], dtype=np.float32)[:, None]
+        return apply_gain(image, gain + slope_u * u + slope_v * v)

@@ -26,10 +26,9 @@ import numpy as np
 
 from services.geometry.camera import CameraModel, intrinsics
 from services.geometry.se3 import invert
-from services.geometry.trajectory import SinePath
 from services.synthetic.base import SceneOptions, SyntheticScene, Truth, scene_rng
 from services.synthetic.fixtures import Fixtures, ImageTarget
-from services.synthetic.imaging import apply_gain, gaussian_blur
+from services.synthetic.imaging import Lighting, gaussian_blur
 from services.synthetic.paths import plane_viewing_path
 from services.synthetic.plane import PlaneTexture
 from services.synthetic.texture import procedural_texture
@@ -37,7 +36,6 @@ from services.synthetic.texture import procedural_texture
 HFOV_DEG = 56.0
 OUTSIDE_GREY = 110
 PATH_PURPOSE, TEXTURE_PURPOSE, LIGHT_PURPOSE = 100, 101, 102
-LIGHT_PERIOD_RANGE_S = (6.0, 15.0)
 MOTIONS = ("sway", "static")
 
 
@@ -86,10 +84,7 @@ class PlanarTargetScene(SyntheticScene):
         self.focus_m = (near + far) / 2
         self.path = plane_viewing_path(scene_rng(o.seed, PATH_PURPOSE), near=near, far=far,
                                        lateral=(0.7 * w, 0.5 * w), wander=(0.15 * w, 0.1 * w), roll=0.5)
-        light_rng = scene_rng(o.seed, LIGHT_PURPOSE)
-        self.light = SinePath.random(light_rng, (1.0, 0.0, 0.0), (o.lighting, o.lighting, o.lighting),
-                                     LIGHT_PERIOD_RANGE_S)
-        """(gain, horizontal slope, vertical slope) of the light over time."""
+        self.light = Lighting(scene_rng(o.seed, LIGHT_PURPOSE), o.lighting)
         K = intrinsics(o.width, o.height, HFOV_DEG)
         self.cameras = (CameraModel("cam0", o.width, o.height, K, np.zeros(5), np.eye(4)),)
 
@@ -107,9 +102,5 @@ class PlanarTargetScene(SyntheticScene):
         image = self.target.warp(camera.K, T_cam_target, (camera.width, camera.height), border_value=OUTSIDE_GREY)
         distance = T_cam_target[2, 3]
         image = gaussian_blur(image, self.options.defocus * abs(1.0 / distance - 1.0 / self.focus_m))
-        if self.options.lighting > 0.0:
-            gain, slope_u, slope_v = self.light(self.time_s(index))
-            u = np.linspace(-0.5, 0.5, camera.width, dtype=np.float32)[None, :]
-            v = np.linspace(-0.5, 0.5, camera.height, dtype=np.float32)[:, None]
-            image = apply_gain(image, gain + slope_u * u + slope_v * v)
+        image = self.light.apply(image, self.time_s(index))
         return {"cam0": image}, {"cam0": [("cam0", "target", T_cam_target)]}

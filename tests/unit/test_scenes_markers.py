@@ -123,3 +123,29 @@ def test_the_markers_scene_settles_the_side_and_dictionary_of_its_markers_and_gi
     assert board is not None and (board.name, board.dictionary, board.length) == ("board", "DICT_5X5_50", 0.1)
     assert list(board.poses) == [3, 4] and all(np.array_equal(board.poses[i], scene.marker_poses[i]) for i in (3, 4))
     assert fixtures.rig == scene.cameras and fixtures.bodies == {} and fixtures.target is None
+
+
+def test_distance_lighting_and_supersampling_are_options_and_checked():
+    L = 0.055
+    scene = make_scene("markers", dictionary="DICT_APRILTAG_36h11", ids=(0, 1), marker_length=L,
+                       distance=(0.3 / L, 1.0 / L), lighting=0.3, supersample=4, fps=5.0, seed=3)
+    ranges, brightest, means = [], [], []
+    for index in range(0, 150, 5):
+        frame = scene.render(index)
+        image = frame.images["cam0"]
+        ranges += [np.linalg.norm(T[:3, 3]) for T in visible(frame).values()]
+        brightest.append(int(image.max()))
+        means.append(float(image.mean()))
+    assert 0.28 < min(ranges) < 0.4 and 0.85 < max(ranges) < 1.1
+    assert max(brightest) < 255 and max(means) > 1.15 * min(means)
+    for bad in ({"distance": (16.0, 3.2)}, {"distance": (0.5, 3.0)}, {"distance": (3.0,)}, {"supersample": 0},
+                {"supersample": 2.5}, {"lighting": 1.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            make_scene("markers", **bad)
+
+
+def test_supersampling_changes_the_edges_not_the_picture():
+    sharp, fine = make_scene("markers", seed=4), make_scene("markers", seed=4, supersample=2)
+    one, two = sharp.render(30).images["cam0"].astype(float), fine.render(30).images["cam0"].astype(float)
+    assert np.abs(one - two).mean() < 2.0 and np.abs(one - two).max() > 20
+    assert abs(one.mean() - two.mean()) < 0.2

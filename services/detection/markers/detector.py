@@ -58,6 +58,11 @@ SEARCH_CELLS = 0.4
 """``lines``: how far from each side its edge is looked for, in marker cells (the dark border is one
 cell wide), clipped to ``SEARCH_PX``."""
 SEARCH_PX = (0.75, 3.0)
+LEVEL_CELLS = 0.5
+"""``lines``: how far from each side the black and white levels are read, in marker cells: the middle of
+the black border inside, as far into the white margin outside; at least the search distance, at most
+``LEVEL_MAX_PX``."""
+LEVEL_MAX_PX = 8.0
 
 _DICTIONARY_SUFFIXES = (".yml", ".yaml", ".json", ".xml")
 _PROBE_IMAGE = np.zeros((64, 64), np.uint8)
@@ -157,7 +162,9 @@ class MarkerDetector:
     ``marker_length``: side of every marker's black square in metres (0 = unknown);
     ``lengths``: per-id overrides of it. ``refinement``: a key of ``REFINEMENTS`` (default ``lines``:
     OpenCV's ``subpix`` corners moved to the intersections of lines fitted to each side's edge,
-    searched ``SEARCH_CELLS`` of a cell either side; the lines are fitted in the distorted image).
+    searched ``SEARCH_CELLS`` of a cell either side, the black and white levels read ``LEVEL_CELLS`` of
+    a cell either side (see ``corner_lines``); the lines are fitted in the distorted image unless
+    ``detect`` is given the calibration).
     ``parameters``: cv2.aruco.DetectorParameters fields to override, by their OpenCV names
     (e.g. ``{"adaptiveThreshWinSizeMax": 33, "detectInvertedMarker": True}``); the corner
     refinement method is set through ``refinement`` only. Raises ValueError naming whatever
@@ -192,11 +199,13 @@ class MarkerDetector:
         """(N,) float32 side lengths in metres of markers ``ids`` ((N,) ints); 0 when unknown."""
         return np.array([self.lengths.get(int(i), self.marker_length) for i in ids], dtype=np.float32)
 
-    def search_px(self, corners: np.ndarray) -> np.ndarray:
-        """(N,) px: how far ``lines`` looks for each side's edge on quads ``corners`` (N, 4, 2) px."""
+    def reach_px(self, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For quads ``corners`` (N, 4, 2) px, what ``lines`` needs: how far from each side its edge is
+        looked for and how far the black and white levels are read, (N,) px each."""
         side = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2).mean(axis=1)
         cells = self.dictionary.markerSize + 2 * self._detector.getDetectorParameters().markerBorderBits
-        return np.clip(SEARCH_CELLS * side / cells, *SEARCH_PX)
+        search = np.clip(SEARCH_CELLS * side / cells, *SEARCH_PX)
+        return search, np.clip(LEVEL_CELLS * side / cells, search, LEVEL_MAX_PX)
 
     def detect(self, image: np.ndarray, K: np.ndarray | None = None, dist: np.ndarray | None = None) -> MarkerFound:
         """The markers in ``image`` (mono8 / bgr8 / bgra8 / mono16 array, see ``to_grey``), sorted by id.
@@ -213,7 +222,8 @@ class MarkerDetector:
         ids = np.asarray(found_ids, dtype=np.int32).reshape(-1)
         corners = np.asarray(found, dtype=np.float32).reshape(-1, 4, 2)
         if self.refinement == "lines":
-            corners = refine_corners(grey, corners, self.search_px(corners), K=K, dist=dist)
+            search, level = self.reach_px(corners)
+            corners = refine_corners(grey, corners, search, K=K, dist=dist, level_px=level)
         quality = np.asarray(confidence, dtype=np.float32).reshape(-1)
         order = np.lexsort((corners[:, 0, 1], corners[:, 0, 0], ids))
         ids = ids[order]
