@@ -5,10 +5,6 @@ with the keypoints within a window around its pixel on a neighbouring level) and
 ``services.slam.initialisation.initialise``; the first accepted pair makes the map's first two
 keyframes and points (scaled so that their median depth is 1). The reference frame is replaced
 when it is ``reference_max_age`` frames old, or when it shares too few matches with the new one.
-After a try that ended in ``low_parallax``, the next frames are not tried (neither matched nor
-fitted; ``init_skip_frames`` at most in a row) while that parallax, grown in proportion to the time
-since the reference, stays well under the bound: at a steady speed the baseline, and with it the
-parallax, grows with time, and the frames that would only repeat the status cost a frame period each.
 
 Then, for each frame (as ORB-SLAM does):
 
@@ -47,7 +43,7 @@ from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import make_transform
 from services.slam.features import FrameFeatures
-from services.slam.initialisation import InitialisationSettings, InitialisationStatus, initialise
+from services.slam.initialisation import InitialisationStatus, initialise
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
 from services.slam.map.map_point import PointArrays
@@ -94,30 +90,6 @@ class _Frame:
     point_ids: np.ndarray
 
 
-@dataclass
-class _Try:
-    """An initialisation try that ended in ``low_parallax``: the reference's and the tried frame's
-    stamps, ns, the parallax found, degrees, and the frames not tried since."""
-
-    reference_ns: int
-    stamp_ns: int
-    parallax_deg: float
-    skipped: int = 0
-
-    def skips(self, stamp_ns: int, s: SlamSettings, min_parallax_deg: float) -> bool:
-        """Whether the frame at ``stamp_ns`` is not worth a try (and is counted as skipped): at most
-        ``init_skip_frames`` in a row, while the parallax grown in proportion to the time since the
-        reference (the baseline at a steady speed) stays under ``init_skip_below`` times
-        ``min_parallax_deg``, the bound of a try."""
-        elapsed, tried = stamp_ns - self.reference_ns, self.stamp_ns - self.reference_ns
-        if self.skipped >= s.init_skip_frames or not (tried > 0 and np.isfinite(self.parallax_deg)):
-            return False
-        if self.parallax_deg * elapsed / tried >= s.init_skip_below * min_parallax_deg:
-            return False
-        self.skipped += 1
-        return True
-
-
 class Tracker:
     """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper`` (none with
     ``localisation_only``). ``wait_for_mapping``: a keyframe decision that hangs on the mapper being
@@ -133,9 +105,6 @@ class Tracker:
         self.mapper = mapper
         self._index = -1
         self._reference: _Frame | None = None
-        self._two_view = InitialisationSettings()
-        self._last_try: _Try | None = None
-        """The last initialisation try against the reference, while it ended in ``low_parallax``."""
         self._last: _Frame | None = None
         self._velocity: tuple[np.ndarray, float] | None = None
         """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
@@ -168,10 +137,8 @@ class Tracker:
         frame = _Frame(self._index, stamp_ns, features, np.eye(4), np.full(len(features), -1, np.int64))
         reference = self._reference
         if reference is None or self._index - reference.index > s.reference_max_age:
-            self._reference, self._last_try = frame, None
+            self._reference = frame
             return Tracked(TrackingState.INITIALISING, "new_reference")
-        if self._last_try is not None and self._last_try.skips(stamp_ns, s, self._two_view.min_parallax_deg):
-            return Tracked(TrackingState.INITIALISING, InitialisationStatus.LOW_PARALLAX.value)
         with stage_timer(timings, "match"):
             first = reference.features
             a, b = search_by_projection(first.pixels, np.full(len(first), s.init_window_px), first.levels,
@@ -180,9 +147,7 @@ class Tracker:
             consistent = rotation_consistent(reference.features.angles[a], features.angles[b])
             a, b = a[consistent], b[consistent]
         with stage_timer(timings, "pose"):
-            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5), self._two_view)
-        self._last_try = _Try(reference.stamp_ns, stamp_ns, found.parallax_deg) if (
-            found.status is InitialisationStatus.LOW_PARALLAX) else None
+            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
         if found.status is InitialisationStatus.TOO_FEW_MATCHES:
             self._reference = frame
         if not found.initialised or found.T_second_first is None:

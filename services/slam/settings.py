@@ -13,9 +13,7 @@ class SlamSettings(BaseModel):
 
     Initialisation: a reference frame is matched with each new frame (keypoints within
     ``init_window_px``, descriptor distance at most ``match_max_distance``, ratio ``init_ratio``)
-    until ``services.slam.initialisation.initialise`` accepts the pair; after a ``low_parallax`` try, up
-    to ``init_skip_frames`` frames in a row are not tried while the parallax grown in proportion to
-    the time since the reference stays under ``init_skip_below`` of the bound; the reference is replaced
+    until ``services.slam.initialisation.initialise`` accepts the pair; the reference is replaced
     after ``reference_max_age`` frames, or at once when it has too few matches. A map starts only
     with ``init_min_points`` points.
 
@@ -60,12 +58,6 @@ class SlamSettings(BaseModel):
     init_window_px: float = Field(default=100.0, gt=0, description="initialisation: search window around a "
                                                                    "reference keypoint, px")
     init_ratio: float = Field(default=0.9, gt=0, le=1, description="initialisation: ratio test")
-    init_skip_frames: int = Field(default=2, ge=0, description="initialisation: most frames in a row not tried "
-                                                              "after a low_parallax try")
-    init_skip_below: float = Field(default=0.8, ge=0, description="initialisation: a frame is not tried while the "
-                                                                  "last try's parallax, grown in proportion to the "
-                                                                  "time since the reference, is under this "
-                                                                  "fraction of the bound")
     reference_max_age: int = Field(default=30, ge=1, description="initialisation: frames before the reference "
                                                                  "frame is replaced")
     init_min_points: int = Field(default=80, ge=1, description="initialisation: points a first map needs")
