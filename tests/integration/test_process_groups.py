@@ -136,12 +136,13 @@ process = "camera"
 
 
 def test_the_stereo_template_tracks_alike_grouped_and_split(procs, tmp_path):
-    """The template's grouping (source and blobs in one process) and every node apart give the same poses."""
+    """The template's grouping (source and blobs in one process) and every node apart give the same poses (the
+    scene's own stamps: the bodies' motion is predicted from them, so wall-clock stamps would differ by run)."""
     runs = {}
     for layout in ("given", "separate"):
         out = tmp_path / f"{layout}.mcap"
-        job = procs.run("run", "stereo", "--source", "synthetic:ir_rig", "--frames", "40", "--record", str(out),
-                        "--processes", layout, "--quiet", timeout=6 * START_S)
+        job = procs.run("run", "stereo", "--source", "synthetic:ir_rig", "--frames", "40", "--stamps", "source",
+                        "--record", str(out), "--processes", layout, "--quiet", timeout=6 * START_S)
         assert job.poll() == 0, job.describe()
         poses: dict[str, list] = {}
         pids: dict[str, int] = {}
