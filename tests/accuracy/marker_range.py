@@ -25,13 +25,17 @@ Methods, on the same frames:
   (``R_opencv = R_apriltag @ diag(-1, 1, -1)``).
 
 ``python -m tests.accuracy.marker_range`` prints one JSON line per family and method (about 2 min:
-OpenCV's apriltag refinement takes 0.2-0.3 s a frame).
+OpenCV's apriltag refinement takes 0.2-0.3 s a frame); ``python -m tests.accuracy.marker_range apriltag3``
+one line of AprilTag 3's exact medians on the AprilTag sequence (exit ``NOT_INSTALLED`` without it). The
+tests run AprilTag 3 that way, in a process of its own: its C library corrupts its heap now and then
+(pupil-labs/apriltags#39, open), which must not take a test worker down with it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -183,7 +187,28 @@ def apriltag3(K: np.ndarray) -> Callable[[np.ndarray], Found]:
     return run
 
 
+NOT_INSTALLED = 5
+"""Exit code of ``python -m tests.accuracy.marker_range apriltag3`` when ``pupil_apriltags`` does not import."""
+
+
+def reference_medians() -> int:
+    """Print AprilTag 3's views found, views listed and exact median rotation (deg) and translation (% of
+    distance) on the AprilTag 36h11 sequence as one JSON line; the exit code."""
+    scene, frames = sequence("DICT_APRILTAG_36h11")
+    try:
+        method = apriltag3(scene.cameras[0].K)
+    except ImportError:
+        return NOT_INSTALLED
+    theirs = score(frames, scene.cameras[0].K, method)
+    print(json.dumps({"views": len(theirs.distance_m), "truth_views": theirs.truth_views,
+                      "rotation_deg": float(np.median(theirs.rotation_deg)),
+                      "translation_pct": float(np.median(theirs.translation_pct)), "summary": theirs.summary()}))
+    return 0
+
+
 def main() -> None:
+    if sys.argv[1:] == ["apriltag3"]:
+        sys.exit(reference_medians())
     for dictionary in FAMILIES:
         scene, frames = sequence(dictionary)
         K = scene.cameras[0].K

@@ -13,11 +13,17 @@ where it does not import.
 """
 
 import functools
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.accuracy.marker_range import FAMILIES, Scores, apriltag3, artrack, score, sequence
+from tests.accuracy.marker_range import FAMILIES, NOT_INSTALLED, Scores, artrack, score, sequence
+
+ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.slow
 
@@ -55,14 +61,28 @@ def test_poses_reach_the_rotation_and_distance_bounds(dictionary):
     assert abs(np.median(ours.range_pct)) <= MAX_DISTANCE_PCT
 
 
+def apriltag3_medians() -> dict:
+    """AprilTag 3's medians on the AprilTag sequence, computed in a process of its own (``marker_range``'s
+    docstring says why); run again once when that process dies of a signal, skipped if it dies twice."""
+    signals = []
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-m", "tests.accuracy.marker_range", "apriltag3"], cwd=ROOT,
+                              capture_output=True, text=True, timeout=900)
+        if done.returncode == NOT_INSTALLED:
+            pytest.skip("pupil_apriltags (AprilTag 3) is not installed: pip install -e '.[dev]'")
+        if done.returncode >= 0:
+            assert done.returncode == 0, done.stderr[-2000:]
+            return json.loads(done.stdout.strip().splitlines()[-1])
+        signals.append(-done.returncode)
+    pytest.skip(f"AprilTag 3 died of signal {signals} in both runs: pupil-apriltags corrupts its heap now and then "
+                "(pupil-labs/apriltags#39)")
+
+
+@pytest.mark.integration
 def test_at_least_as_accurate_as_apriltag_3():
-    frames, K, ours = results("DICT_APRILTAG_36h11")
-    try:
-        method = apriltag3(K)
-    except ImportError:
-        pytest.skip("pupil_apriltags (AprilTag 3) is not installed: pip install -e '.[dev]'")
-    theirs = score(frames, K, method)
-    print(f"\nAprilTag 3: {theirs.summary()}")
-    assert len(theirs.distance_m) >= 0.95 * theirs.truth_views
-    assert np.median(ours.rotation_deg) <= np.median(theirs.rotation_deg)
-    assert np.median(ours.translation_pct) <= np.median(theirs.translation_pct)
+    _, _, ours = results("DICT_APRILTAG_36h11")
+    theirs = apriltag3_medians()
+    print(f"\nAprilTag 3: {theirs}")
+    assert theirs["views"] >= 0.95 * theirs["truth_views"]
+    assert np.median(ours.rotation_deg) <= theirs["rotation_deg"]
+    assert np.median(ours.translation_pct) <= theirs["translation_pct"]
