@@ -109,7 +109,8 @@ def run_job(tracker: str, scene: str, rate: float, frames: int, layout: str, *ex
             "updates_per_s": round(len(seqs) * rate / frames, 1),
             "dropped": sum(s.dropped + s.missing for s in frame_nodes), "capture_messages": sent,
             "node_dropped": {s.node: s.dropped for s in frame_nodes},
-            "node_p50_ms": {s.node: s.processing_ms_p50 for s in frame_nodes}, "cores": cores}
+            "node_p50_ms": {s.node: s.processing_ms_p50 for s in frame_nodes},
+            "node_latency_p50_ms": {s.node: s.latency_ms_p50 for s in frame_nodes}, "cores": cores}
 
 
 def bench_stereo_layouts(seconds: float = STEREO_SECONDS) -> list[dict[str, Any]]:
