@@ -13,9 +13,10 @@ Served (``serve``, the default), images are limited to ``image_hz`` per topic by
 arrives. The server binds 127.0.0.1 by default (this machine only: it has no authentication); ``bind``
 0.0.0.0 serves every interface. It is stopped when the node stops.
 
-Written (``mcap``), every message the node takes goes into the file, images included, each frame
-(``foxglove.open_mcap``: protobuf channels and schemas as the server's, zstd chunks of 1 MiB, a
-summary with indexes and statistics). The server and the file are two Foxglove contexts, each with
+Written (``mcap``), every message the node takes goes into the file, images included: every frame
+in a lossless run, the newest ``image_depth`` (latest-wins, as served) in a real-time one. The file
+is ``foxglove.open_mcap``'s: protobuf channels and schemas as the server's, zstd chunks of 1 MiB, a
+summary with indexes and statistics. The server and the file are two Foxglove contexts, each with
 its own channels, so the file never sees the server's gate. A message's log time is when the node
 took it (wall clock, never going back), so the file is in log-time order; its publish time is the
 same (the artrack stamp is each message's ``timestamp``). An existing file is refused unless

@@ -71,7 +71,7 @@ def test_a_run_stopped_with_ctrl_c_leaves_a_finished_file(procs, session, bus, t
     wait_live(session, bus.keys, {"foxglove", "capture"}, [job])  # the source starts last
     time.sleep(1.5)  # frames on their way
     os.kill(job.pid, signal.SIGINT)
-    assert job.wait(START_S) in (0, 130), job.describe()
+    assert job.wait(START_S) == 0, job.describe()  # a source with no end: stopping it is its end
     summary, by_topic, log_times = read_foxglove(live)
     assert summary is not None and summary.statistics is not None and summary.chunk_indexes, job.describe()
     assert summary.statistics.message_count == len(log_times) > 0
