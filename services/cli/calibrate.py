@@ -8,7 +8,8 @@ import contextlib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.cli.outputs import add_force_option, check_output
+from services.cli.outputs import add_force_option
+from services.runtime.outputs import check_output
 
 if TYPE_CHECKING:
     import numpy as np

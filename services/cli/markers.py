@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.cli.outputs import add_force_option, check_output
+from services.cli.outputs import add_force_option
+from services.runtime.outputs import check_output
 
 PAPER_NAMES = ("a4", "letter", "a3")
 """``artrack markers print --paper`` choices: ``marker_sheet.PAPERS``' names (that module loads OpenCV)."""

@@ -18,9 +18,10 @@ from pydantic import BaseModel, ValidationError
 from protocol.system import ReplayCommand
 from services.bus.session import open_session
 from services.cli.bus_options import add_bus_options, bus_config
-from services.cli.outputs import add_force_option, check_output, check_output_folder
+from services.cli.outputs import add_force_option, check_output_folder
 from services.cli.parsing import Parser
 from services.runtime.logs import log_format, setup_logging
+from services.runtime.outputs import check_output
 
 if TYPE_CHECKING:
     from services.recorder.export import Export
@@ -70,7 +71,8 @@ REPLAY_HELP = "publish a recording's bytes on their keys with their timing; exit
 VIEW_HELP = ("a recording as a Rerun .rrd file, drawn as the live viewer draws it (open it with `rerun OUT.rrd`; "
              "exit 3 if damaged); with --foxglove, the rig served live to Foxglove")
 FOXGLOVE_HELP = ("serve the rig live over Foxglove's WebSocket protocol until Ctrl-C (a node: `list` shows it); "
-                 "connect Foxglove to ws://127.0.0.1:8765")
+                 "connect Foxglove to ws://127.0.0.1:8765. With --mcap FILE it also writes what it serves, every "
+                 "frame, to a Foxglove MCAP file (--no-serve: the file only)")
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -266,9 +268,10 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def _serve_foxglove(args: argparse.Namespace) -> int:
-    from services.viewer.foxglove_node import Params, run
+    from services.viewer.foxglove_node import KIND, Params, run
 
     params = _from_flags(args, "view --foxglove", Params, {}, FOXGLOVE_HELP, node="foxglove")
+    KIND.preflight(params)  # an existing or unwritable file fails here, before joining the bus
     return _run_as_node(args, "foxglove", lambda node: run(node, params))
 
 

@@ -46,6 +46,11 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     job = p.add_argument_group("job")
     job.add_argument("--record", type=Path, metavar="OUT.mcap", help="record every key of the rig to MCAP")
     job.add_argument("--rerun", type=Path, metavar="OUT.rrd", help="log the job to a Rerun file")
+    job.add_argument("--record-foxglove", type=Path, metavar="OUT.mcap", help="write the job as it runs in "
+                     "Foxglove's schemas (what `artrack export --format foxglove` makes of a recording), every "
+                     "frame, to an MCAP file of its own")
+    job.add_argument("--force", action="store_true", help="overwrite the --record-foxglove file if it exists "
+                     "(a --record recording is never overwritten)")
     job.add_argument("--save-pipeline", type=Path, metavar="FILE.toml", help="write the job as a pipeline file "
                      "(`artrack up FILE.toml` runs it as a daemon) and exit without running it")
     _display_options(job)
@@ -65,7 +70,7 @@ def _display_options(group: argparse._ArgumentGroup) -> None:
                        "slowest node (default 4)")
     group.add_argument("--processes", choices=LAYOUTS, default="given", help="given (default): the grouping of "
                        "nodes into processes the tracker or file gives; separate: every node its own process; "
-                       "single: every node but the recorder and viewer in one process")
+                       "single: every node but the sinks (recorder, viewer, foxglove) in one process")
     group.add_argument("--process", action="append", default=[], metavar="NODE=NAME", help="run NODE in process "
                        "NAME, with the nodes placed there (NODE= alone: a process of its own); repeatable")
     group.add_argument("--strict", action="store_true", help="exit 4 when any frame was dropped or went missing")
@@ -94,7 +99,7 @@ def scene_option_texts(given: list[str] | None) -> dict[str, str]:
 def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.assembly import JobRequest, assemble, with_flow
     from services.launcher.flags import given_values
-    from services.launcher.job import run_job
+    from services.launcher.job import FoxgloveFile, run_job
     from services.launcher.kinds import catalogue
     from services.launcher.layout import laid_out
     from services.launcher.pipeline import read_pipeline, save_pipeline
@@ -123,7 +128,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus, spec = assemble(JobRequest(
         tracker=args.tracker, source=given, bus=lambda defaults: bus_config(run_args, defaults=defaults),
         scene=scene_option_texts(run_args.scene_option), options=given_values(run_args, own_flags), flags=own_flags,
-        source_flags=source_flags, record=run_args.record, rerun=run_args.rerun, flow=_flow_given(run_args)))
+        source_flags=source_flags, record=run_args.record, rerun=run_args.rerun, flow=_flow_given(run_args),
+        foxglove=None if run_args.record_foxglove is None else FoxgloveFile(run_args.record_foxglove, run_args.force)))
     spec = laid_out(spec, run_args.processes, run_args.process)
     if run_args.save_pipeline is not None:
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")

@@ -24,7 +24,7 @@ from services.bus.session import BusConfig
 from services.launcher.fixtures import scene_settings, scene_target_library
 from services.launcher.flags import Flag, explain
 from services.launcher.flow import FlowSettings
-from services.launcher.job import RECORDING_SCHEME, JobError, Recording, build_job
+from services.launcher.job import RECORDING_SCHEME, FoxgloveFile, JobError, Recording, build_job
 from services.launcher.kinds import kind
 from services.launcher.pipeline import NodeSpec, PipelineSpec
 from services.launcher.tracker import Tracker
@@ -40,7 +40,8 @@ class JobRequest:
     """``artrack run TRACKER`` as asked: ``source`` the capture options given ({field key: value}),
     ``scene`` a synthetic scene's options as text, ``options`` the tracker's options given, ``flags``
     the tracker's generated flags (to name an option in a message), ``source_flags`` the capture's,
-    ``flow`` the flow fields given (``mode``, ``window``), and ``bus(defaults)`` the bus settings the
+    ``flow`` the flow fields given (``mode``, ``window``), ``record``, ``rerun`` and ``foxglove`` the files to
+    write, and ``bus(defaults)`` the bus settings the
     command line and environment give over ``defaults``."""
 
     tracker: str
@@ -52,6 +53,7 @@ class JobRequest:
     source_flags: list[Flag] = field(default_factory=list)
     record: Path | None = None
     rerun: Path | None = None
+    foxglove: FoxgloveFile | None = None
     flow: dict[str, Any] = field(default_factory=dict)
 
 
@@ -76,7 +78,7 @@ def assemble(request: JobRequest) -> tuple[BusConfig, PipelineSpec]:
         source = NodeSpec(kind=CAPTURE, **request.source, **({"scene": request.scene} if request.scene else {}))
         options = _with_scene_fixtures(options, request.flags, captured)
     spec = with_flow(build_job(Tracker.load(request.tracker), source, options, request.flags, request.record,
-                               request.rerun), request.flow)
+                               request.rerun, request.foxglove), request.flow)
     return request.bus(spec.bus), spec
 
 

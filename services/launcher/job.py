@@ -1,4 +1,4 @@
-"""``artrack run``: one job = a source + a tracker's nodes + recorder/viewer, each its own process.
+"""``artrack run``: one job = a source + a tracker's nodes + the sinks asked (recorder, viewer, Foxglove file).
 
 The job is a ``PipelineSpec`` like any pipeline file (``--save-pipeline`` writes it, ``artrack
 up`` runs it as a daemon): ``build_job`` fills a tracker template for the source's cameras.
@@ -109,6 +109,15 @@ class Recording:
                           **({"retarget": True} if self.retarget else {})}
 
 
+@dataclass(frozen=True)
+class FoxgloveFile:
+    """A Foxglove MCAP file a job writes as it runs (``artrack run --record-foxglove``), overwritten if it exists
+    only when ``force``."""
+
+    path: Path
+    force: bool = False
+
+
 class JobExit(IntEnum):
     """How a job ends: its process's exit code (documented in docs/configuration.md, "Exit codes")."""
 
@@ -144,9 +153,10 @@ def source_node(source: NodeSpec | Recording) -> tuple[str, NodeSpec]:
 
 
 def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str, Any], flags: list[Flag],
-              record: Path | None = None, rerun: Path | None = None) -> PipelineSpec:
-    """The job's pipeline: the source, the tracker's nodes for its cameras, a recorder and a viewer if asked;
-    every node validated, its inputs and outputs filled in."""
+              record: Path | None = None, rerun: Path | None = None,
+              foxglove: FoxgloveFile | None = None) -> PipelineSpec:
+    """The job's pipeline: the source, the tracker's nodes for its cameras, a recorder, a viewer and a Foxglove
+    node writing a file (and serving nothing) if asked; every node validated, its inputs and outputs filled in."""
     name, node = source_node(source)
     where = f"tracker {tracker.name}"
     cameras = cameras_of(resolved(PipelineSpec(nodes={name: node}), where).nodes[name])
@@ -156,6 +166,9 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
         nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:
         nodes["viewer"] = NodeSpec(kind="viewer", rrd=str(rerun))
+    if foxglove is not None:
+        nodes["foxglove"] = NodeSpec(kind="foxglove", serve=False, mcap=str(foxglove.path),
+                                     **({"force": True} if foxglove.force else {}))
     bus = source.where() if isinstance(source, Recording) else {}
     return resolved(PipelineSpec(bus=bus, nodes=nodes), where)
 

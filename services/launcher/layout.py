@@ -1,7 +1,7 @@
 """Where a job's nodes run: the processes given (a tracker's template, a pipeline file), or others.
 
 ``artrack run --processes separate`` runs every node in a process of its own; ``single`` runs every
-node but the sinks (recorder, viewer: they write files at their own pace) in one process,
+node but the sinks (recorder, viewer, foxglove: they write files at their own pace) in one process,
 ``pipeline``; ``given`` (the default) keeps the grouping of the template or the file. Then each
 ``--process NODE=NAME`` moves one node into process ``NAME`` (``NODE=`` alone: a process of its own).
 """

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.cli.outputs import check_output, check_output_folder
+from services.cli.outputs import check_output_folder
+from services.runtime.outputs import check_output
 
 
 def test_an_existing_file_is_refused_unless_forced(tmp_path):

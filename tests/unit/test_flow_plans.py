@@ -8,8 +8,9 @@ import pytest
 
 from services.bus.stats import SeqGaps
 from services.launcher.flow import FlowSettings, lossless
-from services.launcher.job import build_job
-from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, read_pipeline, to_toml
+from services.launcher.job import FoxgloveFile, build_job
+from services.launcher.layout import SINGLE, laid_out
+from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, preflight, read_pipeline, to_toml
 from services.launcher.tracker import Tracker
 
 
@@ -26,6 +27,25 @@ def test_a_finite_source_runs_lossless_and_waits_for_every_node_that_takes_its_i
     assert plans["marker-cam0"].upstream == ("capture",)
     assert sorted(plans["recorder"].upstream) == ["capture", "marker-cam0"]
     assert plans["capture"].upstream == ()
+
+
+def test_a_foxglove_file_is_written_by_a_node_that_takes_every_frame_and_waits_for_every_end(tmp_path):
+    chosen = Tracker.load("marker")
+    out = tmp_path / "live.mcap"
+    source = NodeSpec(kind="capture", source=["synthetic:markers"], frames=10)
+    spec = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), tmp_path / "run.mcap",
+                     foxglove=FoxgloveFile(out))
+    assert spec.nodes["foxglove"].params == {"serve": False, "mcap": str(out)}
+    plans = spec.flow_plans()
+    assert "foxglove" in plans["capture"].credits_from and plans["foxglove"].acks
+    assert sorted(plans["foxglove"].upstream) == ["capture", "marker-cam0"]
+    assert laid_out(spec, "single").groups()[SINGLE] == ("capture", "marker-cam0")  # the sinks apart
+    preflight(spec, "job")
+    out.write_bytes(b"kept")
+    with pytest.raises(PipelineError, match=r"job: nodes.foxglove: .*live.mcap exists: give --force"):
+        preflight(spec, "job")
+    forced = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), foxglove=FoxgloveFile(out, True))
+    preflight(forced, "job")
 
 
 def test_nodes_fed_by_results_wait_for_ends_but_give_no_credits():

@@ -1,15 +1,20 @@
-"""The Foxglove node's server in process: images gated per topic by their stamps, a taken port refused."""
+"""The Foxglove node's outputs in process: served images gated per topic by their stamps, a taken port refused,
+the file written whole and in log-time order, and the options that name neither or an existing file refused."""
 
 from __future__ import annotations
 
 import socket
+from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from pydantic import ValidationError
 
 from protocol import Header, Image, Pose
 from services.runtime.node import NodeError
-from services.viewer.foxglove_node import Params, Server
+from services.viewer.foxglove_node import KIND, Outputs, Params
+from tests.foxglove_decoding import decoded
 
 BASE_NS = 1_700_000_000_000_000_000
 
@@ -19,23 +24,90 @@ def image(camera: str, stamp_ns: int) -> Image:
 
 
 def test_images_are_limited_per_topic_and_other_messages_are_not():
-    server = Server(Params(port=0, image_hz=10), "test")
+    outputs = Outputs(Params(port=0, image_hz=10), "test")
     try:
         for i in range(9):  # 30 fps for 0.3 s: three 100 ms slots per camera
             for camera in ("cam0", "cam1"):
-                server.log(image(camera, BASE_NS + i * 33_333_333))
-        assert server.sent == 2 * 3
-        server.log(image("cam0", BASE_NS + 8 * 33_333_333))  # a repeat of the last frame
-        assert server.sent == 6
+                outputs.log(image(camera, BASE_NS + i * 33_333_333))
+        assert outputs.sent == 2 * 3
+        outputs.log(image("cam0", BASE_NS + 8 * 33_333_333))  # a repeat of the last frame
+        assert outputs.sent == 6
         for i in range(4):
-            server.log(Pose(header=Header(stamp_ns=BASE_NS + i, frame_id="cam0"), child_frame_id="marker/3"))
-        assert server.sent == 6 + 4 * 2  # a PoseInFrame and a transform each
+            outputs.log(Pose(header=Header(stamp_ns=BASE_NS + i, frame_id="cam0"), child_frame_id="marker/3"))
+        assert outputs.sent == 6 + 4 * 2  # a PoseInFrame and a transform each
+        assert outputs.written == 0
     finally:
-        server.stop()
+        outputs.close()
 
 
 def test_a_taken_port_is_refused_in_one_line():
     with socket.create_server(("127.0.0.1", 0)) as taken:
         port = taken.getsockname()[1]
         with pytest.raises(NodeError, match=f"cannot serve Foxglove on 127.0.0.1:{port}"):
-            Server(Params(port=port), "test")
+            Outputs(Params(port=port), "test")
+
+
+def test_the_file_gets_every_image_in_log_time_order_while_the_server_gets_its_rate(tmp_path: Path):
+    out = tmp_path / "live.mcap"
+    outputs = Outputs(Params(port=0, image_hz=10, mcap=out), "test")
+    try:
+        for i in range(9):
+            outputs.log(image("cam0", BASE_NS + i * 33_333_333))
+            outputs.log(Pose(header=Header(stamp_ns=BASE_NS + i * 33_333_333, frame_id="cam0"),
+                             child_frame_id="marker/3"))
+        assert (outputs.sent, outputs.written) == (3 + 9 * 2, 9 * 3)
+    finally:
+        outputs.close()
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None and summary.statistics.chunk_count >= 1
+        topics = {c.id: c.topic for c in summary.channels.values()}
+        counts = {topics[c]: n for c, n in summary.statistics.channel_message_counts.items()}
+        assert counts == {"/cam0/image": 9, "/pose/cam0/marker/3": 9, "/tf": 9}
+        read = list(reader.iter_messages(log_time_order=False))
+    log_times = [m.log_time for _, _, m in read]
+    assert log_times == sorted(log_times)
+    stamps = [decoded(s.name, s.data, m.data).timestamp.ToNanoseconds() for s, c, m in read
+              if c.topic == "/cam0/image"]
+    assert stamps == [BASE_NS + i * 33_333_333 for i in range(9)]
+
+
+def test_a_file_alone_serves_nothing(tmp_path: Path):
+    outputs = Outputs(Params(serve=False, mcap=tmp_path / "live.mcap"), "test")
+    try:
+        assert outputs.server is None
+        outputs.log(image("cam0", BASE_NS))
+        assert (outputs.sent, outputs.written) == (0, 1)
+    finally:
+        outputs.close()
+    assert (tmp_path / "live.mcap").stat().st_size > 0
+
+
+def test_options_that_name_no_output_are_refused():
+    with pytest.raises(ValidationError, match="give `mcap`"):
+        Params(serve=False)
+
+
+def test_an_existing_file_is_refused_unless_forced(tmp_path: Path):
+    out = tmp_path / "live.mcap"
+    out.write_bytes(b"kept")
+    with pytest.raises(ValueError, match="exists: give --force"):
+        KIND.preflight(Params(mcap=out, serve=False))
+    with pytest.raises(NodeError, match=f"cannot write {out}"):
+        Outputs(Params(mcap=out, serve=False), "test")
+    assert out.read_bytes() == b"kept"
+    KIND.preflight(Params(mcap=out, serve=False, force=True))
+    Outputs(Params(mcap=out, serve=False, force=True), "test").close()
+    assert out.read_bytes() != b"kept"
+
+
+def test_a_missing_folder_is_refused_before_start(tmp_path: Path):
+    with pytest.raises(ValueError, match="does not exist"):
+        KIND.preflight(Params(mcap=tmp_path / "nowhere" / "live.mcap"))
+
+
+def test_the_file_is_the_node_s_sink_output(tmp_path: Path):
+    assert KIND.sink is not None
+    assert KIND.sink.files(Params(mcap=tmp_path / "f.mcap")) == (("foxglove recording", tmp_path / "f.mcap"),)
+    assert KIND.sink.files(Params()) == ()
