@@ -28,6 +28,9 @@ from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, 
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import Writer
 
+from protocol.codec import DecodeError, decode
+from protocol.message import Message as WireMessage
+
 EXIT_DAMAGED = 3
 """Exit code of the commands that read a recording when it is damaged (its intact part was used)."""
 MAGIC = b"\x89MCAP0\r\n"
@@ -67,11 +70,11 @@ class Recorded:
 
 
 class Scan:
-    """One front-to-back pass over ``path``; iterate ``records()`` or ``messages()`` once.
+    """One front-to-back pass over ``path``; iterate ``records()``, ``messages()`` or ``decoded()`` once.
 
     Opening checks the magic (``NotMcap`` otherwise). After the pass, ``damage`` is None when
     the data section ended properly; ``header`` and ``metadata`` (name -> the last record of
-    that name) fill in as they are passed.
+    that name) fill in as they are passed; ``read`` and ``undecodable`` count what ``decoded()`` met.
     """
 
     def __init__(self, path: Path | str):
@@ -79,6 +82,8 @@ class Scan:
         self.header: Header | None = None
         self.metadata: dict[str, dict[str, str]] = {}
         self.damage: Damage | None = None
+        self.read = 0
+        self.undecodable = 0
         try:
             self.size = self.path.stat().st_size
             with open(self.path, "rb") as file:
@@ -133,6 +138,18 @@ class Scan:
 
     def _damaged(self, offset: int, reason: str) -> None:
         self.damage = Damage(offset, self.size, reason)
+
+    def decoded(self) -> Iterator[tuple[Recorded, WireMessage]]:
+        """Every intact message that the wire codec decodes, with its record, in file order; the others are
+        counted in ``undecodable`` and skipped."""
+        for recorded in self.messages():
+            self.read += 1
+            try:
+                message = decode(recorded.message.data)
+            except DecodeError:
+                self.undecodable += 1
+                continue
+            yield recorded, message
 
     def messages(self) -> Iterator[Recorded]:
         """Every intact message in file order, with its channel and schema."""

@@ -45,7 +45,6 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from protocol.codec import DecodeError, decode
 from protocol.maps import PointCloud
 from protocol.message import Header, Message
 from protocol.mocap import Points3D
@@ -259,18 +258,13 @@ def export_rosbag(path: Path | str, out: Path | str) -> RosbagExport:
     done = RosbagExport()
     with Writer(out, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
         bag = _Bag(writer, done)
-        for recorded in scan.messages():
+        for recorded, message in scan.decoded():
             recording = scan.metadata.get(RECORDING_METADATA, {})
             prefix = f"{recording['namespace']}/{recording['rig']}/" if "rig" in recording else ""
             key = recorded.channel.topic.removeprefix(prefix)
-            try:
-                message = decode(recorded.message.data)
-            except DecodeError:
-                done.undecodable += 1
-                continue
             if not _write(bag, key, message, recorded.message.log_time):
                 done.left_out[key] += 1
-    done.damage = scan.damage
+    done.undecodable, done.damage = scan.undecodable, scan.damage
     return done
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.codec import DecodeError, decode
 from services.recorder.reading import Damage, Scan
 from services.viewer.recording import ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
@@ -35,14 +34,8 @@ def convert(source: Path, target: Path, options: ViewOptions) -> Conversion:
     scan = Scan(source)
     done = Conversion()
     with ViewLog(open_recording(source.name, out=target, recording_id=source.stem), Scene(options)) as view:
-        for recorded in scan.messages():
-            done.messages += 1
-            try:
-                message = decode(recorded.message.data)
-            except DecodeError:
-                done.undecodable += 1
-                continue
+        for _, message in scan.decoded():
             view.log(message)
         done.rows = view.rows
-    done.damage = scan.damage
+    done.messages, done.undecodable, done.damage = scan.read, scan.undecodable, scan.damage
     return done

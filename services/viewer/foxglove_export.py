@@ -23,7 +23,6 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
-from protocol.codec import DecodeError, decode
 from services.recorder.reading import Damage, Scan
 from services.viewer.foxglove_messages import DEFAULT_OPTIONS, FoxgloveMessage, FoxgloveOptions, Topical, to_foxglove
 
@@ -84,13 +83,7 @@ def export_foxglove(source: Path, target: Path, options: FoxgloveOptions = DEFAU
                 done.written[topic] += 1
 
         newest = 0
-        for recorded in scan.messages():
-            done.read += 1
-            try:
-                message = decode(recorded.message.data)
-            except DecodeError:
-                done.undecodable += 1
-                continue
+        for recorded, message in scan.decoded():
             log_ns = recorded.message.log_time
             for topical in to_foxglove(message, options):
                 heapq.heappush(pending, (log_ns, next(order), message.header.stamp_ns, topical))
@@ -98,5 +91,5 @@ def export_foxglove(source: Path, target: Path, options: FoxgloveOptions = DEFAU
             write(newest - REORDER_NS)
         write(None)
         writer.finish()
-    done.damage = scan.damage
+    done.read, done.undecodable, done.damage = scan.read, scan.undecodable, scan.damage
     return done

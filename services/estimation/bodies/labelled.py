@@ -39,7 +39,7 @@ from services.estimation.bodies.correspondence import (
     rig_geometry,
     triangulate_blobs,
 )
-from services.estimation.bodies.rigid import BodyMatch, Matching, MatchOptions, fit_labelled
+from services.estimation.bodies.rigid import Matching, MatchOptions, fit_labelled, with_the_rest
 from services.estimation.bodies.tracking import TrackingOptions, match_with_prediction
 from services.geometry.camera import CameraModel, undistort_pixels
 from services.geometry.camera_stack import CameraStack
@@ -133,20 +133,9 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
     found = labelled + rest
     points, covariances = arrays(found)
     fitted = fit_labelled(bodies, points, covariances, labels, match.gate_rms, tracking.min_spheres)
-    taken = np.zeros(len(found), bool)
-    for body in fitted.values():
-        taken[body.indices[body.indices >= 0]] = True
-    others = [name for name in bodies if name not in fitted]
-    pool = np.flatnonzero(~taken)
-    if others and len(pool):
-        searched = match_with_prediction({name: bodies[name] for name in others}, points[pool],
-                                         {name: predictions[name] for name in others if name in predictions},
-                                         covariances[pool], match, tracking)
-        for name, body in searched.bodies.items():
-            indices = np.where(body.indices >= 0, pool[np.maximum(body.indices, 0)], -1)
-            fitted[name] = BodyMatch(name, indices, body.fit)
-            taken[indices[indices >= 0]] = True
-    matching = Matching({name: fitted[name] for name in bodies if name in fitted}, np.flatnonzero(~taken))
+    matching = with_the_rest(list(bodies), fitted, len(found), lambda rest, free: match_with_prediction(
+        {name: bodies[name] for name in rest}, points[free],
+        {name: predictions[name] for name in rest if name in predictions}, covariances[free], match, tracking))
     return Found(found, points, covariances, matching)
 
 

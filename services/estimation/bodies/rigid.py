@@ -26,7 +26,7 @@ fits the bodies without a search, letting go of the worst sphere while a fit bre
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +51,7 @@ __all__ = [
     "fit_labelled",
     "match_bodies",
     "pairwise_distances",
+    "with_the_rest",
 ]
 
 
@@ -114,6 +115,25 @@ class Matching:
 
     bodies: dict[str, BodyMatch] = field(default_factory=dict)
     unassigned: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def with_the_rest(names: list[str], found: dict[str, BodyMatch], point_count: int,
+                  search: Callable[[list[str], np.ndarray], Matching]) -> Matching:
+    """The ``Matching`` of ``found`` (name -> BodyMatch, indices into ``point_count`` points) and of the bodies of
+    ``names`` it lacks, looked for by ``search(those names, (K,) indices of the points no found body took)``,
+    whose indices count among those K points; bodies in ``names`` order."""
+    found = dict(found)
+    taken = np.zeros(point_count, bool)
+    for match in found.values():
+        taken[match.indices[match.indices >= 0]] = True
+    rest = [name for name in names if name not in found]
+    free = np.flatnonzero(~taken)
+    if rest and len(free):
+        for name, match in search(rest, free).bodies.items():
+            remapped = np.where(match.indices >= 0, free[np.maximum(match.indices, 0)], -1)
+            found[name] = BodyMatch(name, remapped, match.fit)
+            taken[remapped[remapped >= 0]] = True
+    return Matching({name: found[name] for name in names if name in found}, np.flatnonzero(~taken).astype(np.int64))
 
 
 def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:

@@ -37,6 +37,7 @@ from services.estimation.bodies.rigid import (
     check_points,
     fit_labelled,
     match_bodies,
+    with_the_rest,
 )
 from services.estimation.motion import DEFAULT_MOTION, ConstantVelocity, MotionOptions, Prediction
 from services.geometry.se3 import transform_points
@@ -89,20 +90,9 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
             indices[k][row - first[k]] = column
         found = fit_labelled(bodies, points, covariances, dict(zip(predicted, indices, strict=True)),
                              options.gate_rms, tracking.min_spheres)
-    taken = np.zeros(len(points), bool)
-    for match in found.values():
-        taken[match.indices[match.indices >= 0]] = True
-    rest = [name for name in names if name not in found]
-    free = np.flatnonzero(~taken)
-    if rest and len(free):
-        searched = match_bodies({name: bodies[name] for name in rest}, points[free],
-                                None if covariances is None else covariances[free], options)
-        for name, match in searched.bodies.items():
-            remapped = np.where(match.indices >= 0, free[np.maximum(match.indices, 0)], -1)
-            found[name] = BodyMatch(name, remapped, match.fit)
-            taken[remapped[remapped >= 0]] = True
-    ordered = {name: found[name] for name in names if name in found}
-    return Matching(ordered, np.flatnonzero(~taken).astype(np.int64))
+    return with_the_rest(names, found, len(points), lambda rest, free: match_bodies(
+        {name: bodies[name] for name in rest}, points[free], None if covariances is None else covariances[free],
+        options))
 
 
 @dataclass(frozen=True)
