@@ -30,6 +30,8 @@ pytestmark = pytest.mark.integration
 FRAMES, FPS, WIDTH, HEIGHT = 150, 30, 160, 120
 IMAGE_TOPIC, POSE_TOPIC = "/cam0/image", "/pose/cam0/marker/3"
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+RESUBSCRIBE_S = 2.0
+"""A channel subscribed to that has sent nothing for this long is subscribed to again."""
 MESSAGE_DATA = 0x01
 """Opcode of a binary message-data frame: opcode (1 byte), subscription id (uint32), log time (uint64 ns), payload."""
 
@@ -50,15 +52,29 @@ def test_the_foxglove_server_streams_images_and_poses_to_a_websocket_client(bus,
     wait_until(poses.matched, START_S, "the foxglove node to subscribe")
     schemas: dict[int, str] = {}  # subscription id -> topic
     channels: dict[str, dict] = {}
+    subscribed: dict[str, float] = {}  # topic -> when it was last subscribed to
     got: dict[str, object] = {}
     sent = 0
     with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=START_S,
                  max_size=None) as client:
         assert client.subprotocol == "foxglove.sdk.v1"
+
+        def subscribe(topics: list[str]) -> None:
+            """Subscribe to ``topics`` under fresh subscription ids (a busy server can refuse a subscription
+            to a channel it has just advertised: "unknown channel"; it is then asked again)."""
+            ids = {len(schemas) + 1 + k: topic for k, topic in enumerate(topics)}
+            schemas.update(ids)
+            subscribed.update((topic, time.monotonic()) for topic in topics)
+            client.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": sub, "channelId": channels[topic]["id"]} for sub, topic in ids.items()]}))
+
         deadline = time.monotonic() + START_S + FRAMES / FPS
         while len(got) < 2 and time.monotonic() < deadline:
             poses.put(pose(sent))
             sent += 1
+            stale = [t for t, at in subscribed.items() if t not in got and time.monotonic() - at > RESUBSCRIBE_S]
+            if stale:
+                subscribe(stale)
             try:
                 frame = client.recv(timeout=0.1)
             except TimeoutError:
@@ -67,12 +83,9 @@ def test_the_foxglove_server_streams_images_and_poses_to_a_websocket_client(bus,
                 control = json.loads(frame)
                 wanted = [c for c in control.get("channels", ()) if control["op"] == "advertise"
                           and c["topic"] in (IMAGE_TOPIC, POSE_TOPIC) and c["topic"] not in channels]
-                for channel in wanted:
-                    channels[channel["topic"]] = channel
-                    schemas[channel["id"]] = channel["topic"]
+                channels.update((c["topic"], c) for c in wanted)
                 if wanted:
-                    client.send(json.dumps({"op": "subscribe", "subscriptions": [
-                        {"id": c["id"], "channelId": c["id"]} for c in wanted]}))
+                    subscribe([c["topic"] for c in wanted])
             elif frame[0] == MESSAGE_DATA:
                 subscription, _ = struct.unpack_from("<IQ", frame, 1)
                 channel = channels[schemas[subscription]]
