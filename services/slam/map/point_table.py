@@ -47,28 +47,25 @@ class PointTable:
 
     def write(self, point: MapPoint) -> None:
         """``point``'s fields into its row (now present)."""
-        if point.id >= len(self.present):
-            self._grow(max(2 * len(self.present), point.id + 1))
-        row = point.id
-        self.positions[row] = point.position
-        self.descriptors[row] = point.descriptor
-        self.normals[row] = point.normal
-        self.min_distances[row] = point.min_distance
-        self.max_distances[row] = point.max_distance
-        self.present[row] = True
+        self._put(point.id, point.position, point.descriptor, point.normal, point.min_distance, point.max_distance)
 
     def write_arrays(self, arrays: PointArrays) -> None:
         """The rows of ``arrays``' points (now present)."""
-        if len(arrays) == 0:
-            return
-        if int(arrays.ids.max()) >= len(self.present):
-            self._grow(max(2 * len(self.present), int(arrays.ids.max()) + 1))
-        rows = arrays.ids
-        self.positions[rows] = arrays.positions
-        self.descriptors[rows] = arrays.descriptors
-        self.normals[rows] = arrays.normals
-        self.min_distances[rows] = arrays.min_distances
-        self.max_distances[rows] = arrays.max_distances
+        if len(arrays):
+            self._put(arrays.ids, arrays.positions, arrays.descriptors, arrays.normals, arrays.min_distances,
+                      arrays.max_distances)
+
+    def _put(self, rows: int | np.ndarray, positions: np.ndarray, descriptors: np.ndarray, normals: np.ndarray,
+             min_distances: float | np.ndarray, max_distances: float | np.ndarray) -> None:
+        """The fields of the points of ``rows`` (one id, or (P,) ids), the table grown to hold them."""
+        highest = int(np.max(rows))
+        if highest >= len(self.present):
+            self._grow(max(2 * len(self.present), highest + 1))
+        self.positions[rows] = positions
+        self.descriptors[rows] = descriptors
+        self.normals[rows] = normals
+        self.min_distances[rows] = min_distances
+        self.max_distances[rows] = max_distances
         self.present[rows] = True
 
     def drop(self, point_id: int) -> None:
