@@ -1,11 +1,15 @@
-"""``ir_rig``: a calibrated multi-camera IR bar watching rigid bodies of retro-reflective spheres.
+"""``ir_rig``: a calibrated multi-camera IR rig watching rigid bodies of retro-reflective spheres.
 
 World = the rig frame: origin at the middle of the bar, axes as a camera looking forward
-(x right along the bar, y down, z forward). Camera ``cam<i>`` sits on the bar at
-x = (i - (n - 1) / 2) * baseline and is toed in to look at (0, 0, convergence); its
-``T_rig_camera`` is its pose in the world. Intrinsics differ slightly between cameras and,
-unless ``distortion`` is off, each has a small plumb_bob distortion that the rendering
-goes through exactly (every pixel's ray is undistorted once, at init).
+(x right along the bar, y down, z forward). With ``layout=bar`` (the default) camera ``cam<i>``
+sits on the bar at x = (i - (n - 1) / 2) * baseline and is toed in to look at (0, 0, convergence).
+With ``layout=arc`` the cameras stand on an arc around the volume's centre (0, 0, ``BODY_DEPTH_M``),
+from ``-ARC_HALF_ANGLE_DEG`` to ``+ARC_HALF_ANGLE_DEG`` about the vertical, each at its own distance
+from the centre (``ARC_DISTANCES_M``, in an order drawn from the seed) and raised by its own angle
+(``ARC_ELEVATION_DEG``), each looking at the centre. A camera's ``T_rig_camera`` is its pose in the
+world. Intrinsics differ slightly between cameras and, unless ``distortion`` is off, each has a small
+plumb_bob distortion that the rendering goes through exactly (every pixel's ray is undistorted once,
+at init).
 
 Images are dark with the spheres as bright anti-aliased discs: a pixel is lit by the
 fraction of its ray's angular footprint that falls inside the sphere's silhouette cone,
@@ -13,8 +17,16 @@ so the blob's size follows the sphere radius and depth. Bodies (see ``LAYOUTS``;
 frame is the one the layout coordinates are written in, origin near the spheres' centroid)
 move smoothly about 1.8 to 2.6 m in front of the bar. Occlusion: time is cut into
 half-second windows; in a fraction ``occlusion_rate`` of them one sphere, chosen per
-window, is hidden from one camera (see ``occlusions``). Ground truth, listed under every
-camera: ``("world", "body/<name>", T_world_body)`` for every body.
+window, is hidden from one camera (see ``occlusions``). ``spin`` multiplies the bodies' angular
+speed (the frequencies of their turning), so more of their orientations pass in a sequence, among
+them those where two spheres of a body lie nearly along a camera's line of sight and their blobs
+merge. ``strays`` stray
+reflections (see ``strays_at``) are real 3D points, small spheres of ``STRAY_RADIUS_FRACTION`` of the
+bodies' radius that every camera sees: each is lit in some ``STRAY_WINDOW_S`` windows of time (a
+fraction ``STRAY_PRESENT`` of them, drawn from the seed per stray and window) and still during one,
+``STRAY_OFFSET_M`` from the centre of a body (drawn per window) as that body is in the middle of the
+window. Ground truth, listed under every camera: ``("world", "body/<name>", T_world_body)`` for
+every body.
 
 ``motion=wand`` replaces the bodies by one calibration wand (body ``WAND_BODY``): spheres on
 its x axis at ``wand_spheres`` metres from its first end (the origin), waved through the
@@ -28,6 +40,7 @@ floor frame.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -64,7 +77,13 @@ HFOV_DEG = 56.0
 BACKGROUND, SPHERE_PEAK = 12, 240
 OCCLUSION_WINDOW_S = 0.5
 BODY_DEPTH_M = 2.2
-CAMERA_PURPOSE, PATH_PURPOSE, OCCLUSION_PURPOSE = 100, 101, 102
+CAMERA_PURPOSE, PATH_PURPOSE, OCCLUSION_PURPOSE, STRAY_PURPOSE, ARC_PURPOSE = 100, 101, 102, 103, 104
+CAMERA_LAYOUTS = ("bar", "arc")
+ARC_HALF_ANGLE_DEG = 40.0
+ARC_DISTANCES_M = (2.0, 3.2)
+ARC_ELEVATION_DEG = (5.0, 25.0)
+STRAY_WINDOW_S, STRAY_PRESENT, STRAY_RADIUS_FRACTION = 0.5, 0.6, 0.6
+STRAY_OFFSET_M = (0.02, 0.08)
 
 
 @dataclass(frozen=True)
@@ -76,7 +95,10 @@ class IrRigOptions(SceneOptions):
     ``wand`` (one calibration wand waved through the volume) or ``lframe`` (one L-frame lying still
     on the floor), ``body_count`` unused but for ``bodies``;
     ``wand_spheres``: the wand's sphere positions along it, metres from its first end (2 or 3,
-    increasing, the first 0)."""
+    increasing, the first 0); ``layout``: ``bar`` (``baseline``, ``convergence``) or ``arc`` (the
+    cameras around the volume, the module docstring); ``layouts``: the bodies shown by their names in
+    ``LAYOUTS`` (default: the first ``body_count``); ``spin``: factor on the bodies' angular speed;
+    ``strays``: stray reflections (``strays_at``)."""
 
     camera_count: int = 2
     baseline: float = 0.3
@@ -87,6 +109,10 @@ class IrRigOptions(SceneOptions):
     occlusion_rate: float = 0.25
     motion: str = "bodies"
     wand_spheres: tuple[float, ...] = (0.0, 0.15, 0.5)
+    layout: str = "bar"
+    layouts: tuple[str, ...] = ()
+    spin: float = 1.0
+    strays: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -107,6 +133,13 @@ class IrRigOptions(SceneOptions):
             raise ValueError(f"option wand_spheres={self.wand_spheres!r}: must be 2 or 3 positions in metres, "
                              "the first 0, increasing by at least 0.05, at most 2")
         object.__setattr__(self, "wand_spheres", spheres)
+        self.check_choice("layout", CAMERA_LAYOUTS)
+        names = tuple(self.layouts) if isinstance(self.layouts, (tuple, list)) else (self.layouts,)
+        if len(set(names)) != len(names) or not all(isinstance(n, str) and n in LAYOUTS for n in names):
+            raise ValueError(f"option layouts={self.layouts!r}: must be distinct names among {', '.join(LAYOUTS)}")
+        object.__setattr__(self, "layouts", names)
+        self.check_float("spin", 0.0, 100.0)
+        self.check_int("strays", 0, 16)
 
 
 class IrRigScene(SyntheticScene):
@@ -133,7 +166,8 @@ class IrRigScene(SyntheticScene):
             self.bodies = {LFRAME_BODY: LFRAME}
             self.paths = {LFRAME_BODY: lframe_path()}
         else:
-            self.bodies = {name: LAYOUTS[name] for name in list(LAYOUTS)[:o.body_count]}
+            shown = o.layouts or tuple(LAYOUTS)[:o.body_count]
+            self.bodies = {name: LAYOUTS[name] for name in shown}
             self.paths = self.body_paths(rng)
 
     def fixtures(self) -> Fixtures:
@@ -144,12 +178,13 @@ class IrRigScene(SyntheticScene):
         """The bodies' paths, side by side about ``BODY_DEPTH_M`` in front of the bar."""
         count = len(self.bodies)
         spread = np.linspace(-0.35, 0.35, count) if count > 1 else np.zeros(1)
-        return {
-            name: RigidPath(SinePath.random(rng, (x, 0.1 * (-1) ** k, BODY_DEPTH_M), (0.25, 0.2, 0.35), (4.0, 10.0)),
-                            SinePath.random(rng, (0.0, 0.0, 0.0), (0.6, 0.6, 0.8), (5.0, 12.0)),
-                            matrix_from_rotvec(rng.normal(0.0, 1.0, 3)))
-            for k, (name, x) in enumerate(zip(self.bodies, spread, strict=True))
-        }
+        paths = {}
+        for k, (name, x) in enumerate(zip(self.bodies, spread, strict=True)):
+            position = SinePath.random(rng, (x, 0.1 * (-1) ** k, BODY_DEPTH_M), (0.25, 0.2, 0.35), (4.0, 10.0))
+            turn = SinePath.random(rng, (0.0, 0.0, 0.0), (0.6, 0.6, 0.8), (5.0, 12.0))
+            turn = dataclasses.replace(turn, amplitudes=turn.amplitudes * self.options.spin)
+            paths[name] = RigidPath(position, turn, matrix_from_rotvec(rng.normal(0.0, 1.0, 3)))
+        return paths
 
     @cached_property
     def rays(self) -> dict[str, np.ndarray]:
@@ -157,20 +192,38 @@ class IrRigScene(SyntheticScene):
         return {c.name: pixel_rays(c.K, c.dist, c.width, c.height) for c in self.cameras}
 
     def make_cameras(self) -> tuple[CameraModel, ...]:
-        """The bar's cameras: toed-in poses, slightly different intrinsics, small distortion."""
+        """The rig's cameras: their poses (``camera_poses``), slightly different intrinsics, small distortion."""
         o = self.options
         rng = scene_rng(o.seed, CAMERA_PURPOSE)
         cameras = []
-        for i in range(o.camera_count):
+        for i, T_rig_camera in enumerate(self.camera_poses()):
             K = intrinsics(o.width, o.height, HFOV_DEG)
             K[[0, 1], [0, 1]] *= rng.uniform(0.99, 1.01, 2)
             K[:2, 2] += rng.uniform(-4.0, 4.0, 2)
             dist = (np.array([rng.uniform(-0.08, -0.04), rng.uniform(0.0, 0.02), *rng.uniform(-5e-4, 5e-4, 2), 0.0])
                     if o.distortion else np.zeros(5))
-            eye = np.array([(i - (o.camera_count - 1) / 2) * o.baseline, 0.0, 0.0])
-            T_rig_camera = look_at(eye, np.array([0.0, 0.0, o.convergence]), np.array([0.0, -1.0, 0.0]))
             cameras.append(CameraModel(f"cam{i}", o.width, o.height, K, dist, T_rig_camera))
         return tuple(cameras)
+
+    def camera_poses(self) -> list[np.ndarray]:
+        """(4, 4) ``T_rig_camera`` of each camera: toed in on the bar, or around the volume on the arc."""
+        o = self.options
+        up = np.array([0.0, -1.0, 0.0])
+        if o.layout == "bar":
+            target = np.array([0.0, 0.0, o.convergence])
+            return [look_at(np.array([(i - (o.camera_count - 1) / 2) * o.baseline, 0.0, 0.0]), target, up)
+                    for i in range(o.camera_count)]
+        rng = scene_rng(o.seed, ARC_PURPOSE)
+        centre = np.array([0.0, 0.0, BODY_DEPTH_M])
+        azimuths = np.radians(np.linspace(-ARC_HALF_ANGLE_DEG, ARC_HALF_ANGLE_DEG, o.camera_count))
+        distances = rng.permutation(np.linspace(*ARC_DISTANCES_M, o.camera_count))
+        elevations = np.radians(rng.uniform(*ARC_ELEVATION_DEG, o.camera_count))
+        poses = []
+        for azimuth, distance, elevation in zip(azimuths, distances, elevations, strict=True):
+            level = np.cos(elevation)
+            back = np.array([np.sin(azimuth) * level, -np.sin(elevation), -np.cos(azimuth) * level])
+            poses.append(look_at(centre + distance * back, centre, up))
+        return poses
 
     def body_poses(self, index: int) -> dict[str, np.ndarray]:
         """Body name -> (4, 4) ``T_world_body`` in frame ``index``."""
@@ -187,21 +240,45 @@ class IrRigScene(SyntheticScene):
         sphere = int(rng.integers(len(self.bodies[body])))
         return {(self.cameras[int(rng.integers(len(self.cameras)))].name, body, sphere)}
 
+    def strays_at(self, index: int) -> np.ndarray:
+        """(K, 3) world positions of the stray reflections lit in frame ``index`` (module docstring), K <= ``strays``.
+
+        Stray ``k``'s windows are shifted by ``k / strays`` of a window, so the strays come and go at different
+        times."""
+        o = self.options
+        found = []
+        for k in range(o.strays):
+            shift = k / o.strays * STRAY_WINDOW_S
+            window = int((self.time_s(index) + shift) // STRAY_WINDOW_S)
+            rng = scene_rng(o.seed, STRAY_PURPOSE, k, window)
+            if rng.random() >= STRAY_PRESENT:
+                continue
+            body = list(self.bodies)[int(rng.integers(len(self.bodies)))]
+            T = self.paths[body].pose((window + 0.5) * STRAY_WINDOW_S - shift)
+            direction = rng.normal(0.0, 1.0, 3)
+            centre = transform_points(T, self.bodies[body]).mean(axis=0)
+            found.append(centre + rng.uniform(*STRAY_OFFSET_M) * direction / np.linalg.norm(direction))
+        return np.array(found).reshape(-1, 3)
+
     def draw(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Truth]]:
         poses = self.body_poses(index)
         hidden = self.occlusions(index)
         truth = [("world", f"body/{name}", T) for name, T in poses.items()]
         spheres = [(name, j, centre) for name, T in poses.items()
                    for j, centre in enumerate(transform_points(T, self.bodies[name]))]
+        strays = self.strays_at(index)
+        stray_radius = STRAY_RADIUS_FRACTION * self.sphere_radius
         images = {}
         for camera in self.cameras:
             image = np.full((camera.height, camera.width), BACKGROUND, np.uint8)
-            visible = [(name, j, c) for name, j, c in spheres if (camera.name, name, j) not in hidden]
-            centres_cam = transform_points(self.T_camera_world[camera.name], np.array([c for _, _, c in visible]))
-            in_front = centres_cam[:, 2] > 2 * self.sphere_radius
+            visible = [c for name, j, c in spheres if (camera.name, name, j) not in hidden]
+            lit = np.concatenate([np.reshape(visible, (-1, 3)), strays])
+            centres_cam = transform_points(self.T_camera_world[camera.name], lit)
+            radii = np.r_[np.full(len(visible), self.sphere_radius), np.full(len(strays), stray_radius)]
+            in_front = centres_cam[:, 2] > 2 * radii
             pixels = project_points(centres_cam[in_front], camera.K, camera.dist)
-            for centre, pixel in zip(centres_cam[in_front], pixels, strict=True):
-                draw_sphere(image, self.rays[camera.name], centre, self.sphere_radius, pixel, camera.K[0, 0])
+            for centre, radius, pixel in zip(centres_cam[in_front], radii[in_front], pixels, strict=True):
+                draw_sphere(image, self.rays[camera.name], centre, float(radius), pixel, camera.K[0, 0])
             images[camera.name] = image
         return images, {camera.name: list(truth) for camera in self.cameras}
 

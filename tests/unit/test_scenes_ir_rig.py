@@ -14,7 +14,18 @@ import pytest
 from services.geometry.camera import project_points
 from services.geometry.se3 import invert, transform_points
 from services.synthetic import make_scene
-from services.synthetic.ir_rig import BACKGROUND, LAYOUTS, LFRAME, LFRAME_BODY, SPHERE_PEAK, WAND_BODY
+from services.synthetic.ir_rig import (
+    ARC_DISTANCES_M,
+    ARC_HALF_ANGLE_DEG,
+    BACKGROUND,
+    BODY_DEPTH_M,
+    LAYOUTS,
+    LFRAME,
+    LFRAME_BODY,
+    SPHERE_PEAK,
+    WAND_BODY,
+)
+from tests.accuracy.stereo_losses import HARD
 
 INDICES = range(0, 1500, 25)
 ISOLATION_PX = 12.0
@@ -173,5 +184,78 @@ def test_lframe_motion_lies_still_on_the_floor_in_view():
     ({"wand_spheres": "0,1"}, "wand_spheres="),
 ])
 def test_invalid_wand_options_are_rejected(options, message):
+    with pytest.raises(ValueError, match=f"option {message}"):
+        make_scene("ir_rig", **options)
+
+
+def test_the_hard_preset_is_three_arc_cameras_two_bodies_small_spheres_at_120_hz():
+    scene = make_scene("ir_rig", **HARD)
+    assert len(scene.cameras) == 3 and list(scene.bodies) == ["tool", "head"]
+    assert scene.sphere_radius == 0.0075 and scene.time_s(120) == pytest.approx(1.0)
+    assert scene.options.layout == "arc" and scene.options.strays == 2 and scene.options.spin > 1
+
+
+def test_arc_cameras_stand_around_the_volume_at_different_distances_each_with_its_distortion():
+    scene = make_scene("ir_rig", camera_count=3, layout="arc")
+    centre = np.array([0.0, 0.0, BODY_DEPTH_M])
+    distances, azimuths = [], []
+    for camera in scene.cameras:
+        eye, forward = camera.T_rig_camera[:3, 3], camera.T_rig_camera[:3, 2]
+        distances.append(np.linalg.norm(centre - eye))
+        assert np.allclose(forward, (centre - eye) / distances[-1])
+        azimuths.append(np.degrees(np.arctan2(eye[0] - centre[0], centre[2] - eye[2])))
+        assert eye[1] < 0.0  # raised above the volume (y is down)
+    assert np.allclose(sorted(distances), np.linspace(*ARC_DISTANCES_M, 3))
+    assert np.allclose(azimuths, [-ARC_HALF_ANGLE_DEG, 0.0, ARC_HALF_ANGLE_DEG])
+    dist = np.array([c.dist for c in scene.cameras])
+    assert np.all(np.abs(dist[:, 0]) > 0) and len({tuple(d) for d in dist}) == 3
+    bar = make_scene("ir_rig", camera_count=3)
+    assert [c.K.tolist() for c in bar.cameras] == [c.K.tolist() for c in scene.cameras]
+
+
+def test_strays_come_and_go_near_a_body_and_are_drawn_where_they_project():
+    scene = make_scene("ir_rig", **HARD)
+    counts = [len(scene.strays_at(index)) for index in range(0, 360, 4)]
+    assert max(counts) == 2 and min(counts) < 2 and 0 < np.mean(counts) < 2
+    assert len(make_scene("ir_rig").strays_at(10)) == 0
+    index = next(i for i in range(0, 360, 4) if len(scene.strays_at(i)))
+    strays = scene.strays_at(index)
+    spheres = np.concatenate([transform_points(T, scene.bodies[name]) for name, T in scene.body_poses(index).items()])
+    gaps = np.linalg.norm(strays[:, None] - spheres[None], axis=2).min(axis=1)
+    assert np.all(gaps < 0.2)
+    frame = scene.render(index)
+    for camera in scene.cameras:
+        blobs, areas = blob_centres(frame.images[camera.name])
+        pixels = project_points(transform_points(invert(camera.T_rig_camera), strays), camera.K, camera.dist)
+        for pixel in pixels:
+            distance = np.linalg.norm(blobs - pixel, axis=1)
+            assert distance.min() < 0.5, (camera.name, pixel)
+            assert areas[distance.argmin()] < np.pi * (camera.K[0, 0] * scene.sphere_radius / 1.5) ** 2
+
+
+def test_spin_scales_the_turning_and_the_hard_scene_merges_spheres_in_some_views():
+    calm, fast = make_scene("ir_rig", spin=1.0), make_scene("ir_rig", spin=3.0)
+    for name in calm.bodies:
+        assert np.allclose(fast.paths[name].rotvec(0.7), 3.0 * calm.paths[name].rotvec(0.7))
+        assert np.array_equal(fast.paths[name].position(0.7), calm.paths[name].position(0.7))
+    scene = make_scene("ir_rig", **HARD)
+    merged = 0
+    for index in range(0, 360, 3):
+        for camera in scene.cameras:
+            spheres = projected_spheres(scene, camera, index)
+            for (body_a, _, pixel_a, depth_a), (body_b, _, pixel_b, depth_b) in itertools.combinations(spheres, 2):
+                radii = camera.K[0, 0] * scene.sphere_radius * (1.0 / depth_a + 1.0 / depth_b)
+                merged += body_a == body_b and np.linalg.norm(pixel_a - pixel_b) < radii
+    assert merged >= 5
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"layout": "ring"}, "layout='ring'"),
+    ({"layouts": ("tool", "hat")}, "layouts="),
+    ({"layouts": ("tool", "tool")}, "layouts="),
+    ({"spin": -1.0}, "spin="),
+    ({"strays": -1}, "strays="),
+])
+def test_invalid_hard_scene_options_are_rejected(options, message):
     with pytest.raises(ValueError, match=f"option {message}"):
         make_scene("ir_rig", **options)

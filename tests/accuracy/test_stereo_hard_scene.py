@@ -1,0 +1,68 @@
+"""The stereo tracker's defaults on the hard ``ir_rig`` scene (``stereo_losses.HARD``), 360 frames at 120 Hz.
+
+Three arc cameras at different distances, each with its distortion; the tool (4 spheres) and the head (5),
+15 mm spheres; a sphere hidden from one camera now and then, two stray reflections, the bodies turning four
+times as far and fast as the default scene's so that spheres merge in some views. Run and scored by
+``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker. Requirements: no ghost; per body the
+tracked share of the trackable frames and the median position and rotation errors no worse than the floors
+below.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from services.geometry.camera_stack import CameraStack
+from tests.accuracy.stereo_losses import FRAMES, Discs, Verdict, analyse, figures, hard_scene
+
+pytestmark = pytest.mark.slow
+
+FLOORS = {"tool": {"tracked_percent": 97.0, "position_mm_median": 0.08, "rotation_deg_median": 0.08},
+          "head": {"tracked_percent": 96.0, "position_mm_median": 0.08, "rotation_deg_median": 0.08}}
+"""Floors under today's figures (tool 359 / 360 tracked, 0.044 mm, 0.048 deg; head 353 / 360, 0.045 mm,
+0.040 deg): a margin for a change that moves a frame or two. The targets are >= 99 % tracked, <= 0.3 mm and
+<= 0.3 deg for every body; the head is under the first (its spheres merged in two views at once)."""
+
+
+@cache
+def verdicts() -> list[Verdict]:
+    return analyse(hard_scene(), FRAMES)
+
+
+def test_the_hard_conditions_occur_in_the_frames():
+    scene = hard_scene()
+    stack = CameraStack.of(list(scene.cameras))
+    merged = strays = hidden = 0
+    for index in range(0, FRAMES, 2):
+        discs = Discs.of(scene, stack, index)
+        spheres = discs.owner != ""
+        gap = np.linalg.norm(discs.pixels[spheres][:, None] - discs.pixels[spheres][None], axis=3)
+        touching = gap < discs.radii[spheres][:, None] + discs.radii[spheres][None]
+        touching &= discs.lit[spheres][:, None] & discs.lit[spheres][None]
+        touching[np.arange(len(gap)), np.arange(len(gap))] = False
+        merged += bool(np.any(touching))
+        strays += bool(np.any(~spheres))
+        hidden += bool(scene.occlusions(index))
+    assert merged >= 5 and strays >= 60 and hidden >= 20, (merged, strays, hidden)
+
+
+def test_the_defaults_track_the_hard_scene_without_a_ghost_above_the_floors():
+    found = figures(verdicts())
+    print(found)
+    for name, floors in FLOORS.items():
+        body = found[name]
+        assert body["ghosts"] == 0, (name, body)
+        assert body["trackable"] >= 0.9 * FRAMES, (name, body)
+        assert body["tracked_percent"] >= floors["tracked_percent"], (name, body)
+        assert body["position_mm_median"] <= floors["position_mm_median"], (name, body)
+        assert body["rotation_deg_median"] <= floors["rotation_deg_median"], (name, body)
+
+
+def test_every_lost_frame_has_one_cause_and_one_stage():
+    lost = [v for v in verdicts() if v.outcome == "lost"]
+    assert lost
+    assert all(v.cause and v.stage for v in lost)
+    assert any(v.cause == "merged" for v in lost)
