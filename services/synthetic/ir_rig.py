@@ -17,16 +17,15 @@ so the blob's size follows the sphere radius and depth. Bodies (see ``LAYOUTS``;
 frame is the one the layout coordinates are written in, origin near the spheres' centroid)
 move smoothly about 1.8 to 2.6 m in front of the bar. Occlusion: time is cut into
 half-second windows; in a fraction ``occlusion_rate`` of them one sphere, chosen per
-window, is hidden from one camera (see ``occlusions``). ``spin`` multiplies the bodies' angular
-speed (the frequencies of their turning), so more of their orientations pass in a sequence, among
-them those where two spheres of a body lie nearly along a camera's line of sight and their blobs
-merge. ``strays`` stray
-reflections (see ``strays_at``) are real 3D points, small spheres of ``STRAY_RADIUS_FRACTION`` of the
-bodies' radius that every camera sees: each is lit in some ``STRAY_WINDOW_S`` windows of time (a
-fraction ``STRAY_PRESENT`` of them, drawn from the seed per stray and window) and still during one,
-``STRAY_OFFSET_M`` from the centre of a body (drawn per window) as that body is in the middle of the
-window. Ground truth, listed under every camera: ``("world", "body/<name>", T_world_body)`` for
-every body.
+window, is hidden from one camera (see ``occlusions``). ``spin`` multiplies the bodies' turning (the
+amplitude of their rotation about their base orientation, and so their angular speed), so more of
+their orientations pass in a sequence, among them those where two spheres of a body lie nearly along
+a camera's line of sight and their blobs merge. ``strays`` stray reflections (see ``strays_at``)
+are real 3D points, small spheres of ``STRAY_RADIUS_FRACTION`` of the bodies' radius that every
+camera sees: each is lit in some ``STRAY_WINDOW_S`` windows of time (a fraction ``STRAY_PRESENT`` of
+them, drawn from the seed per stray and window) and still during one, ``STRAY_OFFSET_M`` from the
+centre of a body (drawn per window) as that body is in the middle of the window. Ground truth,
+listed under every camera: ``("world", "body/<name>", T_world_body)`` for every body.
 
 ``motion=wand`` replaces the bodies by one calibration wand (body ``WAND_BODY``): spheres on
 its x axis at ``wand_spheres`` metres from its first end (the origin), waved through the
@@ -97,8 +96,8 @@ class IrRigOptions(SceneOptions):
     ``wand_spheres``: the wand's sphere positions along it, metres from its first end (2 or 3,
     increasing, the first 0); ``layout``: ``bar`` (``baseline``, ``convergence``) or ``arc`` (the
     cameras around the volume, the module docstring); ``layouts``: the bodies shown by their names in
-    ``LAYOUTS`` (default: the first ``body_count``); ``spin``: factor on the bodies' angular speed;
-    ``strays``: stray reflections (``strays_at``)."""
+    ``LAYOUTS`` (default: the first ``body_count``); ``spin``: factor on the bodies' turning (its
+    amplitude and angular speed); ``strays``: stray reflections (``strays_at``)."""
 
     camera_count: int = 2
     baseline: float = 0.3

@@ -1,11 +1,12 @@
-"""The stereo tracker's defaults on the hard ``ir_rig`` scene (``stereo_losses.HARD``), 360 frames at 120 Hz.
+"""The stereo tracker's defaults on the hard ``ir_rig`` scene (``stereo_losses.HARD``): seeds 0 to 5, 360 frames
+each at 120 Hz.
 
 Three arc cameras at different distances, each with its distortion; the tool (4 spheres) and the head (5),
 15 mm spheres; a sphere hidden from one camera now and then, two stray reflections, the bodies turning four
 times as far and fast as the default scene's so that spheres merge in some views. Run and scored by
-``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker. Requirements: no ghost; per body the
-tracked share of the trackable frames and the median position and rotation errors no worse than the floors
-below.
+``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker, the seeds' frames pooled. Requirements:
+no ghost; per body the tracked share of the trackable frames and the median position and rotation errors no
+worse than the floors below.
 """
 
 from __future__ import annotations
@@ -20,16 +21,18 @@ from tests.accuracy.stereo_losses import FRAMES, Discs, Verdict, analyse, figure
 
 pytestmark = pytest.mark.slow
 
-FLOORS = {"tool": {"tracked_percent": 97.0, "position_mm_median": 0.08, "rotation_deg_median": 0.08},
-          "head": {"tracked_percent": 96.0, "position_mm_median": 0.08, "rotation_deg_median": 0.08}}
-"""Floors under today's figures (tool 359 / 360 tracked, 0.044 mm, 0.048 deg; head 353 / 360, 0.045 mm,
-0.040 deg): a margin for a change that moves a frame or two. The targets are >= 99 % tracked, <= 0.3 mm and
-<= 0.3 deg for every body; the head is under the first (its spheres merged in two views at once)."""
+SEEDS = range(6)
+FLOORS = {"tool": {"tracked_percent": 99.0, "position_mm_median": 0.06, "rotation_deg_median": 0.06},
+          "head": {"tracked_percent": 94.0, "position_mm_median": 0.06, "rotation_deg_median": 0.06}}
+"""Floors under today's figures (tool 2155 / 2160 frames tracked, 99.8 %, 0.044 mm, 0.045 deg; head 2056 / 2160,
+95.2 %, 0.044 mm, 0.041 deg), with a margin for a change that moves a few frames. The targets are >= 99 % tracked,
+<= 0.3 mm and <= 0.3 deg for every body: the head is under the first (with seed 4 two of its spheres are merged
+in views from the first frame on, and the search by distances does not find a five-sphere body from three)."""
 
 
 @cache
 def verdicts() -> list[Verdict]:
-    return analyse(hard_scene(), FRAMES)
+    return [v for seed in SEEDS for v in analyse(hard_scene(seed=seed), FRAMES)]
 
 
 def test_the_hard_conditions_occur_in_the_frames():
@@ -55,7 +58,7 @@ def test_the_defaults_track_the_hard_scene_without_a_ghost_above_the_floors():
     for name, floors in FLOORS.items():
         body = found[name]
         assert body["ghosts"] == 0, (name, body)
-        assert body["trackable"] >= 0.9 * FRAMES, (name, body)
+        assert body["trackable"] >= 0.9 * FRAMES * len(SEEDS), (name, body)
         assert body["tracked_percent"] >= floors["tracked_percent"], (name, body)
         assert body["position_mm_median"] <= floors["position_mm_median"], (name, body)
         assert body["rotation_deg_median"] <= floors["rotation_deg_median"], (name, body)
