@@ -44,10 +44,12 @@ is largest and blobs are clipped), else ``unknown``. It also gets the tracker's 
 * ``matching``: 3 or more sphere points that fit, and still no pose (taken by another body, or no
   assignment found among the points).
 
-``PYTHONPATH=. python -m tests.accuracy.stereo_losses [--frames=N] [--table=all] [--seeds=N] [--OPTION=VALUE ...]``
+``PYTHONPATH=. python -m tests.accuracy.stereo_losses [--frames=N] [--table=all] [--seeds=N] [--lost=true]
+[--OPTION=VALUE ...]``
 prints the table of the hard scene, its options changed by any ``--OPTION=VALUE`` of the ``ir_rig`` scene
 (``--strays=0``, ``--layout=bar``, ``--seed=4``, ...); ``--table=all`` prints the base scene, each condition
-alone and all together; ``--seeds=N`` pools the frames of the scene's seeds 0 to N - 1 in each table.
+alone and all together; ``--seeds=N`` pools the frames of the scene's seeds 0 to N - 1 in each table;
+``--lost=true`` first lists every frame lost (or ghost) with its cause and step.
 """
 
 from __future__ import annotations
@@ -323,12 +325,19 @@ def main(arguments: list[str]) -> None:
     frames = int(options.pop("frames", FRAMES))
     which = options.pop("table", "hard")
     seeds = int(options.pop("seeds", 0))
+    listed = options.pop("lost", "false") == "true"
     changes = scene_options("ir_rig", options)
     columns = []
     for title, changed in conditions(which, changes):
-        picked = [{"seed": seed} for seed in range(seeds)] or [{}]
-        found = figures([v for seed in picked for v in analyse(hard_scene(**{**changed, **seed}), frames)])
-        columns += [(f"{title}: {name}", body) for name, body in found.items()]
+        verdicts = []
+        for seed in range(seeds) if seeds else [changed.get("seed", 0)]:
+            found = analyse(hard_scene(**{**changed, "seed": seed}), frames)
+            verdicts += found
+            for v in found if listed else []:
+                if v.outcome in ("lost", "ghost"):
+                    print(f"{title}, seed {seed}, frame {v.index}: {v.body} {v.outcome}"
+                          f"{' (bridged)' if v.bridged else ''} {v.cause} {v.stage}")
+        columns += [(f"{title}: {name}", body) for name, body in figures(verdicts).items()]
     pooled = f"seeds 0 to {seeds - 1} pooled, " if seeds else ""
     print(f"{pooled}{frames} frames each; a lost frame's cause and the step where it was lost:\n")
     print(table(columns))
