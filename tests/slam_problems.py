@@ -84,11 +84,12 @@ def random_pixels(rng: np.random.Generator, true: np.ndarray) -> np.ndarray:
 def synthetic_problem(rng: np.random.Generator, *, keyframes: int = 10, points: int = 1000, noise_px: float = 1.0,
                       gross_fraction: float = 0.1, fixed: tuple[int, ...] = (0, 1), seen: float = 0.8,
                       levels: int = 0, start_deg: float = 1.0, start_m: float = 0.05,
-                      start_point_m: float = 0.05) -> SyntheticProblem:
+                      start_point_m: float = 0.05, poses: dict[int, np.ndarray] | None = None) -> SyntheticProblem:
     """A problem as the module docstring describes; ``levels`` > 0 gives each observation a random
-    pyramid level below it (sigma ``PYRAMID_SCALE ** level``), 0 leaves ``sigmas`` None (all 1)."""
+    pyramid level below it (sigma ``PYRAMID_SCALE ** level``), 0 leaves ``sigmas`` None (all 1);
+    ``poses``: the keyframes' true ``T_camera_world`` (default ``keyframe_poses(keyframes)``)."""
     K = intrinsics(WIDTH, HEIGHT, 64.0)
-    truth = keyframe_poses(keyframes)
+    truth = keyframe_poses(keyframes) if poses is None else poses
     cloud = rng.uniform((-3.0, -2.0, 5.0), (3.0, 2.0, 9.0), size=(points, 3))
     frame_ids, point_ids, pixels = [], [], []
     for k, T in truth.items():

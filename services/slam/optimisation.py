@@ -21,10 +21,13 @@ sigmas there is one camera and one image per keyframe.
 
 Gauge: a monocular map is fixed only up to a similarity (rotation, translation and scale). The
 caller fixes it through ``BundleProblem.fixed``: two or more observed fixed keyframes with distinct
-centres fix all seven degrees of freedom; with one, scale is left free unless ``fix_scale=True``,
-which holds one translation coordinate of one free keyframe (the one along which it lies furthest
-from the fixed keyframe) constant, pycolmap's ``TWO_CAMS_FROM_WORLD`` gauge. Without any observed
-fixed keyframe the problem is refused.
+centres fix all seven degrees of freedom; with one, scale is left free unless ``fix_scale=True``.
+Then the solver holds one translation coordinate of one free keyframe constant (pycolmap's
+``TWO_CAMS_FROM_WORLD`` gauge), which ties the scale to that keyframe's offset from the fixed one.
+When the solve so changes the window's scale by more than ``MAX_RESCALE`` (the keyframe sat a few
+millimetres from the fixed one and its offset was poorly known), the solution is scaled back about the
+fixed keyframe's centre so that the free keyframes lie as far from it, in sum, as they did. Without any
+observed fixed keyframe the problem is refused.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ CHI2_2DOF_95 = 5.991
 ``(error / sigma)^2`` exceeds it is an outlier."""
 HUBER_PX = math.sqrt(CHI2_2DOF_95)
 """Default Huber bend of the whitened error (2.4477)."""
+MAX_RESCALE = 0.1
+"""Largest change of a window's scale (a fraction) that a solve with one fixed keyframe may make
+(``bundle_adjust``'s ``fix_scale``); a larger one is the gauge's, and undone."""
 
 
 @dataclass(frozen=True)
@@ -341,6 +347,8 @@ def bundle_adjust(problem: BundleProblem, *, max_iterations: int = 20, huber_px:
     positions = observations.positions.copy()
     for row, point_id in scene.points.items():
         positions[row] = reconstruction.point3D(point_id).xyz
+    if fix_scale and np.count_nonzero(observations.fixed) == 1:
+        _hold_scale(observations, solved_poses, positions, np.fromiter(scene.points, np.int64))
     frame_rows, point_rows = observations.frame_rows, observations.point_rows
     errors = reprojection_errors(K, solved_poses[frame_rows], positions[point_rows], observations.pixels)
     outliers = ~((errors / observations.sigmas) ** 2 <= CHI2_2DOF_95)
@@ -352,6 +360,35 @@ def bundle_adjust(problem: BundleProblem, *, max_iterations: int = 20, huber_px:
                         _rms(before[~outliers]), _rms(errors[~outliers]),
                         0 if ceres is None else int(ceres.num_successful_steps + ceres.num_unsuccessful_steps) - 1,
                         time.perf_counter() - start)
+
+
+def _hold_scale(observations: _Observations, poses: np.ndarray, positions: np.ndarray, rows: np.ndarray) -> None:
+    """Undo, in place, a rescaling of the window by more than ``MAX_RESCALE`` that the solver's gauge made:
+    ``poses`` (F, 4, 4) solved ``T_camera_world`` of the observed keyframes and ``positions`` (P, 3) solved
+    points (rows ``rows`` optimised, the others seen once and left as given) are scaled about the one fixed
+    keyframe's centre so that the free keyframes' centres lie as far from it, in sum, as before the solve.
+
+    With one fixed keyframe every such scale has the same cost. The solver's gauge holds one coordinate of
+    one free keyframe, the map's second: that anchors the scale to the initial map, so it does not drift
+    with the tracker's, but when that keyframe sits a few millimetres from the first its offset is poorly
+    known, and a change of it within its uncertainty rescales the whole window (and the frames tracked next
+    jump with it). The sum of distances is led by the keyframes furthest away, whose distances are known best."""
+    free = ~observations.fixed
+    T_fixed = observations.poses[np.flatnonzero(observations.fixed)[0]]
+    centre = -T_fixed[:3, :3].T @ T_fixed[:3, 3]
+    before = np.linalg.norm(_centres(observations.poses[free]) - centre, axis=1).sum()
+    after = np.linalg.norm(_centres(poses[free]) - centre, axis=1).sum()
+    if not (before > 0 and after > 0) or abs(math.log(before / after)) <= math.log1p(MAX_RESCALE):
+        return
+    scale = before / after
+    positions[rows] = centre + scale * (positions[rows] - centre)
+    moved = centre + scale * (_centres(poses[free]) - centre)
+    poses[free, :3, 3] = -np.einsum("fij,fj->fi", poses[free, :3, :3], moved)
+
+
+def _centres(T_camera_world: np.ndarray) -> np.ndarray:
+    """(F, 3) world centres of the cameras of (F, 4, 4) ``T_camera_world``."""
+    return -np.einsum("fji,fj->fi", T_camera_world[:, :3, :3], T_camera_world[:, :3, 3])
 
 
 def _robust_cost(errors: np.ndarray, sigmas: np.ndarray, huber_px: float) -> float:

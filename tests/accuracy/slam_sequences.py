@@ -36,6 +36,7 @@ TUM = "tum_rgbd_fr3_long_office_household_1hz"
 TUM_K = np.array([[535.4, 0.0, 320.1], [0.0, 539.2, 247.6], [0.0, 0.0, 1.0]])
 ROOM_FRAMES = 600
 MAX_GT_DT_NS = 20_000_000
+JITTER_MEAN_S, STALL_EVERY, STALL_MAX_S = 0.02, 10, 0.6
 """A TUM image is scored against the ground-truth sample within 20 ms (the first image has none)."""
 
 Frames = Iterator[tuple[int, np.ndarray, np.ndarray | None]]
@@ -49,15 +50,33 @@ class Sequence:
     frames: Frames
 
 
-def room(seed: int = 0) -> Sequence:
+def room(seed: int = 0, count: int = ROOM_FRAMES) -> Sequence:
+    """The first ``count`` frames of the synthetic room of ``seed``, stamped by the scene's clock."""
     scene = make_scene("room", seed=seed)
 
     def frames() -> Frames:
-        for index in range(ROOM_FRAMES):
+        for index in range(count):
             frame = scene.render(index)
             yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
 
     return Sequence("room" if seed == 0 else f"room@{seed}", scene.cameras[0], frames())
+
+
+def jittered(sequence: Sequence, seed: int) -> Sequence:
+    """``sequence`` stamped as a busy pipeline stamps frames by the wall clock: each gap between two
+    stamps is the sequence's own plus an exponential wait (mean ``JITTER_MEAN_S``) and, in one gap of
+    ``STALL_EVERY``, a stall of up to ``STALL_MAX_S`` (random, from ``seed``)."""
+    rng = np.random.default_rng(seed)
+
+    def frames() -> Frames:
+        previous, stamp = None, 0
+        for own, image, truth in sequence.frames:
+            wait = rng.exponential(JITTER_MEAN_S) + (rng.random() < 1 / STALL_EVERY) * rng.uniform(0, STALL_MAX_S)
+            stamp += (0 if previous is None else own - previous) + round(wait * 1e9)
+            previous = own
+            yield stamp, image, truth
+
+    return Sequence(f"{sequence.name}~{seed}", sequence.camera, frames())
 
 
 def kitti(folder: Path) -> Sequence:

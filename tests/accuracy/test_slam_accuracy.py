@@ -16,12 +16,15 @@ figures, so that a regression shows: the room within 1 % too, KITTI within 0.08 
 0.057 m), TUM within 0.025 m (measured 0.017 m).
 """
 
+import numpy as np
 import pytest
 
-from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, kitti, room, run, tum
+from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, jittered, kitti, room, run, tum
 from tests.data import data_dir
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+JITTER_SEEDS = range(100, 106)
 
 
 def check(result: SlamRun, final_bar_m: float, online_bar_m: float) -> None:
@@ -36,6 +39,22 @@ def check(result: SlamRun, final_bar_m: float, online_bar_m: float) -> None:
 def test_room_trajectory_within_one_percent_of_its_length():
     result = run(room())
     check(result, 0.01 * result.length_m, 0.01 * result.length_m)
+
+
+def test_the_room_holds_its_accuracy_whatever_the_gaps_between_the_frames_stamps():
+    """A pipeline that stamps frames by the wall clock and waits for SLAM gives it gaps that follow the
+    load, and the keyframes follow the gaps. Over JITTER_SEEDS such stampings of the room's first 60
+    frames (0.73 m of path tracked), every run stays within 3 % of the path and the median within 1.5 %
+    (measured: 0.86-1.28 %, median 0.98 %). A local bundle adjustment whose scale followed the map's
+    second keyframe, 2 cm from the first, once shrank the map by a third: 11.5 % for stamping 101."""
+    runs = [run(jittered(room(count=60), seed), "inline") for seed in JITTER_SEEDS]
+    for result in runs:
+        print(result.line())
+        assert result.lost == 0 and result.untracked_after_start == 0, result.line()
+    ates = np.array([result.ate_m / result.length_m for result in runs])
+    print(f"online ATE over {len(runs)} stampings: min {ates.min():.2%}, median {np.median(ates):.2%}, "
+          f"max {ates.max():.2%} of the path")
+    assert ates.max() <= 0.03 and np.median(ates) <= 0.015, ates
 
 
 def test_kitti_06_trajectory_within_5_cm():

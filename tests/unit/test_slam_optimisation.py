@@ -13,9 +13,9 @@ import pytest
 
 from services.geometry.camera import project_points
 from services.geometry.rotation import rotation_angle
-from services.geometry.se3 import invert, transform_points
+from services.geometry.se3 import invert, make_transform, transform_points
 from services.slam.optimisation import CHI2_2DOF_95, BundleProblem, bundle_adjust, refine_pose
-from tests.slam_problems import pose_problem, synthetic_problem
+from tests.slam_problems import keyframe_poses, pose_problem, synthetic_problem
 from tests.slam_reference import reference_bundle_adjust, reference_refine_pose, robust_cost
 
 
@@ -106,6 +106,28 @@ def test_fix_scale_with_one_fixed_keyframe(levels):
     assert 0.8 < scale < 1.2
     assert np.abs(found - scale * true).max() < 1e-6
     assert result.final_rms_px < 1e-6
+
+
+def centres_from(poses: dict[int, np.ndarray], origin_id: int) -> np.ndarray:
+    """(F, 3) camera centres of ``poses`` by id, less the centre of keyframe ``origin_id``."""
+    origin = invert(poses[origin_id])[:3, 3]
+    return np.stack([invert(poses[k])[:3, 3] - origin for k in sorted(poses)])
+
+
+def test_fix_scale_keeps_the_window_scale_when_a_keyframe_sits_next_to_the_fixed_one():
+    """The map's second keyframe lies 5 mm from the fixed first one and starts 5 cm off, as after a
+    short-baseline initialisation: the solve keeps the window's scale (the free keyframes as far from
+    the fixed one, in sum, as at the start), not one read off that keyframe's poorly known offset."""
+    truth = keyframe_poses(8)
+    truth[1] = invert(invert(truth[0]) @ make_transform(np.eye(3), np.array([0.005, 0.0, 0.0])))
+    sp = synthetic_problem(np.random.default_rng(6), points=500, gross_fraction=0.0, fixed=(0,), poses=truth)
+    result = bundle_adjust(sp.problem, max_iterations=100, fix_scale=True)
+    start, found, true = (centres_from(poses, 0) for poses in (sp.problem.poses, result.poses, sp.poses))
+    assert np.linalg.norm(found, axis=1).sum() == pytest.approx(np.linalg.norm(start, axis=1).sum(), rel=1e-9)
+    scale = float(np.sum(found * true) / np.sum(true * true))
+    assert scale == pytest.approx(np.linalg.norm(start, axis=1).sum() / np.linalg.norm(true, axis=1).sum(), rel=0.01)
+    assert np.abs(found[2:] - scale * true[2:]).max() < 0.02
+    assert result.final_rms_px < 1.2
 
 
 def broken(problem: BundleProblem, name: str) -> BundleProblem:
