@@ -1,12 +1,14 @@
 """Whether the camera matrix fits the images, from the map: its keyframes and points bundle adjusted twice
-by Ceres through pycolmap, the focal lengths fixed, then free.
+by Ceres through pycolmap, the focal lengths and principal point fixed, then free.
 
-A wrong focal length (or principal point) leaves tracking going: the map bends to fit it, and each
+A wrong focal length or principal point leaves tracking going: the map bends to fit it, and each
 frame's reprojection error stays within what right calibrations give on other cameras. Freed, the
-focal lengths of a wrong matrix move and the reprojection error falls; those of a right one move only
-where the motion leaves them unobservable (forward driving), and there the error does not fall. The
-check calls the matrix suspect when both happen: a focal length moves by ``MIN_FOCAL_CHANGE`` or more
-and the median reprojection error falls by ``MIN_ERROR_DROP`` or more.
+focal lengths and principal point of a wrong matrix move and the reprojection error falls; those of a
+right one move only where the motion leaves them unobservable (forward driving, a principal point
+along the direction the camera does not sweep), and there the error does not fall. The check calls
+the matrix suspect when both happen: a focal length moves by ``MIN_FOCAL_CHANGE`` or more, or the
+principal point by ``MIN_PRINCIPAL_SHIFT`` of the image's width or more, and the median reprojection
+error falls by ``MIN_ERROR_DROP`` or more.
 
 Frames: keyframe poses ``T_camera_world`` and points in the map's world; pixels undistorted.
 """
@@ -27,6 +29,7 @@ CHECK_KEYFRAMES = 5
 """The local mapper checks the camera matrix against the map once, after mapping a keyframe of a map that holds
 this many keyframes (``mapping.LocalMapper``, in the mapping process too): never on the frames' path."""
 MIN_FOCAL_CHANGE = 0.10
+MIN_PRINCIPAL_SHIFT = 0.05
 MIN_ERROR_DROP = 0.03
 HUBER_PX = 2.0
 
@@ -42,18 +45,21 @@ class FocalCheck:
     free_fy: float
     error_fixed_px: float
     error_free_px: float
+    principal_shift: float = 0.0
+    """How far the principal point moved when free, a fraction of the image's width."""
     took_ms: float = 0.0
     """How long the check took where it ran (the mapper's thread or process), ms."""
 
     @property
     def suspect(self) -> bool:
-        moved = max(abs(self.free_fx / self.fx - 1), abs(self.free_fy / self.fy - 1)) >= MIN_FOCAL_CHANGE
+        focal = max(abs(self.free_fx / self.fx - 1), abs(self.free_fy / self.fy - 1)) >= MIN_FOCAL_CHANGE
+        moved = focal or self.principal_shift >= MIN_PRINCIPAL_SHIFT
         return moved and self.error_free_px <= (1 - MIN_ERROR_DROP) * self.error_fixed_px
 
     def line(self) -> str:
         return (f"focal lengths {self.fx:.1f}, {self.fy:.1f} px given, {self.free_fx:.1f}, {self.free_fy:.1f} px "
-                f"when free (median reprojection error of the map {self.error_fixed_px:.3f} -> "
-                f"{self.error_free_px:.3f} px)")
+                f"when free, the principal point moved {100 * self.principal_shift:.1f} % of the image's width "
+                f"(median reprojection error of the map {self.error_fixed_px:.3f} -> {self.error_free_px:.3f} px)")
 
 
 def check_focal(slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int]) -> FocalCheck | None:
@@ -68,13 +74,14 @@ def check_focal(slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int]) -> 
         row = {k: n for n, k in enumerate(keyframes)}
         tracks = [(p.position.copy(), [(row[k], i) for k, i in p.observations.items()])
                   for p in slam_map.points.values() if len(p.observations) >= 2]
-    fixed = _adjusted(K, size, poses, pixels, tracks, free_focal=False)
-    free = _adjusted(K, size, poses, pixels, tracks, free_focal=True)
-    return FocalCheck(float(K[0, 0]), float(K[1, 1]), float(free[0][0, 0]), float(free[0][1, 1]), fixed[1], free[1])
+    fixed = _adjusted(K, size, poses, pixels, False, tracks)
+    free = _adjusted(K, size, poses, pixels, True, tracks)
+    return FocalCheck(float(K[0, 0]), float(K[1, 1]), float(free[0][0, 0]), float(free[0][1, 1]), fixed[1], free[1],
+                      principal_shift=float(np.hypot(*(free[0][:2, 2] - K[:2, 2]) / size[0])))
 
 
-def _adjusted(K: np.ndarray, size: tuple[int, int], poses: np.ndarray, pixels: list[np.ndarray],
-              tracks: list[tuple[np.ndarray, list[tuple[int, int]]]], free_focal: bool) -> tuple[np.ndarray, float]:
+def _adjusted(K: np.ndarray, size: tuple[int, int], poses: np.ndarray, pixels: list[np.ndarray], free_intrinsics: bool,
+              tracks: list[tuple[np.ndarray, list[tuple[int, int]]]]) -> tuple[np.ndarray, float]:
     """The (3, 3) camera matrix after a bundle adjustment of every pose and point (the gauge held by two
     keyframes), and the median reprojection error of the observations then, px."""
     reconstruction = pycolmap.Reconstruction()
@@ -90,8 +97,8 @@ def _adjusted(K: np.ndarray, size: tuple[int, int], poses: np.ndarray, pixels: l
             track.add_element(n + 1, index)
         point_ids.append(reconstruction.add_point3D(position, track))
     options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = free_focal
-    options.refine_principal_point = options.refine_extra_params = False
+    options.refine_focal_length = options.refine_principal_point = free_intrinsics
+    options.refine_extra_params = False
     options.print_summary = False
     options.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
     options.ceres.loss_function_scale = HUBER_PX

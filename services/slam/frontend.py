@@ -25,7 +25,9 @@ depends on the machine's load when mapping runs apart. With ``wait_for_mapping``
 for the mapper instead (at most ``MAPPING_WAIT_S``, a warning when that passes): after each keyframe
 it makes, until that keyframe is mapped and its changes are in, so each frame is tracked against the
 map inline mapping would give it and a run fed every frame gives the same poses on a busy machine as
-on an idle one.
+on an idle one. Without it the tracker waits only after a keyframe made on a nearly lost frame (under
+twice ``min_tracked``), at most ``THIN_MAP_WAIT_S``: a camera moving forward leaves its points behind
+within a few frames, and frames tracked before that keyframe's points are in would be lost.
 
 Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
 """
@@ -59,6 +61,10 @@ __all__ = ["MAPPING_WAIT_S", "Tracked", "Tracker"]
 
 logger = logging.getLogger(__name__)
 
+THIN_MAP_WAIT_S = 2.0
+"""The longest a real-time tracker waits for the mapper after a keyframe made because the frame was
+nearly lost (under twice ``min_tracked``): the next frames would find no map to track against (a camera
+moving forward leaves its points behind within a few frames), so they are better dropped than lost."""
 MAPPING_WAIT_S = 60.0
 """The longest a keyframe decision waits for the mapper (``Tracker``'s ``wait_for_mapping``): far beyond a
 keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
@@ -231,6 +237,8 @@ class Tracker:
                 keyframe_id = self._insert_keyframe(frame)
                 if self.wait_for_mapping:
                     self._wait_for_mapper(frame, timings)
+                elif tracked < 2 * self.settings.min_tracked:
+                    self._wait_for_thin_map(timings)
         return Tracked(TrackingState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
     def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
@@ -349,6 +357,13 @@ class Tracker:
             logger.warning("frame %d: the mapper was still busy after %.0f s of waiting; no keyframe made",
                            frame.index, MAPPING_WAIT_S)
         return idle
+
+    def _wait_for_thin_map(self, timings: dict[str, float]) -> None:
+        """Wait for the mapper, at most ``THIN_MAP_WAIT_S``, after a keyframe made because the frame was nearly
+        lost; the milliseconds go to ``timings`` (``mapping_wait``)."""
+        started = time.perf_counter()
+        self.mapper.wait_idle(THIN_MAP_WAIT_S)
+        timings["mapping_wait"] = (time.perf_counter() - started) * 1e3
 
     def _insert_keyframe(self, frame: _Frame) -> int:
         keyframe = self.map.add_keyframe(frame.stamp_ns, frame.T_camera_world, frame.features, frame.point_ids)

@@ -4,9 +4,10 @@ It ties together the feature extraction (``features``), the tracker (``frontend`
 (``map``) and the local mapper (``mapping``): in a process of its own (``mapping="process"``, the
 default, ``mapping_process``), on a thread (``"thread"``) or inline (``"inline"``: each keyframe
 mapped before ``process`` returns; deterministic). Mapping apart, a keyframe decision that hangs on
-the mapper being idle takes it as busy when it is (real time: tracking never waits), or with
-``wait_for_mapping`` each new keyframe is mapped before the next frame is tracked (``frontend``): a
-run fed every frame then gives inline mapping's poses, whatever the load.
+the mapper being idle takes it as busy when it is (real time: tracking waits only after a keyframe
+made on a nearly lost frame, ``frontend.THIN_MAP_WAIT_S``), or with ``wait_for_mapping`` each new
+keyframe is mapped before the next frame is tracked (``frontend``): a run fed every frame then gives
+inline mapping's poses, whatever the load.
 A map saved by an earlier run (``map.file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.

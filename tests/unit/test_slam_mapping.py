@@ -76,10 +76,10 @@ class BusyUntilWaitedFor:
         self._mapper.close()
 
 
-def track_room(camera: CameraModel, frames: int, wait_for_mapping: bool) -> tuple[list[Tracked], list[dict[str, float]],
-                                                                                 BusyUntilWaitedFor]:
-    """The room's first ``frames`` frames through a ``Tracker`` mapping with ``BusyUntilWaitedFor``."""
-    scene, s = make_scene("room"), SETTINGS
+def track_room(camera: CameraModel, frames: int, wait_for_mapping: bool, s: SlamSettings = SETTINGS,
+               ) -> tuple[list[Tracked], list[dict[str, float]], BusyUntilWaitedFor]:
+    """The room's first ``frames`` frames through a ``Tracker`` (settings ``s``) mapping with ``BusyUntilWaitedFor``."""
+    scene = make_scene("room")
     extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
     slam_map = MapDatabase(s.scale_factor, s.levels)
     mapper = BusyUntilWaitedFor(LocalMapper(slam_map, camera.K, (camera.width, camera.height), s, threaded=False))
@@ -105,6 +105,20 @@ def test_each_keyframe_is_mapped_before_the_next_frame_when_asked(room_camera):
     # without the option the tracker never waits, and the busy mapper holds keyframes back
     assert real_time_mapper.waits == 0 and not any("mapping_wait" in t for t in real_time_timings)
     assert sum(result.keyframe_id is not None for result in real_time) < 1 + len(made)
+
+
+@pytest.mark.slow
+def test_a_real_time_tracker_waits_for_the_mapper_after_a_keyframe_made_nearly_lost(room_camera):
+    """With ``min_tracked`` raised so that the room's frames track fewer than twice it now and then, each
+    keyframe made on such a frame is waited for (the next frames would find no map), and no other frame
+    waits (with the default ``min_tracked`` none does: the test above)."""
+    s = SETTINGS.model_copy(update={"min_tracked": 130})
+    results, timings, mapper = track_room(room_camera, 45, wait_for_mapping=False, s=s)
+    made = [i for i, result in enumerate(results) if result.keyframe_id is not None][1:]
+    thin = [i for i in made if results[i].tracked < 2 * s.min_tracked]
+    assert thin, [results[i].tracked for i in made]
+    assert [i for i, t in enumerate(timings) if "mapping_wait" in t] == thin
+    assert mapper.waits == len(thin) and all(timings[i]["mapping_wait"] >= BUSY_S * 1e3 for i in thin)
 
 
 def test_the_mapping_thread_is_waited_for_until_its_keyframes_are_mapped(monkeypatch):
