@@ -48,7 +48,7 @@ import numpy as np
 from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
-from services.geometry.se3 import make_transform
+from services.geometry.se3 import invert, make_transform
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationSettings, InitialisationStatus, initialise
 from services.slam.map.covisibility import CovisibilityGraph
@@ -371,7 +371,7 @@ class Tracker:
         if grown:
             self._young_baseline = None
             return False
-        centre = -frame.T_camera_world[:3, :3].T @ frame.T_camera_world[:3, 3]
+        centre = invert(frame.T_camera_world)[:3, 3]
         return last is None or float(np.linalg.norm(centre - last.centre)) >= self._young_baseline
 
     def _wait_for_mapper(self, frame: _Frame, timings: dict[str, float]) -> bool:
