@@ -6,6 +6,13 @@ with the keypoints within a window around its pixel on a neighbouring level) and
 keyframes and points (scaled so that their median depth is 1). The reference frame is replaced
 when it is ``reference_max_age`` frames old, or when it shares too few matches with the new one.
 
+A pair needs the full parallax bound (``InitialisationSettings.min_parallax_deg``) until the new
+frame is ``init_late_frames`` after the reference, and ``init_late_parallax_deg`` from then on: the
+parallax grows about as the baseline, so waiting one more frame doubles it at the first frame and
+adds a quarter at the fourth. A map started under the full bound is young: its structure, from a
+short baseline, is settled by keyframes made each time the camera is as far from the last keyframe
+as the first two keyframes are apart (with the mapper idle), until it has ``young_map_keyframes``.
+
 Then, for each frame (as ORB-SLAM does):
 
 1. Predict the pose with a constant-velocity model and search the last frame's points by
@@ -43,9 +50,9 @@ import numpy as np
 from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
-from services.geometry.se3 import make_transform
+from services.geometry.se3 import invert, make_transform
 from services.slam.features import FrameFeatures
-from services.slam.initialisation import InitialisationStatus, initialise
+from services.slam.initialisation import InitialisationSettings, InitialisationStatus, initialise
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
 from services.slam.map.map_point import PointArrays
@@ -120,6 +127,11 @@ class Tracker:
         self.wait_for_mapping = wait_for_mapping
         self._reference_keyframe = -1
         self._last_keyframe_stamp = 0
+        self._last_keyframe_id = -1
+        self._full_bound = InitialisationSettings()
+        self._late_bound = self._full_bound.model_copy(update={"min_parallax_deg": settings.init_late_parallax_deg})
+        self._young_baseline: float | None = None
+        """The distance between the first two keyframes' centres (world units) while the map is young, else None."""
 
     @property
     def reference_keyframe(self) -> int:
@@ -152,8 +164,10 @@ class Tracker:
                                         np.ones(len(features), bool), s.match_max_distance, s.init_ratio)
             consistent = rotation_consistent(reference.features.angles[a], features.angles[b])
             a, b = a[consistent], b[consistent]
+        late = self._index - reference.index >= s.init_late_frames
         with stage_timer(timings, "pose"):
-            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5))
+            found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5),
+                               self._late_bound if late else self._full_bound)
         if found.status is InitialisationStatus.TOO_FEW_MATCHES:
             self._reference = frame
         if not found.initialised or found.T_second_first is None:
@@ -166,6 +180,10 @@ class Tracker:
         if keyframe_id is None:
             self._reference = frame
             return Tracked(TrackingState.INITIALISING, "too_few_points")
+        if found.parallax_deg < self._full_bound.min_parallax_deg:
+            with self.map.lock:
+                centres = [self.map.keyframes[k].centre for k in sorted(self.map.keyframes)]
+            self._young_baseline = float(np.linalg.norm(centres[1] - centres[0]))
         last = self._last
         assert last is not None
         seen = np.flatnonzero(last.point_ids >= 0)
@@ -196,6 +214,7 @@ class Tracker:
         self._velocity = None
         self._reference_keyframe = second.id
         self._last_keyframe_stamp = frame.stamp_ns
+        self._last_keyframe_id = second.id
         return second.id
 
     def _track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
@@ -345,7 +364,23 @@ class Tracker:
         decision = keyframe_decision(self.settings, abs(frame.stamp_ns - self._last_keyframe_stamp) * 1e-9, tracked,
                                      reference_tracked)
         idle = self.mapper.idle  # asked at every decision: it brings in what the mapping process sent back
+        if idle and self._young_keyframe_due(frame):
+            return True
         return decision is KeyframeDecision.YES or (decision is KeyframeDecision.IF_IDLE and idle)
+
+    def _young_keyframe_due(self, frame: _Frame) -> bool:
+        """Whether the map is young and ``frame``'s camera centre is at least the first two keyframes'
+        distance from the last keyframe's; the map stops being young at ``young_map_keyframes`` keyframes."""
+        if self._young_baseline is None:
+            return False
+        with self.map.lock:
+            last = self.map.keyframes.get(self._last_keyframe_id)
+            grown = len(self.map.keyframes) >= self.settings.young_map_keyframes
+        if grown:
+            self._young_baseline = None
+            return False
+        centre = invert(frame.T_camera_world)[:3, 3]
+        return last is None or float(np.linalg.norm(centre - last.centre)) >= self._young_baseline
 
     def _wait_for_mapper(self, frame: _Frame, timings: dict[str, float]) -> bool:
         """Whether the mapper became idle within ``MAPPING_WAIT_S`` (a warning if not); the milliseconds
@@ -369,5 +404,6 @@ class Tracker:
         keyframe = self.map.add_keyframe(frame.stamp_ns, frame.T_camera_world, frame.features, frame.point_ids)
         self._reference_keyframe = keyframe.id
         self._last_keyframe_stamp = frame.stamp_ns
+        self._last_keyframe_id = keyframe.id
         self.mapper.enqueue(keyframe.id)
         return keyframe.id

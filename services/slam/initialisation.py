@@ -74,7 +74,7 @@ from services.slam.two_view import (
 EARLY_FRACTION = 0.5
 """A pair is told ``low_parallax`` before the full fit only when the fits' poses see less than this fraction of
 the bound: USAC's essential matrix can see much less parallax than the refined pose the full fit uses
-(0.83 deg against 1.23 deg on room frames 0 / 8 with 1 000 keypoints a frame, a pair that starts the map)."""
+(0.83 deg against 1.23 deg on room frames 0 / 8 with 1 000 keypoints a frame, a pair over the 1 deg bound)."""
 
 __all__ = ["InitialisationStatus", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
            "initialise"]

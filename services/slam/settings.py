@@ -15,7 +15,11 @@ class SlamSettings(BaseModel):
     ``init_window_px``, descriptor distance at most ``match_max_distance``, ratio ``init_ratio``)
     until ``services.slam.initialisation.initialise`` accepts the pair; the reference is replaced
     after ``reference_max_age`` frames, or at once when it has too few matches. A map starts only
-    with ``init_min_points`` points.
+    with ``init_min_points`` points. A pair needs the median parallax of ``InitialisationSettings``
+    (1 deg) until the new frame is ``init_late_frames`` frames after the reference, then only
+    ``init_late_parallax_deg``. A map started under the full bound is young: until it has
+    ``young_map_keyframes`` keyframes, a tracked frame as far from the last keyframe as the first two
+    keyframes are apart becomes one (with the mapper idle).
 
     Tracking: search by projection of the last frame's points around the constant-velocity
     prediction within ``motion_window_px`` (per level scale; doubled when under ``min_motion_matches``
@@ -61,6 +65,14 @@ class SlamSettings(BaseModel):
     reference_max_age: int = Field(default=30, ge=1, description="initialisation: frames before the reference "
                                                                  "frame is replaced")
     init_min_points: int = Field(default=80, ge=1, description="initialisation: points a first map needs")
+    init_late_frames: int = Field(default=4, ge=1, description="initialisation: frames after the reference from "
+                                                               "which a pair needs only init_late_parallax_deg")
+    init_late_parallax_deg: float = Field(default=0.4, ge=0, description="initialisation: least median parallax "
+                                                                          "of a pair init_late_frames or more "
+                                                                          "frames apart, deg")
+    young_map_keyframes: int = Field(default=6, ge=2, description="keyframes a map started under the full "
+                                                                  "parallax bound makes one initial baseline "
+                                                                  "apart")
     projection_max_distance: int = Field(default=100, ge=0, le=256, description="largest descriptor distance of a "
                                                                                 "match found by projection, bits")
     motion_window_px: float = Field(default=15.0, gt=0, description="tracking: search window around the "

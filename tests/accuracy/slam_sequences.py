@@ -1,6 +1,10 @@
 """Sequences with ground truth for the monocular SLAM system, and one run of ``SlamSystem`` over one.
 
 * ``room``: the synthetic ``room`` scene, 640x480 at 30 fps (``services.synthetic``).
+* ``jittered@<seed>``: the same scene at uneven times, 150 frames whose gaps are drawn from an
+  exponential distribution of mean 1/30 s (``seed`` seeds the draw), each frame stamped with its time.
+* ``jittered(sequence, seed)``: a sequence's frames restamped as a busy pipeline stamps them by the
+  wall clock (its own gaps plus random waits and stalls).
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
@@ -10,11 +14,13 @@ keyframe is mapped before the next frame is tracked (``wait_for_mapping``), so t
 inline mapping (``mapping="inline"``) and do not depend on the load. Scoring: ATE RMSE after a Sim(3) alignment
 (``services.geometry.evaluation``) of every frame given a pose, against the ground truth of the same
 frame. ``python -m tests.accuracy.slam_sequences
-[room|room@<seed>|kitti|tum ...] [--mapping=process|thread|inline]`` prints the figures.
+[room|room@<seed>|jittered@<seed>|kitti|tum ...][~<seed>] [--mapping=process|thread|inline] [--frames=N]`` prints the
+figures (``--frames``: of each sequence's first N frames only).
 """
 
 from __future__ import annotations
 
+import itertools
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -35,9 +41,12 @@ KITTI = "vo_kitti_odometry_seq06_frames000-050"
 TUM = "tum_rgbd_fr3_long_office_household_1hz"
 TUM_K = np.array([[535.4, 0.0, 320.1], [0.0, 539.2, 247.6], [0.0, 0.0, 1.0]])
 ROOM_FRAMES = 600
+JITTERED_FRAMES = 150
+JITTERED_FPS = 3000.0
+"""The jittered room is rendered from a scene of this frame rate, each frame the one nearest its time."""
 MAX_GT_DT_NS = 20_000_000
-JITTER_MEAN_S, STALL_EVERY, STALL_MAX_S = 0.02, 10, 0.6
 """A TUM image is scored against the ground-truth sample within 20 ms (the first image has none)."""
+JITTER_MEAN_S, STALL_EVERY, STALL_MAX_S = 0.02, 10, 0.6
 
 Frames = Iterator[tuple[int, np.ndarray, np.ndarray | None]]
 """(stamp_ns, image, true T_world_camera or None)."""
@@ -50,12 +59,12 @@ class Sequence:
     frames: Frames
 
 
-def room(seed: int = 0, count: int = ROOM_FRAMES) -> Sequence:
-    """The first ``count`` frames of the synthetic room of ``seed``, stamped by the scene's clock."""
+def room(seed: int = 0) -> Sequence:
+    """``ROOM_FRAMES`` frames of the synthetic room of ``seed``, stamped by the scene's clock."""
     scene = make_scene("room", seed=seed)
 
     def frames() -> Frames:
-        for index in range(count):
+        for index in range(ROOM_FRAMES):
             frame = scene.render(index)
             yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
 
@@ -77,6 +86,21 @@ def jittered(sequence: Sequence, seed: int) -> Sequence:
             yield stamp, image, truth
 
     return Sequence(f"{sequence.name}~{seed}", sequence.camera, frames())
+
+
+def jittered_room(seed: int) -> Sequence:
+    """The room (seed 0) at the times of ``JITTERED_FRAMES`` exponential gaps of mean 1/30 s from 0
+    (two times falling on one frame of ``JITTERED_FPS`` give one frame)."""
+    scene = make_scene("room", fps=JITTERED_FPS)
+    gaps = np.random.default_rng(seed).exponential(1.0 / 30.0, JITTERED_FRAMES - 1)
+    indices = np.unique(np.round(np.concatenate([[0.0], np.cumsum(gaps)]) * JITTERED_FPS).astype(np.int64))
+
+    def frames() -> Frames:
+        for index in indices.tolist():
+            frame = scene.render(index)
+            yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
+
+    return Sequence(f"jittered@{seed}", scene.cameras[0], frames())
 
 
 def kitti(folder: Path) -> Sequence:
@@ -196,14 +220,26 @@ def run(sequence: Sequence, mapping: str = "process") -> SlamRun:
 
 
 def sequence(name: str) -> Sequence:
-    """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``kitti`` or ``tum``."""
+    """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``jittered@<seed>``,
+    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``jittered`` with that seed."""
+    if "~" in name:
+        base, _, seed = name.partition("~")
+        return jittered(sequence(base), int(seed))
     if name.startswith("room"):
         return room(int(name.partition("@")[2] or 0))
+    if name.startswith("jittered@"):
+        return jittered_room(int(name.partition("@")[2]))
     return kitti(data_root() / KITTI) if name == "kitti" else tum(data_root() / TUM)
 
 
+def first(chosen: Sequence, count: int | None) -> Sequence:
+    """``chosen`` cut to its first ``count`` frames (all of them when None)."""
+    return Sequence(chosen.name, chosen.camera, itertools.islice(chosen.frames, count))
+
+
 if __name__ == "__main__":
-    names = [a for a in sys.argv[1:] if not a.startswith("--mapping=")]
-    chosen = next((a.partition("=")[2] for a in sys.argv[1:] if a.startswith("--mapping=")), "process")
+    options = dict(a[2:].partition("=")[::2] for a in sys.argv[1:] if a.startswith("--"))
+    names = [a for a in sys.argv[1:] if not a.startswith("--")]
+    count = int(options["frames"]) if "frames" in options else None
     for name in names or ["room", "kitti", "tum"]:
-        print(run(sequence(name), chosen).line(), flush=True)
+        print(run(first(sequence(name), count), options.get("mapping", "process")).line(), flush=True)

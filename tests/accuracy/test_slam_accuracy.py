@@ -1,6 +1,6 @@
-"""Monocular SLAM (``SlamSystem``) against ground truth: ATE RMSE after a Sim(3) alignment, every frame
-tracked from the first tracked one on, none lost (``tests/accuracy/slam_sequences.py`` runs the
-sequences; its ``__main__`` prints the figures).
+"""Monocular SLAM (``SlamSystem``) against ground truth: ATE RMSE after a Sim(3) alignment, the map started
+by frame ``FIRST_TRACKED_BY``, every frame tracked from the first tracked one on, none lost
+(``tests/accuracy/slam_sequences.py`` runs the sequences; its ``__main__`` prints the figures).
 
 Every sequence runs as users run SLAM: local mapping in a process of its own, the frames fed back to
 back as a lossless run feeds them (each new keyframe mapped before the next frame is tracked, so the
@@ -19,17 +19,19 @@ figures, so that a regression shows: the room within 1 % too, KITTI within 0.08 
 import numpy as np
 import pytest
 
-from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, jittered, kitti, room, run, tum
+from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, first, jittered, kitti, room, run, tum
 from tests.data import data_dir
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 JITTER_SEEDS = range(100, 106)
+FIRST_TRACKED_BY = 4
+"""Every sequence is tracked from this frame or earlier (room 4, KITTI 2, TUM 1)."""
 
 
 def check(result: SlamRun, final_bar_m: float, online_bar_m: float) -> None:
     print(result.line())
-    assert result.first_tracked < len(result.states), f"{result.name}: never initialised"
+    assert result.first_tracked <= FIRST_TRACKED_BY, result.line()
     assert result.lost == 0, result.line()
     assert result.untracked_after_start == 0, result.line()
     assert result.final_ate_m <= final_bar_m, result.line()
@@ -44,10 +46,10 @@ def test_room_trajectory_within_one_percent_of_its_length():
 def test_the_room_holds_its_accuracy_whatever_the_gaps_between_the_frames_stamps():
     """A pipeline that stamps frames by the wall clock and waits for SLAM gives it gaps that follow the
     load, and the keyframes follow the gaps. Over JITTER_SEEDS such stampings of the room's first 60
-    frames (0.73 m of path tracked), every run stays within 3 % of the path and the median within 1.5 %
-    (measured: 0.86-1.28 %, median 0.98 %). A local bundle adjustment whose scale followed the map's
+    frames (0.76 m of path tracked), every run stays within 3 % of the path and the median within 1.5 %
+    (measured: 0.80-1.35 %, median 1.03 %). A local bundle adjustment whose scale followed the map's
     second keyframe, 2 cm from the first, once shrank the map by a third: 11.5 % for stamping 101."""
-    runs = [run(jittered(room(count=60), seed), "inline") for seed in JITTER_SEEDS]
+    runs = [run(jittered(first(room(), 60), seed), "inline") for seed in JITTER_SEEDS]
     for result in runs:
         print(result.line())
         assert result.lost == 0 and result.untracked_after_start == 0, result.line()

@@ -20,7 +20,7 @@ from services.slam.system import FrameResult, SlamSystem
 from tests.slam_passes import room_frames, room_scene
 
 MAPPED = 60
-"""Frames of the room mapped before the bad input (tracked from about frame 8 on)."""
+"""Frames of the room mapped before the bad input (tracked from frame 4 on)."""
 MAX_ERROR_M = 0.05
 """Largest position error of a frame after the bad input (the room's first 60 frames: a 0.7 m path)."""
 BLANKS = {"black": np.zeros((480, 640), np.uint8), "grey": np.full((480, 640), 128, np.uint8),
