@@ -19,9 +19,10 @@ bodies' spheres and stray markers. Matching runs in three steps:
 2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
    whole set at once among the candidates with at most one sphere hidden: the most bodies, then the
    most spheres, then the least total squared residual (a branch and bound over the bodies), so a
-   body listed first never takes a point another body needs. Then each body still missing is looked
-   for among the points left, from three of its spheres or more (two hidden or more: a *sparse*
-   candidate), where only an unambiguous one is taken (see below).
+   body listed first never takes a point another body needs. Then, if a body of five spheres or
+   more is still missing, the trees of every body are grown again among the points left, down to
+   three spheres seen, and a body missing is given an assignment with two spheres hidden or more (a
+   *sparse* candidate) where only an unambiguous one is found there (see below).
 3. Each chosen body carries its ``RigidFit``: ``T_world_body``, residual RMS and, when point
    covariances are given, the pose covariance. Points no body took are listed as unassigned.
 
@@ -29,11 +30,11 @@ Three spheres match by chance more easily than four, so a sparse candidate must 
 
 * its seen spheres are not nearly on one line: one lies ``sparse_width`` or more from the line through
   the two farthest apart (a thin triangle leaves the rotation about its long side loose);
-* no other assignment of the tree holds all its points, unless on the same spheres of the same body:
-  no other triangle of the body (its distances repeated within the tolerance), nor one of another
-  body, fits those points;
-* among the points left by the bodies chosen first, it is the body's only sparse candidate that fits
-  (bar those it extends), and no other body's sparse candidate taken there shares a point with it.
+* no other assignment of those trees holds all its points, unless on the same spheres of the same
+  body: no other triangle of the body (its distances repeated within the tolerance), nor one of
+  another body, fits those points;
+* it is the body's only sparse candidate that fits there (bar those it extends), and no other body's
+  sparse candidate taken there shares a point with it.
 
 Where the points of a body's spheres are already known (labelled near a prediction), ``fit_labelled``
 fits the bodies without a search, letting go of the worst sphere while a fit breaks its gate.
@@ -117,15 +118,6 @@ class Candidate:
         return self.indices[self.indices >= 0]
 
     @property
-    def sparse(self) -> bool:
-        """Whether two spheres or more are hidden (the body found from fewer than all its spheres but one)."""
-        return int(np.count_nonzero(self.indices < 0)) >= 2
-
-    def extends(self, other: Candidate) -> bool:
-        """Whether this assignment gives every point of ``other`` (of the same body) to the same sphere."""
-        return bool(np.all((self.indices == other.indices) | (other.indices < 0)))
-
-    @property
     def squared_error(self) -> float:
         """Sum of squared residuals (m^2) of the fit."""
         return self.fit.residual_rms**2 * self.fit.count
@@ -199,15 +191,16 @@ def body_candidates(spheres: np.ndarray, points: np.ndarray, options: MatchOptio
     alone (module docstring).
     """
     points = check_points(points)
-    return _candidates([spheres], points, options, covariances,
-                       pairwise_distances(points) if distances is None else distances)[0]
+    distances = pairwise_distances(points) if distances is None else distances
+    return (_candidates([spheres], points, options, covariances, distances, sparse=False)[0]
+            + _candidates([spheres], points, options, covariances, distances, sparse=True)[0])
 
 
 def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOptions, covariances: np.ndarray | None,
-                distances: np.ndarray) -> list[list[Candidate]]:
-    """``body_candidates`` of several bodies, their assignments' fits all in one batched SVD; per body, at most
-    ``max_candidates`` with one sphere hidden at most, then every sparse one that is unambiguous in the tree
-    (module docstring), each part best first."""
+                distances: np.ndarray, sparse: bool) -> list[list[Candidate]]:
+    """Per body, best first, the verified assignments with one sphere hidden at most (at most ``max_candidates``),
+    or with ``sparse`` those with two hidden or more that are unambiguous in the trees of all ``bodies`` (module
+    docstring); every assignment's fit in one batched SVD."""
     bodies = [check_points(spheres, "spheres") for spheres in bodies]
     for spheres in bodies:
         if len(spheres) < 3:
@@ -217,18 +210,21 @@ def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOpti
     padded = np.zeros((len(bodies), widest, 3))
     for b, spheres in enumerate(bodies):
         padded[b, :len(spheres)] = spheres
-    may_miss = [len(spheres) - 3 if options.allow_missing else 0 for spheres in bodies]
+    may_miss = (sizes - 3 if sparse else np.minimum(sizes - 3, 1)) * options.allow_missing
     # Every assignment of every body, padded to the widest body (padding unseen), body after body.
-    owner, assignments = _assignments(padded, sizes.tolist(), distances, options.distance_tolerance, may_miss)
+    owner, assignments = _assignments(padded, sizes.tolist(), distances, options.distance_tolerance,
+                                      may_miss.tolist())
     by_body = np.argsort(owner, kind="stable")
     owner, assignments = owner[by_body], assignments[by_body]
     seen = assignments >= 0
-    sparse = seen.sum(axis=1) <= sizes[owner] - 2
     kept = ~_collinear(padded[owner], seen)
-    if np.any(sparse):
-        kept[sparse] &= ~_contested(owner, assignments, np.flatnonzero(sparse), len(points))
-        kept[sparse] &= width(padded[owner[sparse]], seen[sparse]) >= options.sparse_width
-    owner, assignments, seen, sparse = owner[kept], assignments[kept], seen[kept], sparse[kept]
+    if sparse:
+        kept &= seen.sum(axis=1) <= sizes[owner] - 2
+        rows = np.flatnonzero(kept)
+        kept[rows] = ~_contested(owner, assignments, rows, len(points))
+        rows = np.flatnonzero(kept)
+        kept[rows] = width(padded[owner[rows]], seen[rows]) >= options.sparse_width
+    owner, assignments, seen = owner[kept], assignments[kept], seen[kept]
     transforms, rms = least_squares_transforms(padded[owner], points[np.maximum(assignments, 0)], seen)
     used = seen.sum(axis=1)
     good = np.flatnonzero(within_gates(padded[owner], seen, rms, options))
@@ -237,7 +233,7 @@ def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOpti
         mine = good[owner[good] == b]
         order = sorted(mine.tolist(), key=lambda k: (-int(used[k]), rms[k],
                                                      _tree_order(assignments[k], len(points))))
-        order = [k for k in order if not sparse[k]][:options.max_candidates] + [k for k in order if sparse[k]]
+        order = order if sparse else order[:options.max_candidates]
         picked = [(spheres, assignments[k, :len(spheres)].copy()) for k in order]
         fits = [RigidFit(transforms[k], float(rms[k]), int(used[k])) for k in order]
         out.append([Candidate(indices, fit) for (_, indices), fit in
@@ -273,6 +269,8 @@ def _contested(owner: np.ndarray, assignments: np.ndarray, rows: np.ndarray, poi
 def width(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """(A,) float64: the farthest any seen sphere lies from the line through the two seen spheres farthest apart,
     per row of (A, N, 3) ``spheres`` with (A, N) bool ``seen`` (at least two)."""
+    if not len(spheres):
+        return np.zeros(0)
     apart = np.where(seen[:, :, None] & seen[:, None, :],
                      np.linalg.norm(spheres[:, :, None] - spheres[:, None], axis=3), -1.0)
     first, second = np.unravel_index(np.argmax(apart.reshape(len(spheres), -1), axis=1), apart.shape[1:])
@@ -422,13 +420,17 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
         covariances = check_shape(covariances, f"{len(points)},3,3", "covariances", np.float64)
     distances = pairwise_distances(points)
     names = list(bodies)
-    per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []
-    choice = _best_choice([[c for c in found if not c.sparse] for found in per_body], len(points))
+    spheres = [bodies[name] for name in names]
+    choice = _best_choice(_candidates(spheres, points, options, None, distances, sparse=False), len(points)) \
+        if names else []
     taken = np.zeros(len(points), bool)
     for candidate in choice:
         if candidate is not None:
             taken[candidate.used] = True
-    choice = _sparse_choice(per_body, choice, taken)
+    free = np.flatnonzero(~taken)
+    if options.allow_missing and any(c is None and len(s) >= 5 for c, s in zip(choice, spheres, strict=True)):
+        choice = _sparse_choice(_candidates(spheres, points[free], options, None, distances[np.ix_(free, free)],
+                                            sparse=True), choice, free)
     chosen = [(names[k], c) for k, c in enumerate(choice) if c is not None]
     fits = _with_covariances([(np.asarray(bodies[name], np.float64), c.indices) for name, c in chosen],
                              [c.fit for _, c in chosen], covariances)
@@ -440,18 +442,21 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
 
 
 def _sparse_choice(candidates: list[list[Candidate]], choice: list[Candidate | None],
-                   taken: np.ndarray) -> list[Candidate | None]:
-    """``choice`` (one candidate or None per body) with each body it lacks given its one sparse candidate among
-    the points not ``taken`` ((M,) bool), when it has exactly one there bar those it extends, and when no other
-    body so given shares a point with it (module docstring)."""
+                   free: np.ndarray) -> list[Candidate | None]:
+    """``choice`` (one candidate or None per body) with each body it lacks given its one sparse candidate among the
+    ``free`` points ((K,) indices; ``candidates`` index them), when it has exactly one bar those it extends, and
+    when no other body so given shares a point with it (module docstring); their indices those of all points."""
     given: dict[int, Candidate] = {}
     for k, options in enumerate(candidates):
-        if choice[k] is not None:
+        if choice[k] is not None or not options:
             continue
-        free = [c for c in options if c.sparse and not np.any(taken[c.used])]
-        widest = [c for c in free if not any(other is not c and other.extends(c) for other in free)]
+        indices = np.array([c.indices for c in options])
+        # extends[i, j]: candidate i gives every point of candidate j to the same sphere.
+        extends = np.all((indices[:, None] == indices[None]) | (indices[None] < 0), axis=2)
+        widest = np.flatnonzero(np.count_nonzero(extends, axis=0) == 1)
         if len(widest) == 1:
-            given[k] = widest[0]
+            only = options[int(widest[0])]
+            given[k] = Candidate(np.where(only.indices >= 0, free[np.maximum(only.indices, 0)], -1), only.fit)
     clash = {k for k, mine in given.items() for j, other in given.items()
              if j != k and np.intersect1d(mine.used, other.used).size}
     return [c if c is not None or k in clash else given.get(k) for k, c in enumerate(choice)]
