@@ -16,15 +16,15 @@ camera c, every blob of cameras 0..c belongs to exactly one cluster:
    (``ambiguity``) is left unmade rather than guessed. A pair whose point a later camera sees
    (in front of it, inside its image) with no blob within the reprojection gate, while that
    camera has a blob within the epipolar gate of one of the pair's blobs, is left unmade for
-   now: that blob, not yet heard, may pair each of its two blobs with its own sphere's (two
-   spheres each merged in one view leave a blob of each in the other views, and the blob of
-   one and that of the other can lie on one epipolar line). Each pair is a new two-view cluster;
+   now: that camera's blobs, not yet heard, may pair each of the pair's blobs with its own
+   sphere's (two spheres each merged in one view leave a blob of each in the other views, and
+   the blob of one and that of the other can lie on one epipolar line). Each pair is a new two-view cluster;
 3. once every camera has been through, if both blobs of a pair left unmade are still single,
    the blobs still single are paired again, cameras in order, as in 2 but with no pair left
    unmade for a later camera: a sphere hidden from one camera is made from the other two once
    their blobs are known to be wanted by no one else. These pairs are solved together with the
-   last camera's, whose blobs they do not use (a pair of the last camera refused then leaves its
-   blobs unpaired);
+   last camera's pairs, whose blobs they leave alone (a pair of the last camera refused then
+   leaves its blobs unpaired);
 4. blobs left over stay single (a point needs two views).
 
 Unmatched rows and columns cost the most a match may cost, so a match is made only when it
