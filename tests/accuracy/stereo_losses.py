@@ -37,10 +37,11 @@ is largest and blobs are clipped), else ``unknown``. It also gets the tracker's 
   blobs of two different spheres, and the right partners were left without theirs;
 * ``points``: fewer than 3 of its spheres became points otherwise: correspondence left them unpaired (an
   ambiguous pair, a view dropped) or triangulation refused them;
-* ``residual``: 3 or more sphere points, but their fit's RMS is above the node's ``gate_rms``;
+* ``residual``: 3 or more sphere points, but their fit's RMS is above the node's gate (``rigid.within_gates``:
+  ``gate_rms``, tighter on three spheres);
 * ``search``: 3 or more sphere points that fit, but the body was not predicted (not found yet, or lost for
   longer than ``predict_gap_s``) and has fewer than all its spheres but one: the search by distances
-  (``rigid.match_bodies``) lets one sphere at most go unseen;
+  (``rigid.match_bodies``) takes a body with two spheres hidden or more only where unambiguous;
 * ``matching``: 3 or more sphere points that fit, and still no pose (taken by another body, or no
   assignment found among the points).
 
@@ -66,7 +67,7 @@ from services.detection.blobs.node import Params as BlobsParams
 from services.detection.blobs.node import detector
 from services.estimation.bodies.labelled import Found, label_blobs
 from services.estimation.bodies.node import BodiesPerSet, Params, pixels
-from services.estimation.bodies.rigid import pairwise_distances
+from services.estimation.bodies.rigid import MatchOptions, pairwise_distances, within_gates
 from services.geometry.absolute_orientation import least_squares_transforms
 from services.geometry.camera_stack import CameraStack
 from services.geometry.evaluation import pose_error
@@ -174,7 +175,7 @@ def cause(scene: IrRigScene, discs: Discs, body: str, index: int) -> str:
 
 
 def stage(scene: IrRigScene, discs: Discs, body: str, clean: list[np.ndarray], labels: np.ndarray | None,
-          found: Found, gate_rms: float) -> str:
+          found: Found, match: MatchOptions) -> str:
     """The first of ``STAGES`` where ``body``, trackable and lost, fails (module docstring). ``clean[c]``: (N_c, 2)
     unflagged blobs of camera c, those the node triangulates; ``labels``: (N, C) the blob each of its spheres labels
     per camera (-1: none), None when it was not predicted; ``found``: the set's points and bodies."""
@@ -204,7 +205,7 @@ def stage(scene: IrRigScene, discs: Discs, body: str, clean: list[np.ndarray], l
         return "points"
     nearest = points[to_truth.argmin(axis=1)]
     _, rms = least_squares_transforms(scene.bodies[body][None], nearest[None], made[None])
-    if rms[0] > gate_rms:
+    if not within_gates(scene.bodies[body][None], made[None], rms, match)[0]:
         return "residual"
     return "search" if labels is None and np.count_nonzero(made) < len(truth) - 1 else "matching"
 
@@ -245,7 +246,7 @@ def analyse(scene: IrRigScene, frames: int = FRAMES) -> list[Verdict]:
                 verdicts.append(Verdict(index, name, True, "lost", name in bridged,
                                         cause=cause(scene, discs, name, index),
                                         stage=stage(scene, discs, name, blobs, labels.get(name), found,
-                                                    params.match.gate_rms)))
+                                                    params.match)))
     return verdicts
 
 

@@ -35,7 +35,7 @@ def test_the_predicted_path_gives_the_full_paths_points_and_poses_where_it_sees_
     names = tuple(c.name for c in scene.cameras)
     full = BodiesPerSet(scene.bodies, Params(cameras=names, predict=False, sigma_px=SIGMA_PX))
     followed = BodiesPerSet(scene.bodies, Params(cameras=names, sigma_px=SIGMA_PX))
-    compared = more = 0
+    compared = 0
     for index, frame in zip(indices, frames, strict=True):
         blobs = [pixels(b, flagged=False) for b in frame]
         stamp_ns = round(scene.time_s(index) * 1e9)
@@ -46,7 +46,6 @@ def test_the_predicted_path_gives_the_full_paths_points_and_poses_where_it_sees_
         for name, match in after.matching.bodies.items():
             assert pose_error(match.fit.T_world_body, truth[name])[1] < 0.002, (index, name)  # never a ghost
             if name not in before.matching.bodies:
-                more += 1
                 continue
             if views_of(before, before.matching.bodies[name]) != views_of(after, match):
                 continue
@@ -62,7 +61,9 @@ def test_the_predicted_path_gives_the_full_paths_points_and_poses_where_it_sees_
                 np.testing.assert_allclose(point.covariance, same.covariance, rtol=1e-9, atol=0)
                 assert point.rms_px == pytest.approx(same.rms_px, rel=1e-9, abs=1e-12)
             compared += 1
-    assert compared >= 60 and more >= 15  # of 90 body-instants: the head, two spheres merged in one view, kept
+    # Of 90 body-instants: the head with two spheres merged in one view is kept by both paths (the full one finds it
+    # from its three other spheres), where they see the same views with the same points and pose.
+    assert compared >= 80
 
 
 def seen(scene, poses, hidden=frozenset(), rng=None):

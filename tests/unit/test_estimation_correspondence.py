@@ -128,3 +128,38 @@ def test_each_point_is_its_own_views_triangulated_alone(count):
             assert point.rms_px == pytest.approx(alone.rms_px, rel=1e-9, abs=1e-12)
             made += 1
     assert made >= 10 * len(scene.bodies)
+
+
+def two_spheres_each_merged_in_one_view() -> tuple[list, np.ndarray, list[np.ndarray]]:
+    """Three arc cameras, spheres A and B on one epipolar plane of cameras 0 and 1: camera 0 sees A alone (B merged
+    there), camera 1 sees B alone (A merged there), camera 2 both. A's blob in camera 0 and B's in camera 1 lie on
+    one epipolar line: paired, they make a point 70 mm off that camera 2 sees with no blob near."""
+    scene = make_scene("ir_rig", camera_count=3, layout="arc")
+    cameras = scene.cameras
+    centre_0, centre_1 = (np.asarray(c.T_rig_camera)[:3, 3] for c in cameras[:2])
+    a = scene.body_poses(0)["tool"][:3, 3]
+    b = a + 0.05 * (centre_1 - centre_0) / np.linalg.norm(centre_1 - centre_0) \
+        + 0.03 * (a - centre_0) / np.linalg.norm(a - centre_0)
+    truth = np.array([a, b])
+    images = [reproject(c, truth) for c in cameras]
+    return cameras, truth, [images[0][:1], images[1][1:], images[2]]
+
+
+def test_a_pair_a_third_camera_does_not_confirm_loses_to_the_pairs_it_does_not_see():
+    cameras, truth, blobs = two_spheres_each_merged_in_one_view()
+    points = triangulate_blobs(cameras, blobs, CorrespondenceOptions(sigma_px=0.05))
+    assert sorted((p.camera_indices, p.blob_indices) for p in points) == [((0, 2), (0, 0)), ((1, 2), (0, 1))]
+    for p in points:
+        np.testing.assert_allclose(p.point, truth[p.blob_indices[-1]], atol=1e-6)
+
+
+def test_a_pair_no_later_camera_wants_is_still_made():
+    """A sphere hidden from camera 2 (its blobs in cameras 0 and 1 alone, unconfirmed) is made once camera 2's blobs
+    have gone to the spheres they are."""
+    cameras, truth, blobs = two_spheres_each_merged_in_one_view()
+    c = truth[0] + [0.0, 0.08, 0.0]
+    hidden = [np.vstack([b, reproject(camera, c[None])]) for camera, b in zip(cameras[:2], blobs[:2], strict=True)]
+    points = triangulate_blobs(cameras, [*hidden, blobs[2]], CorrespondenceOptions(sigma_px=0.05))
+    assert sorted((p.camera_indices, p.blob_indices) for p in points) == [((0, 1), (1, 1)), ((0, 2), (0, 0)),
+                                                                          ((1, 2), (0, 1))]
+    np.testing.assert_allclose(points[[p.camera_indices for p in points].index((0, 1))].point, c, atol=1e-6)

@@ -8,9 +8,11 @@ import pytest
 from services.estimation.bodies.rigid import (
     MatchOptions,
     _assignments,
+    _contested,
     body_candidates,
     match_bodies,
     pairwise_distances,
+    width,
 )
 from services.geometry.absolute_orientation import pose_covariance, pose_covariances
 from services.geometry.rotation import matrix_from_rotvec
@@ -72,7 +74,7 @@ def test_the_trees_grown_together_give_each_body_every_assignment_of_a_plain_sea
     padded = np.zeros((len(bodies), widest, 3))
     for b, spheres in enumerate(bodies):
         padded[b, :len(spheres)] = spheres
-    may_miss = [1 if len(s) >= 4 else 0 for s in bodies]
+    may_miss = [len(s) - 3 if seed % 2 else min(len(s) - 3, 1) for s in bodies]
     owner, assignments = _assignments(padded, [len(s) for s in bodies], pairwise_distances(points), 0.003, may_miss)
     total = 0
     for b, spheres in enumerate(bodies):
@@ -83,6 +85,43 @@ def test_the_trees_grown_together_give_each_body_every_assignment_of_a_plain_sea
         assert len(got) == len(set(got)) and set(got) == expected
         total += len(expected)
     assert total >= len(bodies) - 1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_an_assignment_is_contested_where_another_holds_its_points_on_other_spheres(seed):
+    """``_contested`` against a plain loop over every pair of assignments of the trees of all bodies together, a
+    fifth body sharing the head's first triangle."""
+    rng = np.random.default_rng(10 + seed)
+    points = scene(rng, ghosts=2 + 2 * seed, hidden=0)
+    bodies = [*LAYOUTS.values(), np.vstack([LAYOUTS["head"][:3], LAYOUTS["glove"][3:5] + [0.0, 0.0, 0.1]])]
+    padded = np.zeros((len(bodies), max(len(s) for s in bodies), 3))
+    for b, spheres in enumerate(bodies):
+        padded[b, :len(spheres)] = spheres
+    owner, assignments = _assignments(padded, [len(s) for s in bodies], pairwise_distances(points), 0.003,
+                                      [len(s) - 3 for s in bodies])
+    rows = np.arange(len(assignments))
+    got = _contested(owner, assignments, rows, len(points))
+    expected = []
+    for p in rows:
+        mine = {(int(i), k) for k, i in enumerate(assignments[p]) if i >= 0}
+        expected.append(any(
+            q != p and {i for i, _ in mine} <= {int(i) for i in assignments[q] if i >= 0}
+            and not (owner[q] == owner[p] and all(assignments[q][k] == i for i, k in mine))
+            for q in rows))
+    assert got.tolist() == expected and 0 < sum(expected) < len(expected)
+
+
+def test_width_is_a_triangle_s_least_height():
+    rng = np.random.default_rng(3)
+    spheres = rng.normal(0.0, 0.05, (50, 5, 3))
+    seen = np.zeros((50, 5), bool)
+    for row in seen:
+        row[rng.choice(5, 3, replace=False)] = True
+    expected = []
+    for triangle in (spheres[k][seen[k]] for k in range(50)):
+        twice_area = np.linalg.norm(np.cross(triangle[1] - triangle[0], triangle[2] - triangle[0]))
+        expected.append(twice_area / pairwise_distances(triangle).max())
+    np.testing.assert_allclose(width(spheres, seen), expected, rtol=1e-12, atol=0)
 
 
 def test_batched_pose_covariances_are_each_pose_s_own():

@@ -52,10 +52,73 @@ def test_one_hidden_sphere_is_tolerated_from_four_spheres_up_but_not_for_three()
     assert set(strict.bodies) == {"tool", "glove"}
 
 
-def test_two_hidden_spheres_lose_the_body():
+@pytest.mark.parametrize("hidden", [2, 3])
+def test_three_seen_spheres_find_a_body_of_any_size(hidden):
     rng = np.random.default_rng(2)
     points, truth = scene_points(rng)
-    result = match_bodies(LAYOUTS, np.delete(points, truth["glove"][:2], axis=0))
+    result = match_bodies(LAYOUTS, np.delete(points, truth["glove"][:hidden], axis=0))
+    assert set(result.bodies) == set(LAYOUTS)
+    glove = result.bodies["glove"]
+    assert np.all(glove.indices[:hidden] == -1) and glove.spheres_used == 6 - hidden
+    rotation, translation = pose_error(glove.fit.T_world_body, POSES["glove"])
+    assert rotation < 1e-6 and translation < 1e-9
+
+
+def test_a_five_sphere_body_is_found_from_three_beside_the_others_and_ghosts():
+    rng = np.random.default_rng(6)
+    points, truth = scene_points(rng, ghosts=8)
+    result = match_bodies(LAYOUTS, np.delete(points, truth["head"][[0, 3]], axis=0))
+    assert set(result.bodies) == set(LAYOUTS)
+    head = result.bodies["head"]
+    assert head.spheres_used == 3 and np.array_equal(head.indices < 0, [True, False, False, True, False])
+    rotation, translation = pose_error(head.fit.T_world_body, POSES["head"])
+    assert rotation < 1e-6 and translation < 1e-9
+
+
+def twin_triangle(spheres: np.ndarray) -> np.ndarray:
+    """``spheres`` (5, 3) with 3 and 4 moved so that triangle (0, 3, 4) repeats the sides of (0, 1, 2): 3 and 4 are
+    1 and 2 turned about sphere 0, half a turn about x, then 100 degrees about z."""
+    turn = matrix_from_rotvec(np.array([0.0, 0.0, np.radians(100.0)])) @ np.diag([1.0, -1.0, -1.0])
+    return np.vstack([spheres[:3], (spheres[1:3] - spheres[0]) @ turn.T + spheres[0]])
+
+
+def test_a_triangle_whose_sides_the_body_repeats_makes_no_body():
+    """Three points that fit two triangles of a body (the same sides) leave its pose ambiguous: no body; on a body
+    without the twin triangle the same three points find it."""
+    head = LAYOUTS["head"]
+    twin = twin_triangle(head)
+    triangle = transform_points(POSES["head"], head[:3])
+    assert len(body_candidates(twin, triangle, MatchOptions(sparse_width=1e-6))) == 0
+    assert "twin" not in match_bodies({"twin": twin}, triangle).bodies
+    found = match_bodies({"head": head}, triangle).bodies["head"]
+    assert np.array_equal(found.indices, [0, 1, 2, -1, -1])
+    assert pose_error(found.fit.T_world_body, POSES["head"])[1] < 1e-9
+
+
+def test_a_triangle_two_bodies_share_makes_neither():
+    """A decoy triangle with no other sphere near, whose sides are a triangle of each of two bodies: neither is
+    made, though each alone would be."""
+    head = LAYOUTS["head"]
+    other = np.vstack([head[:3], LAYOUTS["glove"][3:5] + [0.0, 0.0, 0.1]])
+    triangle = transform_points(POSES["glove"], head[:3])
+    assert "head" in match_bodies({"head": head}, triangle).bodies
+    assert "other" in match_bodies({"other": other}, triangle).bodies
+    assert match_bodies({"head": head, "other": other}, triangle).bodies == {}
+
+
+def test_a_thin_triangle_makes_no_body():
+    """Three spheres nearly on one line (the third 10 mm from the line through the others, under ``sparse_width``)
+    leave the turn about that line loose: not found from them alone."""
+    thin = np.array([[0.0, 0.0, 0.0], [0.12, 0.0, 0.0], [0.05, 0.01, 0.0], [0.02, 0.07, 0.03], [0.09, -0.05, 0.06]])
+    triangle = transform_points(POSES["tool"], thin[:3])
+    assert match_bodies({"thin": thin}, triangle).bodies == {}
+    assert "thin" in match_bodies({"thin": thin}, triangle, options=MatchOptions(sparse_width=0.005)).bodies
+
+
+def test_two_seen_spheres_lose_the_body():
+    rng = np.random.default_rng(2)
+    points, truth = scene_points(rng)
+    result = match_bodies(LAYOUTS, np.delete(points, truth["glove"][:4], axis=0))
     assert "glove" not in result.bodies and len(result.bodies) == 3
 
 

@@ -9,17 +9,27 @@ from services.geometry.se3 import make_transform, transform_points
 from services.synthetic.ir_rig import LAYOUTS
 
 
-def fit_alone(spheres, points, covariances, indices, gate_rms, min_spheres):
+def fit_alone(spheres, points, covariances, indices, options, min_spheres):
     """One body: fitted to its labelled points, the farthest sphere let go while the fit breaks the gate."""
     indices = indices.copy()
     while np.count_nonzero(indices >= 0) >= min_spheres:
         seen = np.flatnonzero(indices >= 0)
         fit = fit_rigid(spheres[seen], points[indices[seen]], covariances[indices[seen]])
-        if fit.residual_rms <= gate_rms:
+        if fit.residual_rms <= gate(spheres[seen], options):
             return indices, fit
         residuals = np.linalg.norm(points[indices[seen]] - transform_points(fit.T_world_body, spheres[seen]), axis=1)
         indices[seen[int(np.argmax(residuals))]] = -1
     return None
+
+
+def gate(spheres, options):
+    """The largest residual RMS of a fit on ``spheres`` (K, 3): ``gate_rms``, and on three spheres no more than
+    ``three_turn_deg`` times the distance from one to the line through the other two (the largest such)."""
+    if len(spheres) > 3:
+        return options.gate_rms
+    heights = [np.linalg.norm(np.cross(spheres[(k + 1) % 3] - spheres[k], spheres[(k + 2) % 3] - spheres[k]))
+               / np.linalg.norm(spheres[(k + 1) % 3] - spheres[k]) for k in range(3)]
+    return min(options.gate_rms, np.radians(options.three_turn_deg) * min(heights))
 
 
 def test_batched_fits_are_those_of_one_body_at_a_time():
@@ -38,9 +48,9 @@ def test_batched_fits_are_those_of_one_body_at_a_time():
         points = np.array(points)
         covariances = np.einsum("nij,nkj->nik", *(2 * [rng.normal(0, 1e-4, (len(points), 3, 3))]))
         options = MatchOptions()
-        batched = fit_labelled(LAYOUTS, points, covariances, labels, options.gate_rms, 3)
+        batched = fit_labelled(LAYOUTS, points, covariances, labels, options, 3)
         for name, spheres in LAYOUTS.items():
-            alone = fit_alone(spheres, points, covariances, labels[name], options.gate_rms, 3)
+            alone = fit_alone(spheres, points, covariances, labels[name], options, 3)
             assert (alone is None) == (name not in batched), (trial, name)
             if alone is None:
                 continue

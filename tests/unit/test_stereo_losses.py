@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from services.estimation.bodies.labelled import Found
-from services.estimation.bodies.rigid import Matching
+from services.estimation.bodies.rigid import Matching, MatchOptions
 from services.geometry.camera_stack import CameraStack
 from services.geometry.triangulation import TriangulatedPoint
 from tests.accuracy.stereo_losses import Discs, cause, hard_scene, stage
 
-GATE_RMS = 0.001
+MATCH = MatchOptions()
 
 
 @pytest.fixture(scope="module")
@@ -98,20 +98,21 @@ def test_steps_in_their_order(scene, discs):
     blobs = exact_blobs(discs)
     all_labelled = np.zeros((len(spheres), 3), np.int64)
     three, four = sphere_points(discs, spheres[:3]), sphere_points(discs, spheres[:4])
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, four), GATE_RMS) == "matching"
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, three), GATE_RMS) == "search"
-    assert stage(scene, discs, "head", blobs, all_labelled, found_with(discs, three), GATE_RMS) == "matching"
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, four), MATCH) == "matching"
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, three), MATCH) == "search"
+    assert stage(scene, discs, "head", blobs, all_labelled, found_with(discs, three), MATCH) == "matching"
     shifted = [(p + (0.0, 0.002, 0.0) if k == 0 else p, c, i) for k, (p, c, i) in enumerate(four)]
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, shifted), GATE_RMS) == "matching"
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, shifted), GATE_RMS / 4) == "residual"
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, shifted), MATCH) == "matching"
+    tight = MatchOptions(gate_rms=0.00025)
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, shifted), tight) == "residual"
     two = sphere_points(discs, spheres[:2])
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, two), GATE_RMS) == "points"
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, two), MATCH) == "points"
     ghost = (discs.world[spheres[2]] + (0.06, 0.0, 0.0), (0, 1),
              (blob_of(discs, spheres[2], 0), blob_of(discs, spheres[3], 1)))
-    assert stage(scene, discs, "head", blobs, None, found_with(discs, [*two, ghost]), GATE_RMS) == "pairing"
+    assert stage(scene, discs, "head", blobs, None, found_with(discs, [*two, ghost]), MATCH) == "pairing"
     few_labels = np.full((len(spheres), 3), -1, np.int64)
     few_labels[:2] = 0
-    assert stage(scene, discs, "head", blobs, few_labels, found_with(discs, two), GATE_RMS) == "labels"
+    assert stage(scene, discs, "head", blobs, few_labels, found_with(discs, two), MATCH) == "labels"
     without_head = [b if c == 0 else discs.pixels[discs.lit[:, c] & (discs.owner != "head"), c]
                     for c, b in enumerate(blobs)]
-    assert stage(scene, discs, "head", without_head, None, found_with(discs, four), GATE_RMS) == "blobs"
+    assert stage(scene, discs, "head", without_head, None, found_with(discs, four), MATCH) == "blobs"

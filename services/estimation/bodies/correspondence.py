@@ -13,8 +13,19 @@ camera c, every blob of cameras 0..c belongs to exactly one cluster:
    blob (over the reprojection gate, at most 1): a third camera's blob confirms the right
    pairing where two blobs lie on one epipolar line, while a point no other camera sees
    (occluded) can still be made. A pair that another assignment explains almost as well
-   (``ambiguity``) is left unmade rather than guessed. Each pair is a new two-view cluster;
-3. blobs left over stay single (a point needs two views).
+   (``ambiguity``) is left unmade rather than guessed. A pair whose point a later camera sees
+   (in front of it, inside its image) with no blob within the reprojection gate, while that
+   camera has a blob within the epipolar gate of one of the pair's blobs, is left unmade for
+   now: that camera's blobs, not yet heard, may pair each of the pair's blobs with its own
+   sphere's (two spheres each merged in one view leave a blob of each in the other views, and
+   the blob of one and that of the other can lie on one epipolar line). Each pair is a new two-view cluster;
+3. once every camera has been through, if both blobs of a pair left unmade are still single,
+   the blobs still single are paired again, cameras in order, as in 2 but with no pair left
+   unmade for a later camera: a sphere hidden from one camera is made from the other two once
+   their blobs are known to be wanted by no one else. These pairs are solved together with the
+   last camera's pairs, whose blobs they leave alone (a pair of the last camera refused then
+   leaves its blobs unpaired);
+4. blobs left over stay single (a point needs two views).
 
 Unmatched rows and columns cost the most a match may cost, so a match is made only when it
 lowers the total: blobs go to the pairing that explains all of them best, not to whichever
@@ -210,15 +221,35 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     gate = options.reprojection_gate_px
     unmatched = 1.0 + (count - 2)
 
-    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    size = np.array([[c.width, c.height] for c in cameras], np.float64)
+
+    def offered(c: int, e: int, free: list[int], single_cameras: np.ndarray, single_ideal: np.ndarray,
+                rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """(K,) bool: whether camera e has a blob within the epipolar gate of blob ``free[rows[k]]`` of camera c or
+        of the single blob ``columns[k]`` (of camera ``single_cameras``, ideal pixels ``single_ideal``)."""
+        near_free = np.any(epipolar_distances(rig.fundamental[(e, c)], ideal[c][free], ideal[e])
+                           < options.epipolar_gate_px, axis=1)
+        near_single = np.zeros(len(single_cameras), bool)
+        for a in set(single_cameras[columns].tolist()):
+            mine = np.flatnonzero(single_cameras == a)
+            near_single[mine] = np.any(epipolar_distances(rig.fundamental[(e, a)], single_ideal[mine], ideal[e])
+                                       < options.epipolar_gate_px, axis=1)
+        return near_free[rows] | near_single[columns]
+
+    def pairing_costs(c: int, free: list[int], single: list[tuple[int, int]]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(len(free), len(single)) cost of pairing blob ``free[r]`` of camera c with ``single[k]``:
         epipolar distance over its gate, plus for each other camera the distance from the pair's
         point to its nearest blob over the reprojection gate (capped at 1); inf when not allowed.
-        Beside it, (len(free), len(single), 3) the pairs' DLT points (NaN where not made)."""
+        Beside it, (len(free), len(single), 3) the pairs' DLT points (NaN where not made) and
+        (len(free), len(single)) bool: whether a camera after c sees the pair's point (in front, inside
+        its image), has no blob within the reprojection gate of it (the pair unconfirmed) and has one
+        within the epipolar gate of either of its blobs (a partner it may offer instead)."""
         cost = np.full((len(free), len(single)), np.inf)
         points_dlt = np.full((len(free), len(single), 3), np.nan)
+        unconfirmed = np.zeros((len(free), len(single)), bool)
         if not free or not single:
-            return cost, points_dlt
+            return cost, points_dlt, unconfirmed
         distance = np.full((len(free), len(single)), np.inf)
         single_cameras, single_blobs = np.array(single, np.int64).T
         single_ideal = instant.every_ideal[instant.offsets[single_cameras] + single_blobs]
@@ -228,7 +259,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                                                       ideal[c][free]).T
         rows, columns = np.nonzero(distance < options.epipolar_gate_px)
         if not len(rows):
-            return cost, points_dlt
+            return cost, points_dlt, unconfirmed
         undistorted = np.zeros((len(rows), count, 2))
         seen = np.zeros((len(rows), count), bool)
         pair_cameras = single_cameras[columns]
@@ -238,10 +269,13 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
         seen[:, c] = True
         points = points_dlt[rows, columns] = triangulate_dlt_many(stack.projections, undistorted, seen)
         with np.errstate(invalid="ignore"):
-            in_front = np.all((stack.depths(points) > 0.0) | ~seen, axis=1) & np.all(np.isfinite(points), axis=1)
+            depths = stack.depths(points)
+            in_front = np.all((depths > 0.0) | ~seen, axis=1) & np.all(np.isfinite(points), axis=1)
         support = np.zeros(len(rows))
         if count > 2:
             projected = stack.project(points)
+            with np.errstate(invalid="ignore"):
+                sees = (depths > 0.0) & np.all((projected >= 0.0) & (projected <= size - 1.0), axis=2)
             for e in range(count):
                 others = ~seen[:, e]
                 if not np.any(others):
@@ -251,13 +285,55 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
                     gaps = np.linalg.norm(projected[:, e, None, :] - blobs[e][None], axis=2).min(axis=1) / gate
                     near = np.where(np.isfinite(gaps), np.minimum(gaps, 1.0), 1.0)
                 support += np.where(others, near, 0.0)
+                lonely = sees[:, e] & (near >= 1.0)
+                if e > c and len(blobs[e]) and np.any(lonely):
+                    unconfirmed[rows, columns] |= lonely & offered(c, e, free, single_cameras, single_ideal,
+                                                                   rows, columns)
         cost[rows[in_front], columns[in_front]] = (distance[rows, columns] / options.epipolar_gate_px
                                                    + support)[in_front]
-        return cost, points_dlt
+        return cost, points_dlt, unconfirmed
+
+    Pair = list[tuple[int, int]]
+
+    def choose(c: int, free: list[int], single: list[tuple[int, int]], defer: bool
+               ) -> tuple[list[Pair], np.ndarray, list[Pair]]:
+        """The pairs of the ``free`` blobs of camera c with the ``single`` blobs of earlier cameras (module docstring),
+        those a later camera leaves unconfirmed left unmade with ``defer``: ``[(camera, blob), (c, blob)]`` each, their
+        (K, 3) DLT points, and the pairs that could be made and were left unmade."""
+        cost, points_dlt, unconfirmed = pairing_costs(c, free, single)
+        rows, columns = np.nonzero(unconfirmed & (cost < unmatched)) if defer else ((), ())
+        deferred = [[single[k], (c, free[r])] for r, k in zip(rows, columns, strict=True)]
+        if deferred:
+            cost[unconfirmed] = np.inf
+        pairs = unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity)
+        return ([[single[column], (c, free[row])] for row, column in pairs],
+                points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)], deferred)
+
+    def make(pairs: list[Pair], points_dlt: np.ndarray) -> list[Pair]:
+        """The ``pairs`` whose point, solved from its (K, 3) DLT point, is in front of both cameras with its RMS within
+        the gate, each appended to ``clusters`` and its point to ``solved``."""
+        made = instant.solve(pairs, points_dlt)
+        depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
+        kept = []
+        for k, (views, point) in enumerate(zip(pairs, made, strict=True)):
+            if point.rms_px <= gate and depths[k, views[0][0]] > 0.0 and depths[k, views[1][0]] > 0.0:
+                clusters.append(views)
+                solved.append(point)
+                kept.append(views)
+        return kept
+
+    def left_single(single: list[tuple[int, int]], c: int, free: list[int], pairs: list[Pair]
+                    ) -> list[tuple[int, int]]:
+        """``single`` less the blobs of ``pairs``, then the ``free`` blobs of camera c in none of them."""
+        paired = {view for views in pairs for view in views}
+        return [s for s in single if s not in paired] + [(c, i) for i in free if (c, i) not in paired]
 
     clusters: list[list[tuple[int, int]]] = []
     solved: list[TriangulatedPoint] = []
     single: list[tuple[int, int]] = [(0, i) for i in range(len(blobs[0]))]
+    deferred: list[Pair] = []
+    last: list[Pair] = []
+    last_dlt = np.zeros((0, 3))
     for c in range(1, count):
         taken: set[int] = set()
         if clusters and len(blobs[c]):
@@ -270,22 +346,23 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             for (k, _), point in zip(grown, instant.solve([clusters[k] for k, _ in grown]), strict=True):
                 solved[k] = point
         free = [i for i in range(len(blobs[c])) if i not in taken]
-        cost, points_dlt = pairing_costs(c, free, single)
-        used: set[int] = set()
-        pairs = unambiguous(gated_assignment(cost, unmatched), cost, unmatched, options.ambiguity)
-        candidates = [[single[column], (c, free[row])] for row, column in pairs]
-        made = instant.solve(candidates, points_dlt[tuple(np.array(pairs, np.int64).reshape(-1, 2).T)])
-        depths = stack.depths(np.array([p.point for p in made]).reshape(-1, 3))
-        first = np.array([a for (a, _), _ in candidates], np.int64)
-        in_front = (depths[np.arange(len(pairs)), first] > 0.0) & (depths[:, c] > 0.0)
-        for (row, column), views, point, front in zip(pairs, candidates, made, in_front.tolist(), strict=True):
-            if point.rms_px <= gate and front:
-                clusters.append(views)
-                solved.append(point)
-                used.add(column)
-                taken.add(free[row])
-        single = [s for column, s in enumerate(single) if column not in used]
-        single += [(c, i) for i in range(len(blobs[c])) if i not in taken]
+        pairs, points_dlt, later = choose(c, free, single, defer=c < count - 1)
+        deferred += later
+        if c < count - 1:
+            pairs = make(pairs, points_dlt)
+        else:
+            last, last_dlt = pairs, points_dlt
+        single = left_single(single, c, free, pairs)
+    if any(first in single and second in single for first, second in deferred):
+        # A pair left unmade for a later camera's sake, which took neither blob: the blobs left paired again, the
+        # pairs solved with the last camera's.
+        left, single = single, [s for s in single if s[0] == 0]
+        for c in range(1, count):
+            free = [i for camera, i in left if camera == c]
+            pairs, points_dlt, _ = choose(c, free, single, defer=False)
+            last, last_dlt = last + pairs, np.concatenate([last_dlt, points_dlt])
+            single = left_single(single, c, free, pairs)
+    make(last, last_dlt)
     return [p for p in instant.drop_worst(clusters, solved, gate)
             if p.rms_px <= gate and p.views >= options.min_views]
 

@@ -123,7 +123,8 @@ def check_bodies(bodies: Mapping[str, np.ndarray], options: MatchOptions = DEFAU
     ``bodies``: name -> (N, 3) float64 sphere centres, body frame. Judged with the matcher's own
     tolerances (``options``): a body is symmetric when its spheres, all seen or (for N >= 4 with
     ``allow_missing``) with any one hidden, admit more than one assignment whose distances agree and
-    whose rigid fit passes the gate; two bodies are alike when one can be matched on the other's spheres.
+    whose rigid fit passes the gate; two bodies are alike when one can be matched on the other's spheres
+    (from three of its spheres or more, as the search finds a body).
     """
     warnings = []
     for name, spheres in bodies.items():

@@ -17,11 +17,12 @@ instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.B
    covariance ``triangulate_blobs`` gives a cluster of the same views. A point whose RMS is above the gate,
    or with fewer than ``min_views`` views, is left out.
 3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
-   the worst sphere let go while the fit breaks ``gate_rms``, at least ``min_spheres`` kept). The blobs in
-   no point kept are put in correspondence by ``triangulate_blobs``; the bodies not fitted are then looked
-   for among those points and the labelled points no fit kept, near their prediction first, else by their
-   distance signatures (``tracking.match_with_prediction``). A decoy repeating a body's distances away
-   from its prediction is never taken for a body fitted at its prediction.
+   the worst sphere let go while the fit breaks its gate, ``rigid.within_gates``; at least ``min_spheres``
+   kept). The blobs in no point kept are put in correspondence by ``triangulate_blobs``; the bodies not
+   fitted are then looked for among those points and the labelled points no fit kept, near their
+   prediction first, else by their distance signatures (``tracking.match_with_prediction``). A decoy
+   repeating a body's distances away from its prediction is never taken for a body fitted at its
+   prediction.
 """
 
 from __future__ import annotations
@@ -132,7 +133,7 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
     rest = _full_path(cameras, blobs, labelled, correspondence)
     found = labelled + rest
     points, covariances = arrays(found)
-    fitted = fit_labelled(bodies, points, covariances, labels, match.gate_rms, tracking.min_spheres)
+    fitted = fit_labelled(bodies, points, covariances, labels, match, tracking.min_spheres)
     matching = with_the_rest(list(bodies), fitted, len(found), lambda rest, free: match_with_prediction(
         {name: bodies[name] for name in rest}, points[free],
         {name: predictions[name] for name in rest if name in predictions}, covariances[free], match, tracking))

@@ -9,19 +9,35 @@ bodies' spheres and stray markers. Matching runs in three steps:
    spheres taken in order, each new one tried only on points at the right distance from every
    point already chosen; every branch of one depth, of every body matched together, grown at once
    from a table of which point pairs fit which sphere pairs). A body of four or more spheres may
-   leave one sphere unassigned (hidden); a three-sphere body needs all three. Each assignment is
-   verified by a rigid fit (least squares, all bodies' assignments in one
-   ``least_squares_transforms``): its residual RMS must be within ``gate_rms``. Covariances are
+   leave spheres unassigned (hidden), down to three seen; a three-sphere body needs all three. Each
+   assignment is verified by a rigid fit (least squares, all bodies' assignments in one
+   ``least_squares_transforms``): its residual RMS must be within ``within_gates``: ``gate_rms``, and on
+   three spheres also ``three_turn_deg`` (in radians) times the triangle's ``width``, its least height
+   (a wrong point turns a pose on three spheres the most and shows the least in its residual).
+   Covariances are
    computed for the chosen fits only, in one ``pose_covariances``.
 2. ``match_bodies``: one candidate (or none) per body, no point used by two bodies, chosen for the
-   whole set at once: the most bodies, then the most spheres, then the least total squared
-   residual (a branch and bound over the bodies), so a body listed first never takes a point
-   another body needs.
+   whole set at once among the candidates with at most one sphere hidden: the most bodies, then the
+   most spheres, then the least total squared residual (a branch and bound over the bodies), so a
+   body listed first never takes a point another body needs. Then, if a body of five spheres or
+   more is still missing, the trees of every body are grown again among the points left, down to
+   three spheres seen, and a body missing is given an assignment with two spheres hidden or more (a
+   *sparse* candidate) where only an unambiguous one is found there (see below).
 3. Each chosen body carries its ``RigidFit``: ``T_world_body``, residual RMS and, when point
    covariances are given, the pose covariance. Points no body took are listed as unassigned.
 
+Three spheres match by chance more easily than four, so a sparse candidate must be unambiguous:
+
+* its seen spheres are not nearly on one line: one lies ``sparse_width`` or more from the line through
+  the two farthest apart (a thin triangle leaves the rotation about its long side loose);
+* no other assignment of those trees holds all its points, unless on the same spheres of the same
+  body: no other triangle of the body (its distances repeated within the tolerance), nor one of
+  another body, fits those points;
+* it is the body's only sparse candidate that fits there (bar those it extends), and no other body's
+  sparse candidate taken there shares a point with it.
+
 Where the points of a body's spheres are already known (labelled near a prediction), ``fit_labelled``
-fits the bodies without a search, letting go of the worst sphere while a fit breaks ``gate_rms``.
+fits the bodies without a search, letting go of the worst sphere while a fit breaks its gate.
 """
 
 from __future__ import annotations
@@ -51,7 +67,9 @@ __all__ = [
     "fit_labelled",
     "match_bodies",
     "pairwise_distances",
+    "width",
     "with_the_rest",
+    "within_gates",
 ]
 
 
@@ -66,10 +84,21 @@ class MatchOptions(BaseModel):
     gate_rms: float = Field(default=0.001, gt=0, allow_inf_nan=False,
                             description="largest residual RMS of a body's fit, m: a few times the fits' RMS "
                                         "(0.1-0.3 mm), under what a wrong point within distance_tolerance gives")
-    allow_missing: bool = Field(default=True, description="a body of four or more spheres may be matched with one "
-                                                          "sphere hidden")
-    max_candidates: int = Field(default=32, ge=1, description="assignments kept per body (the best: most spheres, "
-                                                              "then least residual) for the global choice")
+    three_turn_deg: float = Field(default=1.0, gt=0, allow_inf_nan=False,
+                                  description="largest turn, degrees, the residual of a fit on three spheres may "
+                                              "allow: its RMS at most this angle times the triangle's width (a "
+                                              "wrong point turns a pose on three spheres the most and shows the "
+                                              "least in its residual)")
+    allow_missing: bool = Field(default=True, description="a body of four or more spheres may be matched with "
+                                                          "spheres hidden: one freely, more (down to three seen) "
+                                                          "only where unambiguous")
+    sparse_width: float = Field(default=0.015, gt=0, allow_inf_nan=False,
+                                description="narrowest a body found with two spheres hidden or more may be, m: one "
+                                            "seen sphere this far at least from the line through the two farthest "
+                                            "apart")
+    max_candidates: int = Field(default=32, ge=1, description="assignments with at most one sphere hidden kept per "
+                                                              "body (the best: most spheres, then least residual) "
+                                                              "for the global choice")
 
 
 DEFAULT_OPTIONS = MatchOptions()
@@ -157,46 +186,101 @@ def body_candidates(spheres: np.ndarray, points: np.ndarray, options: MatchOptio
 
     ``spheres``: (N, 3) float64, body frame, N >= 3; ``points``: (M, 3) float64, world frame;
     ``covariances``: (M, 3, 3) of the points (m^2) for the fits' covariances, or None; ``distances``:
-    the points' (M, M) ``pairwise_distances`` when already known. At most ``options.max_candidates``.
+    the points' (M, M) ``pairwise_distances`` when already known. At most ``options.max_candidates`` with one
+    sphere hidden at most, then the sparse ones (two hidden or more) not ruled out as ambiguous by the points
+    alone (module docstring).
     """
     points = check_points(points)
-    return _candidates([spheres], points, options, covariances,
-                       pairwise_distances(points) if distances is None else distances)[0]
+    distances = pairwise_distances(points) if distances is None else distances
+    return (_candidates([spheres], points, options, covariances, distances, sparse=False)[0]
+            + _candidates([spheres], points, options, covariances, distances, sparse=True)[0])
 
 
 def _candidates(bodies: list[np.ndarray], points: np.ndarray, options: MatchOptions, covariances: np.ndarray | None,
-                distances: np.ndarray) -> list[list[Candidate]]:
-    """``body_candidates`` of several bodies, their assignments' fits all in one batched SVD."""
+                distances: np.ndarray, sparse: bool) -> list[list[Candidate]]:
+    """Per body, best first, the verified assignments with one sphere hidden at most (at most ``max_candidates``),
+    or with ``sparse`` those with two hidden or more that are unambiguous in the trees of all ``bodies`` (module
+    docstring); every assignment's fit in one batched SVD."""
     bodies = [check_points(spheres, "spheres") for spheres in bodies]
     for spheres in bodies:
         if len(spheres) < 3:
             raise ValueError(f"a body needs at least 3 spheres, got {len(spheres)}")
-    widest = max(len(spheres) for spheres in bodies)
+    sizes = np.array([len(spheres) for spheres in bodies])
+    widest = int(sizes.max())
     padded = np.zeros((len(bodies), widest, 3))
     for b, spheres in enumerate(bodies):
         padded[b, :len(spheres)] = spheres
-    may_miss = [1 if options.allow_missing and len(spheres) >= 4 else 0 for spheres in bodies]
+    may_miss = (sizes - 3 if sparse else np.minimum(sizes - 3, 1)) * options.allow_missing
     # Every assignment of every body, padded to the widest body (padding unseen), body after body.
-    owner, assignments = _assignments(padded, [len(spheres) for spheres in bodies], distances,
-                                      options.distance_tolerance, may_miss)
+    owner, assignments = _assignments(padded, sizes.tolist(), distances, options.distance_tolerance,
+                                      may_miss.tolist())
     by_body = np.argsort(owner, kind="stable")
     owner, assignments = owner[by_body], assignments[by_body]
     seen = assignments >= 0
     kept = ~_collinear(padded[owner], seen)
+    if sparse:
+        kept &= seen.sum(axis=1) <= sizes[owner] - 2
+        rows = np.flatnonzero(kept)
+        kept[rows] = ~_contested(owner, assignments, rows, len(points))
+        rows = np.flatnonzero(kept)
+        kept[rows] = width(padded[owner[rows]], seen[rows]) >= options.sparse_width
     owner, assignments, seen = owner[kept], assignments[kept], seen[kept]
     transforms, rms = least_squares_transforms(padded[owner], points[np.maximum(assignments, 0)], seen)
-    good = np.flatnonzero(rms <= options.gate_rms)
     used = seen.sum(axis=1)
+    good = np.flatnonzero(within_gates(padded[owner], seen, rms, options))
     out = []
     for b, spheres in enumerate(bodies):
         mine = good[owner[good] == b]
         order = sorted(mine.tolist(), key=lambda k: (-int(used[k]), rms[k],
                                                      _tree_order(assignments[k], len(points))))
-        picked = [(spheres, assignments[k, :len(spheres)].copy()) for k in order[:options.max_candidates]]
-        fits = [RigidFit(transforms[k], float(rms[k]), int(used[k])) for k in order[:options.max_candidates]]
+        order = order if sparse else order[:options.max_candidates]
+        picked = [(spheres, assignments[k, :len(spheres)].copy()) for k in order]
+        fits = [RigidFit(transforms[k], float(rms[k]), int(used[k])) for k in order]
         out.append([Candidate(indices, fit) for (_, indices), fit in
                     zip(picked, _with_covariances(picked, fits, covariances), strict=True)])
     return out
+
+
+def within_gates(spheres: np.ndarray, seen: np.ndarray, rms: np.ndarray, options: MatchOptions) -> np.ndarray:
+    """(A,) bool: whether each fit's residual ``rms`` (A,) m is within its gate: ``options.gate_rms``, and on three
+    spheres ``options.three_turn_deg`` (as radians) times their ``width``.
+
+    ``spheres``: (A, N, 3) float64, body frame; ``seen``: (A, N) bool, the spheres of each fit (three or more)."""
+    within = rms <= options.gate_rms
+    three = np.flatnonzero(within & (np.count_nonzero(seen, axis=1) == 3))
+    if len(three):
+        within[three] = rms[three] <= np.radians(options.three_turn_deg) * width(spheres[three], seen[three])
+    return within
+
+
+def _contested(owner: np.ndarray, assignments: np.ndarray, rows: np.ndarray, point_count: int) -> np.ndarray:
+    """(R,) bool: whether another of the (A, N) ``assignments`` (of bodies ``owner`` (A,), -1: hidden) holds every
+    point of assignment ``rows[r]`` but not each on the same sphere of the same body."""
+    seen = assignments >= 0
+    holds = np.zeros((len(assignments), point_count), np.int64)
+    holds[np.nonzero(seen)[0], assignments[seen]] = 1
+    outside = holds[rows].astype(np.float64) @ (1.0 - holds).T
+    mine, other = np.nonzero(outside == 0)
+    kin = (owner[rows[mine]] == owner[other]) & np.all(
+        (assignments[other] == assignments[rows[mine]]) | ~seen[rows[mine]], axis=1)
+    return np.bincount(mine[~kin], minlength=len(rows)) > 0
+
+
+def width(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(A,) float64: the farthest any seen sphere lies from the line through the two seen spheres farthest apart,
+    per row of (A, N, 3) ``spheres`` with (A, N) bool ``seen`` (at least two)."""
+    if not len(spheres):
+        return np.zeros(0)
+    apart = np.where(seen[:, :, None] & seen[:, None, :],
+                     np.linalg.norm(spheres[:, :, None] - spheres[:, None], axis=3), -1.0)
+    first, second = np.unravel_index(np.argmax(apart.reshape(len(spheres), -1), axis=1), apart.shape[1:])
+    rows = np.arange(len(spheres))
+    origin = spheres[rows, first]
+    direction = spheres[rows, second] - origin
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    offset = spheres - origin[:, None]
+    across = offset - np.sum(offset * direction[:, None], axis=2, keepdims=True) * direction[:, None]
+    return np.max(np.where(seen, np.linalg.norm(across, axis=2), 0.0), axis=1)
 
 
 def _collinear(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -278,13 +362,13 @@ def _assignments(spheres: np.ndarray, sizes: list[int], point_distances: np.ndar
 
 
 def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covariances: np.ndarray | None,
-                 labels: Mapping[str, np.ndarray], gate_rms: float, min_spheres: int) -> dict[str, BodyMatch]:
+                 labels: Mapping[str, np.ndarray], options: MatchOptions, min_spheres: int) -> dict[str, BodyMatch]:
     """The bodies of ``labels`` fitted to the points their spheres are labelled with: name -> match, for those fitted.
 
     ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points``: (M, 3) float64, world frame;
     ``covariances``: (M, 3, 3) m^2 or None; ``labels``: name -> (N,) int64 point index per sphere (-1: none).
     A body is fitted (least squares, every body in one batch per round) while it has ``min_spheres``
-    labelled spheres not on one line; while its residual RMS is above ``gate_rms`` (m), the sphere farthest
+    labelled spheres not on one line; while its residual RMS is not ``within_gates``, the sphere farthest
     from its fitted position is let go (its index set to -1) and it is fitted again. The fits kept get
     their covariances in one batch.
     """
@@ -305,8 +389,9 @@ def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covarianc
         residuals = np.linalg.norm(world - (spheres @ transforms[:, :3, :3].transpose(0, 2, 1)
                                             + transforms[:, None, :3, 3]), axis=2)
         again = []
+        within = within_gates(spheres, used, rms, options)
         for row, name in enumerate(pending[k] for k in kept.tolist()):
-            if rms[row] <= gate_rms:
+            if within[row]:
                 fits[name] = RigidFit(transforms[row], float(rms[row]), int(np.count_nonzero(used[row])))
                 continue
             indices[name][int(np.argmax(np.where(used[row], residuals[row], -np.inf)))] = -1
@@ -325,23 +410,56 @@ def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
 
     ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points_world``: (M, 3) float64,
     world frame; ``covariances``: (M, 3, 3) float64 point covariances (m^2), or None (then the fits
-    carry no covariance). The choice maximises, over all bodies together, the number of bodies found,
-    then the number of spheres used, then minimises the total squared residual.
+    carry no covariance). The choice maximises, over all bodies together, the number of bodies found with
+    one sphere hidden at most, then the number of spheres used, then minimises the total squared residual;
+    then the bodies missing are looked for from three spheres or more among the points left, unambiguous
+    only (module docstring).
     """
     points = check_points(points_world, "points_world")
     if covariances is not None:
         covariances = check_shape(covariances, f"{len(points)},3,3", "covariances", np.float64)
     distances = pairwise_distances(points)
     names = list(bodies)
-    options_per_body = _candidates([bodies[name] for name in names], points, options, None, distances) if names else []
-    choice = [(names[k], c) for k, c in enumerate(_best_choice(options_per_body, len(points))) if c is not None]
-    fits = _with_covariances([(np.asarray(bodies[name], np.float64), c.indices) for name, c in choice],
-                             [c.fit for _, c in choice], covariances)
-    matched = {name: BodyMatch(name, c.indices, fit) for (name, c), fit in zip(choice, fits, strict=True)}
+    spheres = [bodies[name] for name in names]
+    choice = _best_choice(_candidates(spheres, points, options, None, distances, sparse=False), len(points)) \
+        if names else []
     taken = np.zeros(len(points), bool)
+    for candidate in choice:
+        if candidate is not None:
+            taken[candidate.used] = True
+    free = np.flatnonzero(~taken)
+    if options.allow_missing and any(c is None and len(s) >= 5 for c, s in zip(choice, spheres, strict=True)):
+        choice = _sparse_choice(_candidates(spheres, points[free], options, None, distances[np.ix_(free, free)],
+                                            sparse=True), choice, free)
+    chosen = [(names[k], c) for k, c in enumerate(choice) if c is not None]
+    fits = _with_covariances([(np.asarray(bodies[name], np.float64), c.indices) for name, c in chosen],
+                             [c.fit for _, c in chosen], covariances)
+    matched = {name: BodyMatch(name, c.indices, fit) for (name, c), fit in zip(chosen, fits, strict=True)}
+    taken[:] = False
     for match in matched.values():
         taken[match.indices[match.indices >= 0]] = True
     return Matching(matched, np.flatnonzero(~taken).astype(np.int64))
+
+
+def _sparse_choice(candidates: list[list[Candidate]], choice: list[Candidate | None],
+                   free: np.ndarray) -> list[Candidate | None]:
+    """``choice`` (one candidate or None per body) with each body it lacks given its one sparse candidate among the
+    ``free`` points ((K,) indices; ``candidates`` index them), when it has exactly one bar those it extends, and
+    when no other body so given shares a point with it (module docstring); their indices those of all points."""
+    given: dict[int, Candidate] = {}
+    for k, options in enumerate(candidates):
+        if choice[k] is not None or not options:
+            continue
+        indices = np.array([c.indices for c in options])
+        # extends[i, j]: candidate i gives every point of candidate j to the same sphere.
+        extends = np.all((indices[:, None] == indices[None]) | (indices[None] < 0), axis=2)
+        widest = np.flatnonzero(np.count_nonzero(extends, axis=0) == 1)
+        if len(widest) == 1:
+            only = options[int(widest[0])]
+            given[k] = Candidate(np.where(only.indices >= 0, free[np.maximum(only.indices, 0)], -1), only.fit)
+    clash = {k for k, mine in given.items() for j, other in given.items()
+             if j != k and np.intersect1d(mine.used, other.used).size}
+    return [c if c is not None or k in clash else given.get(k) for k, c in enumerate(choice)]
 
 
 Score = tuple[int, int, float]

@@ -7,8 +7,9 @@ does, but a body with a predicted pose is looked for first where its spheres sho
    together are assigned one-to-one to the points (least total distance, each pair closer than
    ``gate`` metres, ``correspondence.gated_assignment``), so no point goes to two bodies;
 2. each predicted body with at least ``min_spheres`` spheres assigned is fitted (``rigid.fit_labelled``,
-   all of them in one batch); while its residual RMS exceeds ``gate_rms`` and spheres remain above
-   ``min_spheres``, the sphere farthest from its fitted position is let go and the body fitted again;
+   all of them in one batch); while its residual RMS exceeds its gate (``rigid.within_gates``) and
+   spheres remain above ``min_spheres``, the sphere farthest from its fitted position is let go and the
+   body fitted again;
 3. the bodies without a prediction, or whose predicted assignment failed, are matched by their
    distance signatures (``match_bodies``) among the points the others left.
 
@@ -89,7 +90,7 @@ def match_with_prediction(bodies: Mapping[str, np.ndarray], points_world: np.nda
             k = owner[row]
             indices[k][row - first[k]] = column
         found = fit_labelled(bodies, points, covariances, dict(zip(predicted, indices, strict=True)),
-                             options.gate_rms, tracking.min_spheres)
+                             options, tracking.min_spheres)
     return with_the_rest(names, found, len(points), lambda rest, free: match_bodies(
         {name: bodies[name] for name in rest}, points[free], None if covariances is None else covariances[free],
         options))
