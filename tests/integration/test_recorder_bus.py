@@ -130,8 +130,8 @@ def test_record_replay_record_gives_the_same_bytes_on_every_key_in_the_same_orde
     keys = bus.keys
     junk = f"{keys.prefix}/junk"
     items = []
-    for i in range(40):
-        items += [(keys.pose("wand"), pose(i), Role.RESULT), (keys.image("cam0"), image(i), Role.FRAME),
+    for i in range(40):  # frames put blocking: one a busy machine's publisher drops would never reach the recorder
+        items += [(keys.pose("wand"), pose(i), Role.RESULT), (keys.image("cam0"), image(i), Role.RESULT),
                   (keys.camera_info("cam0"), camera_info(i), Role.RESULT)]
         if i % 10 == 0:
             items.append((junk, b"not an artrack message %d" % i, Role.RESULT))
