@@ -83,7 +83,8 @@ def check_focal(slam_map: MapDatabase, K: np.ndarray, size: tuple[int, int]) -> 
 def _adjusted(K: np.ndarray, size: tuple[int, int], poses: np.ndarray, pixels: list[np.ndarray], free_intrinsics: bool,
               tracks: list[tuple[np.ndarray, list[tuple[int, int]]]]) -> tuple[np.ndarray, float]:
     """The (3, 3) camera matrix after a bundle adjustment of every pose and point (the gauge held by two
-    keyframes), and the median reprojection error of the observations then, px."""
+    keyframes; the focal lengths and principal point refined too with ``free_intrinsics``), and the median
+    reprojection error of the observations then, px."""
     reconstruction = pycolmap.Reconstruction()
     reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(
         camera_id=1, model="PINHOLE", width=size[0], height=size[1], params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))

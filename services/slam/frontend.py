@@ -255,9 +255,9 @@ class Tracker:
             if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
                 keyframe_id = self._insert_keyframe(frame)
                 if self.wait_for_mapping:
-                    self._wait_for_mapper(frame, timings)
+                    self._wait_for_mapper(frame, timings, MAPPING_WAIT_S)
                 elif tracked < 2 * self.settings.min_tracked:
-                    self._wait_for_thin_map(timings)
+                    self._wait_for_mapper(frame, timings, THIN_MAP_WAIT_S)
         return Tracked(TrackingState.TRACKING, "", T.copy(), tracked, rms, keyframe_id)
 
     def _follow_motion(self, last: _Frame, stamp_ns: int, features: FrameFeatures, point_ids: np.ndarray,
@@ -382,23 +382,16 @@ class Tracker:
         centre = invert(frame.T_camera_world)[:3, 3]
         return last is None or float(np.linalg.norm(centre - last.centre)) >= self._young_baseline
 
-    def _wait_for_mapper(self, frame: _Frame, timings: dict[str, float]) -> bool:
-        """Whether the mapper became idle within ``MAPPING_WAIT_S`` (a warning if not); the milliseconds
+    def _wait_for_mapper(self, frame: _Frame, timings: dict[str, float], limit_s: float) -> None:
+        """Wait for the mapper to be idle, at most ``limit_s`` (``MAPPING_WAIT_S`` in a lossless run, where a
+        mapper still busy then gets a warning line; ``THIN_MAP_WAIT_S`` in real time); the milliseconds
         waited go to ``timings`` (``mapping_wait``)."""
         started = time.perf_counter()
-        idle = self.mapper.wait_idle(MAPPING_WAIT_S)
+        idle = self.mapper.wait_idle(limit_s)
         timings["mapping_wait"] = (time.perf_counter() - started) * 1e3
-        if not idle:
-            logger.warning("frame %d: the mapper was still busy after %.0f s of waiting; no keyframe made",
-                           frame.index, MAPPING_WAIT_S)
-        return idle
-
-    def _wait_for_thin_map(self, timings: dict[str, float]) -> None:
-        """Wait for the mapper, at most ``THIN_MAP_WAIT_S``, after a keyframe made because the frame was nearly
-        lost; the milliseconds go to ``timings`` (``mapping_wait``)."""
-        started = time.perf_counter()
-        self.mapper.wait_idle(THIN_MAP_WAIT_S)
-        timings["mapping_wait"] = (time.perf_counter() - started) * 1e3
+        if not idle and limit_s >= MAPPING_WAIT_S:
+            logger.warning("frame %d: the mapper was still busy after %.0f s of waiting; tracking goes on",
+                           frame.index, limit_s)
 
     def _insert_keyframe(self, frame: _Frame) -> int:
         keyframe = self.map.add_keyframe(frame.stamp_ns, frame.T_camera_world, frame.features, frame.point_ids)

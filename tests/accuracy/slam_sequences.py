@@ -3,7 +3,7 @@
 * ``room``: the synthetic ``room`` scene, 640x480 at 30 fps (``services.synthetic``).
 * ``jittered@<seed>``: the same scene at uneven times, 150 frames whose gaps are drawn from an
   exponential distribution of mean 1/30 s (``seed`` seeds the draw), each frame stamped with its time.
-* ``jittered(sequence, seed)``: a sequence's frames restamped as a busy pipeline stamps them by the
+* ``busy_stamped(sequence, seed)``: a sequence's frames restamped as a busy pipeline stamps them by the
   wall clock (its own gaps plus random waits and stalls).
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
@@ -71,7 +71,7 @@ def room(seed: int = 0) -> Sequence:
     return Sequence("room" if seed == 0 else f"room@{seed}", scene.cameras[0], frames())
 
 
-def jittered(sequence: Sequence, seed: int) -> Sequence:
+def busy_stamped(sequence: Sequence, seed: int) -> Sequence:
     """``sequence`` stamped as a busy pipeline stamps frames by the wall clock: each gap between two
     stamps is the sequence's own plus an exponential wait (mean ``JITTER_MEAN_S``) and, in one gap of
     ``STALL_EVERY``, a stall of up to ``STALL_MAX_S`` (random, from ``seed``)."""
@@ -221,10 +221,10 @@ def run(sequence: Sequence, mapping: str = "process") -> SlamRun:
 
 def sequence(name: str) -> Sequence:
     """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``jittered@<seed>``,
-    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``jittered`` with that seed."""
+    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed."""
     if "~" in name:
         base, _, seed = name.partition("~")
-        return jittered(sequence(base), int(seed))
+        return busy_stamped(sequence(base), int(seed))
     if name.startswith("room"):
         return room(int(name.partition("@")[2] or 0))
     if name.startswith("jittered@"):

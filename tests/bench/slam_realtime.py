@@ -149,7 +149,7 @@ def _condition(name: str) -> AbstractContextManager[Any]:
 
 
 def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path,
-         layout: str = "given") -> Iterator[dict[str, Any]]:
+         layout: str = "given", truth: dict[int, np.ndarray] | None = None) -> Iterator[dict[str, Any]]:
     """``count`` runs of one sequence under one condition: a line per run, then the summary line (with the
     ATE's min / median / max over the runs)."""
     common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition, "processes": layout}
@@ -157,7 +157,7 @@ def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, fold
     for run in range(count):
         load_before = os.getloadavg()[0]
         with _condition(condition):
-            figures = run_once(flags, folder, truths()[sequence])
+            figures = run_once(flags, folder, truth)
         figures |= {"loadavg_1m_before": round(load_before, 2), "loadavg_1m_after": round(os.getloadavg()[0], 2)}
         lines.append(figures)
         print(f"slam_realtime {sequence} {condition} {run + 1}/{count}: {figures}", file=sys.stderr, flush=True)
@@ -181,6 +181,7 @@ def _spread(values: list[float | None]) -> list[float] | None:
 def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room", "kitti"),
                         conditions: tuple[str, ...] = CONDITIONS, layout: str = "given") -> list[dict[str, Any]]:
     lines: list[dict[str, Any]] = []
+    known = truths()
     with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
         for sequence in sequences:
             flags = sources()[sequence]
@@ -189,7 +190,8 @@ def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room",
                               "skipped": f"data set {KITTI!r} not found at {data_root() / KITTI}"})
                 continue
             for condition in conditions:
-                lines += runs(sequence, (*flags, "--processes", layout), condition, count, Path(tmp), layout)
+                lines += runs(sequence, (*flags, "--processes", layout), condition, count, Path(tmp), layout,
+                              known[sequence])
     return lines
 
 
