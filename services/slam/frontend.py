@@ -24,6 +24,10 @@ Then, for each frame (as ORB-SLAM does):
    (loaded from a file: the tracker starts lost), ``relocalisation.Relocaliser`` searches the whole map.
 3. Search the local map (the points of the keyframes observing the matched points and of their
    best covisible keyframes) by projection with the refined pose, and refine again on all matches.
+4. When all of that fails within ``BRIDGE_MAX_S`` of the last tracked frame (frames dropped, or a
+   stretch of forward motion the map does not reach), bridge the frame from the last tracked one
+   (``bridging``): the pair's two-view model and points in the map's frame and scale, the last frame
+   made a keyframe if it was not one, the new frame a keyframe with the pair's points.
 
 With ``localisation_only`` the map stays as it is: frames are tracked, no keyframe is made.
 
@@ -43,6 +47,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,10 +56,12 @@ from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
 from services.geometry.se3 import invert, make_transform
+from services.slam.bridging import Bridge, bridge_pair
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationSettings, InitialisationStatus, initialise
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
+from services.slam.map.keyframe import Keyframe
 from services.slam.map.map_point import PointArrays
 from services.slam.mapping import KeyframeDecision, Mapper, keyframe_decision
 from services.slam.matching import match_descriptors, rotation_consistent, search_by_projection
@@ -72,6 +79,15 @@ THIN_MAP_WAIT_S = 2.0
 """The longest a real-time tracker waits for the mapper after a keyframe made because the frame was
 nearly lost (under twice ``min_tracked``): the next frames would find no map to track against (a camera
 moving forward leaves its points behind within a few frames), so they are better dropped than lost."""
+BRIDGE_MAX_S = 1.0
+"""The longest time since the last tracked frame over which a frame the map no longer reaches is bridged
+from it (``bridging``): the constant-velocity model's distance, and the overlap of the two frames, hold
+for about that long."""
+BRIDGE_WINDOW_PX = 200.0
+"""How far a keypoint of the last tracked frame is searched for in the frame bridged from it, px: a camera
+moving forward spreads the image out from the centre, fastest at the image's edges."""
+SPEED_FRAMES = 10
+"""Tracked frames over which the camera's speed is measured, for the distance a bridge spans."""
 MAPPING_WAIT_S = 60.0
 """The longest a keyframe decision waits for the mapper (``Tracker``'s ``wait_for_mapping``): far beyond a
 keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
@@ -121,6 +137,8 @@ class Tracker:
         self._last: _Frame | None = None
         self._velocity: tuple[np.ndarray, float] | None = None
         """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
+        self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=SPEED_FRAMES)
+        """``(stamp_ns, camera centre (3,) world)`` of the last tracked frames, for the camera's speed."""
         self._lost = int(bool(slam_map.keyframes))
         self._relocaliser = Relocaliser(slam_map, self.K, self.size, settings)
         self.localisation_only = localisation_only
@@ -212,6 +230,8 @@ class Tracker:
         frame.point_ids = second.point_ids.copy()
         self._last = frame
         self._velocity = None
+        self._path.clear()
+        self._path.extend((keyframe.stamp_ns, keyframe.centre) for keyframe in (first, second))
         self._reference_keyframe = second.id
         self._last_keyframe_stamp = frame.stamp_ns
         self._last_keyframe_id = second.id
@@ -239,6 +259,11 @@ class Tracker:
             T, point_ids[:] = weak
             with stage_timer(timings, "local_map"):
                 found = self._track_local_map(T, features, point_ids)
+        if found is None and last is not None and self._may_bridge(last, stamp_ns):
+            with stage_timer(timings, "bridge"):
+                bridged = self._bridge(last, stamp_ns, features, timings)
+            if bridged is not None:
+                return bridged
         if found is None:
             self._lost += 1
             return Tracked(TrackingState.LOST, reason or "too_few_matches")
@@ -247,9 +272,12 @@ class Tracker:
         self._velocity = None
         if self._lost == 0 and last is not None and stamp_ns > last.stamp_ns:
             self._velocity = (T @ np.linalg.inv(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
+        else:
+            self._path.clear()
         self._lost = 0
         frame = _Frame(self._index, stamp_ns, features, T, point_ids)
         self._last = frame
+        self._path.append((stamp_ns, invert(T)[:3, 3]))
         keyframe_id = None
         with stage_timer(timings, "keyframe"):
             if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
@@ -325,6 +353,86 @@ class Tracker:
         refined, used = solved
         point_ids[keypoints[used][refined.inliers]] = points.ids[rows[used][refined.inliers]]
         return refined.T_camera_world, ""
+
+    def _may_bridge(self, last: _Frame, stamp_ns: int) -> bool:
+        """Whether a frame at ``stamp_ns`` that could not be tracked may be bridged from ``last``."""
+        return (not self.localisation_only and len(self._path) >= 2
+                and self._path[-1][0] > self._path[0][0] and 0 < stamp_ns - last.stamp_ns <= BRIDGE_MAX_S * 1e9)
+
+    def _bridge(self, last: _Frame, stamp_ns: int, features: FrameFeatures,
+                timings: dict[str, float]) -> Tracked | None:
+        """The frame bridged from the last tracked one (``bridging``), as a keyframe after the last frame made
+        one, their matches' new points added, the mapper's copy of the map brought up to date; None when the
+        pair does not give ``min_tracked`` points or the mapper is busy (the next frame tries again)."""
+        s = self.settings
+        first = last.features
+        a, b = search_by_projection(first.pixels, np.full(len(first), BRIDGE_WINDOW_PX), first.levels,
+                                    first.descriptors, features.pixels, features.levels, features.descriptors,
+                                    np.ones(len(features), bool), s.match_max_distance, s.init_ratio)
+        consistent = rotation_consistent(first.angles[a], features.angles[b])
+        a, b = a[consistent], b[consistent]
+        distance = self._speed() * (stamp_ns - last.stamp_ns) * 1e-9
+        bridge = bridge_pair(self.K, last.T_camera_world, first.pixels[a], features.pixels[b],
+                             self._map_positions(last.point_ids[a]), distance, self._late_bound)
+        if bridge is None or np.count_nonzero(bridge.inliers) < s.min_tracked:
+            return None
+        if not self.mapper.idle:
+            return None
+        before, keyframe = self._insert_bridge(last, stamp_ns, features, bridge, a, b)
+        point_ids = keyframe.point_ids.copy()
+        self.mapper.resend()
+        tracked = np.flatnonzero(point_ids >= 0)
+        errors = reprojection_errors(self.K, bridge.T_camera_world, self.map.positions(point_ids[tracked]),
+                                     features.pixels[tracked])
+        self._velocity = (bridge.T_camera_world @ invert(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
+        self._lost = 0
+        self._last = _Frame(self._index, stamp_ns, features, bridge.T_camera_world, point_ids)
+        self._path.append((stamp_ns, invert(bridge.T_camera_world)[:3, 3]))
+        for made in [before.id] * (before.id != self._last_keyframe_id) + [keyframe.id]:
+            self.mapper.enqueue(made)
+            if self.wait_for_mapping:
+                self._wait_for_mapper(self._last, timings, MAPPING_WAIT_S)
+        self._reference_keyframe = self._last_keyframe_id = keyframe.id
+        self._last_keyframe_stamp = stamp_ns
+        logger.info("frame %d bridged from frame %d: %d points, scale from %s", self._index, last.index,
+                    len(tracked), "the map" if bridge.from_map else "the motion")
+        return Tracked(TrackingState.TRACKING, "", bridge.T_camera_world.copy(), len(tracked),
+                       float(np.sqrt(np.mean(errors**2))), keyframe.id)
+
+    def _insert_bridge(self, last: _Frame, stamp_ns: int, features: FrameFeatures, bridge: Bridge, a: np.ndarray,
+                       b: np.ndarray) -> tuple[Keyframe, Keyframe]:
+        """The keyframes of a bridge (the last frame's, made unless it is one, and the new frame's) and its
+        points: the map points of the last frame's matched keypoints observed by the new keyframe too,
+        the other matches' points new. ``a``, ``b`` (N,): the matches' keypoints in the two frames."""
+        a, b, points = a[bridge.inliers], b[bridge.inliers], bridge.points_world[bridge.inliers]
+        with self.map.lock:
+            if self._last_keyframe_stamp == last.stamp_ns and self._last_keyframe_id in self.map.keyframes:
+                before = self.map.keyframes[self._last_keyframe_id]
+            else:
+                before = self.map.add_keyframe(last.stamp_ns, last.T_camera_world, last.features, last.point_ids)
+            point_ids = np.full(len(features), -1, np.int64)
+            seen = before.point_ids[a] >= 0
+            point_ids[b[seen]] = before.point_ids[a[seen]]
+            keyframe = self.map.add_keyframe(stamp_ns, bridge.T_camera_world, features, point_ids)
+            for position, i, j in zip(points[~seen], a[~seen], b[~seen], strict=True):
+                self.map.add_point(position, {before.id: int(i), keyframe.id: int(j)})
+        return before, keyframe
+
+    def _speed(self) -> float:
+        """The camera's speed over its last ``SPEED_FRAMES`` tracked frames: their path's length over its
+        time, map units per second."""
+        stamps = np.array([stamp for stamp, _ in self._path], np.float64) * 1e-9
+        centres = np.array([centre for _, centre in self._path])
+        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / (stamps[-1] - stamps[0]))
+
+    def _map_positions(self, point_ids: np.ndarray) -> np.ndarray:
+        """(N, 3) world: the positions of map points ``point_ids`` (N,), NaN rows where -1 or gone."""
+        positions = np.full((len(point_ids), 3), np.nan)
+        known = np.flatnonzero(point_ids >= 0)
+        points = self.map.arrays(point_ids[known])
+        rows = known[np.isin(point_ids[known], points.ids)]
+        positions[rows] = points.positions
+        return positions
 
     def _track_local_map(self, T: np.ndarray, features: FrameFeatures,
                          point_ids: np.ndarray) -> tuple[np.ndarray, float] | None:

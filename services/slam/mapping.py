@@ -105,6 +105,9 @@ class Mapper(Protocol):
 
     def adjust_initial_map(self, first: int, second: int) -> None: ...
 
+    def resend(self) -> None:
+        """The tracker changed the map itself (``bridging``), the mapper idle: bring its copy up to date."""
+
     def sync(self) -> None: ...
 
     def close(self) -> None: ...
@@ -262,6 +265,9 @@ class LocalMapper:
     def adjust_initial_map(self, first: int, second: int) -> None:
         """Bundle adjust the map's first two keyframes and points (the first fixed, and the scale)."""
         self.adjust([first, second])
+
+    def resend(self) -> None:
+        """Nothing to send: this mapper works on the tracker's own map."""
 
     def adjust(self, window: list[int]) -> None:
         """Local bundle adjustment of the keyframes ``window`` and every point they observe; the other

@@ -3,9 +3,10 @@
 The tracker keeps its map (``MapDatabase``); the mapping process keeps a copy and is the only one to
 change points and keyframe poses. They talk through a queue (to the mapper) and a pipe (back):
 
-* to the mapper: ``reset`` (a whole map, ``map.sync.snapshot``: after the map is started or loaded),
-  ``keyframe`` (a new keyframe as the tracker made it, with the tracking counters added since the last
-  message, ``map.sync.take_counts``) and ``stop``;
+* to the mapper: ``reset`` (a whole map, ``map.sync.snapshot``: after the map is started or loaded, or
+  bridged by the tracker, ``bridging``), ``keyframe`` (a new keyframe as the tracker made it, with the
+  tracking counters added since the last message, ``map.sync.take_counts``; one the mapper already holds,
+  sent with a reset, is only mapped) and ``stop``;
 * to the tracker: ``ready`` once, then for each keyframe ``points`` after each of its neighbours gave
   new points and after their fusion (what changed so far, ``map.sync.take_changes``: the tracker needs
   new points first, as it gets them from a mapping thread), ``calibration`` once, before the ``mapped``
@@ -185,6 +186,10 @@ class MappingProcess:
         self._local.adjust_initial_map(first, second)
         self._reset()
 
+    def resend(self) -> None:
+        """Send the whole map over, as the tracker changed it (``bridging``) while this process was idle."""
+        self._reset()
+
     def sync(self) -> None:
         """Bring in every mapped keyframe's changes that came back (never waits)."""
         while self._alive:
@@ -331,7 +336,8 @@ def _take(message: tuple[Any, ...], slam_map: MapDatabase, waiting: list[int]) -
     elif kind == "keyframe":
         _, keyframe_id, stamp_ns, T, features, point_ids, counts = message
         sync.add_counts(slam_map, counts)
-        slam_map.add_keyframe(stamp_ns, T, features, point_ids, keyframe_id=keyframe_id)
+        if keyframe_id not in slam_map.keyframes:
+            slam_map.add_keyframe(stamp_ns, T, features, point_ids, keyframe_id=keyframe_id)
         waiting.append(keyframe_id)
     elif kind == "stop":
         sync.add_counts(slam_map, message[1])

@@ -5,6 +5,8 @@
   exponential distribution of mean 1/30 s (``seed`` seeds the draw), each frame stamped with its time.
 * ``busy_stamped(sequence, seed)``: a sequence's frames restamped as a busy pipeline stamps them by the
   wall clock (its own gaps plus random waits and stalls).
+* ``without(sequence, dropped)``: a sequence with some of its frames left out, as a pipeline that falls
+  behind drops them.
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 
@@ -14,8 +16,9 @@ keyframe is mapped before the next frame is tracked (``wait_for_mapping``), so t
 inline mapping (``mapping="inline"``) and do not depend on the load. Scoring: ATE RMSE after a Sim(3) alignment
 (``services.geometry.evaluation``) of every frame given a pose, against the ground truth of the same
 frame. ``python -m tests.accuracy.slam_sequences
-[room|room@<seed>|jittered@<seed>|kitti|tum ...][~<seed>] [--mapping=process|thread|inline] [--frames=N]`` prints the
-figures (``--frames``: of each sequence's first N frames only).
+[room|room@<seed>|jittered@<seed>|kitti|tum ...][~<seed>][-<first>:<end> ...] [--mapping=process|thread|inline]
+[--frames=N]`` prints the figures (``-<first>:<end>``: without frames first to end - 1; ``--frames``: of each
+sequence's first N frames only).
 """
 
 from __future__ import annotations
@@ -86,6 +89,12 @@ def busy_stamped(sequence: Sequence, seed: int) -> Sequence:
             yield stamp, image, truth
 
     return Sequence(f"{sequence.name}~{seed}", sequence.camera, frames())
+
+
+def without(sequence: Sequence, dropped: set[int]) -> Sequence:
+    """``sequence`` without its frames of indices ``dropped`` (counted from 0)."""
+    frames = (frame for index, frame in enumerate(sequence.frames) if index not in dropped)
+    return Sequence(f"{sequence.name} without {len(dropped)} frames", sequence.camera, frames)
 
 
 def jittered_room(seed: int) -> Sequence:
@@ -221,7 +230,12 @@ def run(sequence: Sequence, mapping: str = "process") -> SlamRun:
 
 def sequence(name: str) -> Sequence:
     """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``jittered@<seed>``,
-    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed."""
+    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed, and
+    ``-<first>:<end>`` (repeated) without those frames."""
+    base, *spans = name.split("-")
+    if spans:
+        dropped = {i for span in spans for i in range(*map(int, span.split(":")))}
+        return without(sequence(base), dropped)
     if "~" in name:
         base, _, seed = name.partition("~")
         return busy_stamped(sequence(base), int(seed))

@@ -69,6 +69,9 @@ class BusyUntilWaitedFor:
     def adjust_initial_map(self, first: int, second: int) -> None:
         self._mapper.adjust_initial_map(first, second)
 
+    def resend(self) -> None:
+        self._mapper.resend()
+
     def sync(self) -> None:
         """Nothing to bring in."""
 
