@@ -8,7 +8,8 @@ window. The model is the image of two bright spheres: two discs of one brightnes
 
 ``split_two_discs`` seeds it by two means along the blob's major axis (each weighted pixel goes to the
 nearer of two centres on the axis, from the halves on either side of the centroid), then fits the seven
-numbers ``(p1, p2, r1, r2, peak)`` to every pixel of the window by least squares (Levenberg-Marquardt).
+numbers ``(p1, p2, r1, r2, peak)`` by least squares (Levenberg-Marquardt) to every pixel of the bounding
+box of the blob's weights (so the fit does not depend on how much of the window lies around it).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ MAX_RMS = 0.08
 """Largest residual RMS of an accepted fit, as a fraction of its ``peak``."""
 MIN_GAP_PX = 0.5
 """Closest the two fitted centres may lie, px: nearer, the blob is one spot."""
+MIN_PIXELS = 12
+"""Fewest pixels in the box a blob is split in (two discs are seven numbers)."""
 
 
 class TwoDiscs:
@@ -76,14 +79,18 @@ def _discs(params: np.ndarray, xs: np.ndarray, ys: np.ndarray
 
 def split_two_discs(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float]) -> TwoDiscs | None:
     """The two discs that best explain one blob, or None when the fit fails (no two distinct discs, or a
-    residual RMS above ``MAX_RMS`` of the peak).
+    residual RMS above ``MAX_RMS`` of the peak) or the blob has fewer than ``MIN_PIXELS`` lit pixels.
 
     ``weights``: (h, w) float window of the blob's centroid weights (``bright.Windows.weights``: 0 off the
     blob); ``centroid``: its weighted centroid ``(x, y)`` px in the window; ``axis``: its major axis
     ``(cos, sin)``, a unit vector. The fitted centres come out in the order of their seeds along ``axis``."""
-    h, w = weights.shape
-    ys, xs = np.mgrid[0:h, 0:w]
-    xs, ys, values = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64), weights.ravel().astype(np.float64)
+    rows, columns = np.nonzero(weights)
+    if len(rows) < MIN_PIXELS:
+        return None
+    top, left = int(rows.min()), int(columns.min())
+    crop = weights[top:int(rows.max()) + 1, left:int(columns.max()) + 1]
+    ys, xs = np.mgrid[top:top + crop.shape[0], left:left + crop.shape[1]]
+    xs, ys, values = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64), crop.ravel().astype(np.float64)
     lit = values > 0
     direction = np.array(axis, np.float64)
     along = (xs[lit] - centroid[0]) * direction[0] + (ys[lit] - centroid[1]) * direction[1]
