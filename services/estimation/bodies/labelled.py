@@ -23,7 +23,7 @@ instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.B
    is the view dropped, and a sphere seen cleanly by two cameras keeps them whatever a third makes of it.
 3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
    the worst sphere let go while the fit breaks its gate, ``rigid.within_gates``; at least ``min_spheres``
-   kept). The clean blobs in no point kept (never the parts) are put in correspondence by ``triangulate_blobs``; the bodies not
+   kept). The blobs in no point kept, the split blobs' parts among them, are put in correspondence by ``triangulate_blobs``; the bodies not
    fitted are then looked for among those points and the labelled points no fit kept, near their
    prediction first, else by their distance signatures (``tracking.match_with_prediction``). A decoy
    repeating a body's distances away from its prediction is never taken for a body fitted at its
@@ -147,10 +147,13 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
     ``cameras``: N >= 2 calibrated cameras; ``blobs[c]``: (N_c, 2) observed pixels of camera c; ``bodies``: name
     -> (N, 3) float64 sphere centres, body frame; ``predictions``: name -> (4, 4) predicted ``T_world_body``
     (bodies absent have none); ``arrays``: the points' positions and covariances (the node's centroid noise);
-    ``parts[c]``: (P_c, 2, 2) the two parts of each split blob of camera c (none without). The points are the
-    labelled ones first, then the full path's.
+    ``parts[c]``: (P_c, 2, 2) the two parts of each split blob of camera c (none without), each view of a point
+    indexing camera c's blobs then its parts. The points are the labelled ones first, then the full path's.
     """
     blobs = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in blobs]
+    pairs = [np.asarray(p, np.float64).reshape(-1, 2, 2) for p in parts] if parts is not None else []
+    split = any(len(p) for p in pairs)
+    observed = [np.concatenate([b, p.reshape(-1, 2)]) for b, p in zip(blobs, pairs, strict=True)] if split else blobs
     predicted = [name for name in bodies if name in predictions]
     labelled: list[TriangulatedPoint] = []
     labels: dict[str, np.ndarray] = {}
@@ -160,11 +163,8 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
         expected = np.concatenate([transform_points(predictions[name], s) for name, s in zip(predicted, spheres,
                                                                                               strict=True)])
         on_blobs = label_blobs(stack, blobs, expected, tracking.gate_px)
-        observed = blobs
-        if parts is not None and any(len(p) for p in parts):
-            on_blobs, observed = label_parts(stack.project(expected), blobs,
-                                             [np.asarray(p, np.float64).reshape(-1, 2, 2) for p in parts], on_blobs,
-                                             tracking.gate_px)
+        if split:
+            on_blobs, _ = label_parts(stack.project(expected), blobs, pairs, on_blobs, tracking.gate_px)
         ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, observed, strict=True)]
         rows, labelled = triangulate_labelled(Views(stack, observed, ideal, correspondence.covariance_sigma_px),
                                               on_blobs, correspondence)
@@ -172,7 +172,7 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
         point_of_sphere[rows] = np.arange(len(rows))
         first = np.cumsum([0] + [len(s) for s in spheres])
         labels = {name: point_of_sphere[first[k]:first[k + 1]] for k, name in enumerate(predicted)}
-    rest = _full_path(cameras, blobs, labelled, correspondence)
+    rest = _full_path(cameras, observed, labelled, correspondence)
     found = labelled + rest
     points, covariances = arrays(found)
     fitted = fit_labelled(bodies, points, covariances, labels, match, tracking.min_spheres)
@@ -184,13 +184,11 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
 
 def _full_path(cameras: Sequence[CameraModel], blobs: list[np.ndarray], labelled: list[TriangulatedPoint],
                options: CorrespondenceOptions) -> list[TriangulatedPoint]:
-    """``triangulate_blobs`` on the blobs in none of the ``labelled`` points, their indices those of ``blobs`` (a
-    labelled view past ``blobs[c]`` is a part of a split blob)."""
+    """``triangulate_blobs`` on the blobs in none of the ``labelled`` points, their indices those of ``blobs``."""
     free = [np.ones(len(b), bool) for b in blobs]
     for point in labelled:
         for c, i in zip(point.camera_indices, point.blob_indices, strict=True):
-            if i < len(free[c]):
-                free[c][i] = False
+            free[c][i] = False
     left = [np.flatnonzero(mask) for mask in free]
     if sum(len(indices) > 0 for indices in left) < 2:
         return []
