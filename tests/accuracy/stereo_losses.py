@@ -178,8 +178,9 @@ def cause(scene: IrRigScene, discs: Discs, body: str, index: int) -> str:
 def stage(scene: IrRigScene, discs: Discs, body: str, clean: list[np.ndarray], labels: np.ndarray | None,
           found: Found, match: MatchOptions) -> str:
     """The first of ``STAGES`` where ``body``, trackable and lost, fails (module docstring). ``clean[c]``: (N_c, 2)
-    unflagged blobs of camera c then the parts of its split blobs, those the node triangulates; ``labels``: (N, C) the blob each of its spheres labels
-    per camera (-1: none), None when it was not predicted; ``found``: the set's points and bodies."""
+    unflagged blobs of camera c then the parts of its split blobs, those the node triangulates; ``labels``: (N, C)
+    the blob each of its spheres labels per camera (-1: none), None when it was not predicted; ``found``: the set's
+    points and bodies."""
     mine = discs.owner == body
     truth = discs.world[mine]
     own_blob = np.full(discs.lit[mine].shape, -1, np.int64)

@@ -23,11 +23,11 @@ instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.B
    is the view dropped, and a sphere seen cleanly by two cameras keeps them whatever a third makes of it.
 3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
    the worst sphere let go while the fit breaks its gate, ``rigid.within_gates``; at least ``min_spheres``
-   kept). The blobs in no point kept, the split blobs' parts among them, are put in correspondence by ``triangulate_blobs``; the bodies not
-   fitted are then looked for among those points and the labelled points no fit kept, near their
-   prediction first, else by their distance signatures (``tracking.match_with_prediction``). A decoy
-   repeating a body's distances away from its prediction is never taken for a body fitted at its
-   prediction.
+   kept). The blobs in no point kept, the split blobs' parts among them, are put in correspondence by
+   ``triangulate_blobs``; the bodies not fitted are then looked for among those points and the labelled
+   points no fit kept, near their prediction first, else by their distance signatures
+   (``tracking.match_with_prediction``). A decoy repeating a body's distances away from its prediction is
+   never taken for a body fitted at its prediction.
 """
 
 from __future__ import annotations
