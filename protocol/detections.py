@@ -48,8 +48,9 @@ class MarkerDetections(Message):
 
 BlobMethod = Literal["ir", "log", "colour"]
 
-BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED = 1, 2, 4
-"""Bits of ``Blobs.flags``: two blobs run together; partly hidden or cut; touches the image border."""
+BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED, BLOB_SPLIT = 1, 2, 4, 8
+"""Bits of ``Blobs.flags``: two blobs run together; partly hidden or cut; touches the image border; one of the
+two discs fitted to the merged or occluded blob in the row before the pair of ``BLOB_SPLIT`` rows."""
 
 
 class Blobs(Message):
@@ -59,7 +60,8 @@ class Blobs(Message):
     ``colour`` hue). ``centroids``: (N, 2) float64 px (x right, y down, centre of the top-left
     pixel at (0, 0)); ``areas``: (N,) float32 px^2; ``radii``: (N,) float32 px; ``quality``:
     (N,) float32 in [0, 1], higher is better; ``flags``: (N,) uint8, bits ``BLOB_MERGED``,
-    ``BLOB_OCCLUDED``, ``BLOB_CLIPPED`` (0: one round, whole spot).
+    ``BLOB_OCCLUDED``, ``BLOB_CLIPPED``, ``BLOB_SPLIT`` (0: one round, whole spot). The ``ir`` method follows a
+    merged or occluded blob it could split with two ``BLOB_SPLIT`` rows, the centres of the two spots in it.
     """
 
     SCHEMA = "artrack.Blobs"

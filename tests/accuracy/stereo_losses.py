@@ -27,10 +27,11 @@ blobs run into one), ``hidden`` (one of its spheres is hidden from a camera), ``
 is largest and blobs are clipped), else ``unknown``. It also gets the tracker's step where it was lost
 (``STAGES``), the first that fails:
 
-* ``blobs``: fewer than 3 spheres have a clean (unflagged) blob within ``BLOB_PX`` of their image in 2
-  cameras or more (merged, occluded or clipped blobs are not triangulated);
+* ``blobs``: fewer than 3 spheres have a clean (unflagged) blob, or a part of a split blob, within ``BLOB_PX``
+  of their image in 2 cameras or more (merged, occluded or clipped blobs are not triangulated);
 * ``labels``: the body was predicted but fewer than 3 of its spheres were labelled in 2 cameras or more
-  (``labelled.label_blobs``: a view within the gate of two predicted spheres is doubtful and dropped)
+  (``labelled.label_blobs``: a view within the gate of two predicted spheres is doubtful and dropped;
+  ``labelled.label_parts``: a split blob's parts go to the two predicted spheres inside it)
   and the full path did not make up for it (fewer than 3 sphere points);
 * ``pairing``: fewer than 3 of its spheres became points (within ``POINT_MM`` of their true centre), and a
   point far from every sphere (a ghost) was made of one of their clean blobs: correspondence paired the
@@ -65,8 +66,8 @@ import numpy as np
 
 from services.detection.blobs.node import Params as BlobsParams
 from services.detection.blobs.node import detector
-from services.estimation.bodies.labelled import Found, label_blobs
-from services.estimation.bodies.node import BodiesPerSet, Params, pixels
+from services.estimation.bodies.labelled import Found, label_blobs, label_parts
+from services.estimation.bodies.node import BodiesPerSet, Params, pixels, split_parts
 from services.estimation.bodies.rigid import MatchOptions, pairwise_distances, within_gates
 from services.geometry.absolute_orientation import least_squares_transforms
 from services.geometry.camera_stack import CameraStack
@@ -177,8 +178,9 @@ def cause(scene: IrRigScene, discs: Discs, body: str, index: int) -> str:
 def stage(scene: IrRigScene, discs: Discs, body: str, clean: list[np.ndarray], labels: np.ndarray | None,
           found: Found, match: MatchOptions) -> str:
     """The first of ``STAGES`` where ``body``, trackable and lost, fails (module docstring). ``clean[c]``: (N_c, 2)
-    unflagged blobs of camera c, those the node triangulates; ``labels``: (N, C) the blob each of its spheres labels
-    per camera (-1: none), None when it was not predicted; ``found``: the set's points and bodies."""
+    unflagged blobs of camera c then the parts of its split blobs, those the node triangulates; ``labels``: (N, C)
+    the blob each of its spheres labels per camera (-1: none), None when it was not predicted; ``found``: the set's
+    points and bodies."""
     mine = discs.owner == body
     truth = discs.world[mine]
     own_blob = np.full(discs.lit[mine].shape, -1, np.int64)
@@ -223,12 +225,14 @@ def analyse(scene: IrRigScene, frames: int = FRAMES) -> list[Verdict]:
         images = scene.render(index).images
         found_blobs = [find(images[c.name]) for c in cameras]
         blobs = [pixels(b, params.flagged) for b in found_blobs]
+        parts = [split_parts(b) for b in found_blobs]
         stamp_ns = round(scene.time_s(index) * 1e9)
         forecasts = {name: p.T_world_body for name, model in per_set.tracker.models.items()
                      if (p := model.predict(stamp_ns)) is not None}
-        found, bridged = per_set(stamp_ns, cameras, blobs)
+        found, bridged = per_set(stamp_ns, cameras, blobs, parts)
         discs = Discs.of(scene, stack, index)
-        labels = label_predicted(scene, stack, blobs, forecasts, params.tracking.gate_px)
+        labels = label_predicted(scene, stack, blobs, parts, forecasts, params.tracking.gate_px)
+        usable = [np.concatenate([b, p.reshape(-1, 2)]) for b, p in zip(blobs, parts, strict=True)]
         truth = scene.body_poses(index)
         for name in scene.bodies:
             mine = discs.owner == name
@@ -245,20 +249,21 @@ def analyse(scene: IrRigScene, frames: int = FRAMES) -> list[Verdict]:
             else:
                 verdicts.append(Verdict(index, name, True, "lost", name in bridged,
                                         cause=cause(scene, discs, name, index),
-                                        stage=stage(scene, discs, name, blobs, labels.get(name), found,
+                                        stage=stage(scene, discs, name, usable, labels.get(name), found,
                                                     params.match)))
     return verdicts
 
 
-def label_predicted(scene: IrRigScene, stack: CameraStack, blobs: list[np.ndarray], forecasts: dict[str, np.ndarray],
-                    gate_px: float) -> dict[str, np.ndarray]:
-    """Name -> (N, C) the blob each sphere of each predicted body labels per camera (-1: none), as
-    ``labelled.track_blobs`` labels them (all predicted bodies at once)."""
+def label_predicted(scene: IrRigScene, stack: CameraStack, blobs: list[np.ndarray], parts: list[np.ndarray],
+                    forecasts: dict[str, np.ndarray], gate_px: float) -> dict[str, np.ndarray]:
+    """Name -> (N, C) the blob or split blob's part each sphere of each predicted body labels per camera (-1:
+    none), as ``labelled.track_blobs`` labels them (all predicted bodies at once)."""
     if not forecasts:
         return {}
     names = list(forecasts)
     expected = np.concatenate([transform_points(forecasts[name], scene.bodies[name]) for name in names])
-    labels = label_blobs(stack, blobs, expected, gate_px)
+    labels, _ = label_parts(stack.project(expected), blobs, parts, label_blobs(stack, blobs, expected, gate_px),
+                            gate_px)
     first = np.cumsum([0] + [len(scene.bodies[name]) for name in names])
     return {name: labels[first[k]:first[k + 1]] for k, name in enumerate(names)}
 

@@ -4,9 +4,10 @@ each at 120 Hz.
 Three arc cameras at different distances, each with its distortion; the tool (4 spheres) and the head (5),
 15 mm spheres; a sphere hidden from one camera now and then, two stray reflections, the bodies turning four
 times as far and fast as the default scene's so that spheres merge in some views. Run and scored by
-``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker, the seeds' frames pooled. Requirements:
-no ghost; per body the tracked share of the trackable frames and the median position and rotation errors no
-worse than the floors below.
+``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker, the seeds' frames pooled; and the bar of
+three cameras 0.3 m apart (``stereo_losses.BASE``), alone and with the bodies spinning, where two spheres merged in
+one view are merged in all. Requirements: no ghost; per body the tracked share of the trackable frames and the
+median position and rotation errors no worse than the floors below.
 """
 
 from __future__ import annotations
@@ -17,21 +18,25 @@ import numpy as np
 import pytest
 
 from services.geometry.camera_stack import CameraStack
-from tests.accuracy.stereo_losses import FRAMES, Discs, Verdict, analyse, figures, hard_scene
+from tests.accuracy.stereo_losses import FRAMES, Discs, Verdict, analyse, conditions, figures, hard_scene
 
 pytestmark = pytest.mark.slow
 
 SEEDS = range(6)
 FLOORS = {"tool": {"tracked_percent": 99.5, "position_mm_median": 0.06, "rotation_deg_median": 0.06},
-          "head": {"tracked_percent": 99.3, "position_mm_median": 0.06, "rotation_deg_median": 0.06}}
-"""Floors under today's figures (tool 2155 / 2160 frames tracked, 99.8 %, 0.044 mm, 0.045 deg; head 2153 / 2160,
-99.7 %, 0.044 mm, 0.042 deg), with a margin for a change that moves a few frames. The targets are >= 99 % tracked,
-<= 0.3 mm and <= 0.3 deg for every body: every frame lost now has two spheres merged in two views at once."""
+          "head": {"tracked_percent": 99.5, "position_mm_median": 0.06, "rotation_deg_median": 0.06}}
+"""Floors of the hard scene under today's figures (every body tracked in all its 2160 trackable frames, tool 0.041 mm
+and 0.043 deg, head 0.037 mm and 0.034 deg), with a margin for a change that moves a few frames."""
+BAR_FLOORS = {"tracked_percent": 99.0, "position_mm_median": 0.3, "rotation_deg_median": 0.3}
+"""The bar of three cameras 0.3 m apart (``base``, and ``spin alone``: two spheres merged in every view at once):
+the requirement itself (tracked in at least 99 % of the trackable frames, medians within 0.3 mm and 0.3 deg); today
+every body is tracked in all 2160 trackable frames of either, at 0.075 to 0.088 mm and 0.079 to 0.102 deg."""
 
 
 @cache
-def verdicts() -> list[Verdict]:
-    return [v for seed in SEEDS for v in analyse(hard_scene(seed=seed), FRAMES)]
+def verdicts(condition: str = "all (hard)") -> list[Verdict]:
+    changes = dict(conditions("all", {}))[condition]
+    return [v for seed in SEEDS for v in analyse(hard_scene(**{**changes, "seed": seed}), FRAMES)]
 
 
 def test_the_hard_conditions_occur_in_the_frames():
@@ -63,8 +68,19 @@ def test_the_defaults_track_the_hard_scene_without_a_ghost_above_the_floors():
         assert body["rotation_deg_median"] <= floors["rotation_deg_median"], (name, body)
 
 
+@pytest.mark.parametrize("condition", ["base", "spin alone"])
+def test_the_defaults_track_the_bar_where_spheres_merge_in_every_view(condition):
+    found = figures(verdicts(condition))
+    print(condition, found)
+    for name, body in found.items():
+        assert body["ghosts"] == 0, (name, body)
+        assert body["trackable"] >= 0.9 * FRAMES * len(SEEDS), (name, body)
+        assert body["tracked_percent"] >= BAR_FLOORS["tracked_percent"], (name, body)
+        assert body["position_mm_median"] <= BAR_FLOORS["position_mm_median"], (name, body)
+        assert body["rotation_deg_median"] <= BAR_FLOORS["rotation_deg_median"], (name, body)
+
+
 def test_every_lost_frame_has_one_cause_and_one_stage():
-    lost = [v for v in verdicts() if v.outcome == "lost"]
-    assert lost
+    lost = [v for condition in ("all (hard)", "base", "spin alone") for v in verdicts(condition)
+            if v.outcome == "lost"]
     assert all(v.cause and v.stage for v in lost)
-    assert any(v.cause == "merged" for v in lost)

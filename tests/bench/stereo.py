@@ -135,7 +135,8 @@ def _predicted(followed: rigid_bodies_node.BodiesPerSet, stamp_ns: int, cameras:
     """Seconds the node's work on one instant takes with prediction (``BodiesPerSet`` on the ``blobs`` messages
     and its messages), and what it found."""
     started = time.perf_counter()
-    found, predicted = followed(stamp_ns, cameras, [rigid_bodies_node.pixels(b, False) for b in blobs])
+    found, predicted = followed(stamp_ns, cameras, [rigid_bodies_node.pixels(b, False) for b in blobs],
+                                [rigid_bodies_node.split_parts(b) for b in blobs])
     header = _header("world")
     messages = [rigid_bodies_node.points_message(header, found.points, names, found.matching, found.covariances),
                 *rigid_bodies_node.body_poses(header, found.matching),
@@ -155,10 +156,15 @@ def _triangulation_alone(stack: Any, found: list, blobs: list, sigma_px: float) 
     seen = np.zeros((len(found), len(stack)), bool)
     for row, point in enumerate(found):
         for c, i in zip(point.camera_indices, point.blob_indices, strict=True):
-            pixels[row, c], seen[row, c] = rigid_bodies_node.pixels(blobs[c], False)[i], True
+            pixels[row, c], seen[row, c] = _observed(blobs[c])[i], True
     started = time.perf_counter()
     triangulate_many(stack, pixels, seen, sigma_px)
     return time.perf_counter() - started
+
+
+def _observed(blobs: Blobs) -> np.ndarray:
+    """(N + 2 P, 2) px: the blobs a point's views index, the clean ones then the split blobs' parts."""
+    return np.concatenate([rigid_bodies_node.pixels(blobs, False), rigid_bodies_node.split_parts(blobs).reshape(-1, 2)])
 
 
 def _fit_alone(bodies: dict[str, np.ndarray], points: np.ndarray, covariances: np.ndarray, matching: Matching) -> float:

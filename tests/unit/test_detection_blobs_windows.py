@@ -1,6 +1,7 @@
 """IR blob detection with its windows measured together, cross-checked against a plain reference that
-measures each component in a window of its own: the same blobs in the same order, the same numbers
-(bit for bit but the quality, whose second moments OpenCV sums in its own order), on ``ir_rig`` frames
+measures each component in a window of its own (and splits a merged or occluded one there): the same blobs in
+the same order, the same numbers (bit for bit but the quality, whose second moments OpenCV sums in its own order),
+on ``ir_rig`` frames
 and on hard images (merged and cut discs, discs over the border, salt noise, a ring with a spot in its
 hole, mono16)."""
 
@@ -22,6 +23,7 @@ from services.detection.blobs.bright import (
     shape_flags,
     stack_groups,
 )
+from services.detection.blobs.split import split_two_discs
 from services.synthetic import make_scene
 from tests.blob_images import disc_image
 
@@ -69,6 +71,10 @@ def reference_blobs(image: np.ndarray, params: IrBlobParams, shape: ShapeParams)
             flags |= BlobFlag.CLIPPED
         rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity,
                      roundness * solidity, int(flags)))
+        if flags & (BlobFlag.MERGED | BlobFlag.OCCLUDED) and (discs := split_two_discs(weights, centroid, axis)):
+            for (cx, cy), r in zip(discs.centres, discs.radii, strict=True):
+                rows.append((x0 + cx, y0 + cy, math.pi * r * r, r, 2.0 * math.pi * r, 1.0, 1.0 - discs.rms,
+                             int(BlobFlag.SPLIT | (flags & BlobFlag.CLIPPED))))
     return Blobs.from_rows(rows)
 
 
@@ -124,7 +130,7 @@ def test_hard_images_give_the_reference_blobs(params, shape):
             found = detect_ir_blobs(pixels, scaled, shape)
             assert_same(found, reference_blobs(pixels, scaled, shape))
             flags |= int(np.bitwise_or.reduce(found.flags, initial=0))
-    assert flags == BlobFlag.MERGED | BlobFlag.OCCLUDED | BlobFlag.CLIPPED
+    assert flags == BlobFlag.MERGED | BlobFlag.OCCLUDED | BlobFlag.CLIPPED | BlobFlag.SPLIT
 
 
 @pytest.mark.parametrize("size", [(48, 64), (49, 63), (7, 9)])

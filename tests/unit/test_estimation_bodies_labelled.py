@@ -1,11 +1,12 @@
 """Bodies followed in the images: the same points and poses as the full path where it sees the same views, and
-the body kept through a sphere hidden in a view, a stray near it, two spheres merged, and a decoy of it."""
+the body kept through a sphere hidden in a view, a stray near it, two spheres merged (in one view, or in every view
+with the blob split), a split blob's part off its sphere, and a decoy of it."""
 
 import numpy as np
 import pytest
 
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
-from services.estimation.bodies.labelled import track_blobs
+from services.estimation.bodies.labelled import label_parts, track_blobs
 from services.estimation.bodies.node import BodiesPerSet, Params, pixels, point_arrays
 from services.estimation.bodies.rigid import MatchOptions, match_bodies
 from services.estimation.bodies.tracking import TrackingOptions
@@ -176,3 +177,69 @@ def test_a_decoy_repeating_a_body_away_from_its_prediction_is_not_taken():
     tool = found.matching.bodies["tool"]
     assert tool.spheres_used == 3 and pose_error(tool.fit.T_world_body, poses["tool"])[1] < 0.0015
     assert len(found.matching.unassigned) == len(found.points) - 3 >= 4  # the decoy's points: published, unlabelled
+
+
+def merged_everywhere(scene, poses, body, first, second, shift_px=(0.0, 0.0)):
+    """``seen`` with spheres ``first`` and ``second`` of ``body`` one blob in every camera (their mean, left out as
+    flagged blobs are) and their pixels as the two parts of that blob, the first part moved by ``shift_px`` in
+    cam0; the blobs, the parts per camera and the parts' indices in the labelled views."""
+    blobs, where = seen(scene, poses)
+    parts, indices = [], []
+    for c, index in enumerate(where):
+        a, b = index[(body, first)], index[(body, second)]
+        pair = blobs[c][[a, b]] + (np.array([shift_px, (0.0, 0.0)]) if c == 0 else 0.0)
+        blobs[c] = np.delete(blobs[c], [a, b], axis=0)
+        parts.append(pair[None])
+        indices.append((len(blobs[c]), len(blobs[c]) + 1))
+    return blobs, parts, indices
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_two_spheres_merged_in_every_view_are_triangulated_from_the_split_blobs_parts(count):
+    scene = make_scene("ir_rig", camera_count=count, baseline=0.8 if count == 3 else 0.3, body_count=3)
+    poses = {"head": merging_pose(scene, "head", 0, 3, 4.0)}
+    blobs, parts, indices = merged_everywhere(scene, poses, "head", 0, 3)
+    prediction = {"head": poses["head"] @ SLIGHTLY_OFF}
+    without = follow(scene, blobs, prediction).matching.bodies["head"]
+    assert without.spheres_used == 3
+    found = track_blobs(scene.cameras, blobs, scene.bodies, prediction, point_arrays, CORRESPONDENCE, MatchOptions(),
+                        TrackingOptions(), parts)
+    head = found.matching.bodies["head"]
+    assert head.spheres_used == 5
+    for sphere in (0, 3):
+        point = found.points[head.indices[sphere]]
+        assert point.camera_indices == tuple(range(count))
+        assert point.blob_indices == tuple(pair[0 if sphere == 0 else 1] for pair in indices)
+    assert pose_error(head.fit.T_world_body, poses["head"])[1] < pose_error(without.fit.T_world_body,
+                                                                              poses["head"])[1]
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_a_part_off_its_sphere_is_dropped_not_taken(count):
+    """A part 2.6 px off its sphere's image in cam0 (within the labelling gate): the view is dropped by its residual
+    (the sphere made from the other two cameras) or the sphere let go by the fit, never taken."""
+    scene = make_scene("ir_rig", camera_count=count, baseline=0.8 if count == 3 else 0.3, body_count=3)
+    poses = {"head": merging_pose(scene, "head", 0, 3, 4.0)}
+    blobs, parts, _ = merged_everywhere(scene, poses, "head", 0, 3, shift_px=(2.6, 0.0))
+    found = track_blobs(scene.cameras, blobs, scene.bodies, {"head": poses["head"] @ SLIGHTLY_OFF}, point_arrays,
+                        CORRESPONDENCE, MatchOptions(), TrackingOptions(), parts)
+    head = found.matching.bodies["head"]
+    assert head.spheres_used >= 4
+    assert head.indices[0] < 0 or found.points[head.indices[0]].camera_indices == (1, 2)
+    assert pose_error(head.fit.T_world_body, poses["head"])[1] < (0.0005 if count == 3 else 0.0015)
+
+
+def test_a_split_blobs_parts_go_only_to_exactly_two_predicted_spheres_inside_it():
+    projected = np.array([[[10.0, 10.0]], [[14.0, 10.0]], [[40.0, 40.0]]])
+    parts = [np.array([[[14.2, 10.1], [10.1, 9.9]]])]
+    blobs = [np.array([[40.0, 40.1]])]
+    unlabelled = np.array([[-1], [-1], [0]])
+    labels, observed = label_parts(projected, blobs, parts, unlabelled, 3.0)
+    assert labels[:, 0].tolist() == [2, 1, 0]
+    np.testing.assert_array_equal(observed[0], [[40.0, 40.1], [14.2, 10.1], [10.1, 9.9]])
+    crowded = np.array([[[10.0, 10.0]], [[14.0, 10.0]], [[12.0, 11.0]]])
+    assert label_parts(crowded, blobs, parts, np.full((3, 1), -1), 3.0)[0].tolist() == [[-1], [-1], [-1]]
+    alone = label_parts(projected[[0, 2]], blobs, parts, np.array([[-1], [0]]), 3.0)[0]
+    assert alone.tolist() == [[-1], [0]]
+    taken = label_parts(projected, blobs, parts, np.array([[-1], [0], [-1]]), 3.0)[0]
+    assert taken.tolist() == [[-1], [0], [-1]]

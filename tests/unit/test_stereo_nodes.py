@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from protocol import Header, Pose, decode, encode
-from protocol.detections import BLOB_CLIPPED, BLOB_MERGED, BLOB_OCCLUDED, Blobs
+from protocol.detections import BLOB_CLIPPED, BLOB_MERGED, BLOB_OCCLUDED, BLOB_SPLIT, Blobs
 from protocol.mocap import Points3D
 from protocol.poses import PoseQuality
 from services.calibration.rig import Rig, write_rig
@@ -42,7 +42,8 @@ def disc_image(dtype=np.uint8, scale: float = 1.0) -> np.ndarray:
 
 
 def test_blob_flag_bits_on_the_wire_are_the_detectors():
-    assert (BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED) == (BlobFlag.MERGED, BlobFlag.OCCLUDED, BlobFlag.CLIPPED)
+    assert (BLOB_MERGED, BLOB_OCCLUDED, BLOB_CLIPPED, BLOB_SPLIT) == (BlobFlag.MERGED, BlobFlag.OCCLUDED,
+                                                                      BlobFlag.CLIPPED, BlobFlag.SPLIT)
 
 
 def test_blobs_and_points_travel_unchanged_and_refuse_misaligned_rows():

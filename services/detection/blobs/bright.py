@@ -21,6 +21,11 @@ inside it). Per component, in a small window around it:
   CLIPPED: it touches the image border, so part of it may be outside;
 * quality: roundness times solidity, in (0, 1].
 
+A blob flagged MERGED or OCCLUDED is also split (``split.split_two_discs``: two discs fitted to its
+weights); where the fit holds, two rows flagged SPLIT follow the blob's own: the two discs' centres,
+areas and radii (circularity and perimeter those of the disc, quality one less the fit's residual RMS
+as a fraction of its peak), CLIPPED too when the blob is.
+
 Flagged blobs are reported, not dropped: a consumer that wants clean centroids keeps
 ``blobs.clean()``. Filters drop components outside ``[min_area, max_area]`` pixels, outside
 ``[min_radius, max_radius]`` px or below ``min_circularity`` (noise, streaks).
@@ -37,6 +42,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.detection.blobs.split import split_two_discs
 from services.geometry.shapes import check_shape
 
 __all__ = ["BlobFlag", "Blobs", "IrBlobParams", "ShapeParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
@@ -60,9 +66,13 @@ class BlobFlag(enum.IntFlag):
     """Not round and no waist: partly hidden or cut, the centroid is off the spot's centre."""
     CLIPPED = 4
     """Touches the image border: part of the blob may lie outside the image."""
+    SPLIT = 8
+    """One of two discs fitted to the MERGED or OCCLUDED blob in the row before the pair (``split``)."""
 
 
 CLIPPED = int(BlobFlag.CLIPPED)
+SPLIT = int(BlobFlag.SPLIT)
+SPLITTABLE = int(BlobFlag.MERGED | BlobFlag.OCCLUDED)
 
 
 @dataclass(frozen=True)
@@ -108,7 +118,7 @@ class Blobs:
         return (self.flags & int(flag)) != 0
 
     def clean(self) -> Blobs:
-        """The blobs with no flag set."""
+        """The blobs with no flag set (the parts of split blobs are left out with their blobs)."""
         return self.select(self.flags == 0)
 
 
@@ -218,6 +228,10 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
         x0, y0 = origin_of[k]
         rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity, roundness * solidity,
                      flags))
+        if flags & SPLITTABLE and (discs := split_two_discs(window, centroid, axis)) is not None:
+            rows += [(x0 + x, y0 + y, math.pi * r * r, r, 2.0 * math.pi * r, 1.0, 1.0 - discs.rms,
+                      SPLIT | (flags & CLIPPED)) for (x, y), r in zip(discs.centres.tolist(), discs.radii.tolist(),
+                                                                       strict=True)]
     return Blobs.from_rows(rows)
 
 

@@ -10,19 +10,24 @@ instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.B
    ``gate_px``: ``correspondence.gated_assignment``). A blob within ``gate_px`` of two predicted spheres or
    more (their images merged, or about to) is doubtful: none of those spheres takes a view in that camera
    (each keeps its others), and the blob is left to the full path. A blob far from every predicted sphere
-   (a stray, a body lost or new) is never labelled.
+   (a stray, a body lost or new) is never labelled. ``label_parts`` then gives the two parts of a blob split
+   in two discs (``detection.blobs.split``: the centres of two spheres merged in that view) to the two
+   predicted spheres inside it, one each (the pairing of least total distance, each within ``gate_px``),
+   where exactly two predicted spheres lie within ``gate_px`` of the parts and neither has a view in that
+   camera yet.
 2. ``triangulate_labelled``: a sphere labelled in two cameras or more is triangulated over all its views,
    every sphere in one batch (``correspondence.Views``: DLT, Gauss-Newton and covariance, the worst view
    dropped while one breaks the reprojection gate and more than two remain): the point, residual and
    covariance ``triangulate_blobs`` gives a cluster of the same views. A point whose RMS is above the gate,
-   or with fewer than ``min_views`` views, is left out.
+   or with fewer than ``min_views`` views, is left out. So a part that lies off its sphere's other views
+   is the view dropped, and a sphere seen cleanly by two cameras keeps them whatever a third makes of it.
 3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
    the worst sphere let go while the fit breaks its gate, ``rigid.within_gates``; at least ``min_spheres``
-   kept). The blobs in no point kept are put in correspondence by ``triangulate_blobs``; the bodies not
-   fitted are then looked for among those points and the labelled points no fit kept, near their
-   prediction first, else by their distance signatures (``tracking.match_with_prediction``). A decoy
-   repeating a body's distances away from its prediction is never taken for a body fitted at its
-   prediction.
+   kept). The blobs in no point kept, the split blobs' parts among them, are put in correspondence by
+   ``triangulate_blobs``; the bodies not fitted are then looked for among those points and the labelled
+   points no fit kept, near their prediction first, else by their distance signatures
+   (``tracking.match_with_prediction``). A decoy repeating a body's distances away from its prediction is
+   never taken for a body fitted at its prediction.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import TriangulatedPoint
 
-__all__ = ["Found", "label_blobs", "track_blobs", "triangulate_labelled"]
+__all__ = ["Found", "label_blobs", "label_parts", "track_blobs", "triangulate_labelled"]
 
 PointArrays = Callable[[list[TriangulatedPoint]], tuple[np.ndarray, np.ndarray]]
 """One instant's points -> their (M, 3) world positions and (M, 3, 3) covariances (m^2)."""
@@ -91,6 +96,36 @@ def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.nd
     return labels
 
 
+def label_parts(projected: np.ndarray, blobs: Sequence[np.ndarray], parts: Sequence[np.ndarray], labels: np.ndarray,
+                gate_px: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``(labels, observed)``: ``labels`` (S, C) int64 with the split blobs' parts given to the predicted spheres
+    inside them (see the module docstring), and per camera the (N_c + 2 P_c, 2) pixels the labels index: the
+    blobs, then the parts in pair order.
+
+    ``projected``: (S, C, 2) the predicted spheres' images (NaN where not seen); ``blobs[c]``: (N_c, 2) clean
+    blobs of camera c; ``parts[c]``: (P_c, 2, 2) the two parts of each of its split blobs; ``labels``: (S, C)
+    ``label_blobs``' labels, not changed."""
+    labels = labels.copy()
+    observed = []
+    for c, (clean, pairs) in enumerate(zip(blobs, parts, strict=True)):
+        observed.append(np.concatenate([clean, pairs.reshape(-1, 2)]))
+        if not len(pairs):
+            continue
+        with np.errstate(invalid="ignore"):
+            distance = np.linalg.norm(projected[:, c, None, None, :] - pairs[None], axis=3)
+            inside = np.min(distance, axis=2) < gate_px
+        for k in range(len(pairs)):
+            spheres = np.flatnonzero(inside[:, k])
+            if len(spheres) != 2 or np.any(labels[spheres, c] >= 0):
+                continue
+            near = distance[spheres, k]
+            swap = near[0, 1] + near[1, 0] < near[0, 0] + near[1, 1]
+            order = [1, 0] if swap else [0, 1]
+            if np.all(near[[0, 1], order] < gate_px):
+                labels[spheres, c] = len(clean) + 2 * k + np.array(order)
+    return labels, observed
+
+
 def triangulate_labelled(instant: Views, labels: np.ndarray, options: CorrespondenceOptions
                          ) -> tuple[np.ndarray, list[TriangulatedPoint]]:
     """``(spheres (K,) int64, points)``: the spheres (rows of (S, C) ``labels``) triangulated from the blobs they
@@ -105,15 +140,20 @@ def triangulate_labelled(instant: Views, labels: np.ndarray, options: Correspond
 
 def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bodies: Mapping[str, np.ndarray],
                 predictions: Mapping[str, np.ndarray], arrays: PointArrays,
-                correspondence: CorrespondenceOptions, match: MatchOptions, tracking: TrackingOptions) -> Found:
+                correspondence: CorrespondenceOptions, match: MatchOptions, tracking: TrackingOptions,
+                parts: Sequence[np.ndarray] | None = None) -> Found:
     """The points of one instant and the bodies among them (see the module docstring).
 
     ``cameras``: N >= 2 calibrated cameras; ``blobs[c]``: (N_c, 2) observed pixels of camera c; ``bodies``: name
     -> (N, 3) float64 sphere centres, body frame; ``predictions``: name -> (4, 4) predicted ``T_world_body``
-    (bodies absent have none); ``arrays``: the points' positions and covariances (the node's centroid noise).
-    The points are the labelled ones first, then the full path's.
+    (bodies absent have none); ``arrays``: the points' positions and covariances (the node's centroid noise);
+    ``parts[c]``: (P_c, 2, 2) the two parts of each split blob of camera c (none without), each view of a point
+    indexing camera c's blobs then its parts. The points are the labelled ones first, then the full path's.
     """
     blobs = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in blobs]
+    pairs = [np.asarray(p, np.float64).reshape(-1, 2, 2) for p in parts] if parts is not None else []
+    split = any(len(p) for p in pairs)
+    observed = [np.concatenate([b, p.reshape(-1, 2)]) for b, p in zip(blobs, pairs, strict=True)] if split else blobs
     predicted = [name for name in bodies if name in predictions]
     labelled: list[TriangulatedPoint] = []
     labels: dict[str, np.ndarray] = {}
@@ -123,14 +163,16 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
         expected = np.concatenate([transform_points(predictions[name], s) for name, s in zip(predicted, spheres,
                                                                                               strict=True)])
         on_blobs = label_blobs(stack, blobs, expected, tracking.gate_px)
-        ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, blobs, strict=True)]
-        rows, labelled = triangulate_labelled(Views(stack, blobs, ideal, correspondence.covariance_sigma_px), on_blobs,
-                                              correspondence)
+        if split:
+            on_blobs, _ = label_parts(stack.project(expected), blobs, pairs, on_blobs, tracking.gate_px)
+        ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, observed, strict=True)]
+        rows, labelled = triangulate_labelled(Views(stack, observed, ideal, correspondence.covariance_sigma_px),
+                                              on_blobs, correspondence)
         point_of_sphere = np.full(len(expected), -1, np.int64)
         point_of_sphere[rows] = np.arange(len(rows))
         first = np.cumsum([0] + [len(s) for s in spheres])
         labels = {name: point_of_sphere[first[k]:first[k + 1]] for k, name in enumerate(predicted)}
-    rest = _full_path(cameras, blobs, labelled, correspondence)
+    rest = _full_path(cameras, observed, labelled, correspondence)
     found = labelled + rest
     points, covariances = arrays(found)
     fitted = fit_labelled(bodies, points, covariances, labels, match, tracking.min_spheres)

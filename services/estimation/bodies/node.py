@@ -53,7 +53,7 @@ from typing import TYPE_CHECKING, Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
-from protocol.detections import Blobs
+from protocol.detections import BLOB_SPLIT, Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.mocap import Points3D
@@ -162,8 +162,14 @@ class Calibration:
 
 
 def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
-    """(N, 2) float64 centroids of the blobs to triangulate: the unflagged ones, or all with ``flagged``."""
-    return blobs.centroids if flagged else blobs.centroids[blobs.flags == 0]
+    """(N, 2) float64 centroids of the blobs to triangulate: the unflagged ones, or with ``flagged`` all but the
+    parts of split blobs."""
+    return blobs.centroids[(blobs.flags & BLOB_SPLIT) == 0] if flagged else blobs.centroids[blobs.flags == 0]
+
+
+def split_parts(blobs: Blobs) -> np.ndarray:
+    """(P, 2, 2) float64: the two parts' centroids (px) of each split blob, the ``BLOB_SPLIT`` rows in pairs."""
+    return blobs.centroids[(blobs.flags & BLOB_SPLIT) != 0].reshape(-1, 2, 2)
 
 
 def point_arrays(found: list[TriangulatedPoint]) -> tuple[np.ndarray, np.ndarray]:
@@ -200,10 +206,11 @@ class BodiesPerSet:
         self.noise = PointNoise(params.correspondence)
         self.tracker = BodyTracker(bodies, params.match, params.tracking) if params.predict else None
 
-    def __call__(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray]
-                 ) -> tuple[Found, dict[str, Prediction]]:
+    def __call__(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray],
+                 parts: list[np.ndarray] | None = None) -> tuple[Found, dict[str, Prediction]]:
         """The set's ``Found`` and name -> ``Prediction`` of the bodies bridged; ``blobs[c]``: (N_c, 2) pixels
-        of ``cameras[c]`` (``pixels``)."""
+        of ``cameras[c]`` (``pixels``); ``parts[c]``: (P_c, 2, 2) its split blobs' parts (``split_parts``),
+        used by the bodies followed."""
         params = self.params
         if self.tracker is None:
             made = triangulate_blobs(cameras, blobs, params.correspondence)
@@ -212,7 +219,7 @@ class BodiesPerSet:
             return Found(made, points, covariances, matching), {}
         forecasts = self.tracker.forecast(stamp_ns)
         found = track_blobs(cameras, blobs, self.bodies, {name: f.T_world_body for name, f in forecasts.items()},
-                            self.noise.arrays, params.correspondence, params.match, params.tracking)
+                            self.noise.arrays, params.correspondence, params.match, params.tracking, parts)
         return found, self.tracker.record(stamp_ns, found.matching, forecasts).predicted
 
 
@@ -299,7 +306,8 @@ def run(node: Node, params: Params) -> None:
                         "nothing triangulated", keys.camera_info(calibration.missing()[0]))
             continue
         found, predicted = per_set(header.stamp_ns, cameras,
-                                   [pixels(joined[name], params.flagged) for name in params.cameras])
+                                   [pixels(joined[name], params.flagged) for name in params.cameras],
+                                   [split_parts(joined[name]) for name in params.cameras])
         poses.put(header, body_poses(header, found.matching) + predicted_poses(header, predicted))
         points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
 

@@ -1,0 +1,63 @@
+"""Merged blobs split into two discs: on two anti-aliased discs run together at known sub-pixel centres, the two
+SPLIT rows after the merged blob's own lie at the discs' centres, cross-checked against a plain reference (each
+disc drawn alone, its plain weighted centroid); a round disc and a tiny blob are not split."""
+
+import numpy as np
+import pytest
+
+from services.detection.blobs.bright import BlobFlag, detect_ir_blobs
+from services.detection.blobs.split import split_two_discs
+from tests.blob_images import disc_image
+
+BACKGROUND = 12
+
+
+def alone_centroid(x: float, y: float, radius: float) -> np.ndarray:
+    """The plain intensity-weighted centroid of one disc drawn alone."""
+    levels = disc_image([(x, y, radius)], background=BACKGROUND).astype(np.float64) - BACKGROUND
+    ys, xs = np.mgrid[0:levels.shape[0], 0:levels.shape[1]]
+    return np.array([(levels * xs).sum(), (levels * ys).sum()]) / levels.sum()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_two_merged_discs_split_at_their_centres(seed):
+    rng = np.random.default_rng(seed)
+    split = 0
+    for _ in range(10):
+        radii = rng.uniform(2.5, 6.0, 2)
+        centre, angle = rng.uniform(70, 90, 2), rng.uniform(0, np.pi)
+        gap = rng.uniform(0.7, 0.95) * radii.sum()
+        direction = np.array([np.cos(angle), np.sin(angle)])
+        truth = np.array([centre, centre + gap * direction])
+        blobs = detect_ir_blobs(disc_image([(*truth[0], radii[0]), (*truth[1], radii[1])], (160, 160), BACKGROUND))
+        parts = blobs.flagged(BlobFlag.SPLIT)
+        assert len(blobs) in (1, 3) and not blobs.flagged(BlobFlag.SPLIT)[0]
+        assert blobs.flags[0] & (BlobFlag.MERGED | BlobFlag.OCCLUDED)
+        if not parts.any():
+            continue
+        split += 1
+        assert parts.tolist() == [False, True, True]
+        found = blobs.centroids[1:]
+        if np.linalg.norm(found[0] - truth[0]) > np.linalg.norm(found[0] - truth[1]):
+            found = found[::-1]
+        reference = np.array([alone_centroid(*truth[k], radii[k]) for k in range(2)])
+        np.testing.assert_allclose(reference, truth, atol=0.02)
+        assert np.abs(found - truth).max() < 0.1, (radii, gap)
+        assert np.abs(found - reference).max() < 0.1, (radii, gap)
+    assert split >= 8
+
+
+def test_a_round_disc_and_a_tiny_blob_are_not_split():
+    image = disc_image([(40.3, 50.6, 5.0), (100.0, 60.0, 1.0)], background=BACKGROUND)
+    assert not detect_ir_blobs(image).flagged(BlobFlag.SPLIT).any()
+    weights = np.zeros((5, 5), np.float32)
+    weights[1:3, 1:3] = 100.0
+    assert split_two_discs(weights, (1.5, 1.5), (1.0, 0.0)) is None
+
+
+def test_a_split_blob_keeps_its_own_row_for_those_who_take_clean_blobs():
+    image = disc_image([(60.2, 60.7, 4.0), (66.1, 61.9, 4.0), (20.0, 20.0, 4.0)], background=BACKGROUND)
+    blobs = detect_ir_blobs(image)
+    assert blobs.flagged(BlobFlag.SPLIT).sum() == 2
+    assert len(blobs.clean()) == 1
+    np.testing.assert_allclose(blobs.clean().centroids[0], (20.0, 20.0), atol=0.02)
