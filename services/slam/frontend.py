@@ -134,6 +134,8 @@ class Tracker:
         self.mapper = mapper
         self._index = -1
         self._reference: _Frame | None = None
+        self._planes: np.ndarray | None = None
+        """The plane normals of the first pair with the reference frame that a plane left ambiguous."""
         self._last: _Frame | None = None
         self._velocity: tuple[np.ndarray, float] | None = None
         """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
@@ -173,7 +175,7 @@ class Tracker:
         frame = _Frame(self._index, stamp_ns, features, np.eye(4), np.full(len(features), -1, np.int64))
         reference = self._reference
         if reference is None or self._index - reference.index > s.reference_max_age:
-            self._reference = frame
+            self._new_reference(frame)
             return Tracked(TrackingState.INITIALISING, "new_reference")
         with stage_timer(timings, "match"):
             first = reference.features
@@ -185,9 +187,11 @@ class Tracker:
         late = self._index - reference.index >= s.init_late_frames
         with stage_timer(timings, "pose"):
             found = initialise(reference.features.pixels[a], features.pixels[b], self.K, np.zeros(5),
-                               self._late_bound if late else self._full_bound)
+                               self._late_bound if late else self._full_bound, self._planes)
+        if found.status is InitialisationStatus.PLANAR_WAIT and self._planes is None:
+            self._planes = found.plane_normals
         if found.status is InitialisationStatus.TOO_FEW_MATCHES:
-            self._reference = frame
+            self._new_reference(frame)
         if not found.initialised or found.T_second_first is None:
             return Tracked(TrackingState.INITIALISING, found.status.value)
         if int(found.inliers.sum()) < s.init_min_points:
@@ -196,7 +200,7 @@ class Tracker:
             keyframe_id = self._start_map(reference, frame, a[found.inliers], b[found.inliers],
                                           found.points[found.inliers], found.T_second_first)
         if keyframe_id is None:
-            self._reference = frame
+            self._new_reference(frame)
             return Tracked(TrackingState.INITIALISING, "too_few_points")
         if found.parallax_deg < self._full_bound.min_parallax_deg:
             with self.map.lock:
@@ -210,6 +214,11 @@ class Tracker:
         errors = reprojection_errors(self.K, last.T_camera_world, points.positions, features.pixels[seen])
         return Tracked(TrackingState.TRACKING, "", last.T_camera_world.copy(), len(seen),
                        float(np.sqrt(np.mean(errors**2))), keyframe_id)
+
+    def _new_reference(self, frame: _Frame) -> None:
+        """Pair the next frames with ``frame``, forgetting the planes of the last reference."""
+        self._reference = frame
+        self._planes = None
 
     def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
                    T_second_first: np.ndarray) -> int | None:

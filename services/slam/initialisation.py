@@ -34,9 +34,13 @@ in front of both cameras. It is accepted only with a median parallax (of the mod
 the chosen pose) large enough for depth to be measured, enough points in front of both cameras and,
 from a homography, a runner-up
 decomposition with clearly fewer points in front: two decompositions explain a plane's matches
-equally well, and when both put the points in front nothing tells them apart, so the result is
-``planar_wait`` rather than a guess. An essential pose whose predicted rotation standard deviation
-(``two_view.pose_std_deg``) exceeds ``max_rotation_std_deg`` is ``pose_uncertain``: a view nearly
+equally well, and when both put the points in front nothing in the pair tells them apart, so the
+result is ``planar_wait`` rather than a guess. A later frame paired with the same first frame does:
+the true decomposition's plane normal (in the first frame) is the same for every such pair, while
+the other's follows the direction of the camera's translation. Given ``planes``, the two normals of
+an earlier ambiguous pair, the decomposition whose normal stays within ``PLANE_KEPT_DEG`` of one of
+them while the other's moved ``PLANE_MOVED_DEG`` or more is taken. An essential pose whose predicted
+rotation standard deviation (``two_view.pose_std_deg``) exceeds ``max_rotation_std_deg`` is ``pose_uncertain``: a view nearly
 planar (a wall filling it with 10 % depth range) scores as a general scene, but its matches leave
 the pose undetermined by a degree or more. Pure rotation and too short a baseline end in
 ``low_parallax``: a later frame, further away, may initialise.
@@ -76,7 +80,12 @@ EARLY_FRACTION = 0.5
 the bound: USAC's essential matrix can see much less parallax than the refined pose the full fit uses
 (0.83 deg against 1.23 deg on room frames 0 / 8 with 1 000 keypoints a frame, a pair over the 1 deg bound)."""
 
-__all__ = ["InitialisationStatus", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
+PLANE_KEPT_DEG = 5.0
+"""The true plane's normal, from two pairs with one first frame, agrees within this (noise)."""
+PLANE_MOVED_DEG = 10.0
+"""The wrong decomposition's normal has followed the translation's direction by at least this much."""
+
+__all__ = ["PLANE_KEPT_DEG", "PLANE_MOVED_DEG", "InitialisationStatus", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
            "initialise"]
 
 
@@ -153,7 +162,9 @@ class TwoViewInitialisation:
     offered (NaN when not measured); ``in_front`` fraction of the model's inliers in front of both
     cameras (0 when not triangulated); ``pose_std_deg`` the essential pose's predicted standard
     deviation (rotation, translation direction), degrees (NaN when not measured);
-    ``essential_inliers`` / ``homography_inliers`` the two USAC inlier counts.
+    ``essential_inliers`` / ``homography_inliers`` the two USAC inlier counts; ``plane_normals`` (2, 3)
+    the unit plane normals (first frame) of the two decompositions a ``planar_wait`` could not tell apart
+    ((0, 3) otherwise), for ``initialise``'s ``planes`` with a later frame.
     """
 
     status: InitialisationStatus
@@ -166,6 +177,7 @@ class TwoViewInitialisation:
     pose_std_deg: tuple[float, float]
     essential_inliers: int
     homography_inliers: int
+    plane_normals: np.ndarray
 
     @property
     def initialised(self) -> bool:
@@ -173,10 +185,12 @@ class TwoViewInitialisation:
 
 
 def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarray, dist: np.ndarray,
-               settings: InitialisationSettings | None = None) -> TwoViewInitialisation:
+               settings: InitialisationSettings | None = None,
+               planes: np.ndarray | None = None) -> TwoViewInitialisation:
     """Try to start a map from N matches: ``pixels_first[i]`` (observed, distorted px) in the first
     frame and ``pixels_second[i]`` in the second, both (N, 2), one camera of (3, 3) ``K`` and
-    plumb_bob ``dist`` (5,). Degenerate cases end in a waiting status, never in a map."""
+    plumb_bob ``dist`` (5,). Degenerate cases end in a waiting status, never in a map. ``planes``
+    (2, 3): the ``plane_normals`` of an earlier ``planar_wait`` with the same first frame, if any."""
     s = settings or InitialisationSettings()
     first = undistort_pixels(pixels_first, K, dist)
     second = undistort_pixels(pixels_second, K, dist)
@@ -193,7 +207,8 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     support_H = homography_support(H, first, second, s.sigma_px) if H is not None else 0.0
     planar = E is None or support_H > s.planar_ratio * (support_H + support_E)
     wait.model = InitialisationModel.HOMOGRAPHY if planar else InitialisationModel.ESSENTIAL
-    homography_poses = poses_from_homography(H, K) if H is not None else []
+    decompositions = poses_from_homography(H, K) if H is not None else []
+    homography_poses = [T for T, _ in decompositions]
     model_inliers = homography_inliers if planar else essential_inliers
     if model_inliers.sum() >= s.min_matches:
         essential_rotations = rotations_from_essential(E) if E is not None else []
@@ -211,7 +226,7 @@ def initialise(pixels_first: np.ndarray, pixels_second: np.ndarray, K: np.ndarra
     a, b = first[model_inliers], second[model_inliers]
     ambiguous = uncertain = False
     if planar:
-        T, found, ambiguous = _pick_homography_pose(homography_poses, K, a, b, s.ambiguity_ratio)
+        T, found, ambiguous, wait.normals = _pick_homography_pose(decompositions, K, a, b, s.ambiguity_ratio, planes)
     else:
         found = triangulate_pair(K, T, a, b)
         wait.pose_std = pose_std_deg(T, K, a, b, s.sigma_px)
@@ -273,18 +288,38 @@ def _best_essential_pose(T_usac: np.ndarray, essential_inliers: np.ndarray, firs
     return T_usac, essential_inliers
 
 
-def _pick_homography_pose(poses: list[np.ndarray], K: np.ndarray, a: np.ndarray, b: np.ndarray,
-                          ambiguity_ratio: float) -> tuple[np.ndarray, Triangulated, bool]:
-    """``(T_b_a, its triangulation, ambiguous)``: of a homography's decompositions ``poses`` ((4, 4)
-    each), the one with the most of the matches ``a``, ``b`` in front of both cameras; ambiguous when
-    the runner-up has more than ``ambiguity_ratio`` as many in front."""
+def _pick_homography_pose(decompositions: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray, a: np.ndarray,
+                          b: np.ndarray, ambiguity_ratio: float,
+                          planes: np.ndarray | None) -> tuple[np.ndarray, Triangulated, bool, np.ndarray]:
+    """``(T_b_a, its triangulation, ambiguous, the two best's normals (2, 3))``: of a homography's
+    ``decompositions`` ((4, 4) pose, (3,) normal each), the one with the most of the matches ``a``, ``b``
+    in front of both cameras; ambiguous when the runner-up has more than ``ambiguity_ratio`` as many in
+    front, unless ``planes`` (an earlier ambiguous pair's normals) keep one normal and not the other."""
     scored = []
-    for T in poses:
+    for T, normal in decompositions:
         found = triangulate_pair(K, T, a, b)
-        scored.append((int(found.in_front.sum()), T, found))
+        scored.append((int(found.in_front.sum()), T, found, normal))
     scored.sort(key=lambda item: item[0], reverse=True)
-    count, T, found = scored[0]
-    return T, found, len(scored) > 1 and scored[1][0] > ambiguity_ratio * count
+    if len(scored) < 2 or scored[1][0] <= ambiguity_ratio * scored[0][0]:
+        return scored[0][1], scored[0][2], False, np.zeros((0, 3))
+    normals = np.array([scored[0][3], scored[1][3]])
+    kept = _kept_plane(normals, planes)
+    if kept is None:
+        return scored[0][1], scored[0][2], True, normals
+    return scored[kept][1], scored[kept][2], False, np.zeros((0, 3))
+
+
+def _kept_plane(normals: np.ndarray, planes: np.ndarray | None) -> int | None:
+    """Which of two decompositions' unit ``normals`` (2, 3) stays within ``PLANE_KEPT_DEG`` of one of the
+    earlier pair's ``planes`` (2, 3) while the other is ``PLANE_MOVED_DEG`` or more from both (a plane's
+    normal up to sign); None when neither or both."""
+    if planes is None or len(planes) == 0:
+        return None
+    angles = np.degrees(np.arccos(np.clip(np.abs(normals @ planes.T), 0.0, 1.0))).min(axis=1)
+    for kept, moved in ((0, 1), (1, 0)):
+        if angles[kept] <= PLANE_KEPT_DEG and angles[moved] >= PLANE_MOVED_DEG:
+            return kept
+    return None
 
 
 class _Outcome:
@@ -298,6 +333,7 @@ class _Outcome:
         self.parallax = float("nan")
         self.in_front = 0.0
         self.pose_std = (float("nan"), float("nan"))
+        self.normals = np.zeros((0, 3))
 
     def result(self, status: InitialisationStatus, inliers: np.ndarray | None = None,
                points: np.ndarray | None = None) -> TwoViewInitialisation:
@@ -306,4 +342,5 @@ class _Outcome:
             inliers=np.zeros(self.n, bool) if inliers is None else inliers,
             points=np.full((self.n, 3), np.nan) if points is None else points,
             parallax_deg=self.parallax, in_front=self.in_front, pose_std_deg=self.pose_std,
-            essential_inliers=self.counts[0], homography_inliers=self.counts[1])
+            essential_inliers=self.counts[0], homography_inliers=self.counts[1],
+            plane_normals=self.normals if status is InitialisationStatus.PLANAR_WAIT else np.zeros((0, 3)))

@@ -193,14 +193,16 @@ def rotations_from_essential(E: np.ndarray) -> list[np.ndarray]:
     return [R1, R2]
 
 
-def poses_from_homography(H: np.ndarray, K: np.ndarray) -> list[np.ndarray]:
-    """Every (4, 4) ``T_b_a`` of ``cv2.decomposeHomographyMat`` (up to four; translations scaled to unit
-    norm, left as they are when zero): which one is right is for the caller's cheirality check."""
-    _, rotations, translations, _ = cv2.decomposeHomographyMat(H, K)
+def poses_from_homography(H: np.ndarray, K: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every ``(T_b_a (4, 4), n_a (3,))`` of ``cv2.decomposeHomographyMat`` (up to four; translations scaled
+    to unit norm, left as they are when zero; ``n_a`` the plane's unit normal in view a's frame): which one
+    is right is for the caller's cheirality check."""
+    _, rotations, translations, normals = cv2.decomposeHomographyMat(H, K)
     poses = []
-    for R, t in zip(rotations, translations, strict=True):
-        norm = np.linalg.norm(t)
-        poses.append(make_transform(R, t.ravel() / norm if norm > 0 else t.ravel()))
+    for R, t, n in zip(rotations, translations, normals, strict=True):
+        t, n = t.ravel(), n.ravel()
+        t_norm, n_norm = np.linalg.norm(t), np.linalg.norm(n)
+        poses.append((make_transform(R, t / t_norm if t_norm > 0 else t), n / n_norm if n_norm > 0 else n))
     return poses
 
 

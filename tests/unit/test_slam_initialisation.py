@@ -235,3 +235,35 @@ def test_random_matches_do_not_initialise():
     rng = np.random.default_rng(0)
     pixels_first, pixels_second = (rng.uniform((0, 0), (640, 480), (300, 2)) for _ in range(2))
     assert not initialise(pixels_first, pixels_second, K, np.zeros(5)).initialised
+
+
+PLANE_MOTIONS = [((0.0, 0.3, 1.0), (0.5, 0.0, 1.0)), ((0.3, 0.3, 1.0), (0.7, 0.7, 0.3)), ((0.2, 1.0, 0.3), (0.8, 0.3, 0.7))]
+
+
+@pytest.mark.parametrize(("first_motion", "second_motion"), PLANE_MOTIONS)
+def test_a_later_pair_with_the_same_first_frame_tells_the_planes_decompositions_apart(first_motion, second_motion):
+    """A wall 3 m away, the camera moving 0.3 m one way, then 0.4 m another: each pair alone leaves the
+    homography's two decompositions ambiguous (``planar_wait``). Given the first pair's normals, the second
+    pair keeps the one whose normal did not move, and its pose is right; normals that neither pair has
+    tell nothing apart."""
+    T_first_plane = make_transform(matrix_from_rotvec([0.15, -0.2, 0.0]), [0.0, 0.0, 3.0])
+    rng = np.random.default_rng(3)
+    on_plane = np.column_stack([rng.uniform(-2.0, 2.0, (600, 2)), np.zeros(600)])
+    poses = []
+    for direction, length in ((first_motion, 0.3), (second_motion, 0.4)):
+        unit = np.array(direction) / np.linalg.norm(direction)
+        poses.append(make_transform(matrix_from_rotvec([0.0, 0.02, 0.0]), -length * unit))
+    pairs = [observe(T_first_plane, T @ T_first_plane, on_plane, 5)[:2] for T in poses]
+    alone = [initialise(*pair, K, np.zeros(5)) for pair in pairs]
+    assert [result.status for result in alone] == [InitialisationStatus.PLANAR_WAIT] * 2
+    assert alone[0].plane_normals.shape == (2, 3)
+
+    told = initialise(*pairs[1], K, np.zeros(5), planes=alone[0].plane_normals)
+    assert told.initialised and told.T_second_first is not None
+    rotation_deg, direction_deg = pose_errors_deg(told.T_second_first, poses[1])
+    assert rotation_deg < 0.3 and direction_deg < 2.0
+    true_normal = T_first_plane[:3, 2]
+    assert min(np.degrees(np.arccos(abs(n @ true_normal))) for n in alone[0].plane_normals) < 3.0
+
+    elsewhere = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert initialise(*pairs[1], K, np.zeros(5), planes=elsewhere).status is InitialisationStatus.PLANAR_WAIT
