@@ -40,9 +40,9 @@ the true decomposition's plane normal (in the first frame) is the same for every
 the other's follows the direction of the camera's translation. Given ``planes``, the two normals of
 an earlier ambiguous pair, the decomposition whose normal stays within ``PLANE_KEPT_DEG`` of one of
 them while the other's moved ``PLANE_MOVED_DEG`` or more is taken. An essential pose whose predicted
-rotation standard deviation (``two_view.pose_std_deg``) exceeds ``max_rotation_std_deg`` is ``pose_uncertain``: a view nearly
-planar (a wall filling it with 10 % depth range) scores as a general scene, but its matches leave
-the pose undetermined by a degree or more. Pure rotation and too short a baseline end in
+rotation standard deviation (``two_view.pose_std_deg``) exceeds ``max_rotation_std_deg`` is
+``pose_uncertain``: a view nearly planar (a wall filling it with 10 % depth range) scores as a general
+scene, but its matches leave the pose undetermined by a degree or more. Pure rotation and too short a baseline end in
 ``low_parallax``: a later frame, further away, may initialise.
 
 Frames: the first frame's camera frame is the map's frame; ``T_second_first`` (4, 4) maps it into
