@@ -43,7 +43,7 @@ from services.runtime.node import Node, NodeError
 from services.runtime.outputs import check_output
 from services.viewer import node as viewer_node
 from services.viewer.foxglove_export import CHUNK_BYTES
-from services.viewer.foxglove_messages import FoxgloveMessage, FoxgloveOptions, to_foxglove
+from services.viewer.foxglove_messages import FoxgloveConversion, FoxgloveMessage, FoxgloveOptions
 from services.viewer.images import RateGate
 
 
@@ -93,7 +93,8 @@ class Outputs:
     the Foxglove messages each took. NodeError when the server cannot bind or the file cannot be opened."""
 
     def __init__(self, params: Params, name: str):
-        self.options = FoxgloveOptions(compressed=params.compressed, jpeg_quality=params.jpeg_quality)
+        self.convert = FoxgloveConversion(FoxgloveOptions(compressed=params.compressed,
+                                                          jpeg_quality=params.jpeg_quality))
         self.sent = 0
         self.written = 0
         self.server: foxglove.WebSocketServer | None = None
@@ -122,7 +123,7 @@ class Outputs:
     def log(self, message: Message) -> None:
         """Send what shows ``message`` (images over the rate held back) and write all of it."""
         log_ns = self._last_ns = max(self._last_ns, time.time_ns())
-        for topic, shown in to_foxglove(message, self.options):
+        for topic, shown in self.convert(message):
             if self._filed is not None:
                 self._filed.log(topic, shown, log_ns)
                 self.written += 1
