@@ -19,6 +19,10 @@ show the same topics:
   ``ImageAnnotations`` (marker outlines with their ids, blobs as circles of their radius, keypoints
   as points); ``/<camera>/marker_outlines``: each marker of known side as a square ``SceneUpdate``
   entity in its own frame ``marker/<id>``, drawn wherever its pose places it.
+* ``/<camera>/target_outlines``: ``ImageTargets`` (the image targets a features node poses in the camera's
+  frames) as one ``SceneUpdate`` entity per target in its own frame ``target/<name>``: the printed image's
+  outline through its four corners and a translucent plane over it, drawn wherever the target's pose
+  places it.
 * ``/pose/<parent>/<child>``: ``Pose`` as ``PoseInFrame``, and ``parent -> child`` on ``/tf`` (camera
   -> markers and targets, map -> the SLAM camera, world -> bodies).
 * ``/tf``: ``RigidBodies`` as ``world -> body/<name>``; ``/tf_static``: ``StaticTransforms``.
@@ -72,10 +76,11 @@ from foxglove.messages import (
     SpherePrimitive,
     TextAnnotation,
     Timestamp,
+    TriangleListPrimitive,
     Vector3,
 )
 
-from protocol import detections, maps, mocap, poses, sensors, spatial, system
+from protocol import detections, maps, mocap, poses, sensors, spatial, system, targets
 from protocol.message import Message
 from services.convert import in_tree
 from services.geometry.transform_tree import TransformTree
@@ -90,10 +95,11 @@ TF, TF_STATIC, LOG = "/tf", "/tf_static", "/log"
 TRUTH_PREFIX = "truth/"
 MARKER_COLOUR = Color(r=0.0, g=0.86, b=0.35, a=1.0)
 KEYPOINT_COLOUR = Color(r=1.0, g=0.78, b=0.0, a=1.0)
+TARGET_PLANE_COLOUR = Color(r=0.0, g=0.86, b=0.35, a=0.2)
 CLEAN_COLOUR = Color(r=0.0, g=0.78, b=1.0, a=0.75)
 FLAGGED_COLOUR = Color(r=1.0, g=0.24, b=0.78, a=0.75)
 """RGBA in [0, 1], the Rerun viewer's colours: markers green, keypoints amber, blobs and points cyan
-(clean, labelled) or magenta (flagged, unlabelled)."""
+(clean, labelled) or magenta (flagged, unlabelled); image targets' outlines as markers', their planes translucent."""
 _ENCODINGS = {"mono8": ("mono8", 1), "mono16": ("mono16", 2), "bgr8": ("bgr8", 3), "bgra8": ("bgra8", 4)}
 """artrack image encoding -> (Foxglove RawImage encoding, bytes per pixel)."""
 _DISTORTION = {"plumb_bob": "plumb_bob", "rational_polynomial": "rational_polynomial",
@@ -273,6 +279,25 @@ def marker_outlines(markers: detections.MarkerDetections) -> SceneUpdate:
     return SceneUpdate(entities=entities)
 
 
+def target_outlines(described: targets.ImageTargets) -> SceneUpdate:
+    """Each image target as an entity in its own frame (``frame_id``, e.g. ``target/<name>``), locked to that frame,
+    id the frame's name: its outline, a closed line through its ``corners`` (m, in that frame: ``(+-w/2, +-h/2, 0)``
+    for artrack's targets), and a translucent plane over the same rectangle (two triangles). Static: the entities
+    last until replaced."""
+    stamp = timestamp(described.header.stamp_ns)
+    origin = _placed_at(0.0, 0.0, 0.0)
+    entities = []
+    for target in described.targets:
+        corners = [Point3(x=x, y=y, z=z) for x, y, z in target.corners]
+        outline = LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=origin, thickness=0.003, points=corners,
+                                color=MARKER_COLOUR)
+        plane = TriangleListPrimitive(pose=origin, points=corners, color=TARGET_PLANE_COLOUR,
+                                      indices=[0, 1, 2, 0, 2, 3])
+        entities.append(SceneEntity(timestamp=stamp, frame_id=target.frame_id, id=target.frame_id, frame_locked=True,
+                                    lines=[outline], triangles=[plane]))
+    return SceneUpdate(entities=entities)
+
+
 def marker_annotations(markers: detections.MarkerDetections) -> ImageAnnotations:
     """Each marker's four corners (px) as a closed outline, and its id written at its first corner."""
     stamp = timestamp(markers.header.stamp_ns)
@@ -349,6 +374,8 @@ class FoxgloveConversion:
             case detections.MarkerDetections():
                 return [(f"/{frame}/markers", marker_annotations(message)),
                         (f"/{frame}/marker_outlines", marker_outlines(message))]
+            case targets.ImageTargets():
+                return [(f"/{frame}/target_outlines", target_outlines(message))]
             case detections.Blobs():
                 return [(f"/{frame}/blobs", blob_annotations(message))]
             case detections.Keypoints():

@@ -3,9 +3,11 @@ written as a Foxglove MCAP file while it runs.
 
 It subscribes to the streams the Rerun viewer node draws (``services.viewer.node.subscriptions``:
 images and overlays latest-wins, calibrations, detections, poses, bodies, points and maps in order,
-node health), turns each message into Foxglove's well-known messages with
-``services.viewer.foxglove_messages`` (the topics and schemas ``artrack export --format foxglove``
-writes) and logs them on typed channels, one per topic, made when its first message arrives. Open
+node health) and to the rig's static data (``protocol.keys.Keys.latched``: static transforms, image
+targets), which it also asks for when it starts (``services.bus.latched``), so a node joining a running
+rig still draws the targets' outlines and the cameras' placement. It turns each message into Foxglove's
+well-known messages with ``services.viewer.foxglove_messages`` (the topics and schemas ``artrack export
+--format foxglove`` writes) and logs them on typed channels, one per topic, made when its first message arrives. Open
 Foxglove, "Open connection", ``ws://127.0.0.1:8765``.
 
 Served (``serve``, the default), images are limited to ``image_hz`` per topic by the Rerun viewer's
@@ -36,7 +38,9 @@ from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import CompressedImage, RawImage
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from protocol.keys import Keys
 from protocol.message import Message
+from services.bus.latched import ask_latched
 from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind, SinkRole
 from services.runtime.node import Node, NodeError
@@ -144,9 +148,18 @@ class Outputs:
             self.server = None
 
 
+def subscriptions(keys: Keys) -> list[tuple[str, Role]]:
+    """``(key expression, role)`` of every stream the node subscribes to: the Rerun viewer's and the static data."""
+    return [*viewer_node.subscriptions(keys), *((key, Role.RESULT) for key in keys.latched())]
+
+
 def run(node: Node, params: Params) -> None:
     inboxes: list[Inbox[Message]] = [node.inbox(key, None, role, params.image_depth if role is Role.FRAME else None)
-                                     for key, role in viewer_node.subscriptions(node.keys)]
+                                     for key, role in subscriptions(node.keys)]
+    latched = node.keys.latched()
+    for inbox in inboxes:
+        if inbox.key in latched:
+            ask_latched(node.session, inbox.key, latched, inbox.offer)
     outputs = Outputs(params, f"artrack {node.keys.prefix}")
     try:
         if outputs.server is not None:
@@ -166,6 +179,11 @@ def run(node: Node, params: Params) -> None:
     node.log.info("%s", ", ".join(done))
 
 
+def _inputs(params: Params) -> tuple[str, ...]:
+    rig = Keys()
+    return (*viewer_node.KIND.keys(params)[0], *(key.removeprefix(f"{rig.prefix}/") for key in rig.latched()))
+
+
 def _check(params: Params) -> None:
     if params.mcap is not None:
         check_output(params.mcap, params.force)
@@ -173,6 +191,6 @@ def _check(params: Params) -> None:
 
 KIND = NodeKind(name="foxglove", summary="serves the rig live to Foxglove over its WebSocket protocol and/or "
                                          "writes it as a Foxglove MCAP file",
-                params=Params, run=run, inputs=viewer_node.KIND.inputs, outputs=(), check=_check,
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check,
                 sink=SinkRole(files=lambda params: () if params.mcap is None else
                               (("foxglove recording", params.mcap),)))

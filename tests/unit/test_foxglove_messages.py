@@ -15,6 +15,8 @@ from protocol import (
     GroundTruth,
     Header,
     Image,
+    ImageTarget,
+    ImageTargets,
     Keypoints,
     MarkerDetections,
     PointCloud,
@@ -219,6 +221,32 @@ def test_markers_are_outlines_in_the_image_and_squares_in_their_frames():
     assert (square.id, square.frame_id, square.frame_locked) == ("marker/3", "marker/3", True)
     xs = [p.x for p in square.lines[0].points]
     assert max(xs) - min(xs) == pytest.approx(0.05)
+
+
+def test_image_targets_are_outlines_and_planes_locked_to_their_frames():
+    w, h = 0.297, 0.21  # A4 landscape, origin at the centre, y up
+    centred = ((-w / 2, h / 2, 0.0), (w / 2, h / 2, 0.0), (w / 2, -h / 2, 0.0), (-w / 2, -h / 2, 0.0))
+    cornered = ((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.1, 0.05, 0.0), (0.0, 0.05, 0.0))  # origin top-left, y down
+    described = ImageTargets(header=HEADER, targets=(
+        ImageTarget(name="poster", frame_id="target/poster", width_m=w, height_m=h, corners=centred),
+        ImageTarget(name="card", frame_id="target/card", width_m=0.1, height_m=0.05, corners=cornered)))
+    (topic, update), = shown(described).items()
+    assert topic == "/cam0/target_outlines"
+    poster, card = update.entities
+    assert (poster.id, poster.frame_id, poster.frame_locked) == ("target/poster", "target/poster", True)
+    assert stamp_ns(poster) == STAMP_NS and poster.lifetime.ToNanoseconds() == 0
+    (outline,) = poster.lines
+    line_types = outline.DESCRIPTOR.fields_by_name["type"].enum_type.values_by_number
+    assert line_types[outline.type].name == "LINE_LOOP"  # the last corner joins the first
+    xyz = np.array([[p.x, p.y, p.z] for p in outline.points])
+    np.testing.assert_allclose(xyz, [[-w / 2, h / 2, 0], [w / 2, h / 2, 0], [w / 2, -h / 2, 0], [-w / 2, -h / 2, 0]])
+    (plane,) = poster.triangles
+    assert plane.color.a < 1.0
+    triangles = np.array([[p.x, p.y, p.z] for p in plane.points])[list(plane.indices)].reshape(2, 3, 3)
+    area = sum(0.5 * np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) for t in triangles)
+    assert area == pytest.approx(w * h)
+    assert card.frame_id == "target/card"
+    np.testing.assert_allclose([[p.x, p.y, p.z] for p in card.lines[0].points], cornered)
 
 
 def test_blobs_and_keypoints_are_image_annotations():
