@@ -15,6 +15,10 @@ Served (``serve``, the default), images are limited to ``image_hz`` per topic by
 arrives. The server binds 127.0.0.1 by default (this machine only: it has no authentication); ``bind``
 0.0.0.0 serves every interface. It is stopped when the node stops.
 
+The server keeps what shows the static data (``/tf_static``, ``/<camera>/target_outlines``) and sends it
+again on its channel whenever a client subscribes to it (``Outputs.on_subscribe``): a Foxglove app that
+connects after the rig started still gets the cameras' placement and the targets' outlines.
+
 Written (``mcap``), every message the node takes goes into the file, images included: every frame
 in a lossless run, the newest ``image_depth`` (latest-wins, as served) in a real-time one. The file
 is ``foxglove.open_mcap``'s: protobuf channels and schemas as the server's, zstd chunks of 1 MiB, a
@@ -28,7 +32,9 @@ still hold is written and the file finished; a node killed outright leaves it wi
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -36,10 +42,13 @@ import foxglove
 import foxglove.channels
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import CompressedImage, RawImage
+from foxglove.websocket import ChannelView, Client, ServerListener
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.keys import Keys
 from protocol.message import Message
+from protocol.spatial import StaticTransforms
+from protocol.targets import ImageTargets
 from services.bus.latched import ask_latched
 from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind, SinkRole
@@ -91,10 +100,15 @@ class Channels:
         channel.log(shown, log_time=log_ns)
 
 
-class Outputs:
+STATIC = (StaticTransforms, ImageTargets)
+"""Messages that describe what does not change while the rig runs: sent again to each client that subscribes."""
+
+
+class Outputs(ServerListener):
     """The node's server and/or file (``params.serve``, ``params.mcap``): each message converted once, sent to the
-    server with images gated to ``image_hz`` per topic, written to the file whole. ``sent`` and ``written`` count
-    the Foxglove messages each took. NodeError when the server cannot bind or the file cannot be opened."""
+    server with images gated to ``image_hz`` per topic, written to the file whole; what shows static data is sent
+    again to a client that subscribes to its topic. ``sent`` and ``written`` count the Foxglove messages each
+    took. NodeError when the server cannot bind or the file cannot be opened."""
 
     def __init__(self, params: Params, name: str):
         self.convert = FoxgloveConversion(FoxgloveOptions(compressed=params.compressed,
@@ -107,11 +121,13 @@ class Outputs:
         self._served: Channels | None = None
         self._filed: Channels | None = None
         self._last_ns = 0
+        self._static: defaultdict[str, list[FoxgloveMessage]] = defaultdict(list)
+        self._static_lock = threading.Lock()
         if params.serve:
             self._served = Channels(foxglove.Context())
             try:
                 self.server = foxglove.start_server(name=name, host=params.bind, port=params.port,
-                                                    context=self._served.context)
+                                                    context=self._served.context, server_listener=self)
             except RuntimeError as exc:  # foxglove's FoxgloveError: the port is taken, the address is not this host's
                 raise NodeError(f"cannot serve Foxglove on {params.bind}:{params.port}: {exc}") from exc
         if params.mcap is not None:
@@ -135,8 +151,20 @@ class Outputs:
                 continue
             if isinstance(shown, RawImage | CompressedImage) and not self._gate.admit(topic, message.header.stamp_ns):
                 continue
+            if isinstance(message, STATIC):
+                with self._static_lock:
+                    self._static[topic].append(shown)
             self._served.log(topic, shown)
             self.sent += 1
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        """Send the static data shown on ``channel`` again (every subscriber of the channel gets it: the same data)."""
+        with self._static_lock:
+            again = list(self._static.get(channel.topic, ()))
+        if self._served is not None:
+            for shown in again:
+                self._served.log(channel.topic, shown)
+                self.sent += 1
 
     def close(self) -> None:
         """Finish the file (summary and indexes) and stop the server."""
