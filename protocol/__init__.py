@@ -31,12 +31,13 @@ from protocol.system import (
     SyncInputStats,
     SyncStats,
 )
+from protocol.targets import ImageTarget, ImageTargets
 from protocol.tracking_state import TrackingState
 
 __all__ = [
     "Blobs", "CameraInfo", "ClientState", "ConfigAnswer", "ConfigChange", "DecodeError",
-    "ErrorReport", "FlowAck", "FlowEnd", "FrameTransform", "GroundTruth", "Header", "Image", "Keyframes", "Keypoints",
-    "Keys", "MarkerDetections",
+    "ErrorReport", "FlowAck", "FlowEnd", "FrameTransform", "GroundTruth", "Header", "Image", "ImageTarget",
+    "ImageTargets", "Keyframes", "Keypoints", "Keys", "MarkerDetections",
     "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
     "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",
     "StageTimings", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",

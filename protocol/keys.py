@@ -12,6 +12,9 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/<camera>/keyframes        Keyframes        the keyframe poses of the camera's SLAM map
     ar/rig0/<camera>/map              PointCloud       the points of the camera's SLAM map
     ar/rig0/<camera>/timings          StageTimings     how long each stage of a frame took (SLAM)
+    ar/rig0/<camera>/targets          ImageTargets     the image targets a features node poses in the camera's
+                                                       frames (size, corners in the target frame), published
+                                                       before its first poses and answered on a queryable
     ar/rig0/pose/<target>             Pose             one tracked target (may span segments)
     ar/rig0/pose/slam/<camera>        Pose             SLAM: the camera in its map, ``T_map_camera``
     ar/rig0/bodies                    RigidBodies      all rigid bodies of the rig
@@ -28,6 +31,9 @@ Layout, for namespace ``ar`` and rig ``rig0``::
     ar/rig0/supervisor/<pipeline>     (queryable)      PipelineHealth of an ``artrack up`` process
     ar/rig0/client/<id>               (liveliness)     present while a client app is connected
     ar/rig0/client/<id>/state         (queryable)      ClientState: what the app subscribed to
+
+Static data (``tf_static/<node>``, ``<camera>/targets``) is published once and answered on a queryable
+at the same key; a subscriber that may come after the publication asks for it (``Keys.latched``).
 
 The namespace may hold several segments (``site/lab1``); names are made of letters,
 digits, ``_``, ``-`` and ``.``. Key expressions a user gives (``artrack echo``, ``record``,
@@ -150,6 +156,10 @@ class Keys:
         """How long each stage of the processing of the camera's frames took (a SLAM node's StageTimings)."""
         return self.camera(camera, "timings")
 
+    def targets(self, camera: str) -> str:
+        """The image targets a features node poses in the camera's frames (``ImageTargets``), published and answered."""
+        return self.camera(camera, "targets")
+
     def slam_pose(self, camera: str) -> str:
         """The camera's pose in the map a SLAM node builds from its frames."""
         return self.pose(f"slam/{check_name(camera, 'camera')}")
@@ -193,6 +203,11 @@ class Keys:
     def rig_static_transforms(self) -> str:
         """Static transforms of every node of the rig (query this to gather them all)."""
         return f"{self.prefix}/tf_static/*"
+
+    def latched(self) -> tuple[str, ...]:
+        """Key expressions of the rig's static data: published once and answered on request, so that a
+        subscriber that comes later (a recorder, a viewer) asks for what it missed."""
+        return self.rig_static_transforms(), self.every_camera("targets")
 
     def node(self, name: str) -> str:
         """The node's liveliness token."""

@@ -26,6 +26,8 @@ IDENTITY_ROTATION: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
 RIG_FRAME = "rig"
 """The frame a rig's cameras are placed in (``CameraInfo.T_rig_camera``); world for a fixed rig."""
+WORLD_FRAME = "world"
+"""The frame a tracker's world-fixed results are in (rigid bodies, triangulated points): a fixed rig's frame."""
 
 
 class Transform(Struct):

@@ -224,7 +224,7 @@ class ConfigChange(Message):
 class ConfigAnswer(Message):
     """A node's answer to a ConfigChange: all of it applied, or none of it with the reasons.
 
-    ``applied`` maps each changed field to its new value (JSON text); ``refused`` maps each
+    ``applied`` maps each changed field to its new value as the node holds it (JSON text); ``refused`` maps each
     refused field to why. ``params`` holds every live-changeable field's value now.
     """
 

@@ -8,6 +8,8 @@ converts between the two by hand.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from protocol.message import Header
@@ -18,7 +20,8 @@ from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.frames import FrameGraph
 from services.geometry.rotation import quaternion_of_rows
-from services.geometry.se3 import from_quaternion_translation, to_quaternion_translation
+from services.geometry.se3 import from_quaternion_translation, invert, to_quaternion_translation
+from services.geometry.transform_tree import TransformTree
 
 
 def matrix_from_transform(transform: Transform) -> np.ndarray:
@@ -30,6 +33,17 @@ def transform_from_matrix(T: np.ndarray) -> Transform:
     """Wire transform of a (4, 4) rigid ``T_parent_child``."""
     q, t = to_quaternion_translation(np.asarray(T, dtype=np.float64))
     return Transform(translation=tuple(float(v) for v in t), rotation=tuple(float(v) for v in q))
+
+
+def in_tree(tree: TransformTree, edges: Iterable[FrameTransform]) -> list[FrameTransform]:
+    """``edges`` (``T_parent_child`` each) as they join ``tree`` (``TransformTree.edge``, which keeps them): named
+    as the tree says, a turned-round edge carrying the inverse transform ``T_child_parent``."""
+    placed = []
+    for edge in edges:
+        parent, child, inverted = tree.edge(edge.parent_frame, edge.child_frame)
+        transform = transform_from_matrix(invert(matrix_from_transform(edge.transform))) if inverted else edge.transform
+        placed.append(FrameTransform(parent_frame=parent, child_frame=child, transform=transform))
+    return placed
 
 
 def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingState = TrackingState.TRACKING,

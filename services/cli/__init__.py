@@ -38,7 +38,18 @@ def parser() -> argparse.ArgumentParser:
     sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in COMMANDS:
         add(sub)
+    _name_parsers(top)
     return top
+
+
+def _name_parsers(parser: argparse.ArgumentParser) -> None:
+    """Give each (sub)command's namespace the parser of the deepest command parsed (``command_parser``), so an
+    argument none of them takes is refused by that command (``artrack export: unrecognized arguments: ...``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in action.choices.values():
+                command.set_defaults(command_parser=command)
+                _name_parsers(command)
 
 
 LAZY = ("run", "record", "replay", "view")
@@ -49,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     top = parser()
     args, rest = top.parse_known_args(argv)
     if rest and args.command not in LAZY:
-        top.error(f"unrecognized arguments: {' '.join(rest)}")
+        args.command_parser.error(f"unrecognized arguments: {' '.join(rest)}")
     args.rest = rest
     if getattr(args, "name", "") is None:
         args.name = args.kind

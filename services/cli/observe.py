@@ -55,9 +55,8 @@ def cmd_config(args: argparse.Namespace) -> int:
         log.error("no node answered on %s within %.1f s (is %s running, and does its kind take live changes?)",
                   bus.keys.config(args.node), args.timeout, args.node)
         return 1
-    held = _from_json(answer.params)  # an applied value comes back as typed; report it as the node holds it
-    applied = {name: held.get(name, value) for name, value in _from_json(answer.applied).items()}
-    print(json.dumps({"node": answer.node, "applied": applied, "refused": answer.refused, "params": held}))
+    print(json.dumps({"node": answer.node, "applied": _from_json(answer.applied), "refused": answer.refused,
+                      "params": _from_json(answer.params)}))
     return 1 if answer.refused else 0
 
 

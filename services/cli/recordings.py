@@ -114,7 +114,10 @@ def cmd_control(args: argparse.Namespace) -> int:
 def cmd_info(args: argparse.Namespace) -> int:
     from services.recorder.info import format_info, summarise
     from services.recorder.reading import EXIT_DAMAGED, recover
+    from services.recorder.writing import check_target
 
+    if args.recover is not None:
+        check_target(args.recover)  # before reading: a recording is never overwritten, the one read least of all
     info = summarise(args.file)
     print(json.dumps(info.to_dict()) if args.json else format_info(info))
     if args.recover is not None:

@@ -10,6 +10,7 @@ from typing import Any
 
 from services.cli.bus_options import add_bus_options, bus_config
 from services.cli.parsing import Parser
+from services.runtime.outputs import check_output
 
 log = logging.getLogger("artrack")
 
@@ -49,8 +50,8 @@ def _run_parser(tracker: str) -> tuple[argparse.ArgumentParser, list, list]:
     job.add_argument("--record-foxglove", type=Path, metavar="OUT.mcap", help="write the job as it runs in "
                      "Foxglove's schemas (what `artrack export --format foxglove` makes of a recording), every "
                      "frame, to an MCAP file of its own")
-    job.add_argument("--force", action="store_true", help="overwrite the --record-foxglove file if it exists "
-                     "(a --record recording is never overwritten)")
+    job.add_argument("--force", action="store_true", help="overwrite the --rerun, --record-foxglove and "
+                     "--save-pipeline files if they exist (a --record recording is never overwritten)")
     job.add_argument("--save-pipeline", type=Path, metavar="FILE.toml", help="write the job as a pipeline file "
                      "(`artrack up FILE.toml` runs it as a daemon) and exit without running it")
     _display_options(job)
@@ -99,7 +100,7 @@ def scene_option_texts(given: list[str] | None) -> dict[str, str]:
 def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.assembly import JobRequest, assemble, with_flow
     from services.launcher.flags import given_values
-    from services.launcher.job import FoxgloveFile, run_job
+    from services.launcher.job import JobFile, run_job
     from services.launcher.kinds import catalogue
     from services.launcher.layout import laid_out
     from services.launcher.pipeline import read_pipeline, save_pipeline
@@ -128,10 +129,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     bus, spec = assemble(JobRequest(
         tracker=args.tracker, source=given, bus=lambda defaults: bus_config(run_args, defaults=defaults),
         scene=scene_option_texts(run_args.scene_option), options=given_values(run_args, own_flags), flags=own_flags,
-        source_flags=source_flags, record=run_args.record, rerun=run_args.rerun, flow=_flow_given(run_args),
-        foxglove=None if run_args.record_foxglove is None else FoxgloveFile(run_args.record_foxglove, run_args.force)))
+        source_flags=source_flags, record=run_args.record, flow=_flow_given(run_args),
+        rerun=None if run_args.rerun is None else JobFile(run_args.rerun, run_args.force),
+        foxglove=None if run_args.record_foxglove is None else JobFile(run_args.record_foxglove, run_args.force)))
     spec = laid_out(spec, run_args.processes, run_args.process)
     if run_args.save_pipeline is not None:
+        check_output(run_args.save_pipeline, run_args.force)
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")
         save_pipeline(spec, run_args.save_pipeline, f"Written by: {made_by}\nRun it with: artrack up "
                       f"{shlex.quote(str(run_args.save_pipeline))}")

@@ -24,7 +24,7 @@ from services.bus.session import BusConfig
 from services.launcher.fixtures import scene_settings, scene_target_library
 from services.launcher.flags import Flag, explain
 from services.launcher.flow import FlowSettings
-from services.launcher.job import RECORDING_SCHEME, FoxgloveFile, JobError, Recording, build_job
+from services.launcher.job import RECORDING_SCHEME, JobError, JobFile, Recording, build_job
 from services.launcher.kinds import kind
 from services.launcher.pipeline import NodeSpec, PipelineSpec
 from services.launcher.tracker import Tracker
@@ -52,8 +52,8 @@ class JobRequest:
     flags: list[Flag] = field(default_factory=list)
     source_flags: list[Flag] = field(default_factory=list)
     record: Path | None = None
-    rerun: Path | None = None
-    foxglove: FoxgloveFile | None = None
+    rerun: JobFile | None = None
+    foxglove: JobFile | None = None
     flow: dict[str, Any] = field(default_factory=dict)
 
 

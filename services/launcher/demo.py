@@ -37,7 +37,7 @@ from services.bus.pubsub import Inbox, Role
 from services.bus.session import BusConfig, open_session
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import pose_error
-from services.launcher.job import RECORDING_SCHEME, JobExit, Recording, build_job, run_job
+from services.launcher.job import RECORDING_SCHEME, JobExit, JobFile, Recording, build_job, run_job
 from services.launcher.tracker import Tracker
 from services.recorder.info import summarise
 
@@ -142,7 +142,7 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     try:
         tracker = Tracker.load("marker")
         options = {"marker_length": MARKER_LENGTH_M, "depth": FRAME_QUEUE}
-        code = run_job(bus, build_job(tracker, source, options, tracker.flags({}), record, rerun), strict=True)
+        code = run_job(bus, build_job(tracker, source, options, tracker.flags({}), record, JobFile(rerun)), strict=True)
     finally:
         stop.set()
         collector.join()

@@ -110,9 +110,9 @@ class Recording:
 
 
 @dataclass(frozen=True)
-class FoxgloveFile:
-    """A Foxglove MCAP file a job writes as it runs (``artrack run --record-foxglove``), overwritten if it exists
-    only when ``force``."""
+class JobFile:
+    """A file a job's sink writes as it runs (``artrack run --rerun``, ``--record-foxglove``), overwritten if it
+    exists only when ``force``."""
 
     path: Path
     force: bool = False
@@ -153,8 +153,8 @@ def source_node(source: NodeSpec | Recording) -> tuple[str, NodeSpec]:
 
 
 def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str, Any], flags: list[Flag],
-              record: Path | None = None, rerun: Path | None = None,
-              foxglove: FoxgloveFile | None = None) -> PipelineSpec:
+              record: Path | None = None, rerun: JobFile | None = None,
+              foxglove: JobFile | None = None) -> PipelineSpec:
     """The job's pipeline: the source, the tracker's nodes for its cameras, a recorder, a viewer and a Foxglove
     node writing a file (and serving nothing) if asked; every node validated, its inputs and outputs filled in."""
     name, node = source_node(source)
@@ -165,7 +165,7 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
     if record is not None:
         nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:
-        nodes["viewer"] = NodeSpec(kind="viewer", rrd=str(rerun))
+        nodes["viewer"] = NodeSpec(kind="viewer", rrd=str(rerun.path), **({"force": True} if rerun.force else {}))
     if foxglove is not None:
         nodes["foxglove"] = NodeSpec(kind="foxglove", serve=False, mcap=str(foxglove.path),
                                      **({"force": True} if foxglove.force else {}))

@@ -220,13 +220,14 @@ class Recovered:
 
 def recover(source: Path, target: Path) -> Recovered:
     """Copy every intact record of ``source`` (schemas, channels, messages with their times
-    and sequence numbers, metadata, attachments) into ``target``, a new finished, indexed file.
+    and sequence numbers, metadata, attachments) into ``target``, a new finished, indexed file
+    (FileExistsError when ``target`` exists: a recording is never overwritten).
     """
     scan = Scan(source)
     schema_ids: dict[int, int] = {0: 0}
     channel_ids: dict[int, int] = {}
     messages = 0
-    with open(target, "wb") as file:
+    with open(target, "xb") as file:
         writer = Writer(file)
         for record in scan.records():  # the first one, if any, is the header
             if isinstance(record, Header):

@@ -21,6 +21,11 @@ On SIGINT/SIGTERM the subscribers are undeclared, whatever Zenoh still had in fl
 delivered, the queue is drained and the file finished (summary and index): nothing that
 arrived is lost.
 
+Static data (``protocol.keys.Keys.latched``: static transforms, image targets) is published once, maybe
+before the recorder subscribed; so, once subscribed, the recorder asks for the static keys its expressions
+cover (``services.bus.latched``) and records the answers as they come, on their keys, like what is published.
+A recorder there from the start may hold such a message twice (published and answered): the same data.
+
 Flow (``services.runtime.flow``): images are counted by their ``header.seq``, so frames that
 never arrived show as ``missing``; when the flow plan asks, each image written is acknowledged
 (a lossless source waits for it), and once every upstream node has ended and all it published
@@ -42,6 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from protocol.codec import Peeked, encode
 from protocol.keys import Keys
 from protocol.sensors import Image
+from services.bus.latched import ask_latched
 from services.bus.local import Payload
 from services.bus.shm import received_bytes
 from services.bus.stats import SeqGaps, StreamCounter
@@ -205,6 +211,8 @@ def run(node: Node, params: Params) -> None:
     try:
         try:
             taps += [Tap(node, key, queue) for key in keys]
+            for tap in taps:
+                ask_latched(node.session, tap.key, node.keys.latched(), tap.offer)
             node.log.info("recording %s to %s", ", ".join(keys), writer.files[0])
             node.ready()
             flush_at = time.monotonic() + params.flush_s

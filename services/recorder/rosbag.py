@@ -50,7 +50,9 @@ from protocol.message import Header, Message
 from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, RigidBodies
 from protocol.sensors import CameraInfo, Image
-from protocol.spatial import RIG_FRAME, StaticTransforms, Transform
+from protocol.spatial import RIG_FRAME, WORLD_FRAME, FrameTransform, StaticTransforms, Transform
+from services.convert import in_tree
+from services.geometry.transform_tree import TransformTree
 from services.recorder.export import ESTIMATED
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA
@@ -144,34 +146,35 @@ def tf_message(transforms: Iterable[Any]) -> Any:
     return _T["tf2_msgs/msg/TFMessage"](transforms=list(transforms))
 
 
-def pose_transforms(pose: Pose) -> Any:
+def tf_edges(stamp_ns: int, edges: Iterable[FrameTransform]) -> Any:
+    """``tf2_msgs/msg/TFMessage`` of ``T_parent_child`` edges, each stamped ``stamp_ns``."""
+    return tf_message(transform_message(stamp_ns, edge.parent_frame, edge.child_frame, edge.transform)
+                      for edge in edges)
+
+
+def pose_edge(pose: Pose) -> list[FrameTransform]:
     """A pose as ``/tf`` has it: one transform, ``header.frame_id`` the parent, ``child_frame_id`` the child."""
-    return tf_message([transform_message(pose.header.stamp_ns, pose.header.frame_id, pose.child_frame_id,
-                                         pose.transform)])
+    return [FrameTransform(parent_frame=pose.header.frame_id, child_frame=pose.child_frame_id,
+                           transform=pose.transform)]
 
 
-def static_transforms_message(message: StaticTransforms) -> Any:
-    """A rig's static transforms (``T_parent_child`` each) as ``/tf_static`` has them, under the message's stamp."""
-    return tf_message(transform_message(message.header.stamp_ns, edge.parent_frame, edge.child_frame, edge.transform)
-                      for edge in message.transforms)
-
-
-def camera_placement_message(info: CameraInfo) -> Any:
-    """The camera's place in its rig, ``T_rig_camera`` (parent ``rig``, child the camera's optical frame), as
-    ``/tf_static`` has it: what a ``sensor_msgs/msg/CameraInfo`` cannot say."""
-    return tf_message([transform_message(info.header.stamp_ns, RIG_FRAME, info.header.frame_id, info.T_rig_camera)])
+def camera_placement(info: CameraInfo) -> list[FrameTransform]:
+    """The camera's place in its rig, ``T_rig_camera`` (parent ``rig``, child the camera's optical frame), what a
+    ``sensor_msgs/msg/CameraInfo`` cannot say, under ``world -> rig`` (the identity: for a tracker a fixed
+    rig's frame is the world its bodies and points are in)."""
+    return [FrameTransform(parent_frame=WORLD_FRAME, child_frame=RIG_FRAME, transform=Transform()),
+            FrameTransform(parent_frame=RIG_FRAME, child_frame=info.header.frame_id, transform=info.T_rig_camera)]
 
 
 def ground_truth_message(truth: GroundTruth) -> Any:
     """The exact transforms of one frame (``T_parent_child`` each) under the frame's stamp."""
-    return tf_message(transform_message(truth.header.stamp_ns, edge.parent_frame, edge.child_frame, edge.transform)
-                      for edge in truth.transforms)
+    return tf_edges(truth.header.stamp_ns, truth.transforms)
 
 
-def rigid_bodies_message(bodies: RigidBodies) -> Any:
-    """The estimated bodies (``T_world_body``, child ``body/<name>``) as transforms on ``/tf``."""
-    return tf_message(transform_message(bodies.header.stamp_ns, bodies.header.frame_id, f"body/{body.name}",
-                                        body.transform) for body in bodies.bodies if body.state in ESTIMATED)
+def body_edges(bodies: RigidBodies) -> list[FrameTransform]:
+    """The estimated bodies (``T_world_body``, child ``body/<name>``), as ``/tf`` has them."""
+    return [FrameTransform(parent_frame=bodies.header.frame_id, child_frame=f"body/{body.name}",
+                           transform=body.transform) for body in bodies.bodies if body.state in ESTIMATED]
 
 
 def point_cloud2(header: Header, points: np.ndarray, colors: np.ndarray | None = None) -> Any:
@@ -238,6 +241,13 @@ class _Bag:
         self.connections: dict[str, Any] = {}
         self.placed: set[str] = set()
         """Cameras whose ``T_rig_camera`` is on ``/tf_static`` already."""
+        self.tree = TransformTree()
+        """``/tf`` and ``/tf_static`` together: one parent per frame."""
+
+    def write_tf(self, topic: str, edges: list[FrameTransform], stamp_ns: int, time_ns: int) -> None:
+        """``edges`` on ``topic`` (``/tf`` or ``/tf_static``) as they join the bag's tree (``in_tree``)."""
+        if edges:
+            self.write(topic, "tf2_msgs/msg/TFMessage", tf_edges(stamp_ns, in_tree(self.tree, edges)), time_ns)
 
     def write(self, topic: str, msgtype: str, message: Any, time_ns: int) -> None:
         connection = self.connections.get(topic)
@@ -273,19 +283,17 @@ def _write(bag: _Bag, key: str, message: Message, time_ns: int) -> bool:
     if isinstance(message, Pose):
         if message.state in ESTIMATED:
             bag.write(ros_topic(key), "geometry_msgs/msg/PoseStamped", pose_message(message), time_ns)
-            bag.write("/tf", "tf2_msgs/msg/TFMessage", pose_transforms(message), time_ns)
+            bag.write_tf("/tf", pose_edge(message), message.header.stamp_ns, time_ns)
         return True
     if isinstance(message, RigidBodies):
-        transforms = rigid_bodies_message(message)
-        if transforms.transforms:
-            bag.write("/tf", "tf2_msgs/msg/TFMessage", transforms, time_ns)
+        bag.write_tf("/tf", body_edges(message), message.header.stamp_ns, time_ns)
         return True
     if isinstance(message, StaticTransforms):
-        bag.write("/tf_static", "tf2_msgs/msg/TFMessage", static_transforms_message(message), time_ns)
+        bag.write_tf("/tf_static", list(message.transforms), message.header.stamp_ns, time_ns)
         return True
     if isinstance(message, CameraInfo) and message.header.frame_id not in bag.placed:
         bag.placed.add(message.header.frame_id)
-        bag.write("/tf_static", "tf2_msgs/msg/TFMessage", camera_placement_message(message), time_ns)
+        bag.write_tf("/tf_static", camera_placement(message), message.header.stamp_ns, time_ns)
     conversion = CONVERSIONS.get(type(message))
     if conversion is None:
         return False

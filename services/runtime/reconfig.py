@@ -86,7 +86,8 @@ class LiveParams(Generic[P]):
         return {name: json.dumps(dumped[name]) for name in sorted(reloadable(type(self.value)))}
 
     def answer(self, node: str, change: ConfigChange) -> ConfigAnswer:
-        """Apply ``change`` (values as JSON text) and say what happened.
+        """Apply ``change`` (values as JSON text) and say what happened: ``applied`` holds each changed field's
+        value as the node holds it now (``"1.0"`` typed for a float field is applied as ``1.0``).
 
         A value that arrives as a JSON string for a list or mapping field is that field's JSON
         (``artrack config --set`` sends what was typed as text; the node knows the field's type).
@@ -107,7 +108,8 @@ class LiveParams(Generic[P]):
             self.change(values)
         except Refused as exc:
             return self._answer(node, refused=exc.reasons)
-        return self._answer(node, applied=dict(change.values))
+        held = self.reloadable_values()
+        return self._answer(node, applied={name: held[name] for name in values})
 
     def _answer(self, node: str, **outcome: dict[str, str]) -> ConfigAnswer:
         return ConfigAnswer(header=Header(stamp_ns=time.time_ns()), node=node, params=self.reloadable_values(),

@@ -24,7 +24,13 @@ from pathlib import Path
 from mcap.writer import CompressionType, Writer
 
 from services.recorder.reading import Damage, Scan
-from services.viewer.foxglove_messages import DEFAULT_OPTIONS, FoxgloveMessage, FoxgloveOptions, Topical, to_foxglove
+from services.viewer.foxglove_messages import (
+    DEFAULT_OPTIONS,
+    FoxgloveConversion,
+    FoxgloveMessage,
+    FoxgloveOptions,
+    Topical,
+)
 
 REORDER_NS = 2_000_000_000
 """How far back in log time (ns) a message may arrive and still be written in order."""
@@ -70,6 +76,7 @@ def export_foxglove(source: Path, target: Path, options: FoxgloveOptions = DEFAU
     done = FoxgloveExport()
     pending: list[tuple[int, int, int, Topical]] = []  # (log time, arrival order, publish time, message)
     order = itertools.count()
+    convert = FoxgloveConversion(options)
     with open(target, "wb") as out:
         writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         writer.start(profile="", library="artrack export (foxglove)")
@@ -85,7 +92,7 @@ def export_foxglove(source: Path, target: Path, options: FoxgloveOptions = DEFAU
         newest = 0
         for recorded, message in scan.decoded():
             log_ns = recorded.message.log_time
-            for topical in to_foxglove(message, options):
+            for topical in convert(message):
                 heapq.heappush(pending, (log_ns, next(order), message.header.stamp_ns, topical))
             newest = max(newest, log_ns)
             write(newest - REORDER_NS)

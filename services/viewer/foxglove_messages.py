@@ -1,11 +1,11 @@
-"""artrack messages as Foxglove's well-known messages (``foxglove.messages``, protobuf): pure, no I/O.
+"""artrack messages as Foxglove's well-known messages (``foxglove.messages``, protobuf): no I/O.
 
-One function per artrack message type returns the Foxglove messages that show it, and ``to_foxglove``
-gives each its topic. Frames keep artrack's names (``cam0``, ``world``, ``rig``, ``marker/7``,
-``body/wand``); lengths are metres, pixel coordinates are x right, y down with the centre of the
-top-left pixel at (0, 0), as in artrack and in Foxglove's image panel. Every message is stamped with
-its artrack header's ``stamp_ns`` (the capture time of the frame it comes from), so detections line
-up with their image.
+One function per artrack message type returns the Foxglove messages that show it, and a
+``FoxgloveConversion`` (one per file or server) gives each its topic. Frames keep artrack's names
+(``cam0``, ``world``, ``rig``, ``marker/7``, ``body/wand``); lengths are metres, pixel coordinates are x
+right, y down with the centre of the top-left pixel at (0, 0), as in artrack and in Foxglove's image
+panel. Every message is stamped with its artrack header's ``stamp_ns`` (the capture time of the frame it
+comes from), so detections line up with their image.
 
 Topics are named from the message itself, so a recording exported afterwards and the live server
 show the same topics:
@@ -13,14 +13,23 @@ show the same topics:
 * ``/<camera>/image``: ``Image`` as ``RawImage`` (``CompressedImage``, JPEG; PNG for mono16, when
   ``compressed``); an AR overlay (frame id ``<camera>/overlay``) lands on ``/<camera>/overlay/image``.
 * ``/<camera>/camera_info``: ``CameraInfo`` as ``CameraCalibration`` in the image's frame, and its
-  ``T_rig_camera`` as ``rig -> <camera>`` on ``/tf``.
+  ``T_rig_camera`` as ``rig -> <camera>`` on ``/tf``, with ``world -> rig`` (the identity: for a tracker a
+  fixed rig's frame is the world its bodies and points are in).
 * ``/<camera>/markers``, ``/<camera>/blobs``, ``/<camera>/keypoints``: detections as
   ``ImageAnnotations`` (marker outlines with their ids, blobs as circles of their radius, keypoints
   as points); ``/<camera>/marker_outlines``: each marker of known side as a square ``SceneUpdate``
   entity in its own frame ``marker/<id>``, drawn wherever its pose places it.
+* ``/<camera>/target_outlines``: ``ImageTargets`` (the image targets a features node poses in the camera's
+  frames) as one ``SceneUpdate`` entity per target in its own frame ``target/<name>``: the printed image's
+  outline through its four corners and a translucent plane over it, drawn wherever the target's pose
+  places it.
 * ``/pose/<parent>/<child>``: ``Pose`` as ``PoseInFrame``, and ``parent -> child`` on ``/tf`` (camera
   -> markers and targets, map -> the SLAM camera, world -> bodies).
 * ``/tf``: ``RigidBodies`` as ``world -> body/<name>``; ``/tf_static``: ``StaticTransforms``.
+* ``/tf`` and ``/tf_static`` are one tree, every frame with one parent (``services.geometry.transform_tree``):
+  an edge that would give a frame a second parent is turned round when it can be (a SLAM camera placed on
+  its rig: ``map -> cam0`` goes out as ``cam0 -> map``, the inverse, so the map hangs under the camera), else
+  it names a child of its own (a marker seen by a second camera: ``cam1 -> cam1/marker/3``).
 * ``/<frame>/truth``: ``GroundTruth`` as ``FrameTransforms`` whose children are renamed
   ``truth/<child>``, so the truth stands beside the estimate instead of giving a frame two parents.
 * ``/<frame>/points``: ``Points3D`` as a ``PointCloud``; ``/<frame>/spheres``: the same points as
@@ -67,11 +76,14 @@ from foxglove.messages import (
     SpherePrimitive,
     TextAnnotation,
     Timestamp,
+    TriangleListPrimitive,
     Vector3,
 )
 
-from protocol import detections, maps, mocap, poses, sensors, spatial, system
+from protocol import detections, maps, mocap, poses, sensors, spatial, system, targets
 from protocol.message import Message
+from services.convert import in_tree
+from services.geometry.transform_tree import TransformTree
 from services.viewer.scene import DRAWN_STATES, error_text
 
 FoxgloveMessage = (RawImage | CompressedImage | CameraCalibration | FrameTransforms | PoseInFrame | PointCloud
@@ -83,10 +95,11 @@ TF, TF_STATIC, LOG = "/tf", "/tf_static", "/log"
 TRUTH_PREFIX = "truth/"
 MARKER_COLOUR = Color(r=0.0, g=0.86, b=0.35, a=1.0)
 KEYPOINT_COLOUR = Color(r=1.0, g=0.78, b=0.0, a=1.0)
+TARGET_PLANE_COLOUR = Color(r=0.0, g=0.86, b=0.35, a=0.2)
 CLEAN_COLOUR = Color(r=0.0, g=0.78, b=1.0, a=0.75)
 FLAGGED_COLOUR = Color(r=1.0, g=0.24, b=0.78, a=0.75)
 """RGBA in [0, 1], the Rerun viewer's colours: markers green, keypoints amber, blobs and points cyan
-(clean, labelled) or magenta (flagged, unlabelled)."""
+(clean, labelled) or magenta (flagged, unlabelled); image targets' outlines as markers', their planes translucent."""
 _ENCODINGS = {"mono8": ("mono8", 1), "mono16": ("mono16", 2), "bgr8": ("bgr8", 3), "bgra8": ("bgra8", 4)}
 """artrack image encoding -> (Foxglove RawImage encoding, bytes per pixel)."""
 _DISTORTION = {"plumb_bob": "plumb_bob", "rational_polynomial": "rational_polynomial",
@@ -156,16 +169,19 @@ def frame_transform(parent: str, child: str, transform: spatial.Transform, stamp
                           translation=Vector3(x=x, y=y, z=z), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))
 
 
-def camera_placement(info: sensors.CameraInfo) -> FrameTransforms:
-    """``rig -> <camera>``: where the camera sits in its rig (``T_rig_camera``)."""
-    return FrameTransforms(transforms=[frame_transform(spatial.RIG_FRAME, info.header.frame_id, info.T_rig_camera,
-                                                       info.header.stamp_ns)])
+def transforms(edges: list[spatial.FrameTransform], stamp_ns: int) -> FrameTransforms:
+    """Each ``T_parent_child`` of ``edges``, stamped ``stamp_ns``."""
+    return FrameTransforms(transforms=[frame_transform(edge.parent_frame, edge.child_frame, edge.transform, stamp_ns)
+                                       for edge in edges])
 
 
-def static_transforms(static: spatial.StaticTransforms) -> FrameTransforms:
-    """Every edge of a rig's ``tf_static``, ``parent -> child``."""
-    return FrameTransforms(transforms=[frame_transform(edge.parent_frame, edge.child_frame, edge.transform,
-                                                       static.header.stamp_ns) for edge in static.transforms])
+def camera_placement(info: sensors.CameraInfo) -> list[spatial.FrameTransform]:
+    """``world -> rig`` (the identity: a fixed rig's frame is the world, where bodies and points are) and
+    ``rig -> <camera>``, where the camera sits in its rig (``T_rig_camera``)."""
+    return [spatial.FrameTransform(parent_frame=spatial.WORLD_FRAME, child_frame=spatial.RIG_FRAME,
+                                   transform=spatial.Transform()),
+            spatial.FrameTransform(parent_frame=spatial.RIG_FRAME, child_frame=info.header.frame_id,
+                                   transform=info.T_rig_camera)]
 
 
 def pose_in_frame(pose: poses.Pose) -> PoseInFrame:
@@ -175,17 +191,16 @@ def pose_in_frame(pose: poses.Pose) -> PoseInFrame:
                        pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
 
 
-def pose_transforms(pose: poses.Pose) -> FrameTransforms:
+def pose_edge(pose: poses.Pose) -> list[spatial.FrameTransform]:
     """``header.frame_id -> child_frame_id`` (camera -> marker or target, map -> SLAM camera, world -> body)."""
-    return FrameTransforms(transforms=[frame_transform(pose.header.frame_id, pose.child_frame_id, pose.transform,
-                                                       pose.header.stamp_ns)])
+    return [spatial.FrameTransform(parent_frame=pose.header.frame_id, child_frame=pose.child_frame_id,
+                                   transform=pose.transform)]
 
 
-def body_transforms(bodies: poses.RigidBodies) -> FrameTransforms:
+def body_edges(bodies: poses.RigidBodies) -> list[spatial.FrameTransform]:
     """``world -> body/<name>`` of each body with a pose to show (tracking, recognised, predicted)."""
-    return FrameTransforms(transforms=[
-        frame_transform(bodies.header.frame_id, f"body/{body.name}", body.transform, bodies.header.stamp_ns)
-        for body in bodies.bodies if body.state in DRAWN_STATES])
+    return [spatial.FrameTransform(parent_frame=bodies.header.frame_id, child_frame=f"body/{body.name}",
+                                   transform=body.transform) for body in bodies.bodies if body.state in DRAWN_STATES]
 
 
 def truth_transforms(truth: poses.GroundTruth) -> FrameTransforms:
@@ -264,6 +279,25 @@ def marker_outlines(markers: detections.MarkerDetections) -> SceneUpdate:
     return SceneUpdate(entities=entities)
 
 
+def target_outlines(described: targets.ImageTargets) -> SceneUpdate:
+    """Each image target as an entity in its own frame (``frame_id``, e.g. ``target/<name>``), locked to that frame,
+    id the frame's name: its outline, a closed line through its ``corners`` (m, in that frame: ``(+-w/2, +-h/2, 0)``
+    for artrack's targets), and a translucent plane over the same rectangle (two triangles). Static: the entities
+    last until replaced."""
+    stamp = timestamp(described.header.stamp_ns)
+    origin = _placed_at(0.0, 0.0, 0.0)
+    entities = []
+    for target in described.targets:
+        corners = [Point3(x=x, y=y, z=z) for x, y, z in target.corners]
+        outline = LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=origin, thickness=0.003, points=corners,
+                                color=MARKER_COLOUR)
+        plane = TriangleListPrimitive(pose=origin, points=corners, color=TARGET_PLANE_COLOUR,
+                                      indices=[0, 1, 2, 0, 2, 3])
+        entities.append(SceneEntity(timestamp=stamp, frame_id=target.frame_id, id=target.frame_id, frame_locked=True,
+                                    lines=[outline], triangles=[plane]))
+    return SceneUpdate(entities=entities)
+
+
 def marker_annotations(markers: detections.MarkerDetections) -> ImageAnnotations:
     """Each marker's four corners (px) as a closed outline, and its id written at its first corner."""
     stamp = timestamp(markers.header.stamp_ns)
@@ -301,39 +335,54 @@ def log_entry(report: system.ErrorReport) -> Log:
                name=report.node)
 
 
-def to_foxglove(message: Message, options: FoxgloveOptions = DEFAULT_OPTIONS) -> list[Topical]:
-    """The Foxglove messages that show ``message``, each with its topic (see the module docstring); none for a
-    type without a Foxglove counterpart."""
-    frame = message.header.frame_id
-    match message:
-        case sensors.Image():
-            image = compressed_image(message, options.jpeg_quality) if options.compressed else raw_image(message)
-            return [(f"/{frame}/image", image)]
-        case sensors.CameraInfo():
-            return [(f"/{frame}/camera_info", camera_calibration(message)), (TF, camera_placement(message))]
-        case spatial.StaticTransforms():
-            return [(TF_STATIC, static_transforms(message))]
-        case poses.Pose():
-            if message.state not in DRAWN_STATES:
-                return []
-            return [(f"/pose/{frame}/{message.child_frame_id}", pose_in_frame(message)),
-                    (TF, pose_transforms(message))]
-        case poses.RigidBodies():
-            return [(TF, body_transforms(message))]
-        case poses.GroundTruth():
-            return [(f"/{frame}/truth", truth_transforms(message))]
-        case mocap.Points3D():
-            return [(f"/{frame}/points", triangulated_cloud(message)),
-                    (f"/{frame}/spheres", body_spheres(message, options.sphere_m))]
-        case maps.PointCloud():
-            return [(f"/{frame}/map", map_cloud(message))]
-        case detections.MarkerDetections():
-            return [(f"/{frame}/markers", marker_annotations(message)),
-                    (f"/{frame}/marker_outlines", marker_outlines(message))]
-        case detections.Blobs():
-            return [(f"/{frame}/blobs", blob_annotations(message))]
-        case detections.Keypoints():
-            return [(f"/{frame}/keypoints", keypoint_annotations(message))]
-        case system.ErrorReport():
-            return [(LOG, log_entry(message))]
-    return []
+class FoxgloveConversion:
+    """artrack messages of one recording or one live rig, in the order they come, as the Foxglove messages that
+    show them, each with its topic (see the module docstring). Transforms go through one ``TransformTree``, so
+    ``/tf`` and ``/tf_static`` give every frame a single parent."""
+
+    def __init__(self, options: FoxgloveOptions = DEFAULT_OPTIONS):
+        self.options = options
+        self.tree = TransformTree()
+
+    def __call__(self, message: Message) -> list[Topical]:
+        """What shows ``message``; none for a type without a Foxglove counterpart."""
+        frame, stamp_ns = message.header.frame_id, message.header.stamp_ns
+        match message:
+            case sensors.Image():
+                options = self.options
+                image = compressed_image(message, options.jpeg_quality) if options.compressed else raw_image(message)
+                return [(f"/{frame}/image", image)]
+            case sensors.CameraInfo():
+                return [(f"/{frame}/camera_info", camera_calibration(message)),
+                        (TF, self._tree(camera_placement(message), stamp_ns))]
+            case spatial.StaticTransforms():
+                return [(TF_STATIC, self._tree(list(message.transforms), stamp_ns))]
+            case poses.Pose():
+                if message.state not in DRAWN_STATES:
+                    return []
+                return [(f"/pose/{frame}/{message.child_frame_id}", pose_in_frame(message)),
+                        (TF, self._tree(pose_edge(message), stamp_ns))]
+            case poses.RigidBodies():
+                return [(TF, self._tree(body_edges(message), stamp_ns))]
+            case poses.GroundTruth():
+                return [(f"/{frame}/truth", truth_transforms(message))]
+            case mocap.Points3D():
+                return [(f"/{frame}/points", triangulated_cloud(message)),
+                        (f"/{frame}/spheres", body_spheres(message, self.options.sphere_m))]
+            case maps.PointCloud():
+                return [(f"/{frame}/map", map_cloud(message))]
+            case detections.MarkerDetections():
+                return [(f"/{frame}/markers", marker_annotations(message)),
+                        (f"/{frame}/marker_outlines", marker_outlines(message))]
+            case targets.ImageTargets():
+                return [(f"/{frame}/target_outlines", target_outlines(message))]
+            case detections.Blobs():
+                return [(f"/{frame}/blobs", blob_annotations(message))]
+            case detections.Keypoints():
+                return [(f"/{frame}/keypoints", keypoint_annotations(message))]
+            case system.ErrorReport():
+                return [(LOG, log_entry(message))]
+        return []
+
+    def _tree(self, edges: list[spatial.FrameTransform], stamp_ns: int) -> FrameTransforms:
+        return transforms(in_tree(self.tree, edges), stamp_ns)

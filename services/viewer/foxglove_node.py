@@ -3,15 +3,21 @@ written as a Foxglove MCAP file while it runs.
 
 It subscribes to the streams the Rerun viewer node draws (``services.viewer.node.subscriptions``:
 images and overlays latest-wins, calibrations, detections, poses, bodies, points and maps in order,
-node health), turns each message into Foxglove's well-known messages with
-``services.viewer.foxglove_messages`` (the topics and schemas ``artrack export --format foxglove``
-writes) and logs them on typed channels, one per topic, made when its first message arrives. Open
+node health) and to the rig's static data (``protocol.keys.Keys.latched``: static transforms, image
+targets), which it also asks for when it starts (``services.bus.latched``), so a node joining a running
+rig still draws the targets' outlines and the cameras' placement. It turns each message into Foxglove's
+well-known messages with ``services.viewer.foxglove_messages`` (the topics and schemas ``artrack export
+--format foxglove`` writes) and logs them on typed channels, one per topic, made when its first message arrives. Open
 Foxglove, "Open connection", ``ws://127.0.0.1:8765``.
 
 Served (``serve``, the default), images are limited to ``image_hz`` per topic by the Rerun viewer's
 ``RateGate`` (slots of the frames' own stamps, repeats held back); every other message goes out as it
 arrives. The server binds 127.0.0.1 by default (this machine only: it has no authentication); ``bind``
 0.0.0.0 serves every interface. It is stopped when the node stops.
+
+The server keeps what shows the static data (``/tf_static``, ``/<camera>/target_outlines``) and sends it
+again on its channel whenever a client subscribes to it (``Outputs.on_subscribe``): a Foxglove app that
+connects after the rig started still gets the cameras' placement and the targets' outlines.
 
 Written (``mcap``), every message the node takes goes into the file, images included: every frame
 in a lossless run, the newest ``image_depth`` (latest-wins, as served) in a real-time one. The file
@@ -26,7 +32,9 @@ still hold is written and the file finished; a node killed outright leaves it wi
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -34,16 +42,21 @@ import foxglove
 import foxglove.channels
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import CompressedImage, RawImage
+from foxglove.websocket import ChannelView, Client, ServerListener
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from protocol.keys import Keys
 from protocol.message import Message
+from protocol.spatial import StaticTransforms
+from protocol.targets import ImageTargets
+from services.bus.latched import ask_latched
 from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind, SinkRole
 from services.runtime.node import Node, NodeError
 from services.runtime.outputs import check_output
 from services.viewer import node as viewer_node
 from services.viewer.foxglove_export import CHUNK_BYTES
-from services.viewer.foxglove_messages import FoxgloveMessage, FoxgloveOptions, to_foxglove
+from services.viewer.foxglove_messages import FoxgloveConversion, FoxgloveMessage, FoxgloveOptions
 from services.viewer.images import RateGate
 
 
@@ -87,13 +100,19 @@ class Channels:
         channel.log(shown, log_time=log_ns)
 
 
-class Outputs:
+STATIC = (StaticTransforms, ImageTargets)
+"""Messages that describe what does not change while the rig runs: sent again to each client that subscribes."""
+
+
+class Outputs(ServerListener):
     """The node's server and/or file (``params.serve``, ``params.mcap``): each message converted once, sent to the
-    server with images gated to ``image_hz`` per topic, written to the file whole. ``sent`` and ``written`` count
-    the Foxglove messages each took. NodeError when the server cannot bind or the file cannot be opened."""
+    server with images gated to ``image_hz`` per topic, written to the file whole; what shows static data is sent
+    again to a client that subscribes to its topic. ``sent`` and ``written`` count the Foxglove messages each
+    took. NodeError when the server cannot bind or the file cannot be opened."""
 
     def __init__(self, params: Params, name: str):
-        self.options = FoxgloveOptions(compressed=params.compressed, jpeg_quality=params.jpeg_quality)
+        self.convert = FoxgloveConversion(FoxgloveOptions(compressed=params.compressed,
+                                                          jpeg_quality=params.jpeg_quality))
         self.sent = 0
         self.written = 0
         self.server: foxglove.WebSocketServer | None = None
@@ -102,11 +121,13 @@ class Outputs:
         self._served: Channels | None = None
         self._filed: Channels | None = None
         self._last_ns = 0
+        self._static: defaultdict[str, list[FoxgloveMessage]] = defaultdict(list)
+        self._static_lock = threading.Lock()
         if params.serve:
             self._served = Channels(foxglove.Context())
             try:
                 self.server = foxglove.start_server(name=name, host=params.bind, port=params.port,
-                                                    context=self._served.context)
+                                                    context=self._served.context, server_listener=self)
             except RuntimeError as exc:  # foxglove's FoxgloveError: the port is taken, the address is not this host's
                 raise NodeError(f"cannot serve Foxglove on {params.bind}:{params.port}: {exc}") from exc
         if params.mcap is not None:
@@ -122,7 +143,7 @@ class Outputs:
     def log(self, message: Message) -> None:
         """Send what shows ``message`` (images over the rate held back) and write all of it."""
         log_ns = self._last_ns = max(self._last_ns, time.time_ns())
-        for topic, shown in to_foxglove(message, self.options):
+        for topic, shown in self.convert(message):
             if self._filed is not None:
                 self._filed.log(topic, shown, log_ns)
                 self.written += 1
@@ -130,8 +151,20 @@ class Outputs:
                 continue
             if isinstance(shown, RawImage | CompressedImage) and not self._gate.admit(topic, message.header.stamp_ns):
                 continue
+            if isinstance(message, STATIC):
+                with self._static_lock:
+                    self._static[topic].append(shown)
             self._served.log(topic, shown)
             self.sent += 1
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        """Send the static data shown on ``channel`` again (every subscriber of the channel gets it: the same data)."""
+        with self._static_lock:
+            again = list(self._static.get(channel.topic, ()))
+        if self._served is not None:
+            for shown in again:
+                self._served.log(channel.topic, shown)
+                self.sent += 1
 
     def close(self) -> None:
         """Finish the file (summary and indexes) and stop the server."""
@@ -143,9 +176,18 @@ class Outputs:
             self.server = None
 
 
+def subscriptions(keys: Keys) -> list[tuple[str, Role]]:
+    """``(key expression, role)`` of every stream the node subscribes to: the Rerun viewer's and the static data."""
+    return [*viewer_node.subscriptions(keys), *((key, Role.RESULT) for key in keys.latched())]
+
+
 def run(node: Node, params: Params) -> None:
     inboxes: list[Inbox[Message]] = [node.inbox(key, None, role, params.image_depth if role is Role.FRAME else None)
-                                     for key, role in viewer_node.subscriptions(node.keys)]
+                                     for key, role in subscriptions(node.keys)]
+    latched = node.keys.latched()
+    for inbox in inboxes:
+        if inbox.key in latched:
+            ask_latched(node.session, inbox.key, latched, inbox.offer)
     outputs = Outputs(params, f"artrack {node.keys.prefix}")
     try:
         if outputs.server is not None:
@@ -165,6 +207,11 @@ def run(node: Node, params: Params) -> None:
     node.log.info("%s", ", ".join(done))
 
 
+def _inputs(params: Params) -> tuple[str, ...]:
+    rig = Keys()
+    return (*viewer_node.KIND.keys(params)[0], *(key.removeprefix(f"{rig.prefix}/") for key in rig.latched()))
+
+
 def _check(params: Params) -> None:
     if params.mcap is not None:
         check_output(params.mcap, params.force)
@@ -172,6 +219,6 @@ def _check(params: Params) -> None:
 
 KIND = NodeKind(name="foxglove", summary="serves the rig live to Foxglove over its WebSocket protocol and/or "
                                          "writes it as a Foxglove MCAP file",
-                params=Params, run=run, inputs=viewer_node.KIND.inputs, outputs=(), check=_check,
+                params=Params, run=run, inputs=_inputs, outputs=(), check=_check,
                 sink=SinkRole(files=lambda params: () if params.mcap is None else
                               (("foxglove recording", params.mcap),)))

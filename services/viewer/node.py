@@ -19,7 +19,8 @@ inboxes), so a slow viewer never holds up the pipeline:
 
 Images are further limited to ``image_hz`` per camera (10 by default; 0 = every frame that
 arrives) and can be stored as JPEG (``jpeg_quality``). On SIGINT/SIGTERM what the inboxes
-still hold is logged, then the file is flushed and closed. Layout and timelines:
+still hold is logged, then the file is flushed and closed. An ``rrd`` that exists is refused before the
+node starts unless ``force``. Layout and timelines:
 ``services.viewer.layout``; sinks and the gRPC bind address (127.0.0.1 by default, unlike
 ``rr.serve_grpc``'s 0.0.0.0): ``services.viewer.recording``.
 """
@@ -35,6 +36,7 @@ from protocol.message import Message
 from services.bus.pubsub import Inbox, Role
 from services.runtime.kind import NodeKind, SinkRole
 from services.runtime.node import Node
+from services.runtime.outputs import check_output
 from services.viewer.recording import Serve, ViewLog, open_recording
 from services.viewer.scene import Scene, ViewOptions
 
@@ -48,6 +50,7 @@ class Params(ViewOptions):
     """Where to log (a file, a server, or both), plus how to draw (``ViewOptions``)."""
 
     rrd: Path | None = Field(default=None, description="the .rrd file to write")
+    force: bool = Field(default=False, description="overwrite the rrd file if it exists")
     serve: bool = Field(default=False, description="serve the recording over gRPC for viewers to connect to")
     port: int = Field(default=9876, ge=1, le=65535, description="the gRPC server's port")
     bind: str = Field(default="127.0.0.1", description="the gRPC server's address; 0.0.0.0 = every interface")
@@ -97,8 +100,8 @@ def _inputs(params: Params) -> tuple[str, ...]:
 
 
 def _check(params: Params) -> None:
-    if params.rrd is not None and not params.rrd.parent.is_dir():
-        raise ValueError(f"cannot write {params.rrd}: folder {params.rrd.parent} does not exist")
+    if params.rrd is not None:
+        check_output(params.rrd, params.force)
 
 
 KIND = NodeKind(name="viewer", summary="logs the rig to Rerun: an .rrd file and/or a gRPC server",

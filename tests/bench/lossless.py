@@ -8,7 +8,7 @@ times while ``tests.load.busy`` spins a process on every core. From each recordi
   last result, so a node fed by another's results counts too);
 * ``node_rate_hz``: the rate its slowest node could keep alone, 1000 / its processing p50 (its
   last statistics), i.e. the work per frame in one process;
-* ``same_results``: whether the results (every key but the inputs, timings and node health, keys taken
+* ``same_results``: whether the results (every key but the inputs, timings, static data and node health, keys taken
   relative to the run's rig) are the same bytes as the first idle run's.
 
 ``slam_process`` runs SLAM with its mapping process (the default) ``SLAM_RUNS`` times under load and
@@ -51,7 +51,7 @@ TRACKERS = {
     "features": ("synthetic:planar_target", 90, ()),
     "slam_inline": ("synthetic:room", 90, ("--mapping", "inline")),
 }
-LEFT_OUT = ("/image", "/camera_info", "/truth", "/timings")
+LEFT_OUT = ("/image", "/camera_info", "/truth", "/timings", "/targets")
 
 
 def _run(tracker: str, source: str, frames: int, options: tuple[str, ...], folder: Path, *extra: str) -> Path:

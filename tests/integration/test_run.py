@@ -170,7 +170,7 @@ def test_run_without_marker_length_takes_the_markers_scenes_own_and_says_so(proc
     assert "using --marker-length 0.07, as synthetic:markers renders it" in job.stderr
     assert tomllib.loads(saved.read_text())["nodes"]["marker-cam0"]["marker_length"] == 0.07
     given = procs.run("run", "marker", "--source", "synthetic:markers", "--marker-length", "0.05", "--frames", "5",
-                      "--save-pipeline", str(saved))
+                      "--save-pipeline", str(saved), "--force")
     assert given.poll() == 0 and "using --marker-length" not in given.stderr, given.describe()
     assert tomllib.loads(saved.read_text())["nodes"]["marker-cam0"]["marker_length"] == 0.05
 

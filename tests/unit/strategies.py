@@ -25,6 +25,8 @@ from protocol import (
     GroundTruth,
     Header,
     Image,
+    ImageTarget,
+    ImageTargets,
     Keyframes,
     Keypoints,
     MarkerDetections,
@@ -179,6 +181,20 @@ def points_3d(draw: st.DrawFn) -> Points3D:
                     covariances=draw(arrays("float64", (n, 3, 3))), body=np.array(body, np.int32))
 
 
+@st.composite
+def image_targets(draw: st.DrawFn) -> ImageTargets:
+    """Targets of sizes from a millimetre to a kilometre, their frames' origins at the image's centre or a corner."""
+    sizes = st.floats(min_value=1e-3, max_value=1e3)
+    names = draw(st.lists(texts.filter(bool), max_size=3, unique=True))
+    described = []
+    for name in names:
+        w, h = draw(sizes), draw(sizes)
+        x0, y0 = draw(st.sampled_from([(-w / 2, h / 2), (0.0, 0.0), (0.0, h)]))
+        described.append(ImageTarget(name=name, frame_id=f"target/{name}", width_m=w, height_m=h, corners=(
+            (x0, y0, 0.0), (x0 + w, y0, 0.0), (x0 + w, y0 - h, 0.0), (x0, y0 - h, 0.0))))
+    return ImageTargets(header=draw(headers), targets=tuple(described))
+
+
 def _tuples_of(strategy: st.SearchStrategy) -> st.SearchStrategy[tuple]:
     return st.lists(strategy, max_size=3).map(tuple)
 
@@ -207,6 +223,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
         st.builds(RigidBody, name=texts, transform=transforms, state=states, quality=qualities))),
     "artrack.GroundTruth": st.builds(GroundTruth, header=headers, transforms=_tuples_of(
         st.builds(FrameTransform, parent_frame=texts, child_frame=texts, transform=transforms))),
+    "artrack.ImageTargets": image_targets(),
     "artrack.StaticTransforms": st.builds(StaticTransforms, header=headers, transforms=st.lists(
         st.builds(FrameTransform, parent_frame=texts.filter(bool), child_frame=texts.filter(bool),
                   transform=transforms).filter(lambda edge: edge.parent_frame != edge.child_frame),

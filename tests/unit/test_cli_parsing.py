@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.cli import parser
+from services.cli import main, parser
 from services.cli.parsing import usage_error
 from services.cli.run import _run_parser
 
@@ -37,6 +37,17 @@ def test_every_subcommand_errs_in_one_line_and_a_hint(capsys, argv, first):
     lines = error_lines(lambda: parser().parse_args(argv), capsys)
     assert len(lines) == 2 and lines[0].startswith(first), lines
     assert lines[1] == f"(`{first.split(':')[0]} --help` lists the options)"
+
+
+@pytest.mark.parametrize(("argv", "command"), [
+    (["export", "r.mcap", "--format", "foxglove", "-o", "f.mcap"], "artrack export"),
+    (["eval", "a.txt", "b.txt"], "artrack eval"),
+    (["target", "add", "poster.png", "--width", "0.2"], "artrack target add"),
+    (["demo"], "artrack demo"),
+])
+def test_an_option_no_command_takes_is_refused_by_the_command_given(capsys, argv, command):
+    lines = error_lines(lambda: main([*argv, "--stamps", "nope"]), capsys)
+    assert lines == [f"{command}: unrecognized arguments: --stamps nope", f"(`{command} --help` lists the options)"]
 
 
 def test_a_message_over_several_lines_is_put_on_one():

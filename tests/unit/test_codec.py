@@ -14,7 +14,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import MESSAGES
 
-from protocol import Blobs, DecodeError, ErrorReport, Header, Image, Message, Pose, decode, encode
+from protocol import (
+    Blobs,
+    DecodeError,
+    ErrorReport,
+    Header,
+    Image,
+    ImageTarget,
+    ImageTargets,
+    Message,
+    Pose,
+    decode,
+    encode,
+)
 from protocol.codec import ALIGN, MAGIC, is_frame
 from protocol.message import message_types
 from protocol.schemas import json_schema, write_schemas
@@ -46,6 +58,12 @@ def reframe(payload: bytes, edit: Callable[[dict[str, Any]], None], room: int = 
 def image(rows: int = 3, cols: int = 5) -> Image:
     data = np.arange(rows * cols, dtype=np.uint8).reshape(rows, cols)
     return Image(header=Header(stamp_ns=7, frame_id="cam0", seq=1), encoding="mono8", data=data)
+
+
+def card() -> ImageTargets:
+    corners = ((-0.04, 0.03, 0.0), (0.04, 0.03, 0.0), (0.04, -0.03, 0.0), (-0.04, -0.03, 0.0))
+    return ImageTargets(header=Header(stamp_ns=1), targets=(
+        ImageTarget(name="card", frame_id="target/card", width_m=0.08, height_m=0.06, corners=corners),))
 
 
 def report() -> ErrorReport:
@@ -357,6 +375,9 @@ def schema_errors(value: Any, schema: dict[str, Any], root: dict[str, Any], path
                     errors += schema_errors(item, sub, root, f"{path}[{i}]")
             elif (len(value) < rule) if keyword == "minItems" else (len(value) > rule):
                 errors.append(f"{path}: {len(value)} items breaks {keyword} {rule}")
+        elif keyword == "minLength":
+            if isinstance(value, str) and len(value) < rule:
+                errors.append(f"{path}: {value!r} is shorter than {rule}")
         elif keyword in ("minimum", "exclusiveMinimum"):
             if _TYPES["number"](value) and (value < rule if keyword == "minimum" else value <= rule):
                 errors.append(f"{path}: {value!r} breaks {keyword} {rule}")
@@ -393,6 +414,8 @@ def test_exported_schema_validates_the_payload(message: Message):
         (image(), {"data": {"dtype": "uint8", "shape": [3, -5], "offset": 128}}),
         (image(), {"data": {"dtype": "uint8", "shape": [3, 5]}}),
         (image(), {"encoding": "rgb8"}),
+        (card(), {"targets": [{**json.loads(encode(card()))["targets"][0], "name": ""}]}),
+        (card(), {"targets": [{**json.loads(encode(card()))["targets"][0], "width_m": 0}]}),
     ],
     ids=lambda v: "" if isinstance(v, Message) else json.dumps(v),
 )

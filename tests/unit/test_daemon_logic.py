@@ -97,6 +97,8 @@ def test_live_params_answer_is_all_or_nothing_and_apply_may_refuse():
     mixed = live.answer("markers", ConfigChange(header=Header(stamp_ns=3),
                                                 values={"marker_length": "0.1", "camera": '"cam1"'}))
     assert mixed.refused == {"camera": "not reloadable: needs a restart"} and live.value.detection.marker_length == 0.05
+    typed = live.answer("markers", ConfigChange(header=Header(stamp_ns=5), values={"marker_length": '"0.07"'}))
+    assert typed.applied == {"marker_length": "0.07"}, "applied as the node holds it: a number, not the text typed"
     not_json = live.answer("markers", ConfigChange(header=Header(stamp_ns=4), values={"marker_length": "0,1"}))
     assert "not JSON" in not_json.refused["marker_length"]
 

@@ -8,7 +8,7 @@ import pytest
 
 from services.bus.stats import SeqGaps
 from services.launcher.flow import FlowSettings, lossless
-from services.launcher.job import FoxgloveFile, build_job
+from services.launcher.job import JobFile, build_job
 from services.launcher.layout import SINGLE, laid_out
 from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, preflight, read_pipeline, to_toml
 from services.launcher.tracker import Tracker
@@ -17,7 +17,7 @@ from services.launcher.tracker import Tracker
 def job(tracker: str, **source) -> PipelineSpec:
     chosen = Tracker.load(tracker)
     return build_job(chosen, NodeSpec(kind="capture", **source), {}, chosen.flags({}), Path("run.mcap"),
-                     Path("run.rrd"))
+                     JobFile(Path("run.rrd")))
 
 
 def test_a_finite_source_runs_lossless_and_waits_for_every_node_that_takes_its_images():
@@ -34,7 +34,7 @@ def test_a_foxglove_file_is_written_by_a_node_that_takes_every_frame_and_waits_f
     out = tmp_path / "live.mcap"
     source = NodeSpec(kind="capture", source=["synthetic:markers"], frames=10)
     spec = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), tmp_path / "run.mcap",
-                     foxglove=FoxgloveFile(out))
+                     foxglove=JobFile(out))
     assert spec.nodes["foxglove"].params == {"serve": False, "mcap": str(out)}
     plans = spec.flow_plans()
     assert "foxglove" in plans["capture"].credits_from and plans["foxglove"].acks
@@ -44,8 +44,22 @@ def test_a_foxglove_file_is_written_by_a_node_that_takes_every_frame_and_waits_f
     out.write_bytes(b"kept")
     with pytest.raises(PipelineError, match=r"job: nodes.foxglove: .*live.mcap exists: give --force"):
         preflight(spec, "job")
-    forced = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), foxglove=FoxgloveFile(out, True))
+    forced = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), foxglove=JobFile(out, True))
     preflight(forced, "job")
+
+
+def test_a_rerun_file_that_exists_is_refused_before_the_job_unless_forced(tmp_path):
+    chosen = Tracker.load("marker")
+    out = tmp_path / "run.rrd"
+    source = NodeSpec(kind="capture", source=["synthetic:markers"], frames=10)
+    out.write_bytes(b"kept")
+    kept = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), rerun=JobFile(out))
+    with pytest.raises(PipelineError, match=r"job: nodes.viewer: .*run.rrd exists: give --force"):
+        preflight(kept, "job")
+    forced = build_job(chosen, source, {"marker_length": 0.05}, chosen.flags({}), rerun=JobFile(out, True))
+    assert forced.nodes["viewer"].params == {"rrd": str(out), "force": True}
+    preflight(forced, "job")
+    assert out.read_bytes() == b"kept"
 
 
 def test_nodes_fed_by_results_wait_for_ends_but_give_no_credits():

@@ -8,7 +8,19 @@ import pytest
 import rerun as rr
 from mcap.reader import make_reader
 
-from protocol import CameraInfo, GroundTruth, Header, Image, MarkerDetections, Points3D, Pose, Transform, decode, encode
+from protocol import (
+    CameraInfo,
+    GroundTruth,
+    Header,
+    Image,
+    MarkerDetections,
+    PointCloud,
+    Points3D,
+    Pose,
+    Transform,
+    decode,
+    encode,
+)
 from services.cli import main
 from services.recorder.reading import EXIT_DAMAGED, Scan
 from services.recorder.writing import RecordingWriter
@@ -98,7 +110,7 @@ def test_rerun_loads_the_export_as_images_pinholes_and_transforms(exported, tmp_
     first = source_messages(SHIPPED, "cam0/image")[0]
     np.testing.assert_array_equal(images[0].numbers(), first.data.ravel())
     assert len(contents.rows("cam1/camera_info", "Pinhole:image_from_camera")) == 60
-    assert len(contents.rows("tf", "Transform3D:translation")) == 120
+    assert len(contents.rows("tf", "Transform3D:translation")) == 60 * 2 * 2  # world -> rig, rig -> camera
 
 
 def test_poses_points_and_detections_of_a_tracked_run_are_exported(tmp_path):
@@ -131,6 +143,41 @@ def test_poses_points_and_detections_of_a_tracked_run_are_exported(tmp_path):
     moved = contents.rows("pose/cam0/marker/3", "InstancePoses3D:translations")
     assert [row.numbers().tolist() for row in moved] == [[0.0, 0.0, 1.0], [0.0, 0.0, 2.0], [0.0, 0.0, 3.0]]
     assert len(contents.rows("world/points", "Points3D:positions")) == 3
+
+
+def test_a_slam_run_exports_its_map_points_as_a_cloud_and_its_camera_in_the_one_tree(tmp_path):
+    source = tmp_path / "slam.mcap"
+    writer = RecordingWriter(source, metadata={"namespace": "ar", "rig": "lab"})
+    for i in range(3):
+        header = Header(stamp_ns=1_700_000_000_000_000_000 + i, frame_id="cam0", seq=i)
+        in_map = header.model_copy(update={"frame_id": "map"})
+        writer.write("ar/lab/cam0/camera_info", encode(CameraInfo(
+            header=header, width=64, height=48, k=(50.0, 0, 32, 0, 50.0, 24, 0, 0, 1),
+            T_rig_camera=Transform(translation=(0.0, 0.1, 0.0)))), 10_000 + 3 * i)
+        writer.write("ar/lab/pose/slam/cam0", encode(Pose(
+            header=in_map, child_frame_id="cam0", transform=Transform(translation=(0.2 * i, 0.0, 0.0)))),
+            10_001 + 3 * i)
+        writer.write("ar/lab/cam0/map", encode(PointCloud(
+            header=in_map, ids=np.arange(4, dtype=np.int64), points=np.full((4, 3), float(i), np.float32),
+            colors=np.zeros((0, 3), np.uint8))), 10_002 + 3 * i)
+    writer.close()
+    export_foxglove(source, tmp_path / "slam.foxglove.mcap")
+    _, found = read_back(tmp_path / "slam.foxglove.mcap")
+    assert {topic: rows[0][0] for topic, rows in found.items()} == {
+        "/cam0/camera_info": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransforms",
+        "/pose/map/cam0": "foxglove.PoseInFrame", "/map/map": "foxglove.PointCloud"}
+    cloud = found["/map/map"][2][2]
+    assert cloud.frame_id == "map" and cloud.point_stride == 12
+    np.testing.assert_array_equal(np.frombuffer(cloud.data, "<f4"), np.full(12, 2.0))
+    parents: dict[str, set[str]] = {}
+    for _, _, tf in found["/tf"]:
+        for edge in tf.transforms:
+            parents.setdefault(edge.child_frame_id, set()).add(edge.parent_frame_id)
+    assert parents == {"rig": {"world"}, "cam0": {"rig"}, "map": {"cam0"}}
+    last = [e for _, _, tf in found["/tf"] for e in tf.transforms if e.child_frame_id == "map"][-1]
+    assert [last.translation.x, last.translation.y, last.translation.z] == pytest.approx([-0.4, 0.0, 0.0])
+    contents = loaded_by_rerun(tmp_path / "slam.foxglove.mcap", tmp_path / "slam.rrd")
+    assert len(contents.rows("map/map", "Points3D:positions")) == 3
 
 
 def test_a_damaged_recording_exports_its_intact_part_with_one_warning_and_exit_3(tmp_path, capsys):

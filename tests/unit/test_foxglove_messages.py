@@ -15,6 +15,8 @@ from protocol import (
     GroundTruth,
     Header,
     Image,
+    ImageTarget,
+    ImageTargets,
     Keypoints,
     MarkerDetections,
     PointCloud,
@@ -26,7 +28,8 @@ from protocol import (
     TrackingState,
     Transform,
 )
-from services.viewer.foxglove_messages import DEFAULT_OPTIONS, FoxgloveOptions, to_foxglove
+from services.convert import matrix_from_transform
+from services.viewer.foxglove_messages import DEFAULT_OPTIONS, FoxgloveConversion, FoxgloveOptions
 from tests.foxglove_decoding import parsed
 
 STAMP_NS = 1_700_000_012_345_678_901
@@ -36,7 +39,7 @@ PLACED = Transform(translation=(0.1, -0.2, 0.3), rotation=(0.0, 0.0, 0.6, 0.8))
 
 def shown(message, options: FoxgloveOptions = DEFAULT_OPTIONS) -> dict[str, object]:
     """``{topic: decoded protobuf message}`` of what shows ``message``."""
-    return {topic: parsed(fox) for topic, fox in to_foxglove(message, options)}
+    return {topic: parsed(fox) for topic, fox in FoxgloveConversion(options)(message)}
 
 
 def stamp_ns(decoded) -> int:
@@ -80,7 +83,8 @@ def test_a_calibration_keeps_k_d_r_p_in_the_images_frame_and_places_the_camera_i
     np.testing.assert_array_equal(calibration.D, info.d)
     np.testing.assert_array_equal(calibration.R, info.r)
     np.testing.assert_array_equal(np.reshape(calibration.P, (3, 4)), np.c_[np.reshape(k, (3, 3)), np.zeros(3)])
-    (edge,) = found["/tf"].transforms
+    world, edge = found["/tf"].transforms
+    assert (world.parent_frame_id, world.child_frame_id, world.rotation.w) == ("world", "rig", 1.0)
     assert (edge.parent_frame_id, edge.child_frame_id) == ("rig", "cam0")
     assert [edge.translation.x, edge.translation.y, edge.translation.z] == pytest.approx(PLACED.translation)
     fisheye = CameraInfo(header=HEADER, width=64, height=48, k=k, distortion_model="equidistant", d=(0.1, 0, 0, 0))
@@ -117,6 +121,58 @@ def test_bodies_truth_and_static_transforms_become_frame_transforms():
     edges = shown(static)["/tf_static"].transforms
     assert [(e.parent_frame_id, e.child_frame_id) for e in edges] == [("rig", "cam0"), ("rig", "cam1")]
     assert edges[1].rotation.w == pytest.approx(0.8) and stamp_ns(edges[1]) == STAMP_NS
+
+
+def tf_edges(convert: FoxgloveConversion, messages) -> dict[str, tuple[str, np.ndarray]]:
+    """Every ``/tf`` and ``/tf_static`` edge ``messages`` give in turn: child -> (parent, (4, 4) T_parent_child),
+    checking that no child ever gets a second parent."""
+    edges: dict[str, tuple[str, np.ndarray]] = {}
+    for message in messages:
+        for topic, fox in convert(message):
+            if topic not in ("/tf", "/tf_static"):
+                continue
+            for e in parsed(fox).transforms:
+                assert edges.get(e.child_frame_id, (e.parent_frame_id,))[0] == e.parent_frame_id, e
+                rotation = (e.rotation.x, e.rotation.y, e.rotation.z, e.rotation.w)
+                edges[e.child_frame_id] = (e.parent_frame_id, matrix_from_transform(Transform(
+                    translation=(e.translation.x, e.translation.y, e.translation.z), rotation=rotation)))
+    return edges
+
+
+def placed_in(edges: dict[str, tuple[str, np.ndarray]], frame: str, ancestor: str) -> np.ndarray:
+    """``T_ancestor_frame`` composed along the tree's edges (KeyError when ``ancestor`` is not above ``frame``)."""
+    T = np.eye(4)
+    while frame != ancestor:
+        frame, up = edges[frame]
+        T = up @ T
+    return T
+
+
+def test_a_slam_camera_placed_on_its_rig_hangs_its_map_under_it_in_one_tree():
+    info = CameraInfo(header=HEADER, width=64, height=48, k=(50.0, 0, 32, 0, 50.0, 24, 0, 0, 1), T_rig_camera=PLACED)
+    map_header = HEADER.model_copy(update={"frame_id": "map"})
+    T_map_cam = Transform(translation=(0.4, 0.1, -0.3), rotation=(0.0, 0.28, 0.0, 0.96))
+    slam = Pose(header=map_header, child_frame_id="cam0", transform=T_map_cam)
+    edges = tf_edges(FoxgloveConversion(), [info, slam, info, slam])
+    assert {child: parent for child, (parent, _) in edges.items()} == {"rig": "world", "cam0": "rig", "map": "cam0"}
+    np.testing.assert_allclose(np.linalg.inv(placed_in(edges, "map", "cam0")), matrix_from_transform(T_map_cam),
+                               atol=1e-12)
+    np.testing.assert_allclose(placed_in(edges, "cam0", "world"), matrix_from_transform(PLACED), atol=1e-12)
+
+
+def test_bodies_and_cameras_of_a_fixed_rig_share_the_world_and_a_marker_seen_twice_stands_beside_itself():
+    world = Header(stamp_ns=STAMP_NS, frame_id="world")
+    infos = [CameraInfo(header=HEADER.model_copy(update={"frame_id": cam}), width=64, height=48,
+                        k=(50.0, 0, 32, 0, 50.0, 24, 0, 0, 1), T_rig_camera=placed)
+             for cam, placed in (("cam0", Transform()), ("cam1", PLACED))]
+    bodies = RigidBodies(header=world, bodies=(RigidBody(name="wand", transform=PLACED),))
+    seen = [Pose(header=HEADER.model_copy(update={"frame_id": cam}), child_frame_id="marker/3", transform=PLACED)
+            for cam in ("cam0", "cam1")]
+    edges = tf_edges(FoxgloveConversion(), [*infos, bodies, *seen])
+    assert {child: parent for child, (parent, _) in edges.items()} == {
+        "rig": "world", "cam0": "rig", "cam1": "rig", "body/wand": "world", "marker/3": "cam0",
+        "cam1/marker/3": "cam1"}
+    np.testing.assert_allclose(placed_in(edges, "cam1/marker/3", "cam1"), matrix_from_transform(PLACED))
 
 
 def points3d() -> Points3D:
@@ -165,6 +221,32 @@ def test_markers_are_outlines_in_the_image_and_squares_in_their_frames():
     assert (square.id, square.frame_id, square.frame_locked) == ("marker/3", "marker/3", True)
     xs = [p.x for p in square.lines[0].points]
     assert max(xs) - min(xs) == pytest.approx(0.05)
+
+
+def test_image_targets_are_outlines_and_planes_locked_to_their_frames():
+    w, h = 0.297, 0.21  # A4 landscape, origin at the centre, y up
+    centred = ((-w / 2, h / 2, 0.0), (w / 2, h / 2, 0.0), (w / 2, -h / 2, 0.0), (-w / 2, -h / 2, 0.0))
+    cornered = ((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.1, 0.05, 0.0), (0.0, 0.05, 0.0))  # origin top-left, y down
+    described = ImageTargets(header=HEADER, targets=(
+        ImageTarget(name="poster", frame_id="target/poster", width_m=w, height_m=h, corners=centred),
+        ImageTarget(name="card", frame_id="target/card", width_m=0.1, height_m=0.05, corners=cornered)))
+    (topic, update), = shown(described).items()
+    assert topic == "/cam0/target_outlines"
+    poster, card = update.entities
+    assert (poster.id, poster.frame_id, poster.frame_locked) == ("target/poster", "target/poster", True)
+    assert stamp_ns(poster) == STAMP_NS and poster.lifetime.ToNanoseconds() == 0
+    (outline,) = poster.lines
+    line_types = outline.DESCRIPTOR.fields_by_name["type"].enum_type.values_by_number
+    assert line_types[outline.type].name == "LINE_LOOP"  # the last corner joins the first
+    xyz = np.array([[p.x, p.y, p.z] for p in outline.points])
+    np.testing.assert_allclose(xyz, [[-w / 2, h / 2, 0], [w / 2, h / 2, 0], [w / 2, -h / 2, 0], [-w / 2, -h / 2, 0]])
+    (plane,) = poster.triangles
+    assert plane.color.a < 1.0
+    triangles = np.array([[p.x, p.y, p.z] for p in plane.points])[list(plane.indices)].reshape(2, 3, 3)
+    area = sum(0.5 * np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) for t in triangles)
+    assert area == pytest.approx(w * h)
+    assert card.frame_id == "target/card"
+    np.testing.assert_allclose([[p.x, p.y, p.z] for p in card.lines[0].points], cornered)
 
 
 def test_blobs_and_keypoints_are_image_annotations():

@@ -1,17 +1,22 @@
-"""The Foxglove node's outputs in process: served images gated per topic by their stamps, a taken port refused,
-the file written whole and in log-time order, and the options that name neither or an existing file refused."""
+"""The Foxglove node's outputs in process: served images gated per topic by their stamps, static data sent again
+to a client that subscribes after it was logged, a taken port refused, the file written whole and in log-time
+order, and the options that name neither or an existing file refused."""
 
 from __future__ import annotations
 
+import base64
+import json
 import socket
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 from pydantic import ValidationError
+from websockets.sync.client import connect
 
-from protocol import Header, Image, Pose
+from protocol import Header, Image, ImageTarget, ImageTargets, Pose
 from services.runtime.node import NodeError
 from services.viewer.foxglove_node import KIND, Outputs, Params
 from tests.foxglove_decoding import decoded
@@ -38,6 +43,37 @@ def test_images_are_limited_per_topic_and_other_messages_are_not():
         assert outputs.written == 0
     finally:
         outputs.close()
+
+
+def test_a_client_that_subscribes_late_gets_the_targets_outlines_logged_before_it_came():
+    outputs = Outputs(Params(port=0), "test")
+    corners = ((-0.04, 0.03, 0.0), (0.04, 0.03, 0.0), (0.04, -0.03, 0.0), (-0.04, -0.03, 0.0))
+    try:
+        outputs.log(ImageTargets(header=Header(stamp_ns=BASE_NS, frame_id="cam0"), targets=(
+            ImageTarget(name="card", frame_id="target/card", width_m=0.08, height_m=0.06, corners=corners),)))
+        outputs.log(Pose(header=Header(stamp_ns=BASE_NS, frame_id="cam0"), child_frame_id="target/card"))
+        assert outputs.server is not None
+        got = None
+        with connect(f"ws://127.0.0.1:{outputs.server.port}", subprotocols=["foxglove.sdk.v1"]) as client:
+            deadline = time.monotonic() + 5.0
+            while got is None and time.monotonic() < deadline:
+                try:
+                    frame = client.recv(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    control = json.loads(frame)
+                    if control["op"] == "advertise":
+                        channel = next(c for c in control["channels"] if c["topic"] == "/cam0/target_outlines")
+                        client.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": 1, "channelId": channel["id"]}]}))
+                else:  # opcode, subscription id (uint32), log time (uint64), payload
+                    got = decoded(channel["schemaName"], base64.b64decode(channel["schema"]), bytes(frame[13:]))
+    finally:
+        outputs.close()
+    assert got is not None, "no outlines came"
+    (entity,) = got.entities
+    assert entity.frame_id == "target/card" and len(entity.lines[0].points) == 4
 
 
 def test_a_taken_port_is_refused_in_one_line():

@@ -17,6 +17,8 @@ from protocol import (
     DecodeError,
     Header,
     Image,
+    ImageTarget,
+    ImageTargets,
     Keyframes,
     Keypoints,
     MarkerDetections,
@@ -410,3 +412,37 @@ def test_to_json_summarises_each_array_on_its_own():
 
 def test_to_json_writes_enums_as_their_values():
     assert to_json(Pose(header=HEADER, child_frame_id="marker/7"))["state"] == "tracking"
+
+
+CARD = ((-0.04, 0.03, 0.0), (0.04, 0.03, 0.0), (0.04, -0.03, 0.0), (-0.04, -0.03, 0.0))
+"""An 8 x 6 cm card's corners, top-left first, in artrack's target frame (origin at the centre, y up)."""
+
+
+def card(corners=CARD, width_m: float = 0.08, height_m: float = 0.06, name: str = "card") -> ImageTarget:
+    return ImageTarget(name=name, frame_id=f"target/{name}", width_m=width_m, height_m=height_m, corners=corners)
+
+
+def test_an_image_target_whose_corners_span_its_size_in_any_frame_is_valid():
+    assert card().corners == CARD
+    top_left_origin_y_down = ((0.0, 0.0, 0.0), (0.08, 0.0, 0.0), (0.08, 0.06, 0.0), (0.0, 0.06, 0.0))
+    assert card(top_left_origin_y_down).corners[2] == (0.08, 0.06, 0.0)
+    tilted = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.08), (0.0, -0.06, 0.08), (0.0, -0.06, 0.0))
+    assert card(tilted).width_m == 0.08
+    described = ImageTargets(header=HEADER, targets=(card(), card(name="poster")))
+    assert decode(encode(described)) == described
+
+
+@pytest.mark.parametrize(("corners", "width_m", "height_m", "why"), [
+    (CARD, 0.09, 0.06, "span 0.08 x 0.06 m, not its 0.09 x 0.06 m"),
+    (CARD, 0.08, 0.05, "span 0.08 x 0.06 m"),
+    (((-0.04, 0.03, 0.0), (0.04, 0.03, 0.0), (0.05, -0.03, 0.0), (-0.04, -0.03, 0.0)), 0.08, 0.06, "rectangle"),
+    (((0.0, 0.0, 0.0), (0.08, 0.0, 0.0), (0.08 + 0.036, 0.048, 0.0), (0.036, 0.048, 0.0)), 0.08, 0.06, "rectangle"),
+])
+def test_an_image_target_whose_corners_do_not_make_its_rectangle_is_refused(corners, width_m, height_m, why):
+    with pytest.raises(ValidationError, match=why):
+        card(corners, width_m, height_m)
+
+
+def test_image_targets_of_one_name_twice_are_refused():
+    with pytest.raises(ValidationError, match="'card' is described more than once"):
+        ImageTargets(header=HEADER, targets=(card(), card()))

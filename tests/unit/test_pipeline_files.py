@@ -46,3 +46,14 @@ def test_the_marker_pipeline_file_is_what_artrack_run_marker_saves(tmp_path):
     assert main(argv) == 0
     assert read_pipeline(saved).nodes == read_pipeline(PIPELINES / "marker.toml").nodes
     assert saved.read_text().split("\n\n", 1)[1] in (PIPELINES / "marker.toml").read_text()
+
+
+def test_a_pipeline_file_that_exists_is_kept_unless_forced(tmp_path, capsys):
+    saved = tmp_path / "job.toml"
+    saved.write_text("kept")
+    argv = ["run", "marker", "--source", "synthetic:markers", "--marker-length", "0.05", "--save-pipeline", str(saved)]
+    assert main(argv) == 2
+    assert f"{saved} exists: give --force to overwrite it" in capsys.readouterr().err
+    assert saved.read_text() == "kept"
+    assert main([*argv, "--force"]) == 0
+    assert "marker-cam0" in read_pipeline(saved).nodes

@@ -12,8 +12,9 @@ from mcap.reader import make_reader
 from protocol import Header, Image, Pose, encode
 from protocol.codec import MEDIA_FRAME
 from protocol.schemas import json_schema
+from services.cli import main
 from services.recorder.byte_queue import ByteQueue
-from services.recorder.reading import NotMcap, Scan, indexed, recover
+from services.recorder.reading import EXIT_DAMAGED, NotMcap, Scan, indexed, recover
 from services.recorder.writing import RECORDER_METADATA, RECORDING_METADATA, RecordingWriter, Split, part_path
 
 T0 = 1_000_000_000
@@ -107,10 +108,28 @@ def test_a_file_cut_anywhere_yields_an_intact_prefix_and_recover_indexes_it(tmp_
         assert (scan.damage is None) == (size >= data_end + DATA_END_HEAD), size
         if scan.damage is not None:
             assert 8 <= scan.damage.offset <= size and scan.damage.size == size
+        fixed.unlink(missing_ok=True)
         recovered = recover(cut, fixed)
         assert recovered.messages == len(got) and recovered.damage == scan.damage
         assert indexed(fixed) and read(fixed) == got
     assert previous == len(items)
+
+
+def test_recover_never_overwrites_a_file_least_of_all_the_recording_it_reads(tmp_path, capsys):
+    path = tmp_path / "rec.mcap"
+    write(path, traffic(6), flush_every=2)
+    cut, kept = tmp_path / "cut.mcap", tmp_path / "kept.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+    kept.write_bytes(b"kept")
+    before = cut.read_bytes()
+    for target in (kept, cut):
+        assert main(["info", str(cut), "--recover", str(target)]) == 2
+        assert f"{target} exists: choose another name" in capsys.readouterr().err
+    assert kept.read_bytes() == b"kept" and cut.read_bytes() == before
+    with pytest.raises(FileExistsError):
+        recover(cut, kept)
+    assert main(["info", str(cut), "--recover", str(tmp_path / "fixed.mcap")]) == EXIT_DAMAGED
+    assert indexed(tmp_path / "fixed.mcap")
 
 
 def test_a_corrupt_chunk_ends_the_intact_part_where_it_starts(tmp_path):

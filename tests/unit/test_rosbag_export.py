@@ -23,15 +23,15 @@ from services.cli import main
 from services.recorder.reading import EXIT_DAMAGED, Scan
 from services.recorder.rosbag import (
     TYPESTORE,
+    body_edges,
     camera_info_message,
     export_rosbag,
     image_message,
     map_message,
     points_message,
     pose_message,
-    rigid_bodies_message,
     ros_topic,
-    static_transforms_message,
+    tf_edges,
 )
 from tests.integration.support import ROOT
 
@@ -81,7 +81,7 @@ def test_static_transforms_become_tf_static_edges():
     edges = StaticTransforms(header=HEADER.model_copy(update={"frame_id": "rig"}), transforms=(
         FrameTransform(parent_frame="rig", child_frame="cam0", transform=Transform()),
         FrameTransform(parent_frame="rig", child_frame="cam1", transform=TURN)))
-    ros = round_trip(static_transforms_message(edges), "tf2_msgs/msg/TFMessage")
+    ros = round_trip(tf_edges(edges.header.stamp_ns, edges.transforms), "tf2_msgs/msg/TFMessage")
     assert [(t.header.frame_id, t.child_frame_id) for t in ros.transforms] == [("rig", "cam0"), ("rig", "cam1")]
     moved = ros.transforms[1].transform
     assert (moved.translation.x, moved.translation.y, moved.translation.z) == TURN.translation
@@ -91,7 +91,7 @@ def test_static_transforms_become_tf_static_edges():
 def test_estimated_rigid_bodies_become_world_to_body_transforms():
     bodies = RigidBodies(header=HEADER.model_copy(update={"frame_id": "world"}), bodies=(
         RigidBody(name="wand", transform=TURN), RigidBody(name="tool", state=TrackingState.LOST)))
-    ros = round_trip(rigid_bodies_message(bodies), "tf2_msgs/msg/TFMessage")
+    ros = round_trip(tf_edges(bodies.header.stamp_ns, body_edges(bodies)), "tf2_msgs/msg/TFMessage")
     assert [(t.header.frame_id, t.child_frame_id) for t in ros.transforms] == [("world", "body/wand")]
     assert ros.transforms[0].transform.translation.z == TURN.translation[2]
 
@@ -149,7 +149,7 @@ def test_a_shipped_recording_reads_back_from_its_bag(tmp_path):
         "/cam0/image_raw": ("sensor_msgs/msg/Image", 150), "/cam0/camera_info": ("sensor_msgs/msg/CameraInfo", 150),
         "/cam0/truth": ("tf2_msgs/msg/TFMessage", 150), "/tf_static": ("tf2_msgs/msg/TFMessage", 1)}
     placed = bag["/tf_static"][1][0].transforms
-    assert [(e.header.frame_id, e.child_frame_id) for e in placed] == [("rig", "cam0")]
+    assert [(e.header.frame_id, e.child_frame_id) for e in placed] == [("world", "rig"), ("rig", "cam0")]
     assert done.left_out == {"node/capture/stats": 5, "node/recorder/stats": 8} and done.damage is None
     with open(tmp_path / "bag" / "bag.mcap", "rb") as file:  # what a stock MCAP reader (Foxglove's) sees
         reader = make_reader(file)
@@ -185,6 +185,33 @@ def test_estimated_poses_go_to_their_topic_and_to_tf(tmp_path):
     assert done.topics == {"/pose/cam0/marker_3": 1, "/tf": 1}
     tf = bag_messages(tmp_path / "bag")["/tf"][1][0].transforms[0]
     assert (tf.header.frame_id, tf.child_frame_id) == ("cam0", "marker/3")
+
+
+def test_a_slam_camera_keeps_one_parent_its_map_hanging_under_it(tmp_path):
+    path = tmp_path / "slam.mcap"
+    T_map_cam = Transform(translation=(0.3, 0.0, -0.1))
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start()
+        infos, poses = (writer.register_channel(key, "json", 0) for key in ("cam0/camera_info", "pose/slam/cam0"))
+        for seq in range(2):
+            header = HEADER.model_copy(update={"seq": seq})
+            info = CameraInfo(header=header, width=64, height=48, k=(50.0, 0, 32, 0, 50.0, 24, 0, 0, 1),
+                              T_rig_camera=TURN)
+            writer.add_message(infos, log_time=2 * seq, data=encode(info), publish_time=2 * seq)
+            pose = Pose(header=header.model_copy(update={"frame_id": "map"}), child_frame_id="cam0",
+                        transform=T_map_cam)
+            writer.add_message(poses, log_time=2 * seq + 1, data=encode(pose), publish_time=2 * seq + 1)
+        writer.finish()
+    export_rosbag(path, tmp_path / "bag")
+    bag = bag_messages(tmp_path / "bag")
+    edges = [(t.header.frame_id, t.child_frame_id, t.transform) for topic in ("/tf_static", "/tf")
+             for message in bag[topic][1] for t in message.transforms]
+    assert sorted({(parent, child) for parent, child, _ in edges}) == [("cam0", "map"), ("rig", "cam0"),
+                                                                       ("world", "rig")]
+    turned = edges[-1][2].translation
+    assert (turned.x, turned.y, turned.z) == pytest.approx((-0.3, 0.0, 0.1))
+    assert bag["/pose/slam/cam0"][1][0].header.frame_id == "map"
 
 
 def test_a_damaged_recording_gives_its_intact_part_and_exit_3(tmp_path):

@@ -18,6 +18,7 @@ from protocol.keys import Keys
 from protocol.message import Header, Message
 from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
+from protocol.targets import ImageTargets
 from protocol.tracking_state import TrackingState
 from services.convert import CameraModels, camera_info, camera_model, pose_message, transform_from_matrix
 from services.detection.markers.detector import REFINEMENTS
@@ -25,6 +26,7 @@ from services.detection.markers.node import as_message
 from services.detection.markers.settings import DetectorSettings
 from services.estimation.markers import node as marker_node
 from services.estimation.markers.pose import MarkerPoseEstimator, TargetPose
+from services.estimation.targets import build_target
 from services.estimation.targets import node as target_node
 from services.estimation.targets.tracking import TargetPose as FoundTarget
 from services.geometry.rotation import matrix_from_rotvec
@@ -56,6 +58,7 @@ class Bench:
         self.keys = Keys()
         self.out: dict[str, Sent] = {}
         self.reports: list[tuple[Any, ...]] = []
+        self.answers: dict[str, Any] = {}
         self.subscribed = subscribed
 
     def publisher(self, key: str, cls: type[Message], role: Any = None) -> Sent:
@@ -63,6 +66,9 @@ class Bench:
 
     def report(self, *args: Any) -> None:
         self.reports.append(args)
+
+    def answer(self, key: str, reply: Any) -> None:
+        self.answers[key] = reply
 
 
 def validated_pose(header: Header, child: str, T: np.ndarray, state: TrackingState = TrackingState.TRACKING,
@@ -182,6 +188,26 @@ def test_a_targets_pose_is_its_validated_pose(found):
                                    found.rms_px if math.isfinite(found.rms_px) else None, found.inliers,
                                    covariance=found.covariance if finite else None)
     assert_same(target_node.as_pose(HEADER, found), reference)
+
+
+def test_the_targets_are_answered_from_the_start_and_published_once_before_the_first_poses():
+    texture = np.random.default_rng(3).integers(0, 256, (120, 160), np.uint8)
+    targets = [build_target("poster", texture, 0.32), build_target("card", texture[:, :90], 0.09)]
+    bench = Bench()
+    descriptions = target_node._Descriptions(bench, "cam0", targets)
+    key = Keys().targets("cam0")
+    early = bench.answers[key]()
+    assert isinstance(early, ImageTargets) and early.header.frame_id == "cam0" and not bench.out[key].messages
+    for seq in range(3):
+        descriptions.publish(HEADER.model_copy(update={"seq": HEADER.seq + seq}))
+    (sent,) = bench.out[key].messages
+    assert sent.header == HEADER and bench.answers[key]() == sent
+    for target, described in zip(targets, sent.targets, strict=True):
+        assert (described.name, described.frame_id) == (target.name, f"target/{target.name}")
+        assert (described.width_m, described.height_m) == (target.width_m, target.height_m)
+        w, h = target.width_m / 2, target.height_m / 2
+        np.testing.assert_allclose(described.corners, [[-w, h, 0], [w, h, 0], [w, -h, 0], [-w, -h, 0]])
+    assert sent.targets[1].height_m == pytest.approx(0.09 * 120 / 90)
 
 
 @pytest.mark.parametrize("subscribed", [False, True])

@@ -46,6 +46,12 @@ followed points are measured afresh against the target. Frames are latest-wins (
 A frame whose stamp is not after the previous one (a source started over) starts every target
 afresh.
 
+Each target's description (``ImageTargets`` on ``<camera>/targets``: its size and its image's corners
+in ``target/<name>``) is answered on that key from the start and published once, with the first frame's
+header, before that frame's poses, so a recorder or viewer of the run draws the targets' outlines where
+the poses place them; one that comes later asks for it (``protocol.keys.Keys.latched``). The targets are
+those the node starts with, for the whole run.
+
 ``overlay``: every frame, as bgr8, on ``<camera>/overlay`` with each posed target's outline
 and axes drawn (``services.estimation.overlay``), its frame id ``<frame's frame_id>/overlay``
 (as the marker node's); while nothing subscribes to the key, no frame is drawn.
@@ -55,6 +61,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -67,6 +74,7 @@ from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.poses import Pose
 from protocol.sensors import Image
+from protocol.targets import ImageTarget, ImageTargets
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Role
 from services.calibration.camera_info import read_camera_info
@@ -141,10 +149,15 @@ def make_trackers(params: Params, targets: Sequence[Target]) -> list[TargetTrack
     return [TargetTracker(target, params.tracking, params.recognition) for target in targets]
 
 
+def target_frame(name: str) -> str:
+    """The frame of the target ``name``: the child frame of its poses."""
+    return f"target/{name}"
+
+
 def as_pose(header: Header, found: TargetPose) -> Pose:
     """``found`` in the frame with ``header`` as the message that carries it (``target/<name>``); a covariance
     that is not finite throughout, or an RMS that is not finite, is left out."""
-    child = f"target/{found.target}"
+    child = target_frame(found.target)
     if found.T_camera_target is None:
         return Pose(header=header, child_frame_id=child, state=TrackingState.LOST, reason=found.reason)
     covariance = found.covariance
@@ -153,6 +166,35 @@ def as_pose(header: Header, found: TargetPose) -> Pose:
     rms = float(found.rms_px)
     return pose_message(header, child, found.T_camera_target, state=found.state,
                         rms_px=rms if math.isfinite(rms) else None, inliers=found.inliers, covariance=covariance)
+
+
+def described(header: Header, targets: Sequence[Target]) -> ImageTargets:
+    """``targets`` as the message that describes them to the camera's consumers (``header.frame_id``: the camera's
+    frame): each one's name, frame, printed size (m) and image corners in its frame (``Target.corners``)."""
+    return ImageTargets(header=header, targets=tuple(
+        ImageTarget(name=target.name, frame_id=target_frame(target.name), width_m=target.width_m,
+                    height_m=target.height_m, corners=tuple(tuple(corner) for corner in target.corners().tolist()))
+        for target in targets))
+
+
+class _Descriptions:
+    """The node's targets on ``<camera>/targets``: answered from the start, published once before the first poses."""
+
+    def __init__(self, node: Node, camera: str, targets: Sequence[Target]):
+        key = node.keys.targets(camera)
+        self._targets = targets
+        self._out = node.publisher(key, ImageTargets)
+        self._message = described(Header(stamp_ns=time.time_ns(), frame_id=camera), targets)
+        self._published = False
+        node.answer(key, lambda: self._message)
+
+    def publish(self, header: Header) -> None:
+        """Publish the descriptions with ``header`` (a frame's), the first time only."""
+        if self._published:
+            return
+        self._message = described(header, self._targets)
+        self._out.put(self._message)
+        self._published = True
 
 
 class _Frames:
@@ -220,6 +262,7 @@ def run(node: Node, params: Params) -> None:
     keys = node.keys
     calibration = FrameCalibration.of_camera(node, params.camera, CameraModels(), fixed)
     poses = PosePublishers(node, params.camera)
+    descriptions = _Descriptions(node, params.camera, targets)
     overlay = _Overlay(node, params.camera, targets) if params.overlay else None
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
     for image in node.inputs(frames):
@@ -236,6 +279,7 @@ def run(node: Node, params: Params) -> None:
             except (ValueError, cv2.error) as exc:
                 found = frames_of.lost("unusable_frame")
                 node.report("unusable_frame", f"frame {image.header.seq}: {exc}", keys.image(params.camera))
+        descriptions.publish(image.header.model_copy(update={"frame_id": image.header.frame_id or params.camera}))
         poses.publish([as_pose(image.header, pose) for pose in found])
         if any(pose.reason == RecognitionStatus.NO_FEATURES for pose in found):
             node.report(RecognitionStatus.NO_FEATURES.value, f"frame {image.header.seq}: no keypoints to recognise "
@@ -246,7 +290,8 @@ def run(node: Node, params: Params) -> None:
 
 
 def _outputs(params: Params) -> tuple[str, ...]:
-    return (f"pose/{params.camera}/target/**", *((f"{params.camera}/overlay",) if params.overlay else ()))
+    return (f"pose/{params.camera}/target/**", f"{params.camera}/targets",
+            *((f"{params.camera}/overlay",) if params.overlay else ()))
 
 
 KIND = NodeKind(name="features", summary="image targets' poses from a camera's frames: recognised by keypoints, "
