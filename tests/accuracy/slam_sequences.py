@@ -37,7 +37,7 @@ from services.geometry.camera import CameraModel
 from services.geometry.evaluation import absolute_trajectory_error, associate
 from services.recorder.trajectories import read_kitti, read_tum
 from services.slam.system import SlamSettings, SlamSystem
-from services.synthetic import make_scene
+from services.synthetic import Scene, make_scene
 from tests.data import data_root
 
 KITTI = "vo_kitti_odometry_seq06_frames000-050"
@@ -77,9 +77,14 @@ def room(seed: int = 0) -> Sequence:
     return Sequence("room" if seed == 0 else f"room@{seed}", scene.cameras[0], frames())
 
 
+def loop_scene() -> Scene:
+    """The room on its loop path, as the ``loop`` sequence renders it."""
+    return make_scene("room", path="loop", loop_s=LOOP_S, fps=LOOP_FPS, noise_std=LOOP_NOISE)
+
+
 def room_loop() -> Sequence:
     """The room's loop path (module docstring), ``1 + LOOP_OVERLAP`` turns."""
-    scene = make_scene("room", path="loop", loop_s=LOOP_S, fps=LOOP_FPS, noise_std=LOOP_NOISE)
+    scene = loop_scene()
 
     def frames() -> Frames:
         for index in range(round((1 + LOOP_OVERLAP) * LOOP_FRAMES)):

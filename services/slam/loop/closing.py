@@ -38,7 +38,6 @@ world = the first keyframe's camera frame; similarities are (4, 4) as in ``sim3`
 from __future__ import annotations
 
 import logging
-import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field

@@ -53,7 +53,8 @@ def _log(E: np.ndarray) -> np.ndarray:
     return np.concatenate([rotvec, E[:, :3, 3], np.log(scale)[:, None]], axis=1)
 
 
-def edge_residuals(poses: np.ndarray, first: np.ndarray, second: np.ndarray, measured_inverse: np.ndarray) -> np.ndarray:
+def edge_residuals(poses: np.ndarray, first: np.ndarray, second: np.ndarray,
+                   measured_inverse: np.ndarray) -> np.ndarray:
     """(M, 7) residuals of M edges between rows ``first`` and ``second`` (M,) of ``poses`` (F, 4, 4)
     ``S_camera_world``, ``measured_inverse`` (M, 4, 4) the inverses of their measurements."""
     E = measured_inverse @ poses[first] @ np.linalg.inv(poses[second])
