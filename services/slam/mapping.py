@@ -14,7 +14,10 @@ For each new keyframe, in order (ORB-SLAM's local mapping):
 4. Local bundle adjustment (``services.slam.optimisation.bundle_adjust``) of the keyframe, its
    covisible keyframes and their points, every other keyframe observing those points fixed; the
    observations it finds to be outliers are removed.
-5. Once, when the map holds ``calibration_check.CHECK_KEYFRAMES`` keyframes: the camera matrix
+5. With ``loop_closing``: loop detection, and when a loop is found its correction, pose graph and
+   global bundle adjustment (``services.slam.loop.closing``; the ``loop_closing`` stage, its records in
+   ``loop_closer.closures``); skipped, as fusion is, while other keyframes wait.
+6. Once, when the map holds ``calibration_check.CHECK_KEYFRAMES`` keyframes: the camera matrix
    checked against the map (``calibration_check.check_focal``, about 80-200 ms), its outcome in
    ``focal_check`` for the tracker to report, so that no frame waits for it.
 
@@ -47,6 +50,7 @@ from services.geometry.epipolar import fundamental_matrix, near_lines
 from services.geometry.se3 import invert
 from services.geometry.triangulation import meet_in_front, triangulate_many
 from services.slam.calibration_check import CHECK_KEYFRAMES, FocalCheck, check_focal
+from services.slam.loop.closing import LoopCloser
 from services.slam.map.cleaner import LocalMapCleaner
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
@@ -175,7 +179,8 @@ class LocalMapper:
         self.settings = settings
         self.history: list[MappedKeyframe] = []
         self.focal_check: FocalCheck | None = None
-        """The camera matrix's check against the map (step 5), once made."""
+        """The camera matrix's check against the map (step 6), once made."""
+        self.loop_closer = LoopCloser(slam_map, self.K, size, settings, self.adjust) if settings.loop_closing else None
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._unfinished = 0
         """Keyframes handed to the thread and not mapped yet (under ``_finished``)."""
@@ -249,12 +254,15 @@ class LocalMapper:
                 with self.map.lock:
                     window = [keyframe_id] + self.covisibility.covisible(keyframe_id, s.ba_window - 1)
                 self.adjust(window)
+            if self.loop_closer is not None:
+                with stage_timer(timings, "loop_closing"):
+                    self.loop_closer.process(keyframe_id)
         self.history.append(MappedKeyframe(keyframe_id, timings, (time.perf_counter() - wall) * 1e3,
                                            (time.thread_time() - cpu) * 1e3, self._queue.qsize()))
         self.check_calibration()
 
     def check_calibration(self) -> None:
-        """Step 5: check the camera matrix once the map holds ``CHECK_KEYFRAMES`` keyframes (once)."""
+        """Step 6: check the camera matrix once the map holds ``CHECK_KEYFRAMES`` keyframes (once)."""
         if self.focal_check is not None or len(self.map.keyframes) < CHECK_KEYFRAMES:
             return
         started = time.perf_counter()
@@ -269,16 +277,18 @@ class LocalMapper:
     def resend(self) -> None:
         """Nothing to send: this mapper works on the tracker's own map."""
 
-    def adjust(self, window: list[int]) -> None:
+    def adjust(self, window: list[int], iterations: int | None = None) -> None:
         """Local bundle adjustment of the keyframes ``window`` and every point they observe; the other
         keyframes observing those points stay fixed (and the map's first keyframe: with fewer than two
-        fixed, the scale is held too). Outlier observations are removed afterwards."""
+        fixed, the scale is held too). Outlier observations are removed afterwards. ``iterations``:
+        ``ba_iterations`` unless given (a global adjustment, every keyframe in ``window``)."""
         s = self.settings
         problem = self._problem(window)
         if problem is None:
             return
         try:
-            result = bundle_adjust(problem, max_iterations=s.ba_iterations, fix_scale=len(problem.fixed) < 2)
+            result = bundle_adjust(problem, max_iterations=iterations or s.ba_iterations,
+                                   fix_scale=len(problem.fixed) < 2)
         except ValueError as error:
             logger.warning("local bundle adjustment skipped: %s", error)
             return

@@ -46,6 +46,11 @@ class SlamSettings(BaseModel):
     Relocalisation (``relocalisation``): up to ``reloc_candidates`` keyframes ranked by descriptor
     votes; a pose is accepted with ``reloc_min_inliers`` inliers after a projection search within
     ``reloc_window_px`` (per level scale).
+
+    Loop closing (``loop.closing``, with ``loop_closing``): a place candidate found for
+    ``loop_consistency`` keyframes in a row before the current one is verified by a Sim(3) and accepted
+    with ``loop_min_inliers`` matches; the loop is then corrected, fused, the pose graph optimised and
+    the whole map bundle adjusted.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -115,3 +120,7 @@ class SlamSettings(BaseModel):
     reloc_min_inliers: int = Field(default=50, ge=1, description="relocalisation: inliers a pose needs")
     reloc_window_px: float = Field(default=10.0, gt=0, description="relocalisation: search window, px per level "
                                                                    "scale")
+    loop_closing: bool = Field(default=True, description="look for loops and close them (after local mapping)")
+    loop_consistency: int = Field(default=2, ge=0, description="loop closing: keyframes in a row before the "
+                                                               "current one that must find a candidate's place")
+    loop_min_inliers: int = Field(default=40, ge=3, description="loop closing: matches that accept a loop's Sim(3)")

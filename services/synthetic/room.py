@@ -11,6 +11,11 @@ on a white sheet a quarter of its side wider on every side, ``MARKER_OFFSET_M`` 
 frame is ArUco's (origin at its centre, x right, y up, z out of the wall into the room). With seed 0
 the camera sees it whole in frames 45-121 and 191-264 (from two sides of the room), 616-701 and 739-826.
 
+With ``path="loop"`` the camera goes round the room instead, once every ``loop_s`` seconds: its eye on an
+ellipse (``LOOP_RADII_M``) about the room's centre at ``LOOP_EYE_HEIGHT_M``, looking outwards at the walls
+(``LOOP_LOOK_AHEAD_RAD`` ahead of straight out, ``LOOP_PITCH_RAD`` down), so that after ``loop_s`` seconds it
+is back where it began, looking the same way: a closed loop whose end sees what its start saw.
+
 The camera (cam0; the rig is the camera, ``T_rig_camera`` = identity, no distortion) walks
 over the free middle of the room at eye height 1.35 to 1.65 m (above every box), looking
 around with a slowly swinging heading and pitch: translation and rotation together, as a
@@ -63,19 +68,29 @@ BACKGROUND = 0
 UP = np.array([0.0, 0.0, 1.0])
 SIDE_NORMALS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
 TEXTURE_PURPOSE, PATH_PURPOSE = 100, 101
+PATHS = ("sine", "loop")
+LOOP_RADII_M = (1.3, 1.0)
+"""Half axes (x, y) of the loop's ellipse, metres."""
+LOOP_EYE_HEIGHT_M = 1.5
+LOOP_LOOK_AHEAD_RAD = 0.3
+"""How far the loop's camera looks ahead of straight out from the room's centre (towards its motion)."""
+LOOP_PITCH_RAD = -0.3
 
 
 @dataclass(frozen=True)
 class RoomOptions(SceneOptions):
     """``boxes``: how many of the room's boxes to place (0 to 4); ``marker``: hang an ArUco marker on the
     north wall (off by default); ``marker_dictionary``: its cv2.aruco predefined dictionary;
-    ``marker_id``: its id there; ``marker_length``: side of its black square, metres."""
+    ``marker_id``: its id there; ``marker_length``: side of its black square, metres. ``path``: ``"sine"``
+    (the default walk) or ``"loop"`` (round the room once every ``loop_s`` seconds)."""
 
     boxes: int = 4
     marker: bool = False
     marker_dictionary: str = "DICT_4X4_50"
     marker_id: int = 0
     marker_length: float = 0.3
+    path: str = "sine"
+    loop_s: float = 20.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -84,6 +99,8 @@ class RoomOptions(SceneOptions):
         self.check_choice("marker_dictionary", DICTIONARY_NAMES)
         self.check_int("marker_id", 0, len(aruco_dictionary(self.marker_dictionary).bytesList) - 1)
         self.check_float("marker_length", 0.0, 1.0, low_open=True)
+        self.check_choice("path", PATHS)
+        self.check_float("loop_s", 1.0, 3600.0)
 
 
 def face_pose(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -164,8 +181,13 @@ class RoomScene(SyntheticScene):
     def camera_pose(self, index: int) -> np.ndarray:
         """(4, 4) ``T_world_cam0`` of frame ``index``."""
         t = self.time_s(index)
-        eye = self.eye(t)
-        yaw, pitch = self.heading(t)
+        if self.options.path == "loop":
+            angle = 2 * np.pi * t / self.options.loop_s
+            eye = np.array([LOOP_RADII_M[0] * np.cos(angle), LOOP_RADII_M[1] * np.sin(angle), LOOP_EYE_HEIGHT_M])
+            yaw, pitch = angle + LOOP_LOOK_AHEAD_RAD, LOOP_PITCH_RAD
+        else:
+            eye = self.eye(t)
+            yaw, pitch = self.heading(t)
         direction = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
         return look_at(eye, eye + direction, UP)
 

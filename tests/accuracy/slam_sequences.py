@@ -9,6 +9,9 @@
   behind drops them.
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
+* ``loop``: the room's ``path="loop"``: once round the room in ``LOOP_S`` seconds and on for
+  ``LOOP_OVERLAP`` of a turn over its start, at ``LOOP_FPS`` with image noise ``LOOP_NOISE`` grey levels
+  (where a run without loop closing drifts by several centimetres).
 
 The system runs as users run it, its local mapping in a process of its own (``mapping="process"``,
 the default) unless told otherwise, fed the frames back to back as a lossless run feeds it: each new
@@ -16,9 +19,10 @@ keyframe is mapped before the next frame is tracked (``wait_for_mapping``), so t
 inline mapping (``mapping="inline"``) and do not depend on the load. Scoring: ATE RMSE after a Sim(3) alignment
 (``services.geometry.evaluation``) of every frame given a pose, against the ground truth of the same
 frame. ``python -m tests.accuracy.slam_sequences
-[room|room@<seed>|jittered@<seed>|kitti|tum ...][~<seed>][-<first>:<end> ...] [--mapping=process|thread|inline]
-[--frames=N]`` prints the figures (``-<first>:<end>``: without frames first to end - 1; ``--frames``: of each
-sequence's first N frames only).
+[room|room@<seed>|jittered@<seed>|loop|kitti|tum ...][~<seed>][-<first>:<end> ...]
+[--mapping=process|thread|inline] [--frames=N] [--loop-closing=off]`` prints the figures (``-<first>:<end>``:
+without frames first to end - 1; ``--frames``: of each sequence's first N frames only; ``--loop-closing=off``
+without loop closing).
 """
 
 from __future__ import annotations
@@ -36,8 +40,8 @@ from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.evaluation import absolute_trajectory_error, associate
 from services.recorder.trajectories import read_kitti, read_tum
-from services.slam.system import SlamSystem
-from services.synthetic import make_scene
+from services.slam.system import SlamSettings, SlamSystem
+from services.synthetic import Scene, make_scene
 from tests.data import data_root
 
 KITTI = "vo_kitti_odometry_seq06_frames000-050"
@@ -50,6 +54,9 @@ JITTERED_FPS = 3000.0
 MAX_GT_DT_NS = 20_000_000
 """A TUM image is scored against the ground-truth sample within 20 ms (the first image has none)."""
 JITTER_MEAN_S, STALL_EVERY, STALL_MAX_S = 0.02, 10, 0.6
+LOOP_S, LOOP_FPS, LOOP_NOISE, LOOP_OVERLAP = 20.0, 15.0, 6.0, 0.15
+LOOP_FRAMES = round(LOOP_S * LOOP_FPS)
+"""Frames of one turn of the loop: frame ``i + LOOP_FRAMES`` is where frame ``i`` was."""
 
 Frames = Iterator[tuple[int, np.ndarray, np.ndarray | None]]
 """(stamp_ns, image, true T_world_camera or None)."""
@@ -72,6 +79,23 @@ def room(seed: int = 0) -> Sequence:
             yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
 
     return Sequence("room" if seed == 0 else f"room@{seed}", scene.cameras[0], frames())
+
+
+def loop_scene() -> Scene:
+    """The room on its loop path, as the ``loop`` sequence renders it."""
+    return make_scene("room", path="loop", loop_s=LOOP_S, fps=LOOP_FPS, noise_std=LOOP_NOISE)
+
+
+def room_loop() -> Sequence:
+    """The room's loop path (module docstring), ``1 + LOOP_OVERLAP`` turns."""
+    scene = loop_scene()
+
+    def frames() -> Frames:
+        for index in range(round((1 + LOOP_OVERLAP) * LOOP_FRAMES)):
+            frame = scene.render(index)
+            yield round(frame.time_s * 1e9), frame.images["cam0"], frame.truth["cam0"][0][2]
+
+    return Sequence("loop", scene.cameras[0], frames())
 
 
 def busy_stamped(sequence: Sequence, seed: int) -> Sequence:
@@ -186,10 +210,10 @@ class SlamRun:
                 f"{self.keyframes} keyframes, {self.points} points")
 
 
-def run(sequence: Sequence, mapping: str = "process") -> SlamRun:
-    """``SlamSystem`` (default settings, ``mapping`` in its process unless told, keyframe decisions waiting
-    for the mapper) over every frame of ``sequence``, back to back."""
-    system = SlamSystem(sequence.camera, mapping=mapping, wait_for_mapping=True)
+def run(sequence: Sequence, mapping: str = "process", settings: SlamSettings | None = None) -> SlamRun:
+    """``SlamSystem`` (``settings``, default ones unless given; ``mapping`` in its process unless told,
+    keyframe decisions waiting for the mapper) over every frame of ``sequence``, back to back."""
+    system = SlamSystem(sequence.camera, settings, mapping=mapping, wait_for_mapping=True)
     estimated, true, states, tracking = [], [], [], []
     truth_at: dict[int, np.ndarray] = {}
     stages: dict[str, list[float]] = {}
@@ -230,7 +254,7 @@ def run(sequence: Sequence, mapping: str = "process") -> SlamRun:
 
 def sequence(name: str) -> Sequence:
     """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``jittered@<seed>``,
-    ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed, and
+    ``loop``, ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed, and
     ``-<first>:<end>`` (repeated) without those frames."""
     base, *spans = name.split("-")
     if spans:
@@ -241,6 +265,8 @@ def sequence(name: str) -> Sequence:
         return busy_stamped(sequence(base), int(seed))
     if name.startswith("room"):
         return room(int(name.partition("@")[2] or 0))
+    if name == "loop":
+        return room_loop()
     if name.startswith("jittered@"):
         return jittered_room(int(name.partition("@")[2]))
     return kitti(data_root() / KITTI) if name == "kitti" else tum(data_root() / TUM)
@@ -255,5 +281,6 @@ if __name__ == "__main__":
     options = dict(a[2:].partition("=")[::2] for a in sys.argv[1:] if a.startswith("--"))
     names = [a for a in sys.argv[1:] if not a.startswith("--")]
     count = int(options["frames"]) if "frames" in options else None
+    chosen = SlamSettings(loop_closing=options.get("loop-closing", "on") != "off")
     for name in names or ["room", "kitti", "tum"]:
-        print(run(first(sequence(name), count), options.get("mapping", "process")).line(), flush=True)
+        print(run(first(sequence(name), count), options.get("mapping", "process"), chosen).line(), flush=True)

@@ -92,6 +92,18 @@ def test_camera_walks_inside_the_room_above_the_boxes(scene):
     assert steps.max() < 0.05  # metres per frame at 30 fps: smooth enough to track
 
 
+def test_the_loop_path_goes_round_the_room_and_ends_where_it_began(scene):
+    loop = make_scene("room", path="loop", loop_s=20.0, fps=15.0)
+    poses = np.array([loop.camera_pose(i) for i in range(301)])
+    np.testing.assert_allclose(poses[300], poses[0], atol=1e-9)
+    eyes = poses[:, :3, 3]
+    assert np.all(np.abs(eyes[:, 0]) < LENGTH_M / 2 - 1.0) and np.all(np.abs(eyes[:, 1]) < WIDTH_M / 2 - 1.0)
+    headings = np.unwrap(np.arctan2(poses[:, 1, 2], poses[:, 0, 2]))
+    assert headings[-1] - headings[0] == pytest.approx(2 * np.pi)
+    assert np.linalg.norm(np.diff(eyes, axis=0), axis=1).max() < 0.05
+    assert np.array_equal(make_scene("room", path="sine").camera_pose(123), scene.camera_pose(123))
+
+
 def test_faces_cover_the_view_with_at_most_a_few_seam_pixels(scene):
     camera = scene.cameras[0]
     size = (camera.width, camera.height)
@@ -135,6 +147,7 @@ def test_marker_corners_match_ground_truth():
     ({"marker_id": 50}, r"marker_id=50: .*\[0, 49\]"),
     ({"marker_dictionary": "DICT_5X5_2"}, "marker_dictionary='DICT_5X5_2'"),
     ({"marker_length": 0.0}, "marker_length=0.0"),
+    ({"path": "circle"}, "path='circle'"),
 ])
 def test_invalid_marker_options_are_rejected(options, message):
     with pytest.raises(ValueError, match=f"option {message}"):
