@@ -85,8 +85,8 @@ PLANE_KEPT_DEG = 5.0
 PLANE_MOVED_DEG = 10.0
 """The wrong decomposition's normal has followed the translation's direction by at least this much."""
 
-__all__ = ["PLANE_KEPT_DEG", "PLANE_MOVED_DEG", "InitialisationStatus", "InitialisationModel", "InitialisationSettings", "TwoViewInitialisation",
-           "initialise"]
+__all__ = ["PLANE_KEPT_DEG", "PLANE_MOVED_DEG", "InitialisationStatus", "InitialisationModel", "InitialisationSettings",
+           "TwoViewInitialisation", "initialise"]
 
 
 class InitialisationStatus(StrEnum):

@@ -237,7 +237,8 @@ def test_random_matches_do_not_initialise():
     assert not initialise(pixels_first, pixels_second, K, np.zeros(5)).initialised
 
 
-PLANE_MOTIONS = [((0.0, 0.3, 1.0), (0.5, 0.0, 1.0)), ((0.3, 0.3, 1.0), (0.7, 0.7, 0.3)), ((0.2, 1.0, 0.3), (0.8, 0.3, 0.7))]
+PLANE_MOTIONS = [((0.0, 0.3, 1.0), (0.5, 0.0, 1.0)), ((0.3, 0.3, 1.0), (0.7, 0.7, 0.3)),
+                 ((0.2, 1.0, 0.3), (0.8, 0.3, 0.7))]
 
 
 @pytest.mark.parametrize(("first_motion", "second_motion"), PLANE_MOTIONS)
