@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,8 +85,8 @@ for about that long."""
 BRIDGE_WINDOW_PX = 200.0
 """How far a keypoint of the last tracked frame is searched for in the frame bridged from it, px: a camera
 moving forward spreads the image out from the centre, fastest at the image's edges."""
-SPEED_FRAMES = 10
-"""Tracked frames over which the camera's speed is measured, for the distance a bridge spans."""
+SPEED_KEYFRAMES = 5
+"""Keyframes over which the camera's speed is measured, for the distance a bridge spans."""
 MAPPING_WAIT_S = 60.0
 """The longest a keyframe decision waits for the mapper (``Tracker``'s ``wait_for_mapping``): far beyond a
 keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
@@ -139,8 +138,6 @@ class Tracker:
         self._last: _Frame | None = None
         self._velocity: tuple[np.ndarray, float] | None = None
         """The last frame-to-frame motion ``T_current_previous`` and its time step, s."""
-        self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=SPEED_FRAMES)
-        """``(stamp_ns, camera centre (3,) world)`` of the last tracked frames, for the camera's speed."""
         self._lost = int(bool(slam_map.keyframes))
         self._relocaliser = Relocaliser(slam_map, self.K, self.size, settings)
         self.localisation_only = localisation_only
@@ -239,8 +236,6 @@ class Tracker:
         frame.point_ids = second.point_ids.copy()
         self._last = frame
         self._velocity = None
-        self._path.clear()
-        self._path.extend((keyframe.stamp_ns, keyframe.centre) for keyframe in (first, second))
         self._reference_keyframe = second.id
         self._last_keyframe_stamp = frame.stamp_ns
         self._last_keyframe_id = second.id
@@ -281,12 +276,9 @@ class Tracker:
         self._velocity = None
         if self._lost == 0 and last is not None and stamp_ns > last.stamp_ns:
             self._velocity = (T @ np.linalg.inv(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
-        else:
-            self._path.clear()
         self._lost = 0
         frame = _Frame(self._index, stamp_ns, features, T, point_ids)
         self._last = frame
-        self._path.append((stamp_ns, invert(T)[:3, 3]))
         keyframe_id = None
         with stage_timer(timings, "keyframe"):
             if not self.localisation_only and self._wants_keyframe(frame, tracked, timings):
@@ -365,8 +357,7 @@ class Tracker:
 
     def _may_bridge(self, last: _Frame, stamp_ns: int) -> bool:
         """Whether a frame at ``stamp_ns`` that could not be tracked may be bridged from ``last``."""
-        return (not self.localisation_only and len(self._path) >= 2
-                and self._path[-1][0] > self._path[0][0] and 0 < stamp_ns - last.stamp_ns <= BRIDGE_MAX_S * 1e9)
+        return not self.localisation_only and 0 < stamp_ns - last.stamp_ns <= BRIDGE_MAX_S * 1e9
 
     def _bridge(self, last: _Frame, stamp_ns: int, features: FrameFeatures,
                 timings: dict[str, float]) -> Tracked | None:
@@ -396,7 +387,6 @@ class Tracker:
         self._velocity = (bridge.T_camera_world @ invert(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
         self._lost = 0
         self._last = _Frame(self._index, stamp_ns, features, bridge.T_camera_world, point_ids)
-        self._path.append((stamp_ns, invert(bridge.T_camera_world)[:3, 3]))
         for made in [before.id] * (before.id != self._last_keyframe_id) + [keyframe.id]:
             self.mapper.enqueue(made)
             if self.wait_for_mapping:
@@ -428,11 +418,16 @@ class Tracker:
         return before, keyframe
 
     def _speed(self) -> float:
-        """The camera's speed over its last ``SPEED_FRAMES`` tracked frames: their path's length over its
-        time, map units per second."""
-        stamps = np.array([stamp for stamp, _ in self._path], np.float64) * 1e-9
-        centres = np.array([centre for _, centre in self._path])
-        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / (stamps[-1] - stamps[0]))
+        """The camera's speed over the map's last ``SPEED_KEYFRAMES`` keyframes (bundle adjusted, so steadier
+        than the frames tracked just before a loss): their path's length over its time, map units per
+        second; NaN when their stamps span no time."""
+        with self.map.lock:
+            keyframes = sorted(self.map.keyframes.values(), key=lambda keyframe: keyframe.stamp_ns)[-SPEED_KEYFRAMES:]
+        span_s = (keyframes[-1].stamp_ns - keyframes[0].stamp_ns) * 1e-9
+        if not span_s > 0:
+            return float("nan")
+        centres = np.array([keyframe.centre for keyframe in keyframes])
+        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / span_s)
 
     def _map_positions(self, point_ids: np.ndarray) -> np.ndarray:
         """(N, 3) world: the positions of map points ``point_ids`` (N,), NaN rows where -1 or gone."""

@@ -32,6 +32,7 @@ Frames: ``T_camera_world`` (4, 4) maps the map's world into the camera (OpenCV c
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -48,6 +49,8 @@ from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
 __all__ = ["Relocalisation", "Relocaliser", "solve_pnp"]
+
+logger = logging.getLogger(__name__)
 
 FlannParams = dict[str, bool | int | float | str]
 LSH_INDEX: FlannParams = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
@@ -78,14 +81,19 @@ def solve_pnp(K: np.ndarray, settings: SlamSettings, positions: np.ndarray, feat
     """A camera pose from M matches of (M, 3) world ``positions`` with the frame's keypoints
     ``keypoints`` (M,): PnP RANSAC (SQPNP, ``pnp_threshold_px``) then ``refine_pose`` on its inliers.
     Returns the refinement and the (R,) indices into the M matches it was run on (its ``inliers`` (R,)
-    bool refer to those), or None under ``pnp_min_inliers`` inliers at either step."""
+    bool refer to those), or None under ``pnp_min_inliers`` inliers at either step, or when OpenCV refuses
+    the points (SQPNP asserts on a sample whose points nearly coincide)."""
     s = settings
     if len(keypoints) < s.pnp_min_inliers:
         return None
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(positions, features.pixels[keypoints], K, None,
-                                                 reprojectionError=s.pnp_threshold_px,
-                                                 iterationsCount=PNP_ITERATIONS, confidence=PNP_CONFIDENCE,
-                                                 flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(positions, features.pixels[keypoints], K, None,
+                                                     reprojectionError=s.pnp_threshold_px,
+                                                     iterationsCount=PNP_ITERATIONS, confidence=PNP_CONFIDENCE,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error as error:
+        logger.debug("PnP on %d matches failed: %s", len(keypoints), str(error).strip().splitlines()[-1])
+        return None
     if not ok or inliers is None or len(inliers) < s.pnp_min_inliers:
         return None
     used = inliers.ravel()

@@ -18,7 +18,8 @@ import pytest
 from protocol.tracking_state import TrackingState
 from services.slam.features import FeatureExtractor, FrameFeatures
 from services.slam.matching import match_descriptors
-from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser
+from services.slam.relocalisation import LSH_INDEX, LSH_SEARCH, Relocaliser, solve_pnp
+from services.slam.settings import SlamSettings
 from services.slam.system import SlamSystem
 from services.synthetic import make_scene
 from tests.slam_passes import aligned_errors, feed, orientation_fix, room_scene, run_pass
@@ -162,3 +163,18 @@ def test_lost_on_blank_frames_then_relocalised_after_a_jump(mapped):
         assert error_m < MAX_POSITION_ERROR_M and error_deg < MAX_ROTATION_ERROR_DEG
     following = feed(system, scene, 821)
     assert following.state == TrackingState.TRACKING and "relocalise_candidates" not in following.timings_ms
+
+
+def test_points_opencv_refuses_give_no_pose_rather_than_an_error(monkeypatch):
+    """SQPNP asserts (``s_(0) >= 1e-7 in computeOmega``) on a RANSAC sample whose points nearly coincide, as
+    a collapsed stretch of map gives it: the frame gets no pose from PnP, and tracking goes on."""
+    def refuse(*args, **kwargs):
+        raise cv2.error("OpenCV(5.0.0) sqpnp.cpp:270: error: (-215:Assertion failed) s_(0) >= 1e-7")
+
+    monkeypatch.setattr(cv2, "solvePnPRansac", refuse)
+    rng = np.random.default_rng(0)
+    features = FrameFeatures(pixels=rng.uniform(0, 640, (40, 2)), levels=np.zeros(40, np.int64),
+                             angles=np.zeros(40, np.float32), descriptors=np.zeros((40, 32), np.uint8),
+                             sigmas=np.ones(40))
+    positions = np.full((40, 3), [-0.6163, 0.0994, -0.3459]) + rng.normal(0.0, 1e-5, (40, 3))
+    assert solve_pnp(np.diag([512.0, 512.0, 1.0]), SlamSettings(), positions, features, np.arange(40)) is None
