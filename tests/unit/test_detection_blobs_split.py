@@ -2,10 +2,12 @@
 SPLIT rows after the merged blob's own lie at the discs' centres, cross-checked against a plain reference (each
 disc drawn alone, its plain weighted centroid); a round disc and a tiny blob are not split."""
 
+import cv2
 import numpy as np
 import pytest
 
-from services.detection.blobs.bright import BlobFlag, detect_ir_blobs
+from services.detection.blobs import split_scipy
+from services.detection.blobs.bright import BlobFlag, detect_ir_blobs, moment_shape
 from services.detection.blobs.split import split_two_discs
 from tests.blob_images import disc_image
 
@@ -61,3 +63,41 @@ def test_a_split_blob_keeps_its_own_row_for_those_who_take_clean_blobs():
     assert blobs.flagged(BlobFlag.SPLIT).sum() == 2
     assert len(blobs.clean()) == 1
     np.testing.assert_allclose(blobs.clean().centroids[0], (20.0, 20.0), atol=0.02)
+
+
+def merged_window(truth: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+    """Two discs ``truth`` (2, 2) px of ``radii`` (2,) rendered together: their weights above the background, the
+    weighted centroid and the major axis (``bright.moment_shape``), as the detector hands them to the split."""
+    weights = np.maximum(disc_image([(*truth[0], radii[0]), (*truth[1], radii[1])], (40, 40), BACKGROUND)
+                         .astype(np.float32) - BACKGROUND, 0.0)
+    centroid, axis, _ = moment_shape(cv2.moments(weights))
+    return weights, centroid, axis
+
+
+def two_disc_cases(count: int, smallest: float, largest: float, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``count`` pairs (truth (2, 2) px, radii (2,) px) of discs run together, radii in [smallest, largest]."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for _ in range(count):
+        radii = rng.uniform(smallest, largest, 2)
+        angle = rng.uniform(0, np.pi)
+        gap = rng.uniform(0.7, 0.95) * radii.sum()
+        centre = rng.uniform(15, 17, 2)
+        cases.append((np.array([centre, centre + gap * np.array([np.cos(angle), np.sin(angle)])]), radii))
+    return cases
+
+
+@pytest.mark.parametrize(("smallest", "largest"), [(2.5, 6.0), (1.2, 2.5)])
+def test_the_split_matches_scipy_least_squares(smallest, largest):
+    agreed = 0
+    for truth, radii in two_disc_cases(60, smallest, largest, 7):
+        weights, centroid, axis = merged_window(truth, radii)
+        found = split_two_discs(weights, centroid, axis)
+        reference = split_scipy.split_two_discs(weights, centroid, axis)
+        assert (found is None) == (reference is None)
+        if found is None:
+            continue
+        nearer = np.abs(found.centres - truth).max() <= np.abs(reference.centres - truth).max()
+        assert np.abs(found.centres - reference.centres).max() <= 0.01 or nearer
+        agreed += 1
+    assert agreed >= 40
