@@ -9,9 +9,11 @@ window. The model is the image of two bright spheres: two discs of one brightnes
 ``split_two_discs`` seeds it by two means along the blob's major axis (each weighted pixel goes to the
 nearer of two centres on the axis, from the halves on either side of the centroid), then fits the seven
 numbers ``(p1, p2, r1, r2, peak)`` by least squares to every pixel of the bounding box of the blob's
-weights (so the fit does not depend on how much of the window lies around it): Levenberg-Marquardt steps
-on the 7x7 normal equations, a few numpy calls on the box's pixels each, until a step moves no centre,
-radius or the peak by more than ``STEP_TOLERANCE``.
+weights (so the fit does not depend on how much of the window lies around it) by Levenberg-Marquardt
+(``_fit``): each step one pass of numpy calls over the box's pixels for the residuals and their Jacobian,
+then the 7x7 normal equations solved by Cholesky, each step moving a centre or radius ``MAX_MOVE_PX`` at
+most, until the next would move none by ``STEP_TOLERANCE``. Two or three steps settle most blobs, about
+0.1 ms each blob (``docs/stereo-tracking.md``, Speed).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ STEP_TOLERANCE = 1e-4
 MAX_MOVE_PX = 0.5
 """Farthest one step moves a centre or a radius, px: a longer step is shortened to this, its direction kept."""
 DAMPING = (1e-3, 10.0, 1e8)
-"""Levenberg-Marquardt damping: its start (a fraction of the normal matrix's diagonal), the factor it grows
+"""Levenberg-Marquardt damping: its start (a fraction of the normal matrix's diagonal at the start), the factor it grows
 by after a step that raises the cost and shrinks by after one that lowers it, and the largest it may grow
 to before the fit stops where it is."""
 
