@@ -12,8 +12,8 @@ numbers ``(p1, p2, r1, r2, peak)`` by least squares to every pixel of the boundi
 weights (so the fit does not depend on how much of the window lies around it) by Levenberg-Marquardt
 (``_fit``): each step one pass of numpy calls over the box's pixels for the residuals and their Jacobian,
 then the 7x7 normal equations solved by Cholesky, each step moving a centre or radius ``MAX_MOVE_PX`` at
-most, until the next would move none by ``STEP_TOLERANCE``. Two or three steps settle most blobs, about
-0.1 ms each blob (``docs/stereo-tracking.md``, Speed).
+most, until the next would move none by ``STEP_TOLERANCE``. Two or three steps settle most blobs, 0.1 to
+0.2 ms a blob (``docs/stereo-tracking.md``, Speed).
 """
 
 from __future__ import annotations
