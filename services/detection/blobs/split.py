@@ -123,11 +123,10 @@ def _seed(mass: np.ndarray, xs: np.ndarray, ys: np.ndarray, centroid: tuple[floa
     along = (xs - centroid[0]) * axis[0] + (ys - centroid[1]) * axis[1]
     order = np.argsort(along)
     along = along[order]
-    heavy = np.cumsum(mass[order])
+    heavy_list = np.cumsum(mass[order]).tolist()
     moment = np.cumsum(mass[order] * along).tolist()
-    heavy_list, along_list = heavy.tolist(), along.tolist()
+    along_list = along.tolist()
     ends = (-1.0, 1.0)
-    cut = 0
     for _ in range(MEANS_ROUNDS):
         cut = bisect.bisect_right(along_list, 0.5 * (ends[0] + ends[1]))
         if cut in (0, len(along_list)):
@@ -153,7 +152,8 @@ def split_two_discs(weights: np.ndarray, centroid: tuple[float, float], axis: tu
     start = _seed(weights[rows, columns].astype(np.float64), columns, rows, centroid, axis)
     if start is None:
         return None
-    top, bottom, left, right = int(rows[0]), int(rows[-1]) + 1, int(columns.min()), int(columns.max()) + 1
+    top, bottom = int(rows[0]), int(rows[-1]) + 1  # np.nonzero gives the rows in ascending order
+    left, right = int(columns.min()), int(columns.max()) + 1
     points = np.empty((2, bottom - top, right - left))
     points[0] = np.arange(left, right)
     points[1] = np.arange(top, bottom)[:, None]
