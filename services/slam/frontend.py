@@ -87,6 +87,8 @@ BRIDGE_WINDOW_PX = 200.0
 moving forward spreads the image out from the centre, fastest at the image's edges."""
 SPEED_KEYFRAMES = 5
 """Keyframes over which the camera's speed is measured, for the distance a bridge spans."""
+SPEED_AGREEMENT = 1.25
+"""The most the last frame's step and the keyframes' speed may differ (as a ratio) for a steady speed."""
 MAPPING_WAIT_S = 60.0
 """The longest a keyframe decision waits for the mapper (``Tracker``'s ``wait_for_mapping``): far beyond a
 keyframe's mapping on a loaded machine; past it the frame is decided with the mapper busy."""
@@ -371,7 +373,7 @@ class Tracker:
                                     np.ones(len(features), bool), s.match_max_distance, s.init_ratio)
         consistent = rotation_consistent(first.angles[a], features.angles[b])
         a, b = a[consistent], b[consistent]
-        distance = self._speed() * (stamp_ns - last.stamp_ns) * 1e-9
+        distance = self._steady_speed() * (stamp_ns - last.stamp_ns) * 1e-9
         bridge = bridge_pair(self.K, last.T_camera_world, first.pixels[a], features.pixels[b],
                              self._map_positions(last.point_ids[a]), distance, self._late_bound)
         if bridge is None or np.count_nonzero(bridge.inliers) < s.min_tracked:
@@ -417,17 +419,24 @@ class Tracker:
                 self.map.add_point(position, {before.id: int(i), keyframe.id: int(j)})
         return before, keyframe
 
-    def _speed(self) -> float:
+    def _steady_speed(self) -> float:
         """The camera's speed over the map's last ``SPEED_KEYFRAMES`` keyframes (bundle adjusted, so steadier
-        than the frames tracked just before a loss): their path's length over its time, map units per
-        second; NaN when their stamps span no time."""
+        than one frame's step): their path's length over its time, map units per second; NaN (no bridge
+        scaled by motion) when their stamps span no time, or when the last frame's step says otherwise by
+        more than ``SPEED_AGREEMENT`` either way: a camera that is not moving steadily (a hand-held one
+        turning, keyframes bunched before a loss) gives no distance to trust."""
         with self.map.lock:
             keyframes = sorted(self.map.keyframes.values(), key=lambda keyframe: keyframe.stamp_ns)[-SPEED_KEYFRAMES:]
         span_s = (keyframes[-1].stamp_ns - keyframes[0].stamp_ns) * 1e-9
         if not span_s > 0:
             return float("nan")
         centres = np.array([keyframe.centre for keyframe in keyframes])
-        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / span_s)
+        speed = float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / span_s)
+        if self._velocity is None:
+            return float("nan")
+        delta, dt = self._velocity
+        step = float(np.linalg.norm(delta[:3, 3])) / dt
+        return speed if 1 / SPEED_AGREEMENT <= step / speed <= SPEED_AGREEMENT else float("nan")
 
     def _map_positions(self, point_ids: np.ndarray) -> np.ndarray:
         """(N, 3) world: the positions of map points ``point_ids`` (N,), NaN rows where -1 or gone."""
