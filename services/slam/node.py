@@ -1,6 +1,8 @@
 """SLAM node: one camera's frames -> the camera's pose in a map built as it goes (``services.slam.system``).
 
-Inputs: the camera's ``image`` key (latest-wins, ``depth`` frames waiting while one is processed) and its
+Inputs: the camera's ``image`` key (up to ``depth`` frames, 10, waiting while one is processed, the oldest
+dropped past that: a stall of the tracker, waiting for the mapper or bridging a gap, costs latency rather
+than frames, and a camera moving forward lost after three frames dropped has no map to come back to) and its
 ``camera_info`` key (the newest CameraInfo, taken in between frames: ``services.runtime.frame_calibration``; a
 ``calib`` file given here wins, scaled to the frames when only their size differs:
 ``services.calibration.fixed``). Frames may be ``mono8``, ``mono16``, ``bgr8`` or ``bgra8``; SLAM is given
@@ -112,8 +114,8 @@ class Params(NodeParams):
     mapping: Literal["process", "thread", "inline"] = Field(
         default="process", description="where local mapping runs: a process of its own, a thread, or inline (in "
                                        "the frame loop: each frame waits for the mapping it starts)")
-    depth: int = Field(default=2, ge=1, le=1000, description="frames queued while busy (one waits, more are "
-                                                             "dropped)")
+    depth: int = Field(default=10, ge=1, le=1000, description="frames queued while busy (the oldest dropped "
+                                                              "past that)")
     map: Path | None = Field(default=None, description="map file of an earlier run (--save-map) to start from: "
                                                        "relocalise in it, then track it")
     localisation_only: bool = Field(default=False, description="keep the loaded map fixed: no new keyframes or "
