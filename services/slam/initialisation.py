@@ -82,7 +82,7 @@ the bound: USAC's essential matrix can see much less parallax than the refined p
 
 PLANE_KEPT_DEG = 5.0
 """The true plane's normal, from two pairs with one first frame, agrees within this (noise)."""
-PLANE_MOVED_DEG = 10.0
+PLANE_MOVED_DEG = 20.0
 """The wrong decomposition's normal has followed the translation's direction by at least this much."""
 
 __all__ = ["PLANE_KEPT_DEG", "PLANE_MOVED_DEG", "InitialisationStatus", "InitialisationModel", "InitialisationSettings",

@@ -43,7 +43,8 @@ def visible_spheres(scene, camera, index: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def scored():
-    """(isolated: [(distance px, flags)], pairs: [(separation in radii, flags, blobs near the pair)])."""
+    """(isolated: [(distance px, flags)], pairs: [(separation in radii, flags, blobs near the pair, the two
+    ``SPLIT`` rows a split adds left out)])."""
     scene = make_scene("ir_rig", body_count=4)
     isolated, pairs = [], []
     for index in INDICES:
@@ -64,8 +65,9 @@ def scored():
                 if i < j and inside[j] and PAIR_RADII[0] <= separation <= PAIR_RADII[1] \
                         and min(gaps[i, order[1]], np.delete(gaps[j], i).min()) >= ISOLATION_PX:
                     middle = (pixels[i] + pixels[j]) / 2
-                    distances = np.linalg.norm(blobs.centroids - middle, axis=1)
-                    pairs.append((separation, int(blobs.flags[np.argmin(distances)]),
+                    whole = blobs.select(~blobs.flagged(BlobFlag.SPLIT))
+                    distances = np.linalg.norm(whole.centroids - middle, axis=1)
+                    pairs.append((separation, int(whole.flags[np.argmin(distances)]),
                                   int(np.sum(distances < ISOLATION_PX / 2))))
     return isolated, pairs
 
