@@ -375,7 +375,7 @@ class Tracker:
         a, b = a[consistent], b[consistent]
         distance = self._steady_speed() * (stamp_ns - last.stamp_ns) * 1e-9
         bridge = bridge_pair(self.K, last.T_camera_world, first.pixels[a], features.pixels[b],
-                             self._map_positions(last.point_ids[a]), distance, self._full_bound)
+                             self._map_positions(last.point_ids[a]), distance, self._late_bound)
         if bridge is None or np.count_nonzero(bridge.inliers) < s.min_tracked:
             return None
         if not self.mapper.idle:

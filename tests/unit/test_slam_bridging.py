@@ -113,3 +113,16 @@ def test_a_turn_on_the_spot_is_not_bridged():
     last_pixels, new_pixels, seen = observe(street(0), T_last, T_new, 0)
     bridge = bridge_pair(K, to_map(T_last), last_pixels, new_pixels, seen * MAP_SCALE, 0.05, SETTINGS)
     assert bridge is None
+
+
+def test_map_points_whose_depths_disagree_with_the_pairs_give_no_bridge():
+    """Map points a third nearer or further at random (a map gone wrong there, or a pair whose depths are
+    that uncertain): their depth ratios spread beyond ``MAX_SCALE_SPREAD``, and nothing is bridged."""
+    T_last, T_new = camera_at(10.0, 3.0), camera_at(10.0 + STEP_M, -2.0)
+    last_pixels, new_pixels, seen = observe(street(0), T_last, T_new, 0)
+    rng = np.random.default_rng(0)
+    camera_points = transform_points(T_last, seen) * rng.choice([2 / 3, 1.0, 4 / 3], (len(seen), 1))
+    map_points = transform_points(invert(T_last), camera_points) * MAP_SCALE
+    assert bridge_pair(K, to_map(T_last), last_pixels, new_pixels, map_points, 123.0, SETTINGS) is None
+    kept = bridge_pair(K, to_map(T_last), last_pixels, new_pixels, seen * MAP_SCALE, 123.0, SETTINGS)
+    assert kept is not None and kept.from_map
