@@ -77,7 +77,7 @@ logger = logging.getLogger(__name__)
 THIN_MAP_WAIT_S = 2.0
 """The longest a real-time tracker waits for the mapper after a keyframe made because the frame was
 nearly lost (under twice ``min_tracked``): the next frames would find no map to track against (a camera
-moving forward leaves its points behind within a few frames), so they are better dropped than lost."""
+moving forward leaves its points behind within a few frames), so they are better late than lost."""
 BRIDGE_MAX_S = 1.0
 """The longest time since the last tracked frame over which a frame the map no longer reaches is bridged
 from it (``bridging``): the constant-velocity model's distance, and the overlap of the two frames, hold
@@ -365,7 +365,10 @@ class Tracker:
                 timings: dict[str, float]) -> Tracked | None:
         """The frame bridged from the last tracked one (``bridging``), as a keyframe after the last frame made
         one, their matches' new points added, the mapper's copy of the map brought up to date; None when the
-        pair does not give ``min_tracked`` points or the mapper is busy (the next frame tries again)."""
+        pair does not give ``min_tracked`` points or the mapper is busy (the next frame tries again): asked
+        first, as the search and the two-view fit cost a frame period or more."""
+        if not self.mapper.idle:
+            return None
         s = self.settings
         first = last.features
         a, b = search_by_projection(first.pixels, np.full(len(first), BRIDGE_WINDOW_PX), first.levels,
@@ -378,9 +381,8 @@ class Tracker:
                              self._map_positions(last.point_ids[a]), distance, self._late_bound)
         if bridge is None or np.count_nonzero(bridge.inliers) < s.min_tracked:
             return None
-        if not self.mapper.idle:
-            return None
-        before, keyframe = self._insert_bridge(last, stamp_ns, features, bridge, a, b)
+        made = self._insert_bridge(last, stamp_ns, features, bridge, a, b)
+        keyframe = made[-1]
         point_ids = keyframe.point_ids.copy()
         self.mapper.resend()
         tracked = np.flatnonzero(point_ids >= 0)
@@ -389,8 +391,8 @@ class Tracker:
         self._velocity = (bridge.T_camera_world @ invert(last.T_camera_world), (stamp_ns - last.stamp_ns) * 1e-9)
         self._lost = 0
         self._last = _Frame(self._index, stamp_ns, features, bridge.T_camera_world, point_ids)
-        for made in [before.id] * (before.id != self._last_keyframe_id) + [keyframe.id]:
-            self.mapper.enqueue(made)
+        for new in made:
+            self.mapper.enqueue(new.id)
             if self.wait_for_mapping:
                 self._wait_for_mapper(self._last, timings, MAPPING_WAIT_S)
         self._reference_keyframe = self._last_keyframe_id = keyframe.id
@@ -401,23 +403,26 @@ class Tracker:
                        float(np.sqrt(np.mean(errors**2))), keyframe.id)
 
     def _insert_bridge(self, last: _Frame, stamp_ns: int, features: FrameFeatures, bridge: Bridge, a: np.ndarray,
-                       b: np.ndarray) -> tuple[Keyframe, Keyframe]:
-        """The keyframes of a bridge (the last frame's, made unless it is one, and the new frame's) and its
-        points: the map points of the last frame's matched keypoints observed by the new keyframe too,
-        the other matches' points new. ``a``, ``b`` (N,): the matches' keypoints in the two frames."""
+                       b: np.ndarray) -> list[Keyframe]:
+        """The keyframes a bridge makes, oldest first (the last frame's unless it is one, then the new
+        frame's), and its points: the map points of the last frame's matched keypoints observed by the new
+        keyframe too, the other matches' points new. ``a``, ``b`` (N,): the matches' keypoints in the two
+        frames."""
         a, b, points = a[bridge.inliers], b[bridge.inliers], bridge.points_world[bridge.inliers]
         with self.map.lock:
+            made = []
             if self._last_keyframe_stamp == last.stamp_ns and self._last_keyframe_id in self.map.keyframes:
                 before = self.map.keyframes[self._last_keyframe_id]
             else:
                 before = self.map.add_keyframe(last.stamp_ns, last.T_camera_world, last.features, last.point_ids)
+                made.append(before)
             point_ids = np.full(len(features), -1, np.int64)
             seen = before.point_ids[a] >= 0
             point_ids[b[seen]] = before.point_ids[a[seen]]
             keyframe = self.map.add_keyframe(stamp_ns, bridge.T_camera_world, features, point_ids)
             for position, i, j in zip(points[~seen], a[~seen], b[~seen], strict=True):
                 self.map.add_point(position, {before.id: int(i), keyframe.id: int(j)})
-        return before, keyframe
+        return [*made, keyframe]
 
     def _steady_speed(self) -> float:
         """The camera's speed over the map's last ``SPEED_KEYFRAMES`` keyframes (bundle adjusted, so steadier
@@ -425,6 +430,8 @@ class Tracker:
         scaled by motion) when their stamps span no time, or when the last frame's step says otherwise by
         more than ``SPEED_AGREEMENT`` either way: a camera that is not moving steadily (a hand-held one
         turning, keyframes bunched before a loss) gives no distance to trust."""
+        if self._velocity is None:
+            return float("nan")
         with self.map.lock:
             keyframes = sorted(self.map.keyframes.values(), key=lambda keyframe: keyframe.stamp_ns)[-SPEED_KEYFRAMES:]
         span_s = (keyframes[-1].stamp_ns - keyframes[0].stamp_ns) * 1e-9
@@ -432,8 +439,6 @@ class Tracker:
             return float("nan")
         centres = np.array([keyframe.centre for keyframe in keyframes])
         speed = float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)) / span_s)
-        if self._velocity is None:
-            return float("nan")
         delta, dt = self._velocity
         step = float(np.linalg.norm(delta[:3, 3])) / dt
         return speed if 1 / SPEED_AGREEMENT <= step / speed <= SPEED_AGREEMENT else float("nan")

@@ -43,8 +43,8 @@ Lossless runs (a finite source whose every frame reaches the node in order, ``no
 new keyframe is mapped before the next frame is tracked (``SlamSystem``'s ``wait_for_mapping``; the source
 waits for the node meanwhile), so the poses are those of inline mapping, the same on a loaded machine as on
 an idle one. In a real-time run a busy mapper means no keyframe yet; the tracker waits for it (frames that
-come meanwhile are dropped) only after a keyframe made on a nearly lost frame, which would otherwise leave
-the next frames no map to track against.
+come meanwhile queue, up to ``depth``) only after a keyframe made on a nearly lost frame, which would
+otherwise leave the next frames no map to track against.
 
 Map files (``services.slam.map.file``): with ``map`` every new system starts from that file's map
 (relocalising in it first), with ``localisation_only`` too that map stays fixed; with ``save_map`` the last

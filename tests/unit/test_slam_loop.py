@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from services.geometry.se3 import transform_points
 from services.slam.loop.places import PlaceIndex, words
 from services.slam.loop.pose_graph import edge_residuals, optimise_pose_graph
-from services.slam.loop.sim3 import compose, decompose, fit_sim3, similarity
+from services.slam.loop.sim3 import decompose, fit_sim3, similarity
 
 
 def _noisy(descriptors: np.ndarray, rng: np.random.Generator, flips: int) -> np.ndarray:
@@ -60,7 +61,7 @@ def test_sim3_recovers_a_known_similarity_from_noisy_matches_with_outliers():
     R = Rotation.random(random_state=4).as_matrix()
     S_true = similarity(1.7, R, np.array([0.4, -1.2, 2.0]))
     source = rng.uniform(-2, 2, (300, 3))
-    target = compose(S_true, source) + rng.normal(0, 0.01, (300, 3))
+    target = transform_points(S_true, source) + rng.normal(0, 0.01, (300, 3))
     outliers = rng.random(300) < 0.4
     target[outliers] = rng.uniform(-5, 5, (int(outliers.sum()), 3))
     fit = fit_sim3(source, target, threshold=0.05**2)

@@ -44,14 +44,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.geometry.se3 import transform_points
 from services.slam.features import FrameFeatures
 from services.slam.loop.places import PlaceIndex
 from services.slam.loop.pose_graph import Edge, optimise_pose_graph
-from services.slam.loop.sim3 import compose, decompose, fit_sim3
+from services.slam.loop.sim3 import decompose, fit_sim3
 from services.slam.map.covisibility import CovisibilityGraph
 from services.slam.map.database import MapDatabase
 from services.slam.map.map_point import PointArrays
 from services.slam.matching import match_descriptors
+from services.slam.optimisation import reprojection_errors
 from services.slam.projection import project_points, search_projected
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
@@ -242,11 +244,7 @@ class LoopCloser:
               sigmas: np.ndarray) -> np.ndarray:
         """(N,) squared reprojection errors over sigma^2 of (N, 3) world ``points`` seen at (N, 2)
         ``pixels`` by a camera of similarity pose ``S_camera_world`` (infinite behind it)."""
-        camera = compose(S_camera_world, points)
-        depth = camera[:, 2]
-        safe = np.where(depth > 0, depth, 1.0)[:, None]
-        projected = camera[:, :2] / safe * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
-        return np.where(depth > 0, np.sum((projected - pixels) ** 2, axis=1) / sigmas**2, np.inf)
+        return (reprojection_errors(self.K, S_camera_world, points, pixels) / sigmas) ** 2
 
     def _close(self, keyframe_id: int, loop_id: int, match: _Match, stages: dict[str, float]) -> LoopClosure:
         """Steps 3 to 5."""
@@ -287,7 +285,7 @@ class LoopCloser:
                     if point_id not in reference:
                         reference[point_id] = k
             ids = np.fromiter(reference, np.int64, len(reference))
-            positions = compose(S, self.map.positions(ids))
+            positions = transform_points(S, self.map.positions(ids))
             for point_id, position in zip(ids.tolist(), positions, strict=True):
                 self.map.set_position(point_id, position)
         return reference
@@ -373,7 +371,7 @@ class LoopCloser:
             for r in np.unique(references).tolist():
                 if r in optimised and r in start:
                     rows = np.flatnonzero(references == r)
-                    moved = compose(np.linalg.inv(optimised[r]) @ start[r], positions[rows])
+                    moved = transform_points(np.linalg.inv(optimised[r]) @ start[r], positions[rows])
                     for point_id, position in zip(ids[rows].tolist(), moved, strict=True):
                         self.map.set_position(point_id, position)
         self.map.refresh_points(ids)

@@ -20,9 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.geometry.absolute_orientation import umeyama_alignment
+from services.geometry.se3 import transform_points
 from services.geometry.shapes import check_shape
 
-__all__ = ["Sim3Fit", "compose", "decompose", "distance_residuals", "fit_sim3", "similarity"]
+__all__ = ["Sim3Fit", "decompose", "distance_residuals", "fit_sim3", "similarity"]
 
 REFINE_ROUNDS = 5
 COLLINEAR = 1e-6
@@ -43,14 +44,9 @@ def decompose(S: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return scale, S[:3, :3] / scale, S[:3, 3].copy()
 
 
-def compose(S: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 3): the similarity ``S`` (4, 4) applied to (N, 3) ``points``."""
-    return points @ S[:3, :3].T + S[:3, 3]
-
-
 def distance_residuals(source: np.ndarray, target: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """A residual for ``fit_sim3``: each match's squared distance ``|target_i - S source_i|^2``."""
-    return lambda S: np.sum((target - compose(S, source)) ** 2, axis=1)
+    return lambda S: np.sum((target - transform_points(S, source)) ** 2, axis=1)
 
 
 @dataclass(frozen=True)
