@@ -45,6 +45,14 @@ def test_the_foxglove_server_streams_images_and_poses_to_a_websocket_client(bus,
     keys, port = bus.keys, free_port()
     server = procs.artrack("view", "--foxglove", "--port", str(port), "--image-hz", "0", name="foxglove")
     wait_live(session, keys, {"foxglove"}, [server])
+    said = f"serving {keys.prefix} to Foxglove on ws://127.0.0.1:{port}"
+
+    def listening() -> bool:
+        """The node's own word that its server is bound (its token goes live before the server starts)."""
+        assert server.poll() is None, server.describe()
+        return said in server.stderr
+
+    wait_until(listening, START_S, "the foxglove node to listen")
     capture = procs.artrack("node", "capture", "--name", "cam", "--params", json.dumps(
         {"source": "synthetic:markers", "fps": FPS, "frames": FRAMES, "wait_for_subscriber": True,
          "scene": {"width": WIDTH, "height": HEIGHT}}), name="cam")
@@ -105,5 +113,4 @@ def test_the_foxglove_server_streams_images_and_poses_to_a_websocket_client(bus,
         pose(i).transform.translation)
     os.kill(server.pid, signal.SIGINT)
     assert server.wait(15) == 0, server.describe()
-    assert f"serving {keys.prefix} to Foxglove on ws://127.0.0.1:{port}" in server.stderr
     capture.wait(START_S + FRAMES / FPS)
