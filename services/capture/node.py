@@ -17,7 +17,10 @@ the source's own timing) are counted as ``late`` (in the node's ``skipped`` stat
 its errors key, at the first one and then at most every ``LATE_REPORT_S``), and when the
 source ends, one line says the rate it delivered against the one asked. Stamps are the
 wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
-evaluating against a data set's ground truth). CameraInfo comes from ``calib`` files (ROS
+evaluating against a data set's ground truth). In a lossless run, ``"wall"`` stamps of a source that is
+not a camera follow the source's own clock from the wall-clock time of the first frame
+(``services.runtime.stamps``): a frame held back by a slow node keeps the stamp it would have had on an
+idle machine. CameraInfo comes from ``calib`` files (ROS
 camera_info YAML, one per camera), else from the source (synthetic scenes know theirs, a KITTI
 folder reads its ``calib.txt``, a ROS 2 bag has its ``camera_info`` topics); a camera with neither
 publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated camera's CameraInfo is
@@ -65,6 +68,7 @@ from services.convert import camera_info, frame_transforms, rig_static_transform
 from services.geometry.camera import CameraModel
 from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import REPORT_EVERY_S, Node, NodeError
+from services.runtime.stamps import SourceClock
 from services.synthetic import scene_options
 
 SETTLE_S = 0.3
@@ -105,7 +109,9 @@ class Params(BaseModel):
     calib: Annotated[tuple[Path, ...], BeforeValidator(_as_tuple)] = Field(
         default=(), description="ROS camera_info YAML per camera")
     scene: dict[str, Any] = Field(default_factory=dict, description="options of a synthetic scene")
-    stamps: Literal["wall", "source"] = "wall"
+    stamps: Literal["wall", "source"] = Field(
+        default="wall", description="wall: the wall-clock time of capture (in a lossless run, the source's own "
+                                    "clock from the first frame's); source: the source's own times")
     wait_for_subscriber: bool = Field(
         default=False, description="hold the first frame until every camera's images have a subscriber")
 
@@ -218,6 +224,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     stamped = _StampedInfos(rig)
     late = _Lateness(node, keys.image(rig.names[0]))
     credits = node.credits()
+    stamper = _Stamper(params, lambda: live.value.fps, scheduled=credits is not None and not _live(rig))
     while node.running and (params.frames == 0 or seq < params.frames):
         clock = _Pacer(lambda: live.value.fps, ceiling=credits is not None)
         for instant in rig.instants():
@@ -239,7 +246,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
                         rig.fit(rename[own_name], image, node.log)
             except CalibrationError as exc:
                 raise NodeError(str(exc)) from exc
-            header_stamp = _publish_instant(params, instant, rig, seq, stamped, images, infos, truths)
+            header_stamp = _publish_instant(stamper, instant, rig, seq, stamped, images, infos, truths)
             node.processed(time.perf_counter() - started, header_stamp)
             if credits is not None:
                 credits.sent(seq)
@@ -270,13 +277,26 @@ def _live(rig: Rig) -> bool:
     return any(source.uri.startswith("camera:") for source in rig.sources)
 
 
-def _stamp(params: Params, frame: SourceFrame) -> int:
-    if params.stamps == "source" and frame.time_ns is not None:
-        return frame.time_ns
-    return time.time_ns()
+class _Stamper:
+    """Each instant's stamp: its source time with ``stamps = "source"`` (when it has one); else, in a lossless
+    run of a source that is not a camera (``scheduled``), its place on the source's own clock at the pace
+    asked (``SourceClock``); else the wall-clock time it goes out."""
+
+    def __init__(self, params: Params, fps: Callable[[], float | None], scheduled: bool):
+        self.source = params.stamps == "source"
+        self.fps = fps
+        self.clock = SourceClock() if scheduled else None
+
+    def __call__(self, frame: SourceFrame) -> int:
+        if self.source and frame.time_ns is not None:
+            return frame.time_ns
+        if self.clock is None:
+            return time.time_ns()
+        fps = self.fps()
+        return self.clock.stamp(frame.time_ns, 1.0 / fps if fps else None)
 
 
-def _publish_instant(params: Params, instant: list[SourceFrame], rig: Rig, seq: int, stamped: _StampedInfos,
+def _publish_instant(stamper: _Stamper, instant: list[SourceFrame], rig: Rig, seq: int, stamped: _StampedInfos,
                      images, infos, truths) -> int:
     """Put one instant's messages under one header and return its stamp. Everything is built before the stamp
     is taken or right after it, cheaply; CameraInfo and GroundTruth go before the images, so a node that takes
@@ -285,7 +305,7 @@ def _publish_instant(params: Params, instant: list[SourceFrame], rig: Rig, seq: 
     truth = {rename[own]: frame_transforms(frame.truth.get(own, []))
              for frame, rename in zip(instant, rig.renames, strict=True) for own in frame.images
              if rename[own] in truths}
-    stamp = _stamp(params, instant[0])
+    stamp = stamper(instant[0])
     messages = [message for frame, rename in zip(instant, rig.renames, strict=True)
                 for message in _frame_messages(frame, rename, stamp, seq, stamped, truth)]
     for name, _, info, ground_truth in messages:

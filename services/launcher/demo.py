@@ -2,7 +2,8 @@
 
 The job is ``artrack run marker --source recording:recordings/markers.mcap --marker-length
 0.05 --depth 8 --record RUN/run.mcap --rerun RUN/run.rrd``: a replay node publishes the
-recorded frames, calibration and ground truth (restamped with the time each frame goes out),
+recorded frames, calibration and ground truth (restamped on the recording's clock from the time the first
+frame goes out, ``services.runtime.stamps``),
 one marker node per camera detects and estimates, and a recorder and a viewer write the run.
 This process is the subscribing client: it joins every pose to the ground truth of its frame (by camera and
 sequence number), prints a line a second while the run goes on, and a table at the end:

@@ -3,7 +3,8 @@
 The job is a ``PipelineSpec`` like any pipeline file (``--save-pipeline`` writes it, ``artrack
 up`` runs it as a daemon): ``build_job`` fills a tracker template for the source's cameras.
 The source is a capture node (any capture URI) or a replay node (``recording:PATH.mcap``:
-the cameras' images, calibration and ground truth, restamped with the time they go out, on its own
+the cameras' images, calibration and ground truth, restamped as they go out (in a lossless run on the
+recording's clock from the first frame's, ``services.runtime.stamps``), on its own
 rig or the one asked for). A job differs from a daemon only in its order and its end: the
 nodes that read the bus start first; once every one of them is live (plus a moment for their
 subscriptions to reach the bus), the sources (the nodes that read nothing). A finite source ends

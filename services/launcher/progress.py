@@ -157,8 +157,8 @@ class JobWatch:
         declared = kind(source.kind)
         params = declared.validate(source.params)
         self.asked = declared.source.fps(params) if declared.source is not None else None
-        self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params)
         self.lossless = spec.lossless()
+        self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params) and not self.lossless
         self.figures = JobFigures()
         self.restarts: dict[str, int] = {}
         """Nodes the job restarted, and how often (set by the job before the summary)."""

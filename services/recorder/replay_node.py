@@ -59,6 +59,7 @@ from services.recorder.reading import EXIT_DAMAGED, Damage, NotMcap, Recorded, S
 from services.recorder.writing import RECORDING_METADATA
 from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import Node, NodeError
+from services.runtime.stamps import SourceClock
 
 SETTLE_S = 0.2
 STEP_ANSWER_S = 1.0
@@ -81,7 +82,9 @@ class Params(BaseModel):
     paused: bool = Field(default=False, description="start paused; resume with `artrack control NAME resume`")
     wait_s: float = Field(default=2.0, ge=0, description="wait up to S for a subscriber before the first message")
     restamp: bool = Field(default=False, description="give messages the time they are replayed as their stamp "
-                                                     "(re-encodes them), to measure latency on a replay")
+                                                     "(in a lossless run, the recording's own clock from the "
+                                                     "first one's; re-encodes them), to measure latency on a "
+                                                     "replay")
     retarget: bool = Field(default=False, description="publish the keys of the rig the recording was made on "
                                                        "under this node's namespace and rig instead")
 
@@ -150,12 +153,17 @@ class Selection:
 
 
 class _Restamper:
-    """New stamps for replayed messages: the wall-clock time the first message of each recorded
-    stamp goes out, shared by every message of that stamp (an image and its CameraInfo stay joined)."""
+    """New stamps for replayed messages, one per recorded stamp and shared by every message of that stamp (an
+    image and its CameraInfo stay joined): the wall-clock time its first message goes out, or in a lossless
+    run (``scheduled``) its place on the recording's own clock at ``rate`` from the first one's
+    (``SourceClock``), which a frame held back by a slow node does not move."""
 
-    def __init__(self, kept: int = 4096):
+    def __init__(self, scheduled: bool = False, rate: float = 1.0, kept: int = 4096):
         self._new: dict[int, int] = {}
         self._kept = kept
+        self._clock = SourceClock() if scheduled else None
+        self._rate = rate
+        self._first: int | None = None
 
     def __call__(self, payload: bytes) -> bytes:
         try:
@@ -166,20 +174,28 @@ class _Restamper:
         if old not in self._new:
             if len(self._new) >= self._kept:
                 self._new.pop(next(iter(self._new)))
-            self._new[old] = time.time_ns()
+            self._new[old] = time.time_ns() if self._clock is None else self._scheduled(old)
         header = message.header.model_copy(update={"stamp_ns": self._new[old]})
         return encode(message.model_copy(update={"header": header}))
+
+    def _scheduled(self, old: int) -> int:
+        """The clock's stamp for recorded stamp ``old``, its own time counted from the first one's at ``rate``."""
+        assert self._clock is not None
+        if self._first is None:
+            self._first = old
+        return self._clock.stamp(round((old - self._first) / self._rate))
 
 
 class _Outputs:
     """One raw publisher per recorded channel, declared at its first message."""
 
-    def __init__(self, node: Node, restamp: bool = False, topic: Callable[[str], str] = _as_recorded):
+    def __init__(self, node: Node, restamp: bool = False, topic: Callable[[str], str] = _as_recorded,
+                 rate: float = 1.0):
         self._node = node
         self._topic = topic
         self._publishers: dict[int, RawPublisher] = {}
-        self._restamp = _Restamper() if restamp else None
         self._credits = node.credits()
+        self._restamp = _Restamper(self._credits is not None, rate) if restamp else None
         self._went_out = threading.Condition()
         self.published = 0
         self.frames = 0
@@ -254,7 +270,7 @@ def replay(node: Node, params: Params) -> Replayed:
         raise NodeError(str(exc)) from exc
     selection = Selection(node.keys, params.keys, topic)
     pacer = Pacer(params.rate, paused=params.paused, running=lambda: node.running)
-    outputs = _Outputs(node, params.restamp, topic)
+    outputs = _Outputs(node, params.restamp, topic, params.rate)
     done = Replayed()
 
     def on_query(query: zenoh.Query) -> None:

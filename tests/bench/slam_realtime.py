@@ -10,20 +10,20 @@ latest-wins, so a node that falls behind drops them):
   10 fps; a ``skipped`` line when the data set is absent).
 
 Each sequence runs ``RUNS`` times on the machine as it is (``idle``) and ``RUNS`` times while
-``tests.load.busy`` spins a process on every core (``loaded``). From each recording: the frames the
-capture sent (images recorded), the SLAM node's frames dropped (its last ``NodeStats``: frames that came
-while one was being processed and the queue was full), the frames without a pose before the first
-tracked one (initialisation) and after it, its poses and those ``tracking``, their ATE (RMSE after a
-Sim(3) alignment, against the truth the room records with its frames or KITTI's ``poses.txt`` by frame
-number), and the machine's 1-minute load average before and after (the machine is shared: its load
-says what "idle" was). One JSON line per run, then one per sequence and condition: runs with 0 frames
-dropped out of ``RUNS`` (the target: all of them), the SLAM node's processing p50 / p99 (its stats, ms)
-per run, and the ATE's min / median / max over the runs.
+``tests.load.busy`` spins a process on every core (``loaded``). From each recording: the frames the capture
+sent (images recorded), the SLAM node's frames dropped (its last ``NodeStats``: frames that came while one was
+being processed and the queue was full), the frames without a pose before the first tracked one
+(initialisation) and after it, its poses and those ``tracking``, their ATE (RMSE after a Sim(3) alignment,
+against the truth the room records with its frames or KITTI's ``poses.txt`` by frame number), and the
+machine's 1-minute load average before and after (the machine is shared: its load says what "idle" was), and
+the smallest, median and largest gap between two frames' stamps. One JSON line per run, then one per sequence
+and condition: runs with 0 frames dropped out of ``RUNS`` (the target: all of them), the SLAM node's
+processing p50 / p99 (its stats, ms) per run, and the ATE's min / median / max over the runs.
 
 ``python -m tests.bench.slam_realtime [--runs N] [--sequences room kitti] [--conditions idle loaded]
-[--processes given|separate|single]``
-prints the lines (``--runs`` lowers the ten runs for a quick look); ``python -m tests.bench slam_realtime``
-runs the default.
+[--processes given|separate|single] [--flow realtime|lossless]`` prints the lines (``--runs`` lowers the ten
+runs for a quick look; ``--flow lossless``: the same runs lossless, every frame taken, stamped on the source's
+clock); ``python -m tests.bench slam_realtime`` runs the default.
 """
 
 from __future__ import annotations
@@ -74,11 +74,12 @@ def truths() -> dict[str, dict[int, np.ndarray] | None]:
     return {"room": None, "kitti": dict(enumerate(read_kitti(poses).poses)) if poses.is_file() else None}
 
 
-def run_once(flags: tuple[str, ...], folder: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str, Any]:
-    """One real-time run of the SLAM tracker with a recorder; its figures from the recording (``truth``:
-    true poses by sequence number when the recording has none)."""
+def run_once(flags: tuple[str, ...], folder: Path, truth: dict[int, np.ndarray] | None = None,
+             flow: str = "realtime") -> dict[str, Any]:
+    """One run of the SLAM tracker with a recorder (real-time unless ``flow`` says otherwise); its figures from the
+    recording (``truth``: true poses by sequence number when the recording has none)."""
     out = folder / f"{uuid.uuid4().hex[:8]}.mcap"
-    argv = [sys.executable, "-m", "services.cli", "run", "slam", *flags, "--flow", "realtime", "--record", str(out),
+    argv = [sys.executable, "-m", "services.cli", "run", "slam", *flags, "--flow", flow, "--record", str(out),
             "--quiet", "--rig", f"bench{uuid.uuid4().hex[:6]}"]
     done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
     if done.returncode != 0:
@@ -93,6 +94,7 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
     stats), its poses and how many of them were tracking, and the ATE (m, RMSE after a Sim(3) alignment)
     of the tracking poses against the recorded truth of ``cam0`` (or ``truth`` by sequence number)."""
     images, poses, tracked = 0, 0, 0
+    stamps: list[int] = []
     sent: set[int] = set()
     posed: dict[int, bool] = {}
     estimated: dict[int, np.ndarray] = {}
@@ -105,6 +107,7 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
                 images += 1
                 header = decode(message.data).header
                 sent.add(header.seq)
+                stamps.append(header.stamp_ns)
             elif topic.endswith("/stats"):
                 decoded = decode(message.data)
                 if isinstance(decoded, NodeStats) and decoded.kind == "slam":
@@ -131,7 +134,8 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
             "unposed_after": sum(seq > first_tracked for seq in unposed), "poses": poses, "tracked": tracked,
             "node_p50_ms": round(stats.processing_ms_p50 or 0.0, 1),
             "node_p99_ms": round(stats.processing_ms_p99 or 0.0, 1),
-            "ate_m": _ate_m(estimated, recorded if truth is None else truth)}
+            "ate_m": _ate_m(estimated, recorded if truth is None else truth),
+            "stamp_gap_ms": _spread(list(np.diff(np.sort(stamps)) / 1e6))}
 
 
 def _ate_m(estimated: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> float | None:
@@ -149,15 +153,17 @@ def _condition(name: str) -> AbstractContextManager[Any]:
 
 
 def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path,
-         layout: str = "given", truth: dict[int, np.ndarray] | None = None) -> Iterator[dict[str, Any]]:
+         layout: str = "given", truth: dict[int, np.ndarray] | None = None,
+         flow: str = "realtime") -> Iterator[dict[str, Any]]:
     """``count`` runs of one sequence under one condition: a line per run, then the summary line (with the
     ATE's min / median / max over the runs)."""
-    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition, "processes": layout}
+    common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition, "processes": layout,
+              "flow": flow}
     lines = []
     for run in range(count):
         load_before = os.getloadavg()[0]
         with _condition(condition):
-            figures = run_once(flags, folder, truth)
+            figures = run_once(flags, folder, truth, flow)
         figures |= {"loadavg_1m_before": round(load_before, 2), "loadavg_1m_after": round(os.getloadavg()[0], 2)}
         lines.append(figures)
         print(f"slam_realtime {sequence} {condition} {run + 1}/{count}: {figures}", file=sys.stderr, flush=True)
@@ -179,7 +185,8 @@ def _spread(values: list[float | None]) -> list[float] | None:
 
 
 def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room", "kitti"),
-                        conditions: tuple[str, ...] = CONDITIONS, layout: str = "given") -> list[dict[str, Any]]:
+                        conditions: tuple[str, ...] = CONDITIONS, layout: str = "given",
+                        flow: str = "realtime") -> list[dict[str, Any]]:
     lines: list[dict[str, Any]] = []
     known = truths()
     with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
@@ -191,7 +198,7 @@ def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room",
                 continue
             for condition in conditions:
                 lines += runs(sequence, (*flags, "--processes", layout), condition, count, Path(tmp), layout,
-                              known[sequence])
+                              known[sequence], flow)
     return lines
 
 
@@ -202,8 +209,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS))
     parser.add_argument("--processes", choices=("given", "separate", "single"), default="given",
                         help="how the nodes share processes (artrack run --processes; default: the template's)")
+    parser.add_argument("--flow", choices=("realtime", "lossless"), default="realtime",
+                        help="artrack run --flow (default realtime: frames latest-wins)")
     args = parser.parse_args(argv)
-    for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions), args.processes):
+    for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions), args.processes,
+                                    args.flow):
         print(json.dumps(line), flush=True)
 
 

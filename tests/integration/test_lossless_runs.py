@@ -4,11 +4,14 @@ processes hog every core, and the recorded results must be the same bytes."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from protocol.codec import decode, encode
 from tests.integration.support import START_S
 from tests.load import busy
 
@@ -59,6 +62,56 @@ def test_a_lossless_run_gives_the_same_results_idle_and_with_every_core_busy(pro
     for key in idle:
         assert len(idle[key]) == len(loaded[key]), key
         assert idle[key] == loaded[key], f"{key}: results differ between the idle and the loaded run"
+
+
+HELD_FPS = 1000
+"""A pace no stereo pipeline keeps on this machine: the source is held back by the nodes at nearly every frame."""
+
+
+def shifted(path, stamp0: int) -> dict[str, list[bytes]]:
+    """``results`` of ``path`` with every header stamp taken as its distance from ``stamp0``."""
+    moved = {}
+    for key, payloads in results(path).items():
+        moved[key] = []
+        for payload in payloads:
+            message = decode(payload)
+            header = message.header.model_copy(update={"stamp_ns": message.header.stamp_ns - stamp0})
+            moved[key].append(encode(message.model_copy(update={"header": header})))
+    return moved
+
+
+def frame_stamps(path) -> np.ndarray:
+    """(N,) int64 stamps of the ``cam0`` images of a recording, in the order they were recorded."""
+    with open(path, "rb") as f:
+        return np.array([decode(message.data).header.stamp_ns for _, channel, message
+                         in make_reader(f).iter_messages(log_time_order=True) if channel.topic.endswith("cam0/image")])
+
+
+def test_a_held_back_lossless_source_stamps_its_frames_on_its_own_clock_idle_and_busy(procs, tmp_path):
+    """The source waits for the nodes at nearly every frame; its stamps, and so the results, do not show it,
+    and a replay of the run restamps its frames on the recording's own clock alike."""
+    source, frames, _ = TRACKERS["stereo"]
+    runs = {}
+    for name in ("idle", "loaded"):
+        out = tmp_path / f"{name}.mcap"
+        with busy() if name == "loaded" else contextlib.nullcontext():
+            job = procs.artrack("run", "stereo", "--source", source, "--frames", str(frames), "--fps", str(HELD_FPS),
+                                "--record", str(out), name=name)
+            assert job.wait(12 * START_S) == 0, job.describe()
+        assert LOSSLESS in job.stderr.strip().splitlines()[-1], job.describe()
+        stamps = frame_stamps(out)
+        assert len(stamps) == frames and set(np.diff(stamps).tolist()) == {1_000_000_000 // HELD_FPS}, stamps
+        runs[name] = shifted(out, int(stamps[0]))
+    assert runs["idle"] and sorted(runs["idle"]) == sorted(runs["loaded"])
+    for key, idle in runs["idle"].items():
+        assert idle == runs["loaded"][key], f"{key}: results differ between the idle and the loaded run"
+    replayed = tmp_path / "replayed.mcap"
+    job = procs.artrack("run", "stereo", "--source", f"recording:{tmp_path / 'loaded.mcap'}", "--record",
+                        str(replayed), name="replay")
+    assert job.wait(12 * START_S) == 0, job.describe()
+    assert LOSSLESS in job.stderr.strip().splitlines()[-1], job.describe()
+    stamps = frame_stamps(replayed)
+    assert len(stamps) == frames and set(np.diff(stamps).tolist()) == {1_000_000_000 // HELD_FPS}, stamps
 
 
 SLAM_FRAMES = 90
