@@ -31,6 +31,12 @@ Then, for each frame (as ORB-SLAM does):
 
 With ``localisation_only`` the map stays as it is: frames are tracked, no keyframe is made.
 
+A young map that is lost (``services.slam.system`` gives it up) leaves an ``Anchor``: the last tracked
+frame's pose and the camera's motion then. The next map's first keyframe is placed where that motion
+carries the camera by the time of its reference frame, and its first pair is scaled to the distance the
+camera covers at that speed between the pair's frames, so the new map goes on in the world and scale of
+the one given up (forward motion seldom comes back to the places a lost map holds).
+
 The keyframe decision (``mapping.keyframe_decision``) may hang on whether the mapper is idle, which
 depends on the machine's load when mapping runs apart. With ``wait_for_mapping`` the tracker waits
 for the mapper instead (at most ``MAPPING_WAIT_S``, a warning when that passes): after each keyframe
@@ -40,7 +46,8 @@ on an idle one. Without it the tracker waits only after a keyframe made on a nea
 twice ``min_tracked``), at most ``THIN_MAP_WAIT_S``: a camera moving forward leaves its points behind
 within a few frames, and frames tracked before that keyframe's points are in would be lost.
 
-Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame.
+Frames: poses are ``T_camera_world`` (4, 4), world = the first keyframe's camera frame (of the first map:
+a map placed by an anchor keeps its world).
 """
 
 from __future__ import annotations
@@ -54,7 +61,7 @@ import numpy as np
 from protocol.tracking_state import TrackingState
 from services.geometry.camera import CameraModel
 from services.geometry.rotation import matrix_from_rotvec, rotvec_from_matrix
-from services.geometry.se3 import invert, make_transform
+from services.geometry.se3 import invert, make_transform, transform_points
 from services.slam.bridging import Bridge, bridge_pair
 from services.slam.features import FrameFeatures
 from services.slam.initialisation import InitialisationSettings, InitialisationStatus, initialise
@@ -70,7 +77,7 @@ from services.slam.relocalisation import Relocaliser, solve_pnp
 from services.slam.settings import SlamSettings
 from services.slam.timing import stage_timer
 
-__all__ = ["MAPPING_WAIT_S", "Tracked", "Tracker"]
+__all__ = ["MAPPING_WAIT_S", "Anchor", "Tracked", "Tracker", "extrapolated"]
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +116,39 @@ class Tracked:
     keyframe_id: int | None = None
 
 
+def extrapolated(T_camera_world: np.ndarray, velocity: tuple[np.ndarray, float], seconds: float) -> np.ndarray:
+    """(4, 4) ``T_camera_world`` carried ``seconds`` on by the constant ``velocity`` ``(T_current_previous
+    (4, 4), its time step s)``: the step's rotation vector and translation scaled by ``seconds`` over the step."""
+    delta, dt = velocity
+    ratio = seconds / dt
+    rotation = matrix_from_rotvec(rotvec_from_matrix(delta[:3, :3]) * ratio)
+    return make_transform(rotation, delta[:3, 3] * ratio) @ T_camera_world
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """Where a map given up leaves the camera: the last tracked frame's ``T_camera_world`` (4, 4) and
+    ``stamp_ns``, its ``velocity`` ``(T_current_previous (4, 4), time step s)`` (None when unknown) and
+    ``speed`` (world units per second, NaN when unknown)."""
+
+    T_camera_world: np.ndarray
+    stamp_ns: int
+    velocity: tuple[np.ndarray, float] | None
+    speed: float
+
+    def place(self, first_ns: int, second_ns: int, baseline: float) -> tuple[np.ndarray, float] | None:
+        """``(T_camera_world (4, 4) of the pair's first frame, scale of its two-view model)`` for a pair stamped
+        ``first_ns`` and ``second_ns`` whose model puts its frames ``baseline`` apart: the first frame where
+        the velocity carries the last one, the pair as far apart as the speed takes the camera. None without a
+        known speed, or when the pair spans no time."""
+        span_s = (second_ns - first_ns) * 1e-9
+        if not (np.isfinite(self.speed) and self.speed > 0 and span_s > 0 and baseline > 0):
+            return None
+        T = self.T_camera_world if self.velocity is None else extrapolated(
+            self.T_camera_world, self.velocity, (first_ns - self.stamp_ns) * 1e-9)
+        return T, self.speed * span_s / baseline
+
+
 @dataclass
 class _Frame:
     """A frame the tracker remembers: ``index`` counts frames; ``point_ids`` (N,) int64 per keypoint."""
@@ -123,10 +163,11 @@ class _Frame:
 class Tracker:
     """Tracks ``camera``'s frames against ``slam_map``, handing new keyframes to ``mapper`` (none with
     ``localisation_only``). ``wait_for_mapping``: a keyframe decision that hangs on the mapper being
-    idle waits for it (``mapping.Mapper.wait_idle``) instead of taking it as busy."""
+    idle waits for it (``mapping.Mapper.wait_idle``) instead of taking it as busy. ``anchor``: where the
+    map to be started goes (a map given up before it), None for a map of its own world and scale."""
 
     def __init__(self, camera: CameraModel, settings: SlamSettings, slam_map: MapDatabase, mapper: Mapper,
-                 localisation_only: bool = False, wait_for_mapping: bool = False):
+                 localisation_only: bool = False, wait_for_mapping: bool = False, anchor: Anchor | None = None):
         self.K = np.asarray(camera.K, np.float64)
         self.size = (camera.width, camera.height)
         self.settings = settings
@@ -151,12 +192,32 @@ class Tracker:
         self._late_bound = self._full_bound.model_copy(update={"min_parallax_deg": settings.init_late_parallax_deg})
         self._young_baseline: float | None = None
         """The distance between the first two keyframes' centres (world units) while the map is young, else None."""
+        self._anchor = anchor
 
     @property
     def reference_keyframe(self) -> int:
         """The id of the keyframe sharing most points with the last tracked frame (the frame itself when
         it became a keyframe); -1 before the map exists."""
         return self._reference_keyframe
+
+    def anchor(self) -> Anchor | None:
+        """Where the camera was when last tracked, and its motion then, for a map to start in this one's world
+        (None before a frame was tracked). The speed is the last step's, else the keyframes' path over its
+        time."""
+        last = self._last
+        if last is None:
+            return None
+        if self._velocity is not None:
+            delta, dt = self._velocity
+            speed = float(np.linalg.norm(delta[:3, 3])) / dt
+        else:
+            with self.map.lock:
+                keyframes = sorted(self.map.keyframes.values(), key=lambda keyframe: keyframe.stamp_ns)
+            span_s = (keyframes[-1].stamp_ns - keyframes[0].stamp_ns) * 1e-9 if keyframes else 0.0
+            centres = np.array([keyframe.centre for keyframe in keyframes]).reshape(-1, 3)
+            path = float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)))
+            speed = path / span_s if span_s > 0 else float("nan")
+        return Anchor(last.T_camera_world.copy(), last.stamp_ns, self._velocity, speed)
 
     def track(self, stamp_ns: int, features: FrameFeatures, timings: dict[str, float]) -> Tracked:
         """The outcome of one frame's ``features``; adds the stages' milliseconds to ``timings``."""
@@ -221,14 +282,19 @@ class Tracker:
 
     def _start_map(self, reference: _Frame, frame: _Frame, a: np.ndarray, b: np.ndarray, points: np.ndarray,
                    T_second_first: np.ndarray) -> int | None:
-        """The map's first two keyframes and points (median depth scaled to 1, then bundle adjusted);
-        the second keyframe's id, or None (map cleared) when too few points survive."""
-        scale = 1.0 / float(np.median(points[:, 2]))
+        """The map's first two keyframes and points (``points`` (N, 3) in the first frame's camera frame; median
+        depth scaled to 1, or placed and scaled by the anchor, then bundle adjusted); the second keyframe's id,
+        or None (map cleared) when too few points survive."""
+        scale, T_first = 1.0 / float(np.median(points[:, 2])), np.eye(4)
+        placed = None if self._anchor is None else self._anchor.place(
+            reference.stamp_ns, frame.stamp_ns, float(np.linalg.norm(T_second_first[:3, 3])))
+        if placed is not None:
+            T_first, scale = placed
         T = T_second_first.copy()
         T[:3, 3] *= scale
-        first = self.map.add_keyframe(reference.stamp_ns, np.eye(4), reference.features, reference.point_ids)
-        second = self.map.add_keyframe(frame.stamp_ns, T, frame.features, frame.point_ids)
-        for point, i, j in zip(points * scale, a, b, strict=True):
+        first = self.map.add_keyframe(reference.stamp_ns, T_first, reference.features, reference.point_ids)
+        second = self.map.add_keyframe(frame.stamp_ns, T @ T_first, frame.features, frame.point_ids)
+        for point, i, j in zip(transform_points(invert(T_first), points * scale), a, b, strict=True):
             self.map.add_point(point, {first.id: int(i), second.id: int(j)})
         self.mapper.adjust_initial_map(first.id, second.id)
         if len(self.map.points) < self.settings.init_min_points:
@@ -237,6 +303,7 @@ class Tracker:
         frame.T_camera_world = second.T_camera_world.copy()
         frame.point_ids = second.point_ids.copy()
         self._last = frame
+        self._anchor = None
         self._velocity = None
         self._reference_keyframe = second.id
         self._last_keyframe_stamp = frame.stamp_ns
@@ -300,10 +367,7 @@ class Tracker:
         with stage_timer(timings, "match"):
             predicted = last.T_camera_world
             if self._velocity is not None:
-                delta, dt = self._velocity
-                ratio = (stamp_ns - last.stamp_ns) * 1e-9 / dt
-                rotation = matrix_from_rotvec(rotvec_from_matrix(delta[:3, :3]) * ratio)
-                predicted = make_transform(rotation, delta[:3, 3] * ratio) @ last.T_camera_world
+                predicted = extrapolated(last.T_camera_world, self._velocity, (stamp_ns - last.stamp_ns) * 1e-9)
             points, rows, keypoints = self._search_last(last, features, predicted)
         if len(rows) < s.min_motion_matches:
             return None, 0

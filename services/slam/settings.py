@@ -19,7 +19,8 @@ class SlamSettings(BaseModel):
     (1 deg) until the new frame is ``init_late_frames`` frames after the reference, then only
     ``init_late_parallax_deg``. A map started under the full bound is young: until it has
     ``young_map_keyframes`` keyframes, a tracked frame as far from the last keyframe as the first two
-    keyframes are apart becomes one (with the mapper idle).
+    keyframes are apart becomes one (with the mapper idle). A map lost with at most ``restart_keyframes``
+    keyframes is given up for a new one (``services.slam.system``).
 
     Tracking: search by projection of the last frame's points around the constant-velocity
     prediction within ``motion_window_px`` (per level scale; doubled when under ``min_motion_matches``
@@ -78,6 +79,9 @@ class SlamSettings(BaseModel):
     young_map_keyframes: int = Field(default=6, ge=2, description="keyframes a map started under the full "
                                                                   "parallax bound makes one initial baseline "
                                                                   "apart")
+    restart_keyframes: int = Field(default=5, ge=0, description="a map of its own lost with at most this many "
+                                   "keyframes is given up for a new one, placed where the camera's motion carries "
+                                   "it (0: never)")
     projection_max_distance: int = Field(default=100, ge=0, le=256, description="largest descriptor distance of a "
                                                                                 "match found by projection, bits")
     motion_window_px: float = Field(default=15.0, gt=0, description="tracking: search window around the "

@@ -11,6 +11,11 @@ inline mapping's poses, whatever the load.
 A map saved by an earlier run (``map.file``) can be given at the start: the system relocalises
 in it first (``relocalisation``), then tracks it; with ``localisation_only`` the map stays fixed (no
 keyframes, points or bundle adjustment), otherwise mapping carries on from it.
+A map of its own that is lost while it has at most ``restart_keyframes`` keyframes is given up: a new
+map is started from the lost frame on, placed and scaled where the camera's last motion carries it
+(``frontend.Anchor``), and the frames tracked in the map given up keep their final poses in the
+trajectory. A young map lost is a start that went wrong, or a camera moving on from what little it
+mapped; waiting to relocalise in it would leave every frame after it untracked.
 Frames: the world is the first keyframe's camera frame (OpenCV camera frame), in the map's
 arbitrary monocular units; ``T_world_camera`` (4, 4) maps the frame's camera frame into it.
 """
@@ -53,7 +58,8 @@ class FrameResult:
 
     ``state``; ``reason`` ("" when tracking, else why not: ``new_reference``, ``low_parallax``,
     ``planar_wait``, ``pose_uncertain``, ``too_few_matches``, ``too_few_points``, ``few_in_front``, ``no_texture``,
-    ``bad_image``, ``out_of_order``, and while relocalising ``no_candidates``, ``not_confirmed``; a
+    ``bad_image``, ``out_of_order``, ``new_map`` on the frame that gives up a young map lost and starts
+    another, and while relocalising ``no_candidates``, ``not_confirmed``; a
     tracked frame's is ``calibration_suspect`` once the camera matrix was found not to fit the map,
     ``calibration_check``); ``T_world_camera`` (4, 4) or None; ``tracked`` map points matched and kept;
     ``reprojection_rms_px`` of those (NaN without a pose); ``keyframe_id`` when this frame became a
@@ -121,19 +127,17 @@ class SlamSystem:
         self.map = MapDatabase(s.scale_factor, s.levels) if map_path is None else _loaded_map(map_path, camera, s)
         self.localisation_only = localisation_only
         self.save_path = save_path
-        self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
-        size = (camera.width, camera.height)
-        self._mapper: Mapper
-        if mapping == "process" and not localisation_only:
-            self._mapper = MappingProcess(self.map, camera.K, size, s)
-        else:
-            self._mapper = LocalMapper(self.map, camera.K, size, s,
-                                       threaded=mapping == "thread" and not localisation_only)
-        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only, wait_for_mapping)
         self.mapping = mapping
         self.wait_for_mapping = wait_for_mapping
+        self._own_map = map_path is None
+        self._extractor = FeatureExtractor(camera, s.max_keypoints, s.levels, s.scale_factor, s.fast_threshold)
+        self._mapper = self._new_mapper()
+        self._tracker = Tracker(camera, s, self.map, self._mapper, localisation_only, wait_for_mapping)
         self._tracked: list[tuple[int, int, np.ndarray]] = []
         """Every tracked frame's ``(stamp_ns, reference keyframe id, (4, 4) T_camera_keyframe)``."""
+        self._given_up: list[tuple[int, np.ndarray]] = []
+        """``(stamp_ns, (4, 4) T_world_camera)``: the final poses of the frames tracked in maps given up."""
+        self.maps_given_up = 0
         self._last_stamp: int | None = None
         self._calibration: str | None = None
         """"ok", "calibration_suspect", or None before the check."""
@@ -156,6 +160,9 @@ class SlamSystem:
                 with stage_timer(timings, "keypoints"):
                     features = self._extractor.extract(image)
                 tracked = self._tracker.track(stamp_ns, features, timings)
+                if tracked.state is TrackingState.LOST and self._gives_up():
+                    self._new_map()
+                    tracked = Tracked(self._tracker.track(stamp_ns, features, timings).state, "new_map")
             if tracked.keyframe_id is not None and self.mapping == "inline" and "initial_map" not in timings:
                 timings["mapping"] = sum(self._mapper.history[-1].stages.values())
             if self._calibration is None and (check := self._mapper.focal_check) is not None:
@@ -169,6 +176,36 @@ class SlamSystem:
             reason = self._calibration
         return FrameResult(tracked.state, reason, pose, tracked.tracked, tracked.rms_px, tracked.keyframe_id,
                            timings)
+
+    def _new_mapper(self) -> Mapper:
+        """The mapper of ``self.map``: in a process of its own, on a thread or inline (``mapping``)."""
+        s, size = self.settings, (self.camera.width, self.camera.height)
+        if self.mapping == "process" and not self.localisation_only:
+            return MappingProcess(self.map, self.camera.K, size, s)
+        return LocalMapper(self.map, self.camera.K, size, s,
+                           threaded=self.mapping == "thread" and not self.localisation_only)
+
+    def _gives_up(self) -> bool:
+        """Whether the map, just lost, is young enough to give up (a map of its own, not localising)."""
+        return (self._own_map and not self.localisation_only
+                and 0 < len(self.map.keyframes) <= self.settings.restart_keyframes)
+
+    def _new_map(self) -> None:
+        """Give the lost map up for a new one placed where the camera's motion carries it (module docstring):
+        its mapper stopped, its frames' final poses kept for ``trajectory``."""
+        anchor = self._tracker.anchor()
+        self._mapper.close()
+        self._given_up = self.trajectory()
+        self._tracked = []
+        logger.info("camera %s: the map was lost with %d keyframes; a new map starts from this frame, placed where "
+                    "the camera's motion carries it", self.camera.name, len(self.map.keyframes))
+        s = self.settings
+        revision = self.map.revision
+        self.map = MapDatabase(s.scale_factor, s.levels)
+        self.map.revision = revision + 1
+        self._mapper = self._new_mapper()
+        self._tracker = Tracker(self.camera, s, self.map, self._mapper, False, self.wait_for_mapping, anchor)
+        self.maps_given_up += 1
 
     def _remember(self, stamp_ns: int, T_camera_world: np.ndarray, keyframe_id: int | None) -> None:
         """Keep a tracked frame's pose relative to its reference keyframe (itself when it became one)."""
@@ -212,13 +249,13 @@ class SlamSystem:
     def trajectory(self) -> list[tuple[int, np.ndarray]]:
         """``(stamp_ns, (4, 4) T_world_camera)`` of every frame tracked so far, oldest first: each frame's
         pose relative to its reference keyframe (as tracked) composed with that keyframe's current,
-        bundle-adjusted pose. Frames never tracked are left out. Keyframes are never removed from a
-        map, so every tracked frame keeps its reference."""
+        bundle-adjusted pose (the frames of maps given up: as their map left them). Frames never tracked
+        are left out. Keyframes are never removed from a map, so every tracked frame keeps its reference."""
         tracked = list(self._tracked)
         with self.map.lock:
             keyframes = {k.id: k.T_camera_world.copy() for k in self.map.keyframes.values()}
-        return [(stamp_ns, invert(T_camera_keyframe @ keyframes[keyframe_id]))
-                for stamp_ns, keyframe_id, T_camera_keyframe in tracked if keyframe_id in keyframes]
+        return [*self._given_up, *((stamp_ns, invert(T_camera_keyframe @ keyframes[keyframe_id]))
+                                   for stamp_ns, keyframe_id, T_camera_keyframe in tracked if keyframe_id in keyframes)]
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, positions (N, 3) world)`` of every map point."""

@@ -6,7 +6,8 @@
 * ``busy_stamped(sequence, seed)``: a sequence's frames restamped as a busy pipeline stamps them by the
   wall clock (its own gaps plus random waits and stalls).
 * ``without(sequence, dropped)``: a sequence with some of its frames left out, as a pipeline that falls
-  behind drops them.
+  behind drops them; ``every(sequence, step)``: one frame in ``step`` kept, as a pipeline that keeps up
+  with a third of the frames (``step`` 3) takes them.
 * ``kitti``: KITTI odometry sequence 06, frames 0-50 (1226x370, 10 Hz, a car driving 60 m).
 * ``tum``: TUM RGB-D fr3/long_office_household, 20 frames about 1 s apart (640x480, hand-held).
 * ``loop``: the room's ``path="loop"``: once round the room in ``LOOP_S`` seconds and on for
@@ -19,10 +20,10 @@ keyframe is mapped before the next frame is tracked (``wait_for_mapping``), so t
 inline mapping (``mapping="inline"``) and do not depend on the load. Scoring: ATE RMSE after a Sim(3) alignment
 (``services.geometry.evaluation``) of every frame given a pose, against the ground truth of the same
 frame. ``python -m tests.accuracy.slam_sequences
-[room|room@<seed>|jittered@<seed>|loop|kitti|tum ...][~<seed>][-<first>:<end> ...]
+[room|room@<seed>|jittered@<seed>|loop|kitti|tum ...][~<seed>][%<step>][-<first>:<end> ...]
 [--mapping=process|thread|inline] [--frames=N] [--loop-closing=off]`` prints the figures (``-<first>:<end>``:
-without frames first to end - 1; ``--frames``: of each sequence's first N frames only; ``--loop-closing=off``
-without loop closing).
+without frames first to end - 1; ``%<step>``: one frame in ``step``; ``--frames``: of each sequence's first N
+frames only; ``--loop-closing=off`` without loop closing).
 """
 
 from __future__ import annotations
@@ -121,6 +122,11 @@ def without(sequence: Sequence, dropped: set[int]) -> Sequence:
     return Sequence(f"{sequence.name} without {len(dropped)} frames", sequence.camera, frames)
 
 
+def every(sequence: Sequence, step: int) -> Sequence:
+    """``sequence`` with one frame in ``step`` kept (the first, then every ``step``-th), at their own stamps."""
+    return Sequence(f"{sequence.name}%{step}", sequence.camera, itertools.islice(sequence.frames, 0, None, step))
+
+
 def jittered_room(seed: int) -> Sequence:
     """The room (seed 0) at the times of ``JITTERED_FRAMES`` exponential gaps of mean 1/30 s from 0
     (two times falling on one frame of ``JITTERED_FPS`` give one frame)."""
@@ -174,7 +180,8 @@ class SlamRun:
     ``stage_ms`` median per stage over the tracked frames, ``mapping_ms`` median wall time per keyframe
     mapped, ``keyframes`` and ``points`` at the end; ``keyframe_ate_m`` the ATE of the keyframes' final
     (bundle adjusted) poses; ``final_ate_m`` that of the final trajectory (``SlamSystem.trajectory``:
-    every tracked frame through its reference keyframe's final pose), the online poses' being ``ate_m``."""
+    every tracked frame through its reference keyframe's final pose), the online poses' being ``ate_m``;
+    ``maps_given_up``: young maps lost and started again (``SlamSystem.maps_given_up``)."""
 
     name: str
     ate_m: float
@@ -189,6 +196,7 @@ class SlamRun:
     mapping_ms: float
     keyframes: int
     points: int
+    maps_given_up: int = 0
 
     @property
     def lost(self) -> int:
@@ -207,7 +215,8 @@ class SlamRun:
                 f"first tracked frame {self.first_tracked}, lost {self.lost}, "
                 f"untracked after start {self.untracked_after_start}; tracking {1000 / np.mean(self.tracking_ms):.1f} "
                 f"frames/s (median ms: {stages}); mapping {self.mapping_ms:.0f} ms per keyframe; "
-                f"{self.keyframes} keyframes, {self.points} points")
+                f"{self.keyframes} keyframes, {self.points} points"
+                + (f"; {self.maps_given_up} maps given up" if self.maps_given_up else ""))
 
 
 def run(sequence: Sequence, mapping: str = "process", settings: SlamSettings | None = None) -> SlamRun:
@@ -249,12 +258,13 @@ def run(sequence: Sequence, mapping: str = "process", settings: SlamSettings | N
     return SlamRun(sequence.name, ate.stats.rmse, final_ate.stats.rmse, keyframe_ate.stats.rmse, length,
                    len(estimated), states, first,
                    np.array(tracking), {k: float(np.median(v)) for k, v in stages.items()},
-                   float(np.median(mapped)) if mapped else 0.0, len(keyframes), len(points))
+                   float(np.median(mapped)) if mapped else 0.0, len(keyframes), len(points), system.maps_given_up)
 
 
 def sequence(name: str) -> Sequence:
     """``room`` (``room@<seed>`` for another seed of the scene: its textures and path), ``jittered@<seed>``,
-    ``loop``, ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed, and
+    ``loop``, ``kitti`` or ``tum``; any of them ``~<seed>`` restamped by ``busy_stamped`` with that seed,
+    ``%<step>`` one frame in ``step`` (``every``), and
     ``-<first>:<end>`` (repeated) without those frames."""
     base, *spans = name.split("-")
     if spans:
@@ -263,6 +273,9 @@ def sequence(name: str) -> Sequence:
     if "~" in name:
         base, _, seed = name.partition("~")
         return busy_stamped(sequence(base), int(seed))
+    if "%" in name:
+        base, _, step = name.partition("%")
+        return every(sequence(base), int(step))
     if name.startswith("room"):
         return room(int(name.partition("@")[2] or 0))
     if name == "loop":

@@ -19,7 +19,19 @@ figures, so that a regression shows: the room within 1 % too, KITTI within 0.08 
 import numpy as np
 import pytest
 
-from tests.accuracy.slam_sequences import KITTI, TUM, SlamRun, busy_stamped, first, kitti, room, run, tum, without
+from tests.accuracy.slam_sequences import (
+    KITTI,
+    TUM,
+    SlamRun,
+    busy_stamped,
+    every,
+    first,
+    kitti,
+    room,
+    run,
+    tum,
+    without,
+)
 from tests.data import data_dir
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -73,6 +85,20 @@ def test_kitti_keeps_its_track_over_frames_a_busy_pipeline_dropped(gaps):
     print(result.line())
     assert result.untracked_after_start <= len(gaps), result.line()
     assert result.final_ate_m <= 0.08 and result.ate_m <= 0.15, result.line()
+
+
+def test_a_young_map_lost_on_fast_forward_motion_starts_again_in_its_world():
+    """KITTI 06 with two frames in three dropped (3.4 m between the frames kept): a map made of the first
+    frames is lost within a few frames, as its points fall behind the car. A map lost while young is given
+    up for a new one, placed and scaled where the camera's last motion carries it (``SlamSystem``'s
+    ``restart_keyframes``), instead of waiting to relocalise in it while the car drives on: 9 of the 17 frames
+    tracked against 2 (the first map lost at the seventh frame and never again), all in one world and scale,
+    final and online ATE 0.18 and 0.15 m over the 39.6 m path. Bars: 8 frames, 0.3 m (new maps of their own
+    world and scale, aligned with the first by one Sim(3), would be metres off)."""
+    result = run(every(kitti(data_dir(KITTI)), 3))
+    print(result.line())
+    assert result.maps_given_up >= 1 and result.scored >= 8, result.line()
+    assert result.final_ate_m <= 0.3 and result.ate_m <= 0.3, result.line()
 
 
 def test_tum_long_office_1hz_trajectory_within_2_cm():
