@@ -304,7 +304,8 @@ class Tracker:
         frame.point_ids = second.point_ids.copy()
         self._last = frame
         self._anchor = None
-        self._velocity = None
+        self._velocity = (T, (frame.stamp_ns - reference.stamp_ns) * 1e-9) if frame.stamp_ns > reference.stamp_ns \
+            else None
         self._reference_keyframe = second.id
         self._last_keyframe_stamp = frame.stamp_ns
         self._last_keyframe_id = second.id
