@@ -8,7 +8,7 @@ from protocol.codec import DecodeError, Peeked, decode, encode, peek, to_json
 from protocol.detections import Blobs, Keypoints, MarkerDetections
 from protocol.flow import FlowAck, FlowEnd
 from protocol.keys import Keys
-from protocol.maps import Keyframes, PointCloud
+from protocol.maps import Keyframes, PointCloud, Trajectory
 from protocol.message import Header, Message, message_type, message_types
 from protocol.mocap import Points3D
 from protocol.poses import GroundTruth, Pose, PoseQuality, RigidBodies, RigidBody
@@ -41,5 +41,5 @@ __all__ = [
     "Message", "NodeStats", "Peeked", "PipelineHealth", "PointCloud", "Points3D", "Pose", "PoseQuality", "RIG_FRAME",
     "RegionOfInterest", "ReplayCommand", "ReplayControl", "ReplayStatus", "RigidBodies", "RigidBody",
     "StageTimings", "StaticTransforms", "StreamStats", "Subscription", "SupervisedNode", "SyncInputStats", "SyncStats",
-    "TrackingState", "Transform", "decode", "encode", "message_type", "message_types", "peek", "to_json"
+    "TrackingState", "Trajectory", "Transform", "decode", "encode", "message_type", "message_types", "peek", "to_json"
 ]

@@ -148,6 +148,10 @@ class Keys:
         """The keyframe poses of the map a SLAM node builds from the camera's frames."""
         return self.camera(camera, "keyframes")
 
+    def trajectory(self, camera: str) -> str:
+        """The final trajectory of the map a SLAM node builds from the camera's frames (at its end)."""
+        return self.camera(camera, "trajectory")
+
     def camera_map(self, camera: str) -> str:
         """The points of the map a SLAM node builds from the camera's frames (``map`` is the rig's)."""
         return self.camera(camera, "map")

@@ -34,10 +34,12 @@ import zenoh
 
 from protocol.codec import DecodeError, decode, sample_record, to_json
 from protocol.keys import check_expression
+from protocol.maps import Trajectory
 from protocol.message import Header, Message
 from protocol.poses import GroundTruth, Pose
 from protocol.spatial import Transform
 from protocol.tracking_state import TrackingState
+from services.convert import transform_from_matrix
 from services.recorder.info import summarise
 from services.recorder.reading import Damage, Scan
 from services.recorder.writing import RECORDING_METADATA
@@ -162,9 +164,15 @@ class Export:
 
         ``Pose`` messages in a state other than ``tracking`` are left out: lost, initialising and
         no calibration carry a placeholder transform, predicted one carried over from an earlier
-        frame; neither is a measurement of this frame. Raises ``ExportError`` as ``lines()``.
+        frame; neither is a measurement of this frame. A ``Trajectory`` key gives the rows of its last
+        message (each holds the whole trajectory of its map), after the poses of any other message.
+        Raises ``ExportError`` as ``lines()``.
         """
+        final: Trajectory | None = None
         for _, _, message in self.messages():
+            if isinstance(message, Trajectory):
+                final = message
+                continue
             if isinstance(message, Pose):
                 if self.child is not None and message.child_frame_id != self.child:
                     continue
@@ -178,9 +186,14 @@ class Export:
                                       f"(this message has {', '.join(children) or 'none'})")
                 transforms = [t.transform for t in message.transforms if t.child_frame == self.child]
             else:
-                raise ExportError(f"tum needs Pose or GroundTruth messages; {self.key} carries {message.SCHEMA}")
+                raise ExportError(f"tum needs Pose, GroundTruth or Trajectory messages; {self.key} carries "
+                                  f"{message.SCHEMA}")
             for transform in transforms:
                 yield message.header, transform
+        if final is not None:
+            for stamp, seq, T in zip(final.stamps_ns.tolist(), final.seqs.tolist(), final.poses, strict=True):
+                yield (final.header.model_copy(update={"stamp_ns": stamp, "seq": seq}),
+                       transform_from_matrix(T))
 
     def _tum(self) -> Iterator[str]:
         for header, transform in self.transforms():

@@ -19,6 +19,10 @@ Outputs, each with the header of the frame it came from (``frame_id`` the map fr
   (monocular): compare with ground truth after a similarity alignment (``artrack eval --align sim3``).
 * ``<camera>/keyframes``: a ``Keyframes`` message (ids, stamps, (K, 4, 4) ``T_map_camera``), whenever the
   map changed and the keyframes with it (one added, or moved by the map's optimisation).
+* ``<camera>/trajectory``: a ``Trajectory`` (stamps, sequence numbers, (N, 4, 4) ``T_map_camera``) when a map
+  ends (the node stops, or a new map replaces it), its mapping finished first: every frame it tracked through
+  its reference keyframe's final pose, what SLAM benchmarks score (the ``pose/slam/<camera>`` poses are the
+  online ones, as tracked).
 * ``<camera>/map``: the map points as a ``PointCloud`` (ids the map's point ids, no colours), at most
   ``map_points`` of them (evenly spread over the ids when the map holds more), sent when the map changed
   and at most every ``map_every`` frames, and once more when the node stops.
@@ -73,7 +77,7 @@ import numpy as np
 from pydantic import Field
 
 from protocol.keys import KeyName
-from protocol.maps import Keyframes, PointCloud
+from protocol.maps import Keyframes, PointCloud, Trajectory
 from protocol.message import Header
 from protocol.poses import Pose, PoseQuality
 from protocol.sensors import Image
@@ -199,6 +203,7 @@ class _CameraSlam:
         self._poses = node.publisher(keys.slam_pose(params.camera), Pose, Role.RESULT)
         self._timings = node.publisher(keys.timings(params.camera), StageTimings, Role.RESULT)
         self._keyframes = node.publisher(keys.keyframes(params.camera), Keyframes, Role.RESULT)
+        self._trajectory = node.publisher(keys.trajectory(params.camera), Trajectory, Role.RESULT)
         self._cloud = node.publisher(keys.camera_map(params.camera), PointCloud, Role.RESULT)
         self._anchored = (None if params.anchor_marker is None else
                           node.publisher(keys.pose(f"slam/{params.camera}/anchored"), Pose, Role.RESULT))
@@ -209,6 +214,10 @@ class _CameraSlam:
         self._start_over()
 
     def _start_over(self) -> None:
+        self._seqs: dict[int, int] = {}
+        """Stamp -> sequence number of each frame the system took."""
+        self._last: tuple[Header, str] | None = None
+        """The map-frame header and child frame of the last frame published."""
         self._keyframe_revision: int | None = None
         self._sent_keyframes: tuple[np.ndarray, np.ndarray] | None = None
         self._map_revision: int | None = None
@@ -258,6 +267,8 @@ class _CameraSlam:
         """The frame's pose, stage times, and what of the map changed (see the module docstring)."""
         map_header = header.model_copy(update={"frame_id": self._params.map_frame})
         self._poses.put(as_pose(map_header, child, result))
+        self._seqs[header.stamp_ns] = header.seq
+        self._last = map_header, child
         stages = {stage: float(ms) for stage, ms in result.timings_ms.items() if np.isfinite(ms) and ms >= 0}
         self._timings.put(StageTimings(header=header, stages_ms=stages))
         self._since_map += 1
@@ -308,9 +319,19 @@ class _CameraSlam:
         self._keyframes.put(Keyframes(header=header, child_frame_id=child, ids=ids, stamps_ns=stamps, poses=poses))
 
     def close(self) -> None:
+        """End the system's map: its mapping finished, its final keyframes, points and trajectory published."""
         if self.system is not None:
             self.system.close()
+            if self._last is not None:
+                self.publish_map(*self._last, final=True)
+                self._put_trajectory(*self._last, self.system.trajectory())
             self.system = None
+
+    def _put_trajectory(self, header: Header, child: str, trajectory: list[tuple[int, np.ndarray]]) -> None:
+        stamps = np.array([stamp for stamp, _ in trajectory], np.int64)
+        self._trajectory.put(Trajectory(header=header, child_frame_id=child, stamps_ns=stamps,
+                                        seqs=np.array([self._seqs.get(int(stamp), -1) for stamp in stamps], np.int64),
+                                        poses=np.array([T for _, T in trajectory], np.float64).reshape(-1, 4, 4)))
 
     def stop(self) -> None:
         """Close the system, then save its map to ``save_map`` when given: a map without keyframes is not
@@ -343,15 +364,11 @@ def run(node: Node, params: Params) -> None:
     calibration = FrameCalibration.of_camera(node, params.camera, camera_model, fixed)
     slam = _CameraSlam(node, params)
     frames = node.inbox(keys.image(params.camera), Image, Role.FRAME, depth=params.depth)
-    header, child = None, params.camera
     try:
         for image in node.inputs(frames):
             calibration.fit_frame(node, image)
-            header, child = image.header, image.header.frame_id or params.camera
-            _track(node, params, slam, calibration.current(), image, child)
+            _track(node, params, slam, calibration.current(), image, image.header.frame_id or params.camera)
             calibration.refresh()
-        if header is not None:
-            slam.publish_map(header.model_copy(update={"frame_id": params.map_frame}), child, final=True)
     finally:
         slam.stop()
 

@@ -35,6 +35,7 @@ show the same topics:
 * ``/<frame>/points``: ``Points3D`` as a ``PointCloud``; ``/<frame>/spheres``: the same points as
   spheres (matched to a body: cyan, with the body's name as entity id; the others: magenta).
 * ``/<frame>/map``: ``PointCloud`` (SLAM map points) as a ``PointCloud`` with their colours.
+* ``/<frame>/trajectory/<child>``: ``Trajectory`` (a SLAM map's final trajectory) as ``PosesInFrame``.
 * ``/log``: ``ErrorReport`` as a warning ``Log`` named after its node.
 
 Poses and bodies in a state other than tracking, recognised or predicted have no transform to
@@ -69,6 +70,7 @@ from foxglove.messages import (
     PointsAnnotationType,
     Pose,
     PoseInFrame,
+    PosesInFrame,
     Quaternion,
     RawImage,
     SceneEntity,
@@ -83,11 +85,12 @@ from foxglove.messages import (
 from protocol import detections, maps, mocap, poses, sensors, spatial, system, targets
 from protocol.message import Message
 from services.convert import in_tree
+from services.geometry.se3 import to_quaternion_translation
 from services.geometry.transform_tree import TransformTree
 from services.viewer.scene import DRAWN_STATES, error_text
 
-FoxgloveMessage = (RawImage | CompressedImage | CameraCalibration | FrameTransforms | PoseInFrame | PointCloud
-                   | SceneUpdate | ImageAnnotations | Log)
+FoxgloveMessage = (RawImage | CompressedImage | CameraCalibration | FrameTransforms | PoseInFrame | PosesInFrame
+                   | PointCloud | SceneUpdate | ImageAnnotations | Log)
 Topical = tuple[str, FoxgloveMessage]
 """A Foxglove message with the topic it goes on."""
 
@@ -189,6 +192,16 @@ def pose_in_frame(pose: poses.Pose) -> PoseInFrame:
     (x, y, z), (qx, qy, qz, qw) = pose.transform.translation, pose.transform.rotation
     return PoseInFrame(timestamp=timestamp(pose.header.stamp_ns), frame_id=pose.header.frame_id,
                        pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+
+
+def trajectory_poses(trajectory: maps.Trajectory) -> PosesInFrame:
+    """Every frame's final pose (position, m, and orientation of ``T_map_camera``) in ``header.frame_id``."""
+    shown = []
+    for T in trajectory.poses:
+        (qx, qy, qz, qw), (x, y, z) = (v.tolist() for v in to_quaternion_translation(T))
+        shown.append(Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+    return PosesInFrame(timestamp=timestamp(trajectory.header.stamp_ns), frame_id=trajectory.header.frame_id,
+                        poses=shown)
 
 
 def pose_edge(pose: poses.Pose) -> list[spatial.FrameTransform]:
@@ -371,6 +384,8 @@ class FoxgloveConversion:
                         (f"/{frame}/spheres", body_spheres(message, self.options.sphere_m))]
             case maps.PointCloud():
                 return [(f"/{frame}/map", map_cloud(message))]
+            case maps.Trajectory():
+                return [(f"/{frame}/trajectory/{message.child_frame_id}", trajectory_poses(message))]
             case detections.MarkerDetections():
                 return [(f"/{frame}/markers", marker_annotations(message)),
                         (f"/{frame}/marker_outlines", marker_outlines(message))]

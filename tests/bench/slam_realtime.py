@@ -14,7 +14,8 @@ Each sequence runs ``RUNS`` times on the machine as it is (``idle``) and ``RUNS`
 sent (images recorded), the SLAM node's frames dropped (its last ``NodeStats``: frames that came while one was
 being processed and the queue was full), the frames without a pose before the first tracked one
 (initialisation) and after it, its poses and those ``tracking``, their ATE (RMSE after a Sim(3) alignment,
-against the truth the room records with its frames or KITTI's ``poses.txt`` by frame number), and the
+against the truth the room records with its frames or KITTI's ``poses.txt`` by frame number) and that of the
+final trajectory the node publishes as it stops, and the
 machine's 1-minute load average before and after (the machine is shared: its load says what "idle" was), and
 the smallest, median and largest gap between two frames' stamps. One JSON line per run, then one per sequence
 and condition: runs with 0 frames dropped out of ``RUNS`` (the target: all of them), the SLAM node's
@@ -44,6 +45,7 @@ import numpy as np
 from mcap.reader import make_reader
 
 from protocol import decode
+from protocol.maps import Trajectory
 from protocol.poses import GroundTruth, Pose
 from protocol.system import NodeStats
 from protocol.tracking_state import TrackingState
@@ -98,6 +100,7 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
     sent: set[int] = set()
     posed: dict[int, bool] = {}
     estimated: dict[int, np.ndarray] = {}
+    final: dict[int, np.ndarray] = {}
     recorded: dict[int, np.ndarray] = {}
     stats: NodeStats | None = None
     with open(path, "rb") as f:
@@ -120,6 +123,10 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
                     posed[pose.header.seq] = pose.state is TrackingState.TRACKING
                     if pose.state is TrackingState.TRACKING:
                         estimated[pose.header.seq] = matrix_from_transform(pose.transform)
+            elif topic.endswith("/trajectory"):
+                trajectory = decode(message.data)
+                if isinstance(trajectory, Trajectory):
+                    final = dict(zip(trajectory.seqs.tolist(), trajectory.poses, strict=True))
             elif topic.endswith("cam0/truth"):
                 known = decode(message.data)
                 if isinstance(known, GroundTruth):
@@ -135,6 +142,7 @@ def read_run(path: Path, truth: dict[int, np.ndarray] | None = None) -> dict[str
             "node_p50_ms": round(stats.processing_ms_p50 or 0.0, 1),
             "node_p99_ms": round(stats.processing_ms_p99 or 0.0, 1),
             "ate_m": _ate_m(estimated, recorded if truth is None else truth),
+            "final_ate_m": _ate_m(final, recorded if truth is None else truth),
             "stamp_gap_ms": _spread(list(np.diff(np.sort(stamps)) / 1e6))}
 
 
@@ -174,6 +182,7 @@ def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, fold
            "node_p50_ms_runs": [line["node_p50_ms"] for line in lines],
            "node_p99_ms_runs": [line["node_p99_ms"] for line in lines],
            "ate_m_min_median_max": _spread([line["ate_m"] for line in lines]),
+           "final_ate_m_min_median_max": _spread([line["final_ate_m"] for line in lines]),
            "target": f"0 dropped in {count} of {count}",
            "met": all(line["dropped"] == 0 for line in lines)}
 

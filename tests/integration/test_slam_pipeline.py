@@ -58,6 +58,10 @@ def test_slam_run_tracks_the_room_records_exports_scores_and_views(procs, tmp_pa
     clouds = messages[f"{prefix}/cam0/map"]
     assert len(clouds[-1].points) >= 100 and len(np.unique(clouds[-1].ids)) == len(clouds[-1].ids)
     assert np.all(np.diff([c.header.seq for c in clouds[:-1]]) >= 5)  # at most every --map-every frames
+    [final] = messages[f"{prefix}/cam0/trajectory"]  # one map, ended as the node stopped
+    assert (final.header.frame_id, final.child_frame_id) == ("map", "cam0")
+    assert final.seqs.tolist() == [p.header.seq for p in tracking]
+    assert final.stamps_ns.tolist() == [p.header.stamp_ns for p in tracking]
     timings = messages[f"{prefix}/cam0/timings"]
     assert len(timings) == FRAMES and all("total" in t.stages_ms for t in timings)
     stats = messages[f"{prefix}/node/slam-cam0/stats"][-1]
@@ -77,6 +81,11 @@ def test_slam_run_tracks_the_room_records_exports_scores_and_views(procs, tmp_pa
     assert figures["matched"] == len(tracking)
     assert figures["ate_m"]["rmse"] <= 0.05, figures["ate_m"]  # metres of the room, after a similarity alignment
     assert figures["rpe"]["rotation_deg"]["median"] <= 0.5, figures["rpe"]
+    final_scored = procs.run("eval", str(out), str(out), "--est-key", "cam0/trajectory", "--gt-key", "cam0/truth",
+                             "--gt-child", "cam0", "--align", "sim3", "--json")
+    assert final_scored.poll() == 0, final_scored.describe()
+    final_figures = json.loads(final_scored.stdout)
+    assert final_figures["matched"] == len(tracking) and final_figures["ate_m"]["rmse"] <= 0.05, final_figures
 
     viewed = RrdContents(view)
     assert len(viewed.rows("world/map/pose/cam0", "Transform3D:translation")) == len(tracking)
@@ -118,6 +127,11 @@ def test_slam_on_the_real_kitti_folder_is_calibrated_by_its_calib_file(procs, tm
     truth = read_kitti(folder / "poses.txt").poses[[p.header.seq for p in tracking]]  # KITTI poses are by frame
     score = score_trajectory(np.array([matrix_from_transform(p.transform) for p in tracking]), truth, "sim3")
     assert score.ate.stats.rmse <= 0.2, score.ate.stats  # metres, over the 20 m the car drives
+    final = procs.run("eval", str(out), str(folder / "poses.txt"), "--est-key", "cam0/trajectory", "--align", "sim3",
+                      "--json")  # the final trajectory, matched to poses.txt's rows by frame number
+    assert final.poll() == 0, final.describe()
+    figures = json.loads(final.stdout)
+    assert figures["matched"] == len(tracking) and figures["ate_m"]["rmse"] <= 0.2, figures
 
 
 def test_garbage_and_unusable_frames_are_counted_while_the_node_goes_on(bus, procs, session):

@@ -17,6 +17,7 @@ from protocol import (
     PointCloud,
     Points3D,
     Pose,
+    Trajectory,
     Transform,
     decode,
     encode,
@@ -160,12 +161,18 @@ def test_a_slam_run_exports_its_map_points_as_a_cloud_and_its_camera_in_the_one_
         writer.write("ar/lab/cam0/map", encode(PointCloud(
             header=in_map, ids=np.arange(4, dtype=np.int64), points=np.full((4, 3), float(i), np.float32),
             colors=np.zeros((0, 3), np.uint8))), 10_002 + 3 * i)
+    writer.write("ar/lab/cam0/trajectory", encode(Trajectory(
+        header=in_map, child_frame_id="cam0", stamps_ns=np.arange(3, dtype=np.int64),
+        seqs=np.arange(3, dtype=np.int64), poses=np.stack([np.eye(4)] * 3))), 10_010)
     writer.close()
     export_foxglove(source, tmp_path / "slam.foxglove.mcap")
     _, found = read_back(tmp_path / "slam.foxglove.mcap")
     assert {topic: rows[0][0] for topic, rows in found.items()} == {
         "/cam0/camera_info": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransforms",
-        "/pose/map/cam0": "foxglove.PoseInFrame", "/map/map": "foxglove.PointCloud"}
+        "/pose/map/cam0": "foxglove.PoseInFrame", "/map/map": "foxglove.PointCloud",
+        "/map/trajectory/cam0": "foxglove.PosesInFrame"}
+    [(_, _, final)] = found["/map/trajectory/cam0"]
+    assert final.frame_id == "map" and len(final.poses) == 3
     cloud = found["/map/map"][2][2]
     assert cloud.frame_id == "map" and cloud.point_stride == 12
     np.testing.assert_array_equal(np.frombuffer(cloud.data, "<f4"), np.full(12, 2.0))

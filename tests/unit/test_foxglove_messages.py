@@ -26,6 +26,7 @@ from protocol import (
     RigidBody,
     StaticTransforms,
     TrackingState,
+    Trajectory,
     Transform,
 )
 from services.convert import matrix_from_transform
@@ -206,6 +207,20 @@ def test_map_points_keep_their_colours_as_rgb():
     rows = np.frombuffer(packed.data, np.dtype([("xyz", "<f4", 3), ("rgba", "u1", 4)]))
     np.testing.assert_array_equal(rows["xyz"], cloud.points)
     np.testing.assert_array_equal(rows["rgba"], [[0, 0, 255, 255], [255, 0, 0, 255]])
+
+
+def test_a_slam_trajectory_is_its_poses_in_the_map_frame():
+    poses = np.stack([matrix_from_transform(Transform(translation=(0.5 * i, 0.0, 1.0),
+                                                      rotation=(0.0, np.sin(0.1 * i), 0.0, np.cos(0.1 * i))))
+                      for i in range(3)])
+    trajectory = Trajectory(header=Header(stamp_ns=STAMP_NS, frame_id="map"), child_frame_id="cam0",
+                            stamps_ns=np.arange(3), seqs=np.arange(3), poses=poses)
+    shown_poses = shown(trajectory)["/map/trajectory/cam0"]
+    assert shown_poses.frame_id == "map" and len(shown_poses.poses) == 3
+    for pose, T in zip(shown_poses.poses, poses, strict=True):
+        q, t = pose.orientation, pose.position
+        back = matrix_from_transform(Transform(translation=(t.x, t.y, t.z), rotation=(q.x, q.y, q.z, q.w)))
+        assert back == pytest.approx(T, abs=1e-12)
 
 
 def test_markers_are_outlines_in_the_image_and_squares_in_their_frames():

@@ -10,12 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from protocol import Header, Image, Pose, encode, to_json
+from protocol import Header, Image, Pose, Trajectory, encode, to_json
 from protocol.codec import sample_record
 from protocol.spatial import Transform
 from protocol.system import ErrorReport
 from protocol.tracking_state import TrackingState
+from services.geometry.se3 import from_quaternion_translation, make_transform
 from services.recorder.export import Export, ExportError, flatten, tum_line
 from services.recorder.info import format_info, summarise
 from services.recorder.writing import RecordingWriter
@@ -52,6 +54,25 @@ def test_tum_lines_are_exact():
     line = tum_line(1_700_000_000_000_000_042, transform)
     assert line == "1700000000.000000042 0.1 -0.3333333333333333 2.0 0.0 0.0 0.6 0.8"
     assert tum_line(5, transform).startswith("0.000000005 ")
+
+
+def test_a_trajectory_key_exports_the_rows_of_its_last_message(tmp_path):
+    path = tmp_path / "trajectory.mcap"
+    writer = RecordingWriter(path, metadata={"namespace": "ar", "rig": "r"})
+    poses = np.stack([make_transform(Rotation.from_rotvec([0.0, 0.1 * i, 0.0]).as_matrix(), [0.5 * i, 0.0, 1.0])
+                      for i in range(3)])
+    for count in (2, 3):  # a map's trajectory, then the map's final one
+        writer.write("ar/r/cam0/trajectory", encode(Trajectory(
+            header=Header(stamp_ns=count, frame_id="map", seq=9), child_frame_id="cam0",
+            stamps_ns=np.arange(count, dtype=np.int64) * 100 * MS + 7, seqs=np.arange(count, dtype=np.int64) + 4,
+            poses=poses[:count])), count * MS)
+    writer.close()
+    rows = list(Export(path, "cam0/trajectory", "tum").transforms())
+    assert [(header.stamp_ns, header.seq, header.frame_id) for header, _ in rows] == [
+        (7, 4, "map"), (100 * MS + 7, 5, "map"), (200 * MS + 7, 6, "map")]
+    for (_, transform), T in zip(rows, poses, strict=True):
+        assert from_quaternion_translation(np.array(transform.rotation), np.array(transform.translation)) == \
+            pytest.approx(T, abs=1e-12)
 
 
 def test_flatten_names_nested_fields_by_path():
@@ -138,7 +159,8 @@ def test_csv_columns_are_the_union_of_every_message_fields(recording):
 def test_exports_that_do_not_fit_are_refused(recording):
     with pytest.raises(ExportError, match=r"no key 'pose/x' in .* \(keys: ar/r/cam0/image, ar/r/pose/m\)"):
         list(Export(recording, "pose/x", "csv").lines())
-    with pytest.raises(ExportError, match="tum needs Pose or GroundTruth messages; cam0/image carries artrack.Image"):
+    with pytest.raises(ExportError, match="tum needs Pose, GroundTruth or Trajectory messages; cam0/image carries "
+                                          "artrack.Image"):
         list(Export(recording, "cam0/image", "tum").lines())
     with pytest.raises(ExportError, match="unknown format 'xml'"):
         Export(recording, "pose/m", "xml")
