@@ -17,10 +17,10 @@ the source's own timing) are counted as ``late`` (in the node's ``skipped`` stat
 its errors key, at the first one and then at most every ``LATE_REPORT_S``), and when the
 source ends, one line says the rate it delivered against the one asked. Stamps are the
 wall-clock time of capture (``stamps = "wall"``) or the source's own time (``"source"``, for
-evaluating against a data set's ground truth). In a lossless run, ``"wall"`` stamps of a source that is
-not a camera follow the source's own clock from the wall-clock time of the first frame
-(``services.runtime.stamps``): a frame held back by a slow node keeps the stamp it would have had on an
-idle machine. CameraInfo comes from ``calib`` files (ROS
+evaluating against a data set's ground truth). ``"wall"`` stamps of a source that is not a camera (a file,
+a folder, a scene, a bag) follow the source's own clock from the wall-clock time of the first frame
+(``services.runtime.stamps``): a frame that goes out late (held back by a slow node in a lossless run, or
+by a busy machine) keeps the stamp of the instant its content stands for. CameraInfo comes from ``calib`` files (ROS
 camera_info YAML, one per camera), else from the source (synthetic scenes know theirs, a KITTI
 folder reads its ``calib.txt``, a ROS 2 bag has its ``camera_info`` topics); a camera with neither
 publishes no CameraInfo, and trackers report it uncalibrated. Each calibrated camera's CameraInfo is
@@ -110,8 +110,8 @@ class Params(BaseModel):
         default=(), description="ROS camera_info YAML per camera")
     scene: dict[str, Any] = Field(default_factory=dict, description="options of a synthetic scene")
     stamps: Literal["wall", "source"] = Field(
-        default="wall", description="wall: the wall-clock time of capture (in a lossless run, the source's own "
-                                    "clock from the first frame's); source: the source's own times")
+        default="wall", description="wall: the wall-clock time of capture (a source other than a camera: its "
+                                    "own clock from the first frame's); source: the source's own times")
     wait_for_subscriber: bool = Field(
         default=False, description="hold the first frame until every camera's images have a subscriber")
 
@@ -224,7 +224,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
     stamped = _StampedInfos(rig)
     late = _Lateness(node, keys.image(rig.names[0]))
     credits = node.credits()
-    stamper = _Stamper(params, lambda: live.value.fps, scheduled=credits is not None and not _live(rig))
+    stamper = _Stamper(params, lambda: live.value.fps, scheduled=not _live(rig))
     while node.running and (params.frames == 0 or seq < params.frames):
         clock = _Pacer(lambda: live.value.fps, ceiling=credits is not None)
         for instant in rig.instants():
@@ -274,13 +274,18 @@ def _calibration(camera: str, rig: Rig) -> CameraInfo:
 
 
 def _live(rig: Rig) -> bool:
-    return any(source.uri.startswith("camera:") for source in rig.sources)
+    return _cameras(tuple(source.uri for source in rig.sources))
+
+
+def _cameras(uris: tuple[str, ...]) -> bool:
+    """Whether any of the source ``uris`` is a camera device (stamped by the wall clock as it captures)."""
+    return any(uri.startswith("camera:") for uri in uris)
 
 
 class _Stamper:
-    """Each instant's stamp: its source time with ``stamps = "source"`` (when it has one); else, in a lossless
-    run of a source that is not a camera (``scheduled``), its place on the source's own clock at the pace
-    asked (``SourceClock``); else the wall-clock time it goes out."""
+    """Each instant's stamp: its source time with ``stamps = "source"`` (when it has one); else, for a source that
+    is not a camera (``scheduled``), its place on the source's own clock at the pace asked (``SourceClock``):
+    the time its content stands for, whenever it goes out; else (a camera) the wall-clock time it is taken."""
 
     def __init__(self, params: Params, fps: Callable[[], float | None], scheduled: bool):
         self.source = params.stamps == "source"
@@ -497,4 +502,5 @@ def _frames(params: Params) -> int | None:
 KIND = NodeKind(name="capture", summary="publishes camera frames + calibration from a source",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
                 source=SourceRole(finite=_finite, frames=_frames, fps=lambda params: params.fps,
-                                  wall_stamps=lambda params: params.stamps == "wall", sizes=_frame_sizes))
+                                  wall_stamps=lambda params: params.stamps == "wall" and _cameras(params.source),
+                                  sizes=_frame_sizes))

@@ -91,17 +91,20 @@ class JobFigures:
     samples: list[tuple[int, int]] = field(default_factory=list)
     """``(stamp_ns, frames sent)`` of the source, one per new statistics message."""
     frames_posed: list[tuple[int, int]] = field(default_factory=list)
-    """``(seq, stamp_ns)`` of the first and the last source frame a pose came from (by sequence number)."""
+    """``(seq, at_ns)`` of the first and the last source frame a pose came from (by sequence number), ``at_ns``
+    when the frame went out (a camera's stamp) or when its first pose came."""
 
-    def posed(self, seq: int, stamp_ns: int) -> None:
-        """Note the frame (``seq``, ``stamp_ns``) a pose came from."""
+    def posed(self, seq: int, at_ns: int) -> None:
+        """Note the frame ``seq`` a pose came from, at ``at_ns``."""
         seen = self.frames_posed
+        if seen and seq in (seen[0][0], seen[1][0]):
+            return
         if not seen:
-            seen += [(seq, stamp_ns), (seq, stamp_ns)]
+            seen += [(seq, at_ns), (seq, at_ns)]
         elif seq < seen[0][0]:
-            seen[0] = (seq, stamp_ns)
+            seen[0] = (seq, at_ns)
         elif seq > seen[1][0]:
-            seen[1] = (seq, stamp_ns)
+            seen[1] = (seq, at_ns)
 
     def update(self, stats: NodeStats, source: str) -> None:
         """Keep ``stats`` when newer than what is known of its node."""
@@ -118,15 +121,16 @@ def frames_sent(stats: NodeStats) -> int:
     return next((s.messages for s in stats.streams if s.direction == "out" and s.key.endswith("/image")), 0)
 
 
-def delivered_rate(figures: JobFigures, wall_stamps: bool) -> float | None:
+def delivered_rate(figures: JobFigures, from_poses: bool) -> float | None:
     """Frames per second the source sent, None when it cannot be told.
 
-    With frames stamped at the time they were sent (``wall_stamps``), from the first and the last
-    frame a pose came from (a tracker always gets the last frame: latest-wins keeps the newest):
-    their sequence numbers apart over their stamps apart. Otherwise from the source's statistics:
-    between the first that had frames and the last still short of the final count.
+    ``from_poses`` (a real-time run): from the first and the last frame a pose came from (a tracker
+    always gets the last frame: latest-wins keeps the newest), their sequence numbers apart over their
+    times apart (``JobFigures.frames_posed``). Otherwise (a lossless run, whose frames go out at the pace of
+    its slowest node) from the source's statistics: between the first that had frames and the last still
+    short of the final count.
     """
-    if wall_stamps and len(figures.frames_posed) == 2:
+    if from_poses and len(figures.frames_posed) == 2:
         (seq0, t0), (seq1, t1) = figures.frames_posed
         if seq1 > seq0 and t1 > t0:
             return (seq1 - seq0) / ((t1 - t0) / 1e9)
@@ -158,7 +162,8 @@ class JobWatch:
         params = declared.validate(source.params)
         self.asked = declared.source.fps(params) if declared.source is not None else None
         self.lossless = spec.lossless()
-        self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params) and not self.lossless
+        self.wall_stamps = declared.source is not None and declared.source.wall_stamps(params)
+        """Whether frames are stamped when taken (a camera): else a frame's first pose is timed as it comes."""
         self.figures = JobFigures()
         self.restarts: dict[str, int] = {}
         """Nodes the job restarted, and how often (set by the job before the summary)."""
@@ -189,7 +194,7 @@ class JobWatch:
         if isinstance(message, Pose):
             with self._lock:
                 self.figures.poses[target][str(message.state)] += 1
-                self.figures.posed(message.header.seq, message.header.stamp_ns)
+                self.figures.posed(message.header.seq, message.header.stamp_ns if self.wall_stamps else time.time_ns())
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
         try:
@@ -255,7 +260,7 @@ class JobWatch:
             stats = {name: s for name, s in self.figures.stats.items() if name in self.spec.nodes}
             poses = {target: Counter(c) for target, c in self.figures.poses.items()}
             pose_errors = self.figures.pose_errors
-            rate = delivered_rate(self.figures, self.wall_stamps)
+            rate = delivered_rate(self.figures, not self.lossless)
         lines = [f"job summary ({time.monotonic() - self._started:.1f} s):", "  " + self._source_line(stats, rate)]
         lines += ["  nodes:", *("    " + row for row in _node_table(self.spec, stats).splitlines())]
         lines += ["  poses by target:", *("    " + row for row in _pose_table(poses, pose_errors).splitlines())]

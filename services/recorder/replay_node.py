@@ -82,9 +82,8 @@ class Params(BaseModel):
     paused: bool = Field(default=False, description="start paused; resume with `artrack control NAME resume`")
     wait_s: float = Field(default=2.0, ge=0, description="wait up to S for a subscriber before the first message")
     restamp: bool = Field(default=False, description="give messages the time they are replayed as their stamp "
-                                                     "(in a lossless run, the recording's own clock from the "
-                                                     "first one's; re-encodes them), to measure latency on a "
-                                                     "replay")
+                                                     "(the recording's own clock from the first one's; "
+                                                     "re-encodes them), to measure latency on a replay")
     retarget: bool = Field(default=False, description="publish the keys of the rig the recording was made on "
                                                        "under this node's namespace and rig instead")
 
@@ -154,14 +153,14 @@ class Selection:
 
 class _Restamper:
     """New stamps for replayed messages, one per recorded stamp and shared by every message of that stamp (an
-    image and its CameraInfo stay joined): the wall-clock time its first message goes out, or in a lossless
-    run (``scheduled``) its place on the recording's own clock at ``rate`` from the first one's
-    (``SourceClock``), which a frame held back by a slow node does not move."""
+    image and its CameraInfo stay joined): its place on the recording's own clock at ``rate``, from the
+    wall-clock time the first one goes out (``SourceClock``), which a message that goes out late (held back
+    by a slow node, or by a busy machine) does not move."""
 
-    def __init__(self, scheduled: bool = False, rate: float = 1.0, kept: int = 4096):
+    def __init__(self, rate: float = 1.0, kept: int = 4096):
         self._new: dict[int, int] = {}
         self._kept = kept
-        self._clock = SourceClock() if scheduled else None
+        self._clock = SourceClock()
         self._rate = rate
         self._first: int | None = None
 
@@ -174,13 +173,12 @@ class _Restamper:
         if old not in self._new:
             if len(self._new) >= self._kept:
                 self._new.pop(next(iter(self._new)))
-            self._new[old] = time.time_ns() if self._clock is None else self._scheduled(old)
+            self._new[old] = self._scheduled(old)
         header = message.header.model_copy(update={"stamp_ns": self._new[old]})
         return encode(message.model_copy(update={"header": header}))
 
     def _scheduled(self, old: int) -> int:
         """The clock's stamp for recorded stamp ``old``, its own time counted from the first one's at ``rate``."""
-        assert self._clock is not None
         if self._first is None:
             self._first = old
         return self._clock.stamp(round((old - self._first) / self._rate))
@@ -195,7 +193,7 @@ class _Outputs:
         self._topic = topic
         self._publishers: dict[int, RawPublisher] = {}
         self._credits = node.credits()
-        self._restamp = _Restamper(self._credits is not None, rate) if restamp else None
+        self._restamp = _Restamper(rate) if restamp else None
         self._went_out = threading.Condition()
         self.published = 0
         self.frames = 0
@@ -442,4 +440,4 @@ def _frames(params: Params) -> int | None:
 KIND = NodeKind(name="replay", summary="publishes a recording back onto its keys",
                 params=Params, run=run, inputs=(), outputs=_outputs, check=_check,
                 source=SourceRole(finite=lambda params: not params.loop, frames=_frames, fps=lambda params: None,
-                                  wall_stamps=lambda params: params.restamp, sizes=_frame_sizes))
+                                  wall_stamps=lambda params: False, sizes=_frame_sizes))

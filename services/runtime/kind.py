@@ -59,9 +59,9 @@ class SourceRole:
     ``finite``: whether the node ends by itself (files, a recording, a scene with a frame count;
     not a camera, an endless scene or a loop). ``frames``: how many frames per camera it will
     send; None when it has no end or that cannot be told before it starts. ``fps``: the pace asked
-    (None: the source's own). ``wall_stamps``: whether frames are stamped with the time they go out
-    in a real-time run (so their stamps measure latency; a lossless run stamps them on the source's own
-    clock, ``services.runtime.stamps``). ``sizes``: the size of
+    (None: the source's own). ``wall_stamps``: whether frames are stamped with the wall-clock time they
+    are taken (a camera), so that the rate delivered can be told from the stamps (other sources stamp on
+    their own clock, ``services.runtime.stamps``). ``sizes``: the size of
     the frames each of its cameras will send, where the parameters tell it before start (a scene,
     an image folder, a video file, a recording): ``{camera: (width, height)}``, cameras of unknown
     size left out.

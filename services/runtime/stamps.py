@@ -1,15 +1,18 @@
-"""Stamps of the frames a finite source sends in a lossless run: the source's own clock, started at the
-wall-clock time of its first frame.
+"""Stamps of the frames of a source that is not a camera (a file, a folder, a scene, a recording): the
+source's own clock, started at the wall-clock time of its first frame.
 
-In a lossless run (``services.runtime.flow``) a source's frames wait for the slowest node that takes them,
-so the time a frame goes out tells how busy the machine was, not when the frame was taken. ``SourceClock``
-stamps the first frame with the wall-clock time it goes out and each later one a frame interval after the
-one before: the pace asked, else the difference of the two frames' own times, else ``NOMINAL_S``. A frame
-held back keeps its place on that clock, so what nodes derive from stamps (a camera's velocity, a
-keyframe's age, a body's predicted pose, a filter's rate) is the same on an idle machine and a busy one.
-The stamps then fall behind the wall clock while the pipeline is slower than the source, and may run
-ahead of it when frames go out faster than their own time (``fps`` 0): nodes count an input's age as
-latency only from 0 to ``protocol.system.LATENCY_AGE_MAX_S``, so neither gives a wrong latency.
+Such a frame stands for an instant of the source's own time, whenever it goes out: in a lossless run
+(``services.runtime.flow``) frames wait for the slowest node that takes them, and in a real-time run for a
+busy machine, so the time a frame goes out tells how busy the machine was, not the instant its content
+shows. ``SourceClock`` stamps the first frame with the wall-clock time it goes out and each later one a
+frame interval after the one before: the pace asked, else the difference of the two frames' own times,
+else ``NOMINAL_S``. A frame that goes out late keeps its place on that clock, so what nodes derive from
+stamps (a camera's velocity, a keyframe's age, a body's predicted pose, a filter's rate) does not follow
+the load, and the latency a node measures from a stamp includes the time the frame came late, as it would
+from a camera's. The stamps fall behind the wall clock while the source or the pipeline is slower than the
+pace, and may run ahead of it when frames go out faster than their own time (``fps`` 0): nodes count an
+input's age as latency only from 0 to ``protocol.system.LATENCY_AGE_MAX_S``, so neither gives a wrong
+latency. A camera's frames are stamped by the wall clock as they are taken.
 """
 
 from __future__ import annotations

@@ -64,23 +64,23 @@ def test_the_delivered_rate_comes_from_the_first_and_last_posed_frames():
     for seq in (5, 0, 299, 100):  # in any order, repeated frames and all
         figures.posed(seq, 1_000_000_000 + seq * 10_000_000)  # 100 frames a second
     figures.posed(299, 4_000_000_000)
-    assert delivered_rate(figures, wall_stamps=True) == pytest.approx(100.0)
+    assert delivered_rate(figures, from_poses=True) == pytest.approx(100.0)
 
 
-def test_without_wall_stamps_the_rate_comes_from_statistics_short_of_the_final_count():
+def test_a_lossless_run_has_its_rate_from_statistics_short_of_the_final_count():
     figures = JobFigures()
     figures.posed(0, 0)
-    figures.posed(10, 1)  # source-time stamps: not the pace the frames went out at
+    figures.posed(10, 1)  # the pace of the slowest node, not the source's
     for stamp_s, sent in ((0.0, 0), (0.5, 50), (1.0, 150), (1.5, 250), (2.0, 300), (2.5, 300)):
         figures.update(_stats("capture", int(stamp_s * 1e9) + 1, sent), source="capture")
-    assert delivered_rate(figures, wall_stamps=False) == pytest.approx(200.0)
+    assert delivered_rate(figures, from_poses=False) == pytest.approx(200.0)
 
 
 def test_a_run_too_short_to_measure_gives_no_rate():
     figures = JobFigures()
     figures.update(_stats("capture", 1, 0), source="capture")
     figures.update(_stats("capture", 2, 30), source="capture")
-    assert delivered_rate(figures, wall_stamps=True) is None
+    assert delivered_rate(figures, from_poses=True) is None
 
 
 class _Terminal(io.StringIO):
