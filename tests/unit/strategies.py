@@ -50,6 +50,7 @@ from protocol import (
     SyncInputStats,
     SyncStats,
     TrackingState,
+    Trajectory,
     Transform,
 )
 
@@ -154,13 +155,24 @@ def point_clouds(draw: st.DrawFn) -> PointCloud:
                       ids=draw(arrays("int64", (n,))), colors=draw(arrays("uint8", (colored, 3))))
 
 
+def _rigid_poses(draw: st.DrawFn, n: int) -> np.ndarray:
+    poses = draw(arrays("float64", (n, 4, 4)))
+    poses[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return poses
+
+
 @st.composite
 def keyframe_sets(draw: st.DrawFn) -> Keyframes:
     n = draw(rows)
-    poses = draw(arrays("float64", (n, 4, 4)))
-    poses[:, 3] = (0.0, 0.0, 0.0, 1.0)
     return Keyframes(header=draw(headers), child_frame_id=draw(texts), ids=draw(arrays("int64", (n,))),
-                     stamps_ns=draw(arrays("int64", (n,))), poses=poses)
+                     stamps_ns=draw(arrays("int64", (n,))), poses=_rigid_poses(draw, n))
+
+
+@st.composite
+def trajectories(draw: st.DrawFn) -> Trajectory:
+    n = draw(rows)
+    return Trajectory(header=draw(headers), child_frame_id=draw(texts), stamps_ns=draw(arrays("int64", (n,))),
+                      seqs=draw(arrays("int64", (n,))), poses=_rigid_poses(draw, n))
 
 
 @st.composite
@@ -215,6 +227,7 @@ MESSAGES: dict[str, st.SearchStrategy] = {
     "artrack.Keypoints": keypoints(),
     "artrack.PointCloud": point_clouds(),
     "artrack.Keyframes": keyframe_sets(),
+    "artrack.Trajectory": trajectories(),
     "artrack.Blobs": blobs(),
     "artrack.Points3D": points_3d(),
     "artrack.Pose": st.builds(Pose, header=headers, child_frame_id=texts, transform=transforms, state=states,
