@@ -68,6 +68,24 @@ def test_the_defaults_track_the_hard_scene_without_a_ghost_above_the_floors():
         assert body["rotation_deg_median"] <= floors["rotation_deg_median"], (name, body)
 
 
+UNSEEN_SEEDS = range(6, 12)
+"""Seeds of the hard scene the defaults were not tuned on. On seed 7 a sphere's point 8 mm off (one view biased by a
+blob it merged with) once gave the tool six ghost poses in a row, 2.5-3 mm and 5-6.5 deg off: the fit let a good
+sphere go instead of that point (its largest residual lay elsewhere). Today every body is tracked in all 2160
+trackable frames of these seeds."""
+
+
+def test_seeds_the_defaults_were_not_tuned_on_are_tracked_without_a_ghost_above_the_floors():
+    found = figures([v for seed in UNSEEN_SEEDS for v in analyse(hard_scene(seed=seed), FRAMES)])
+    print(found)
+    for name, floors in FLOORS.items():
+        body = found[name]
+        assert body["ghosts"] == 0, (name, body)
+        assert body["tracked_percent"] >= floors["tracked_percent"], (name, body)
+        assert body["position_mm_median"] <= floors["position_mm_median"], (name, body)
+        assert body["rotation_deg_median"] <= floors["rotation_deg_median"], (name, body)
+
+
 @pytest.mark.parametrize("condition", ["base", "spin alone"])
 def test_the_defaults_track_the_bar_where_spheres_merge_in_every_view(condition):
     found = figures(verdicts(condition))

@@ -292,6 +292,22 @@ def _collinear(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return spread[:, 1] <= COLLINEAR_TOLERANCE * np.maximum(spread[:, 0], 1e-300)
 
 
+def _outlier(spheres: np.ndarray, world: np.ndarray, used: np.ndarray) -> int:
+    """The sphere (index into (N, 3) ``spheres``, body frame) whose point of (N, 3) ``world`` to leave out of a fit
+    that broke its gate: among the ``used`` (N,) ones, the one whose absence leaves the smallest residual RMS
+    (every leave-one-out fit in one batch; subsets on one line left aside). A point far off its sphere pulls
+    the whole fit towards it, so the residuals of the fit with it need not be largest at that point. With three
+    used, no fit of two is made: the first goes (the body then has too few spheres anyway)."""
+    candidates = np.flatnonzero(used)
+    if len(candidates) <= 3:
+        return int(candidates[0])
+    subsets = np.repeat(used[None], len(candidates), axis=0)
+    subsets[np.arange(len(candidates)), candidates] = False
+    spread = np.repeat(spheres[None], len(candidates), axis=0)
+    _, rms = least_squares_transforms(spread, np.repeat(world[None], len(candidates), axis=0), subsets)
+    return int(candidates[np.argmin(np.where(_collinear(spread, subsets), np.inf, rms))])
+
+
 def _tree_order(indices: np.ndarray, point_count: int) -> tuple[int, ...]:
     """Rank of an assignment in the interpretation tree: spheres in turn, points ascending, hidden last."""
     return tuple(int(i) if i >= 0 else point_count for i in indices)
@@ -368,9 +384,9 @@ def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covarianc
     ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points``: (M, 3) float64, world frame;
     ``covariances``: (M, 3, 3) m^2 or None; ``labels``: name -> (N,) int64 point index per sphere (-1: none).
     A body is fitted (least squares, every body in one batch per round) while it has ``min_spheres``
-    labelled spheres not on one line; while its residual RMS is not ``within_gates``, the sphere farthest
-    from its fitted position is let go (its index set to -1) and it is fitted again. The fits kept get
-    their covariances in one batch.
+    labelled spheres not on one line; while its residual RMS is not ``within_gates``, the sphere whose
+    absence leaves the best fit is let go (``_outlier``; its index set to -1) and it is fitted again. The fits
+    kept get their covariances in one batch.
     """
     indices = {name: np.array(label, np.int64) for name, label in labels.items()}
     fits: dict[str, RigidFit] = {}
@@ -386,15 +402,13 @@ def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covarianc
         kept = np.flatnonzero(~_collinear(spheres, used))
         spheres, world, used = spheres[kept], world[kept], used[kept]
         transforms, rms = least_squares_transforms(spheres, world, used)
-        residuals = np.linalg.norm(world - (spheres @ transforms[:, :3, :3].transpose(0, 2, 1)
-                                            + transforms[:, None, :3, 3]), axis=2)
         again = []
         within = within_gates(spheres, used, rms, options)
         for row, name in enumerate(pending[k] for k in kept.tolist()):
             if within[row]:
                 fits[name] = RigidFit(transforms[row], float(rms[row]), int(np.count_nonzero(used[row])))
                 continue
-            indices[name][int(np.argmax(np.where(used[row], residuals[row], -np.inf)))] = -1
+            indices[name][_outlier(spheres[row], world[row], used[row])] = -1
             if np.count_nonzero(indices[name] >= 0) >= min_spheres:
                 again.append(name)
         pending = again

@@ -8,7 +8,7 @@ does, but a body with a predicted pose is looked for first where its spheres sho
    ``gate`` metres, ``correspondence.gated_assignment``), so no point goes to two bodies;
 2. each predicted body with at least ``min_spheres`` spheres assigned is fitted (``rigid.fit_labelled``,
    all of them in one batch); while its residual RMS exceeds its gate (``rigid.within_gates``) and
-   spheres remain above ``min_spheres``, the sphere farthest from its fitted position is let go and the
+   spheres remain above ``min_spheres``, the sphere whose absence leaves the best fit is let go and the
    body fitted again;
 3. the bodies without a prediction, or whose predicted assignment failed, are matched by their
    distance signatures (``match_bodies``) among the points the others left.
