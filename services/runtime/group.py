@@ -29,7 +29,7 @@ from services.bus.session import BusConfig, BusError
 from services.runtime.flow import FlowPlan
 from services.runtime.host import Host
 from services.runtime.memory import settle_heap
-from services.runtime.node import NameTaken, Node, serve
+from services.runtime.node import NameTaken, Node, Stopper, serve
 from services.runtime.restarts import EXIT_CANNOT_RUN
 
 log = logging.getLogger("artrack.group")
@@ -83,39 +83,34 @@ def run_group(group: str, bus: BusConfig, members: Sequence[Member]) -> int:
         log.error("%s", exc)
         return EXIT_CANNOT_RUN
     members = sorted(members, key=lambda member: member.source)  # as they start: a refused name is a consumer's
+    stopper = Stopper()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, stopper)
     nodes: list[Node] = []
     try:
         for member in members:
             nodes.append(Node(member.name, member.kind, bus, flow=member.flow, host=host))
+            stopper.add(nodes[-1])
     except (BusError, NameTaken) as exc:
         log.error("%s", exc)
         for node in nodes:
             node.close()
         host.close()
         return EXIT_CANNOT_RUN
-    stopping = threading.Event()
-
-    def stop(*_: object) -> None:
-        stopping.set()
-        for node in nodes:
-            node.stop()
-
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, stop)
     log.info("process %s: %s", group, ", ".join(f"{m.name} ({m.kind})" for m in members))
     settle_heap()
     threads = [_Thread(member, node) for member, node in zip(members, nodes, strict=True)]
     try:
-        _start(threads, stopping)
+        _start(threads, stopper.asked)
         while any(thread.is_alive() for thread in threads):
             for thread in threads:
                 thread.join(POLL_S)
-                if thread.code in (1, EXIT_CANNOT_RUN) and not stopping.is_set():
+                if thread.code in (1, EXIT_CANNOT_RUN) and not stopper.asked.is_set():
                     log.warning("process %s: node %s ended with code %d, stopping the others", group,
                                 thread.member.name, thread.code)
-                    stop()
-            if not stopping.is_set() and _done(threads):
-                stop()
+                    stopper()
+            if not stopper.asked.is_set() and _done(threads):
+                stopper()
     finally:
         for node in nodes:
             node.close()

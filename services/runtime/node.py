@@ -634,16 +634,44 @@ def run_node(name: str, kind: str, bus: BusConfig, body: Callable[[Node], object
     """Run ``body`` as node ``name`` until it returns or SIGINT/SIGTERM arrives; return an exit code
     (``serve``'s)."""
     log = logging.getLogger(f"artrack.{kind}")
+    stopper = Stopper()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, stopper)
     try:
         node = Node(name, kind, bus, flow=flow)
     except (BusError, NameTaken) as exc:
         log.error("%s", exc)
         return EXIT_CANNOT_RUN
     with node:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, lambda *_: node.stop())
+        stopper.add(node)
         settle_heap()
         return serve(node, body)
+
+
+class Stoppable(Protocol):
+    """What a ``Stopper`` stops: a node."""
+
+    def stop(self) -> None: ...
+
+
+class Stopper:
+    """The SIGINT/SIGTERM handler of a process's nodes, installed before they are made: a node is live on the bus
+    from its construction on, so a signal may come before it runs; a node added after a signal stops at once."""
+
+    def __init__(self) -> None:
+        self.asked = threading.Event()
+        self.nodes: list[Stoppable] = []
+
+    def __call__(self, *_: object) -> None:
+        self.asked.set()
+        for node in list(self.nodes):
+            node.stop()
+
+    def add(self, node: Stoppable) -> None:
+        """Stop ``node`` with the others when a signal comes, or now if one came."""
+        self.nodes.append(node)
+        if self.asked.is_set():
+            node.stop()
 
 
 def serve(node: Node, body: Callable[[Node], object]) -> int:
