@@ -447,7 +447,10 @@ class Node:
         return True
 
     def _publish_end(self, end: FlowEnd) -> None:
-        """Publish ``end``, just after the statistics it closes (a recorder that ends on it has them)."""
+        """Publish ``end``, just after the statistics it closes (a recorder that ends on it has them) and after
+        every send the process's outbox holds (the end goes straight to the bus: it must not leave before the
+        last frames it counts, queued there while a node of this process took them)."""
+        self.host.local.outbox.flush()
         self._ended = end
         self._last_stats_pub.put(self.stats())
         self._end_pub.put(end)
