@@ -9,8 +9,9 @@ returns at once, and the encoding overlaps the subscriber's work (OpenCV release
 while it detects).
 
 Sends leave in the order they were put, whichever publisher put them: a send that needs no deferring
-(nothing local took the message) still waits behind those queued, so a source's end of stream never
-overtakes its last frames. At most ``DEPTH`` sends wait; a publisher that would queue one more
+(nothing local took the message) still waits behind those queued. A node's end of stream, which goes to
+the bus directly, first waits for the outbox to empty (``runtime.node``), so it never leaves before the
+last frames it counts. At most ``DEPTH`` sends wait; a publisher that would queue one more
 blocks until one has left, as an inline send would have held it. ``flush`` returns once every send
 queued so far has left. A queued send that fails (the session closing under it) is logged and
 dropped; one run at once raises to its publisher as before.
