@@ -1,5 +1,6 @@
 # Two commands on a fresh clone: `make demo` and `make test`. Each creates .venv and
-# installs the project into it (editable, with the dev extra) when missing or stale.
+# installs the project into it (editable, with the dev extra) when missing or stale, then fills numba's
+# cache beside the compiled kernels' modules (about 20 s), so that no process compiles them.
 # `make bench BENCH="routing apps"` runs only the benchmarks named (see tests/bench/__main__.py).
 PYTHON ?= python3
 VENV := .venv
@@ -12,6 +13,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m services.estimation.bodies.kernels
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -40,10 +40,11 @@ install_step() {
         cat "$venv.log"; return 1
     fi
     "$venv/bin/artrack" --help >/dev/null || return 1
+    NUMBA_CACHE_DIR=$CACHE/numba "$venv/bin/python" -m services.estimation.bodies.kernels || return 1
     local dev
     dev=$("$venv/bin/pip" list --format=freeze 2>/dev/null | grep -iE '^(pytest|hypothesis|ruff|mypy)==')
     if [ -n "$dev" ]; then echo "dev packages in the runtime install: $dev"; return 1; fi
-    echo "artrack --help runs from a wheel installed without the dev extra ($venv)"
+    echo "artrack --help runs and the kernels compile from a wheel installed without the dev extra ($venv)"
 }
 
 compose_config() {

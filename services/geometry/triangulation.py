@@ -5,7 +5,8 @@ over all views (on ideal pinhole pixels), the midpoint of two rays, and a Gauss-
 refinement of the reprojection error through each camera's distortion, which also yields the
 point's covariance ``(J^T J)^-1 sigma_px^2`` (J: residuals, px, with respect to the point, m).
 The ``*_many`` forms do the same for N points at once, each seen by its own subset of the
-cameras of a ``CameraStack``: one batched SVD, and Gauss-Newton steps on all points together.
+cameras of a ``CameraStack``: ``triangulate_dlt_many`` in one batched SVD, ``triangulate_many`` (DLT,
+Gauss-Newton, covariance) point by point in compiled code (``services.geometry.triangulation_kernel``).
 """
 
 from __future__ import annotations
@@ -20,13 +21,16 @@ from services.geometry.camera import CameraModel, undistort_pixels
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.shapes import check_shape
+from services.geometry.triangulation_kernel import triangulate_points
 
 __all__ = ["TriangulatedPoint", "Triangulation", "projection_matrix", "triangulate_dlt", "triangulate_dlt_many",
-           "triangulate_midpoint", "meet_in_front", "camera_rays", "reproject", "refine_point", "refine_points",
-           "triangulate", "triangulate_many"]
+           "triangulate_midpoint", "meet_in_front", "camera_rays", "reproject", "triangulate",
+           "triangulate_many"]
 
 STEP_TOLERANCE_M = 1e-10
 """Gauss-Newton stops at a step shorter than this (m): the point is where it would stay."""
+GAUSS_NEWTON_ITERATIONS = 10
+"""The most Gauss-Newton steps ``triangulate_many`` takes per point."""
 
 
 @dataclass(frozen=True)
@@ -135,75 +139,6 @@ def reproject(camera: CameraModel, points_world: np.ndarray) -> np.ndarray:
     return pixels
 
 
-def refine_point(cameras: Sequence[CameraModel], pixels: np.ndarray, point: np.ndarray,
-                 iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton on the reprojection error of one world point seen by ``cameras``.
-
-    ``pixels``: (V, 2) observed pixels (distorted), ``pixels[k]`` in ``cameras[k]``; ``point``:
-    (3,) start, world frame. Returns ``(point (3,), residuals (V, 2) observed - projected px,
-    jacobian (2V, 3) of the residuals with respect to the point, px/m)``. A step that does not
-    lower the error ends the iterations.
-    """
-    pixels = check_shape(pixels, f"{len(cameras)},2", "pixels", np.float64)[None]
-    start = check_shape(point, "3", "point", np.float64)[None]
-    refined, residuals, jacobians = refine_points(CameraStack.of(cameras), pixels, np.ones(pixels.shape[:2], bool),
-                                                  start, iterations)
-    return refined[0], residuals[0], jacobians[0].reshape(-1, 3)
-
-
-def refine_points(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, points: np.ndarray,
-                  iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``refine_point`` for N points at once, each over the cameras of ``stack`` it is seen in.
-
-    ``pixels``: (N, C, 2) observed pixels (any value where unseen); ``seen``: (N, C) bool;
-    ``points``: (N, 3) starts, world frame (a non-finite start is left as it is). Returns
-    ``(points (N, 3), residuals (N, C, 2) px, jacobians (N, C, 2, 3) px/m)``, residuals and
-    jacobians zero where unseen. Each point stops on its own: at a step that does not lower its
-    error, or at a step under ``STEP_TOLERANCE_M`` (not taken, which saves evaluating it).
-    """
-    pixels = check_shape(pixels, f"N,{len(stack)},2", "pixels", np.float64)
-    seen = check_shape(seen, f"{len(pixels)},{len(stack)}", "seen")
-    points = np.array(check_shape(points, f"{len(pixels)},3", "points"), dtype=np.float64)
-
-    def evaluate(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        projected, jacobian = stack.project_with_jacobians(X)
-        mask = seen[rows][..., None]
-        return (np.where(mask, pixels[rows] - projected, 0.0), np.where(mask[..., None], -jacobian, 0.0))
-
-    every = np.arange(len(points))
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        residuals, jacobians = evaluate(every, points)
-        active = np.all(np.isfinite(points), axis=1)
-        for _ in range(iterations):
-            rows = np.flatnonzero(active)
-            if not len(rows):
-                break
-            J = jacobians[rows].reshape(len(rows), -1, 3)
-            r = residuals[rows].reshape(len(rows), -1)
-            step = -_solve(J.transpose(0, 2, 1) @ J, np.einsum("nki,nk->ni", J, r))
-            converged = np.linalg.norm(step, axis=1) < STEP_TOLERANCE_M
-            active[rows[converged]] = False
-            rows, step = rows[~converged], step[~converged]
-            if not len(rows):
-                break
-            candidate = points[rows] + step
-            new_residuals, new_jacobians = evaluate(rows, candidate)
-            better = np.sum(new_residuals**2, axis=(1, 2)) <= np.sum(residuals[rows]**2, axis=(1, 2))
-            accepted = rows[better]
-            points[accepted] = candidate[better]
-            residuals[accepted], jacobians[accepted] = new_residuals[better], new_jacobians[better]
-            active[rows[~better]] = False
-    return points, residuals, jacobians
-
-
-def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, 3) solutions of (N, 3, 3) ``A x = b``; least-norm (pseudo-inverse) when one is singular."""
-    try:
-        return np.linalg.solve(A, b[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return np.einsum("nij,nj->ni", np.linalg.pinv(A), b)
-
-
 @dataclass(frozen=True)
 class Triangulation:
     """N points triangulated at once (``triangulate_many``): ``points`` (N, 3) world frame, m (NaN
@@ -229,21 +164,15 @@ def triangulate_many(stack: CameraStack, pixels: np.ndarray, seen: np.ndarray, s
     seen = check_shape(seen, f"{len(pixels)},{len(stack)}", "seen", bool)
     if len(pixels) == 0:
         return Triangulation(np.zeros((0, 3)), np.zeros((0, len(stack), 2)), np.zeros(0), np.zeros((0, 3, 3)))
-    if start is None:
-        if ideal is None:
-            ideal = np.zeros_like(pixels)
-            for c in range(len(stack)):
-                ideal[seen[:, c], c] = undistort_pixels(pixels[seen[:, c], c], stack.K[c], stack.dist[c])
-        start = triangulate_dlt_many(stack.projections, ideal, seen)
-    points, residuals, jacobians = refine_points(stack, pixels, seen, start)
-    J = jacobians.reshape(len(points), -1, 3)
-    information = J.transpose(0, 2, 1) @ J
-    usable = np.all(np.isfinite(information), axis=(1, 2)) & np.all(np.isfinite(points), axis=1)
-    covariances = np.full((len(points), 3, 3), np.nan)
-    if np.any(usable):
-        covariances[usable] = np.linalg.pinv(information[usable]) * sigma_px**2
-    rms = np.full(len(points), np.inf)
-    rms[usable] = np.sqrt(np.sum(residuals[usable]**2, axis=(1, 2)) / np.count_nonzero(seen[usable], axis=1))
+    if ideal is None and start is None:
+        ideal = np.zeros_like(pixels)
+        for c in range(len(stack)):
+            ideal[seen[:, c], c] = undistort_pixels(pixels[seen[:, c], c], stack.K[c], stack.dist[c])
+    ideal = pixels if ideal is None else check_shape(ideal, f"{len(pixels)},{len(stack)},2", "ideal", np.float64)
+    start = None if start is None else check_shape(start, f"{len(pixels)},3", "start", np.float64)
+    points, residuals, rms, covariances = triangulate_points(
+        stack.K, stack.dist, stack.R_camera_world, stack.t_camera_world, stack.projections, pixels, ideal, seen, start,
+        sigma_px, GAUSS_NEWTON_ITERATIONS, STEP_TOLERANCE_M)
     return Triangulation(points, residuals, rms, covariances)
 
 
@@ -251,7 +180,7 @@ def triangulate(cameras: Sequence[CameraModel], pixels: np.ndarray, sigma_px: fl
                 camera_indices: Sequence[int] | None = None,
                 blob_indices: Sequence[int] | None = None) -> TriangulatedPoint:
     """One world point from (V, 2) observed pixels, ``pixels[k]`` in ``cameras[k]`` (V >= 2):
-    DLT on the undistorted pixels, then ``refine_point``; covariance ``(J^T J)^-1 sigma_px^2``
+    DLT on the undistorted pixels, then Gauss-Newton on the reprojection error; covariance ``(J^T J)^-1 sigma_px^2``
     for pixel noise of ``sigma_px`` per coordinate. The indices are carried into the result
     (default: 0..V-1 and zeros). Rays that meet at infinity give ValueError."""
     pixels = check_shape(pixels, f"{len(cameras)},2", "pixels", np.float64)[None]

@@ -140,7 +140,8 @@ def test_prediction_gives_no_fewer_poses_and_no_worse_accuracy():
         assert common["frames"] == without["poses"], (name, figures[name])  # every body found before still is
         for key in ("position_mm_median", "rotation_deg_median"):
             assert common["with"][key] <= 1.01 * common["without"][key], (name, key, figures[name])
-        assert followed["position_mm_max"] < 1.0 or followed["position_mm_max"] <= without["position_mm_max"], \
+        # The same fit made by the compiled kernel and by NumPy differs in the last digits (1e-12 mm here).
+        assert followed["position_mm_max"] < 1.0 or followed["position_mm_max"] <= without["position_mm_max"] + 1e-9, \
             (name, figures[name])
         bridged_max = figures[name]["predicted_position_mm_max"]
         assert bridged_max is None or bridged_max < 5.0, (name, figures[name])

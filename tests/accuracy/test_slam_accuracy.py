@@ -88,16 +88,16 @@ def test_kitti_keeps_its_track_over_frames_a_busy_pipeline_dropped(gaps):
 
 
 def test_a_young_map_lost_on_fast_forward_motion_starts_again_in_its_world():
-    """KITTI 06 with two frames in three dropped (3.4 m between the frames kept): a map made of the first
+    """KITTI 06 with three frames in four dropped (4.5 m between the frames kept): a map made of the first
     frames is lost within a few frames, as its points fall behind the car. A map lost while young is given
     up for a new one, placed and scaled where the camera's last motion carries it (``SlamSystem``'s
-    ``restart_keyframes``), instead of waiting to relocalise in it while the car drives on: 10 of the 17
-    frames tracked against 2 (the first map lost and never again), all in one world and scale, final and
-    online ATE 0.052 and 0.089 m over the 39.6 m path. Bars: 8 frames, 0.3 m (a new map of its own world
-    and scale, aligned with the first by one Sim(3), would be metres off)."""
-    result = run(every(kitti(data_dir(KITTI)), 3))
+    ``restart_keyframes``), instead of waiting to relocalise in it while the car drives on: 8 of the 13
+    frames tracked against 3 with ``restart_keyframes=0`` (the first map lost and never again), all in one
+    world and scale, final and online ATE 0.092 and 0.067 m over the 38.4 m path. Bars: 7 frames, 0.3 m (a
+    new map of its own world and scale, aligned with the first by one Sim(3), would be metres off)."""
+    result = run(every(kitti(data_dir(KITTI)), 4))
     print(result.line())
-    assert result.maps_given_up >= 1 and result.scored >= 8, result.line()
+    assert result.maps_given_up >= 1 and result.scored >= 7, result.line()
     assert result.final_ate_m <= 0.3 and result.ate_m <= 0.3, result.line()
 
 

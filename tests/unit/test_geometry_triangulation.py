@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 
 from services.geometry.camera import undistort_pixels
+from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.triangulation import (
     camera_rays,
     projection_matrix,
-    refine_point,
     reproject,
     triangulate,
     triangulate_dlt,
+    triangulate_many,
     triangulate_midpoint,
 )
 from services.synthetic import make_scene
@@ -66,9 +67,10 @@ def test_parallel_rays_are_refused():
 def test_refinement_reaches_the_true_point_through_distortion(cameras):
     truth = np.array([0.2, -0.1, 2.2])
     pixels = np.array([reproject(c, truth)[0] for c in cameras])
-    point, residuals, jacobian = refine_point(cameras, pixels, truth + np.array([0.01, -0.02, 0.05]))
-    np.testing.assert_allclose(point, truth, atol=1e-9)
-    assert np.max(np.abs(residuals)) < 1e-6 and jacobian.shape == (6, 3)
+    found = triangulate_many(CameraStack.of(cameras), pixels[None], np.ones((1, 3), bool), SIGMA_PX,
+                             start=(truth + np.array([0.01, -0.02, 0.05]))[None])
+    np.testing.assert_allclose(found.points[0], truth, atol=1e-9)
+    assert np.max(np.abs(found.residuals)) < 1e-6
 
 
 def test_point_carries_views_indices_and_residual(cameras):

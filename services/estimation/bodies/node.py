@@ -39,6 +39,7 @@ With ``predict``, a body found in the previous set and missing from this one get
 ``predicted`` (the predicted transform, covariance grown by the extrapolation, no inliers), then ``lost``
 if still missing at the next set. A motion is forgotten after ``predict_gap_s`` without a fit.
 
+The compiled kernels are loaded (``kernels.warm``) before the node takes its first set.
 Until every camera has a calibration, sets are counted as skipped (``no_calibration``). A rig file is used
 as it is: one whose camera was calibrated at another size than that camera's frames is refused before
 start wherever the source tells the frame size (``check_frames``).
@@ -66,6 +67,7 @@ from services.convert import CameraModels, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
+from services.estimation.bodies.kernels import warm as warm_kernels
 from services.estimation.bodies.labelled import Found, track_blobs
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
 from services.estimation.bodies.tracking import BodyTracker, TrackingOptions
@@ -291,6 +293,7 @@ def run(node: Node, params: Params) -> None:
     infos = {} if rig is not None else {
         name: node.inbox(keys.camera_info(name), CameraInfo, Role.RESULT, depth=INFO_DEPTH) for name in params.cameras}
     calibration = Calibration(params.cameras, rig, infos)
+    warm_kernels()
     sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.RESULT, by="seq",
                        depth=params.sync_depth)
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.estimation.bodies.fit_kernel import fit_bodies
 from services.geometry.absolute_orientation import (
     COLLINEAR_TOLERANCE,
     RigidFit,
@@ -292,22 +293,6 @@ def _collinear(spheres: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return spread[:, 1] <= COLLINEAR_TOLERANCE * np.maximum(spread[:, 0], 1e-300)
 
 
-def _outlier(spheres: np.ndarray, world: np.ndarray, used: np.ndarray) -> int:
-    """The sphere (index into (N, 3) ``spheres``, body frame) whose point of (N, 3) ``world`` to leave out of a fit
-    that broke its gate: among the ``used`` (N,) ones, the one whose absence leaves the smallest residual RMS
-    (every leave-one-out fit in one batch; subsets on one line left aside). A point far off its sphere pulls
-    the whole fit towards it, so the residuals of the fit with it need not be largest at that point. With three
-    used, no fit of two is made: the first goes (the body then has too few spheres anyway)."""
-    candidates = np.flatnonzero(used)
-    if len(candidates) <= 3:
-        return int(candidates[0])
-    subsets = np.repeat(used[None], len(candidates), axis=0)
-    subsets[np.arange(len(candidates)), candidates] = False
-    spread = np.repeat(spheres[None], len(candidates), axis=0)
-    _, rms = least_squares_transforms(spread, np.repeat(world[None], len(candidates), axis=0), subsets)
-    return int(candidates[np.argmin(np.where(_collinear(spread, subsets), np.inf, rms))])
-
-
 def _tree_order(indices: np.ndarray, point_count: int) -> tuple[int, ...]:
     """Rank of an assignment in the interpretation tree: spheres in turn, points ascending, hidden last."""
     return tuple(int(i) if i >= 0 else point_count for i in indices)
@@ -383,39 +368,30 @@ def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covarianc
 
     ``bodies``: name -> (N, 3) float64 sphere centres, body frame; ``points``: (M, 3) float64, world frame;
     ``covariances``: (M, 3, 3) m^2 or None; ``labels``: name -> (N,) int64 point index per sphere (-1: none).
-    A body is fitted (least squares, every body in one batch per round) while it has ``min_spheres``
-    labelled spheres not on one line; while its residual RMS is not ``within_gates``, the sphere whose
-    absence leaves the best fit is let go (``_outlier``; its index set to -1) and it is fitted again. The fits
-    kept get their covariances in one batch.
+    A body is fitted (least squares) while it has ``min_spheres`` labelled spheres not on one line; while its
+    residual RMS is not ``within_gates``, the sphere whose absence leaves the best fit is let go (its index set
+    to -1; with three, the first) and it is fitted again. The fits kept get their covariances
+    (``absolute_orientation.pose_covariances``). Compiled: ``fit_kernel.fit_bodies``.
     """
-    indices = {name: np.array(label, np.int64) for name, label in labels.items()}
-    fits: dict[str, RigidFit] = {}
-    pending = [name for name, label in indices.items() if np.count_nonzero(label >= 0) >= min_spheres]
-    while pending:
-        widest = max(len(bodies[name]) for name in pending)
-        spheres, world = np.zeros((len(pending), widest, 3)), np.zeros((len(pending), widest, 3))
-        used = np.zeros((len(pending), widest), bool)
-        for row, name in enumerate(pending):
-            count = len(bodies[name])
-            spheres[row, :count], used[row, :count] = bodies[name], indices[name] >= 0
-            world[row, :count] = points[np.maximum(indices[name], 0)]
-        kept = np.flatnonzero(~_collinear(spheres, used))
-        spheres, world, used = spheres[kept], world[kept], used[kept]
-        transforms, rms = least_squares_transforms(spheres, world, used)
-        again = []
-        within = within_gates(spheres, used, rms, options)
-        for row, name in enumerate(pending[k] for k in kept.tolist()):
-            if within[row]:
-                fits[name] = RigidFit(transforms[row], float(rms[row]), int(np.count_nonzero(used[row])))
-                continue
-            indices[name][_outlier(spheres[row], world[row], used[row])] = -1
-            if np.count_nonzero(indices[name] >= 0) >= min_spheres:
-                again.append(name)
-        pending = again
-    names = [name for name in labels if name in fits]
-    chosen = _with_covariances([(np.asarray(bodies[name], np.float64), indices[name]) for name in names],
-                               [fits[name] for name in names], covariances)
-    return {name: BodyMatch(name, indices[name], fit) for name, fit in zip(names, chosen, strict=True)}
+    names = list(labels)
+    if not names:
+        return {}
+    widest = max(len(bodies[name]) for name in names)
+    spheres = np.zeros((len(names), widest, 3))
+    padded = np.full((len(names), widest), -1, np.int64)
+    for row, name in enumerate(names):
+        spheres[row, :len(bodies[name])], padded[row, :len(bodies[name])] = bodies[name], labels[name]
+    fitted, transforms, rms, indices, pose_sigma = fit_bodies(
+        spheres, np.array([len(bodies[name]) for name in names]), padded, points, covariances, options.gate_rms,
+        np.radians(options.three_turn_deg), min_spheres, COLLINEAR_TOLERANCE)
+    found = {}
+    for row in np.flatnonzero(fitted).tolist():
+        name = names[row]
+        kept = indices[row, :len(bodies[name])]
+        found[name] = BodyMatch(name, kept, RigidFit(transforms[row], float(rms[row]), int(np.count_nonzero(kept >= 0)),
+                                                     None if covariances is None else pose_sigma[row]))
+    return found
+
 
 
 def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
