@@ -271,16 +271,33 @@ class Inbox(Generic[M]):
             with self.wake:
                 if not self._queue:
                     return None
-                key, payload, received_ns = self._queue.popleft()
-            try:
-                message = decode_as(payload, self.cls) if isinstance(payload, bytes) else self._check(payload)
-            except DecodeError as error:
-                self.counter.count(decode_errors=1)
-                if self._on_decode_error is not None:
-                    self._on_decode_error(key, error)
-                continue
-            self._latest = Received(key, message, received_ns)
-            return self._latest
+                item = self._queue.popleft()
+            if (received := self._decoded(*item)) is not None:
+                return received
+
+    def take_newest(self) -> Received[M] | None:
+        """The newest queued message, decoded, every older one let go undecoded (a state that each message
+        replaces, such as a camera's calibration); None when the queue is empty. A newest payload that fails to
+        decode is counted and the one before it taken."""
+        with self.wake:
+            queued = list(self._queue)
+            self._queue.clear()
+        for item in reversed(queued):
+            if (received := self._decoded(*item)) is not None:
+                return received
+        return None
+
+    def _decoded(self, key: str, payload: Payload, received_ns: int) -> Received[M] | None:
+        """One queued payload decoded (and kept as the latest); None, counted, when it fails to decode."""
+        try:
+            message = decode_as(payload, self.cls) if isinstance(payload, bytes) else self._check(payload)
+        except DecodeError as error:
+            self.counter.count(decode_errors=1)
+            if self._on_decode_error is not None:
+                self._on_decode_error(key, error)
+            return None
+        self._latest = Received(key, message, received_ns)
+        return self._latest
 
     def _check(self, message: Message) -> M:
         """A message handed over in this process, as it is; DecodeError when it is not of the inbox's type."""

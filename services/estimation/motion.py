@@ -86,10 +86,14 @@ class ConstantVelocity:
     def __init__(self, options: MotionOptions = DEFAULT_MOTION):
         self.options = options
         self._samples: list[_Sample] = []
+        self._velocity: tuple[np.ndarray, np.ndarray] | None = None
+        self._acceleration = np.diag(np.repeat([options.angular_acceleration**2, options.acceleration**2], 3))
+        """(6, 6) the squared unmodelled accelerations, rad/s^2 then m/s^2, on the diagonal."""
 
     def reset(self) -> None:
         """Forget every pose."""
         self._samples = []
+        self._velocity = None
 
     @property
     def ready(self) -> bool:
@@ -111,12 +115,17 @@ class ConstantVelocity:
             if stamp_ns - newest > self.options.max_gap_ns:
                 self._samples = []
         self._samples = [*self._samples[-1:], _Sample(int(stamp_ns), T.copy(), sigma)]
+        self._velocity = self._velocities() if self.ready else None
 
     def velocity(self) -> tuple[np.ndarray, np.ndarray]:
         """``(omega, v)``: (3,) world-frame angular velocity (rad/s) and (3,) linear velocity (m/s) of the
         origin; ValueError before two poses are known."""
-        if not self.ready:
+        if self._velocity is None:
             raise ValueError("a velocity needs two poses")
+        return self._velocity
+
+    def _velocities(self) -> tuple[np.ndarray, np.ndarray]:
+        """``velocity`` from the two poses known."""
         old, new = self._samples
         dt = (new.stamp_ns - old.stamp_ns) / NS_PER_S
         R_old, R_new = old.T_world_body[:3, :3], new.T_world_body[:3, :3]
@@ -136,6 +145,6 @@ class ConstantVelocity:
         R, t = new.T_world_body[:3, :3], new.T_world_body[:3, 3]
         T = make_transform(matrix_from_rotvec(omega * tau) @ R, t + v * tau)
         ratio = (stamp_ns - new.stamp_ns) / (new.stamp_ns - old.stamp_ns)
-        drift = (0.5 * tau**2) ** 2 * np.repeat([self.options.angular_acceleration**2, self.options.acceleration**2], 3)
-        covariance = (1 + ratio) ** 2 * new.covariance + ratio**2 * old.covariance + np.diag(drift)
+        drift = (0.5 * tau**2) ** 2 * self._acceleration
+        covariance = (1 + ratio) ** 2 * new.covariance + ratio**2 * old.covariance + drift
         return Prediction(int(stamp_ns), T, (covariance + covariance.T) / 2)

@@ -105,8 +105,5 @@ class FrameCalibration(Generic[Model]):
         """Take in the newest CameraInfo that arrived (a fixed model stays)."""
         if self._fixed is not None:
             return
-        newest = None
-        while (received := self._infos.take()) is not None:
-            newest = received.message
-        if newest is not None:
-            self.model = self._convert(newest)
+        if (newest := self._infos.take_newest()) is not None:
+            self.model = self._convert(newest.message)

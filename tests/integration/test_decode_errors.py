@@ -72,3 +72,22 @@ def test_echo_node_counts_bad_payloads_and_keeps_relaying(bus, procs, session):
     # The node counts a frame as published once its put returned, which may be after the frame arrived here.
     stats = wait_until(lambda: (s := states(session, keys)["echo"]).published == 5 and s, START_S, "5 published")
     assert stats.decode_errors == len(bad_payloads)
+
+
+def test_take_newest_decodes_the_newest_payload_only_and_falls_back_past_garbage(bus, session):
+    """A state that each message replaces (a camera's calibration, sent with every frame) is taken newest first:
+    the older payloads are let go without being decoded, and a newest one that does not decode is counted and
+    the one before it taken."""
+    inbox = Inbox(session, bus.keys.image("cam0"), Image, Role.RESULT)
+    key = bus.keys.image("cam0")
+    inbox.offer(key, b"\x00an older payload that would not decode either")
+    for seq in range(1, 4):
+        inbox.offer(key, encode(make_message("image", seq, 64, 48)))
+    inbox.offer(key, b"\x00garbage")
+    taken = inbox.take_newest()
+    assert taken is not None and taken.message.header.seq == 3
+    assert inbox.counter.decode_errors == 1 and inbox.pending() == 0  # the older garbage was never decoded
+    assert inbox.take_newest() is None
+    inbox.offer(key, encode(make_message("image", 4, 64, 48)))
+    inbox.offer(key, encode(make_message("image", 5, 64, 48)))
+    assert inbox.take_newest().message.header.seq == 5 and inbox.counter.decode_errors == 1

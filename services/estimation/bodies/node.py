@@ -156,11 +156,8 @@ class Calibration:
         """Take in the newest CameraInfo of each camera that arrived (none with a rig file); a camera's model
         is rebuilt only when its CameraInfo changed (a source sends it with every frame)."""
         for name, inbox in self.infos.items():
-            newest = None
-            while (received := inbox.take()) is not None:
-                newest = received.message
-            if newest is not None:
-                self.models[name] = self._streams[name](newest)
+            if (newest := inbox.take_newest()) is not None:
+                self.models[name] = self._streams[name](newest.message)
 
 
 def pixels(blobs: Blobs, flagged: bool) -> np.ndarray:
