@@ -168,17 +168,19 @@ def resolved(spec: PipelineSpec, where: str = "pipeline") -> PipelineSpec:
 
 
 def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
-    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name), then
-    hold each node's own calibration against the frame sizes the sources tell before they start
-    (``NodeKind.check_frames``, ``SourceRole.sizes``), so a pipeline that cannot start, or whose
-    node would stop at its first frame, is refused before any process starts: PipelineError naming
-    ``where``, the node and the reason."""
+    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name) and each
+    kind's ``prepare`` once (compiled code built before a node needs it), then hold each node's own calibration
+    against the frame sizes the sources tell before they start (``NodeKind.check_frames``, ``SourceRole.sizes``),
+    so a pipeline that cannot start, or whose node would stop at its first frame, is refused before any process
+    starts: PipelineError naming ``where``, the node and the reason."""
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)
         try:
             node_kind.preflight(node_kind.validate(node.params))
         except (ValueError, OSError) as exc:
             raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+    for prepare in dict.fromkeys(k.prepare for k in map(kind, (n.kind for n in spec.nodes.values())) if k.prepare):
+        prepare()
     sizes = functools.cache(functools.partial(_frame_sizes, spec, where))
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)

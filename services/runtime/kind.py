@@ -96,6 +96,9 @@ class NodeKind:
     source: SourceRole | None = None
     sink: SinkRole | None = None
     check_frames: Callable[[Any, Callable[[], FrameSizes]], None] | None = None
+    prepare: Callable[[], None] | None = None
+    """Work done once per machine before a node of the kind starts (compiled code built into its disk cache),
+    run by the launcher's preflight so that a node does not do it while frames wait."""
 
     def validate(self, values: dict[str, Any]) -> BaseModel:
         """Validated parameters (pydantic's ValidationError names the field otherwise)."""

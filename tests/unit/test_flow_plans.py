@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import logging
+import time
 from pathlib import Path
 
 import pytest
 
 from services.bus.stats import SeqGaps
+from services.estimation.bodies import kernels
 from services.launcher.flow import FlowSettings, lossless
 from services.launcher.job import JobFile, build_job
 from services.launcher.layout import SINGLE, laid_out
@@ -104,3 +107,18 @@ def test_gaps_count_the_frames_skipped_and_start_over_when_a_source_does():
     assert gaps.note("a", 2) == 0 and gaps.note("a", 3) == 0  # started over: no gap counted
     assert gaps.note("b", 7) == 0  # the first frame seen on a key
     assert gaps.tail(10) == (10 - 3) + (10 - 7)
+
+
+def test_the_stereo_job_s_preflight_prepares_the_compiled_kernels_once_and_says_so_when_it_compiles(
+        monkeypatch, caplog):
+    calls: list[float] = []
+    monkeypatch.setattr(kernels, "LOADED_S", 0.05)
+    spec = job("stereo", source=["synthetic:ir_rig"], frames=10)
+    monkeypatch.setattr(kernels, "warm", lambda: calls.append(0.0))
+    with caplog.at_level(logging.INFO, logger=kernels.__name__):
+        preflight(spec, "job")
+    assert len(calls) == 1 and "compiling" not in caplog.text  # loaded from the cache: nothing said
+    monkeypatch.setattr(kernels, "warm", lambda: (time.sleep(0.3), calls.append(0.3)))
+    with caplog.at_level(logging.INFO, logger=kernels.__name__):
+        preflight(spec, "job")
+    assert len(calls) == 2 and "compiling the rigid bodies node's kernels" in caplog.text

@@ -67,6 +67,7 @@ from services.convert import CameraModels, transform_from_matrix
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
+from services.estimation.bodies.kernels import prepare as prepare_kernels
 from services.estimation.bodies.kernels import warm as warm_kernels
 from services.estimation.bodies.labelled import Found, track_blobs
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
@@ -339,4 +340,4 @@ def _check_frames(params: Params, sizes: Callable[[], FrameSizes]) -> None:
 
 KIND = NodeKind(name="rigid_bodies", summary="rigid bodies' 6-DoF poses from the blobs of a calibrated rig's cameras",
                 params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check,
-                check_frames=_check_frames)
+                check_frames=_check_frames, prepare=prepare_kernels)
