@@ -2,7 +2,7 @@
 # Checks of docker/ that run without a Docker engine (`make deploy-check`); each says whether it
 # ran or why it was skipped, and the script fails if any check that ran failed.
 #   1. the image's install step: a wheel of the project installed without the dev extra into a
-#      fresh venv, then `artrack --help` (and no dev tool may come along);
+#      fresh venv, then `artrack --help` and the compiled kernels built (no dev tool may come along);
 #   1b. the shared libraries that install links beyond its own wheels (readelf): only those of
 #      Debian's slim base (glibc, libgcc_s, libstdc++, zlib) may remain (numba's optional OpenMP and
 #      TBB threading layers aside);
