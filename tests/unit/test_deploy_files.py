@@ -145,6 +145,11 @@ def test_the_systemd_unit_runs_artrack_up_sandboxed_as_its_own_user():
     assert service["StandardOutput"] == "journal"
     assert (service["NoNewPrivileges"], service["ProtectSystem"], service["ProtectHome"]) == ("yes", "strict", "yes")
     assert "artrack" in service["StateDirectory"].split()
+    # The venv is read-only under ProtectSystem=strict: numba's cache of the compiled kernels goes to the unit's
+    # cache directory, which systemd makes writable.
+    environment = dict(pair.split("=", 1) for pair in shlex.split(service["Environment"]))
+    assert "artrack" in service["CacheDirectory"].split()
+    assert PurePosixPath(environment["NUMBA_CACHE_DIR"]).is_relative_to("/var/cache/artrack")
 
 
 def test_the_image_and_the_unit_set_only_variables_artrack_reads():
