@@ -49,6 +49,8 @@ JOIN_S = 10.0
 """How long closing waits for the progress thread to finish its last query (a loaded machine is slow)."""
 SLOW_SOURCE = 0.9
 """A source delivering less than this share of the rate asked is called out in the summary."""
+BURST_FACTOR = 1.05
+"""A rate timed by the poses' arrival above this multiple of the rate asked is a burst, not the source's pace."""
 
 
 @dataclass(frozen=True)
@@ -121,19 +123,22 @@ def frames_sent(stats: NodeStats) -> int:
     return next((s.messages for s in stats.streams if s.direction == "out" and s.key.endswith("/image")), 0)
 
 
-def delivered_rate(figures: JobFigures, from_poses: bool) -> float | None:
+def delivered_rate(figures: JobFigures, from_poses: bool, asked: float | None = None) -> float | None:
     """Frames per second the source sent, None when it cannot be told.
 
     ``from_poses`` (a real-time run): from the first and the last frame a pose came from (a tracker
     always gets the last frame: latest-wins keeps the newest), their sequence numbers apart over their
-    times apart (``JobFigures.frames_posed``). Otherwise (a lossless run, whose frames go out at the pace of
-    its slowest node) from the source's statistics: between the first that had frames and the last still
-    short of the final count.
+    times apart (``JobFigures.frames_posed``). A source never sends faster than the ``asked`` rate, so a
+    figure above it says that the poses reached this process in a burst (its threads held up on a busy
+    machine), not how fast the frames went: then, as otherwise (a lossless run, whose frames go out at the
+    pace of its slowest node), from the source's statistics: between the first that had frames and the last
+    still short of the final count.
     """
     if from_poses and len(figures.frames_posed) == 2:
         (seq0, t0), (seq1, t1) = figures.frames_posed
-        if seq1 > seq0 and t1 > t0:
-            return (seq1 - seq0) / ((t1 - t0) / 1e9)
+        rate = (seq1 - seq0) / ((t1 - t0) / 1e9) if seq1 > seq0 and t1 > t0 else None
+        if rate is not None and (not asked or rate <= BURST_FACTOR * asked):
+            return rate
     samples = figures.samples
     if not samples:
         return None
@@ -260,7 +265,7 @@ class JobWatch:
             stats = {name: s for name, s in self.figures.stats.items() if name in self.spec.nodes}
             poses = {target: Counter(c) for target, c in self.figures.poses.items()}
             pose_errors = self.figures.pose_errors
-            rate = delivered_rate(self.figures, not self.lossless)
+            rate = delivered_rate(self.figures, not self.lossless, self.asked)
         lines = [f"job summary ({time.monotonic() - self._started:.1f} s):", "  " + self._source_line(stats, rate)]
         lines += ["  nodes:", *("    " + row for row in _node_table(self.spec, stats).splitlines())]
         lines += ["  poses by target:", *("    " + row for row in _pose_table(poses, pose_errors).splitlines())]

@@ -46,8 +46,11 @@ def test_a_real_time_job_too_fast_for_its_source_says_so_and_its_summary_matches
     assert "\x1b[K" not in job.stderr  # not a terminal: no progress line
     lines = summary_of(job.stderr)
     source = next(line for line in lines if line.strip().startswith("source capture:"))
+    # The rate, timed by the poses' arrival, is left out when they came in a burst (a busy machine): never above
+    # the rate asked.
+    assert "source capture: 60 of 60 frames sent" in source, source
     rate = re.search(r"60 of 60 frames sent, at ([\d.]+) fps of the 1000 asked", source)
-    assert rate and 0 < float(rate.group(1)) < 1000, source
+    assert rate is None or 0 < float(rate.group(1)) < 1000, source
     assert "the source could not keep the pace asked" in source
 
     nodes = table(lines, "NODE")
