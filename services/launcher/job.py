@@ -157,12 +157,19 @@ def build_job(tracker: Tracker, source: NodeSpec | Recording, options: dict[str,
               record: Path | None = None, rerun: JobFile | None = None,
               foxglove: JobFile | None = None) -> PipelineSpec:
     """The job's pipeline: the source, the tracker's nodes for its cameras, a recorder, a viewer and a Foxglove
-    node writing a file (and serving nothing) if asked; every node validated, its inputs and outputs filled in."""
+    node writing a file (and serving nothing) if asked; every node validated, its inputs and outputs filled in.
+    A tracker's node that does not validate for the source's cameras is first put down to the source, when the
+    source cannot start (its check's PipelineError)."""
     name, node = source_node(source)
     where = f"tracker {tracker.name}"
-    cameras = cameras_of(resolved(PipelineSpec(nodes={name: node}), where).nodes[name])
+    alone = resolved(PipelineSpec(nodes={name: node}), where)
+    cameras = cameras_of(alone.nodes[name])
     placed = node if tracker.source_process is None else node.model_copy(update={"process": tracker.source_process})
-    nodes = {name: placed, **tracker.expand(cameras, options, flags)}
+    try:
+        nodes = {name: placed, **tracker.expand(cameras, options, flags)}
+    except ValueError:
+        preflight(alone, "job")  # a source that cannot start (a missing folder) is what is wrong, not its cameras
+        raise
     if record is not None:
         nodes["recorder"] = NodeSpec(kind="recorder", out=str(record))
     if rerun is not None:

@@ -122,3 +122,9 @@ def test_the_stereo_job_s_preflight_prepares_the_compiled_kernels_once_and_says_
     with caplog.at_level(logging.INFO, logger=kernels.__name__):
         preflight(spec, "job")
     assert len(calls) == 2 and "compiling the rigid bodies node's kernels" in caplog.text
+
+
+def test_a_stereo_job_on_a_missing_folder_names_the_folder_not_the_cameras_it_would_have_had(tmp_path):
+    """The stereo tracker needs two cameras; a folder that does not exist has none to tell, and is what is wrong."""
+    with pytest.raises(PipelineError, match=rf"^job: nodes.capture: images:{tmp_path}/none: no such folder$"):
+        job("stereo", source=[f"images:{tmp_path / 'none'}"])

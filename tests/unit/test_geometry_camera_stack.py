@@ -5,22 +5,17 @@ import cv2
 import numpy as np
 import pytest
 
-from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.triangulation import reproject, triangulate, triangulate_many
-from services.synthetic import make_scene
 
 SIGMA_PX = 0.1
 
 
 @pytest.fixture(scope="module")
-def cameras():
-    """Three cameras with a stronger distortion than the scene's, tangential terms and k3 included."""
-    scene = make_scene("ir_rig", camera_count=3, width=1280, height=1024, baseline=1.0)
-    dist = np.array([-0.2, 0.08, 1e-3, -2e-3, -0.01])
-    return [CameraModel(c.name, c.width, c.height, c.K, dist * (1.0 + 0.2 * k), c.T_rig_camera)
-            for k, c in enumerate(scene.cameras)]
+def cameras(distorted_cameras):
+    """Three cameras with a stronger distortion than the scene's (``tests/unit/conftest.py``)."""
+    return distorted_cameras
 
 
 def points(seed: int = 0, count: int = 25) -> np.ndarray:

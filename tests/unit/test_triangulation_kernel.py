@@ -8,23 +8,19 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from services.geometry.camera import CameraModel, undistort_pixels
+from services.geometry.camera import undistort_pixels
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.triangulation import projection_matrix, reproject, triangulate_dlt_many
 from services.geometry.triangulation_kernel import triangulate_points
-from services.synthetic import make_scene
 
 SIGMA_PX = 0.2
 
 
 @pytest.fixture(scope="module")
-def cameras():
-    """Three cameras with strong distortion, tangential terms and k3 included."""
-    scene = make_scene("ir_rig", camera_count=3, width=1280, height=1024, baseline=1.0)
-    dist = np.array([-0.25, 0.1, 2e-3, -1e-3, -0.02])
-    return [CameraModel(c.name, c.width, c.height, c.K, dist * (1.0 + 0.3 * k), c.T_rig_camera)
-            for k, c in enumerate(scene.cameras)]
+def cameras(distorted_cameras):
+    """Three cameras with a stronger distortion than the scene's (``tests/unit/conftest.py``)."""
+    return distorted_cameras
 
 
 def observed(cameras, count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -137,10 +137,8 @@ def _fit_bodies(spheres: np.ndarray, sizes: np.ndarray, labels: np.ndarray, poin
                 if used[n]:
                     world[n] = points[indices[b, n]]
             T, error = _fit(mine, world[:size], used)
-            gate = gate_rms
-            if np.sum(used) == 3:
-                gate = three_turn_rad * _width(mine, used)
-            if error <= gate_rms and error <= gate:
+            gate = min(gate_rms, three_turn_rad * _width(mine, used)) if np.sum(used) == 3 else gate_rms
+            if error <= gate:
                 fitted[b], transforms[b], rms[b] = True, T, error
                 if with_covariances:
                     sigma = np.zeros((size, 3, 3))

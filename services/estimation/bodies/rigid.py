@@ -393,7 +393,6 @@ def fit_labelled(bodies: Mapping[str, np.ndarray], points: np.ndarray, covarianc
     return found
 
 
-
 def match_bodies(bodies: Mapping[str, np.ndarray], points_world: np.ndarray,
                  covariances: np.ndarray | None = None, options: MatchOptions = DEFAULT_OPTIONS) -> Matching:
     """Find the bodies among the points, each point used by at most one body.
