@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	$(BIN)/python -m services.estimation.bodies.kernels
+	$(BIN)/python -m services.launcher.kernels
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -41,7 +41,7 @@ install_step() {
         cat "$venv.log"; return 1
     fi
     "$venv/bin/artrack" --help >/dev/null || return 1
-    NUMBA_CACHE_DIR=$CACHE/numba "$venv/bin/python" -m services.estimation.bodies.kernels || return 1
+    NUMBA_CACHE_DIR=$CACHE/numba "$venv/bin/python" -m services.launcher.kernels || return 1
     local dev
     dev=$("$venv/bin/pip" list --format=freeze 2>/dev/null | grep -iE '^(pytest|hypothesis|ruff|mypy)==')
     if [ -n "$dev" ]; then echo "dev packages in the runtime install: $dev"; return 1; fi

@@ -9,12 +9,15 @@ from pathlib import Path
 import pytest
 
 from services.bus.stats import SeqGaps
+from services.detection.blobs import measure_kernel
 from services.estimation.bodies import kernels
+from services.launcher import kernels as launcher_kernels
 from services.launcher.flow import FlowSettings, lossless
 from services.launcher.job import JobFile, build_job
 from services.launcher.layout import SINGLE, laid_out
 from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, preflight, read_pipeline, to_toml
 from services.launcher.tracker import Tracker
+from services.runtime import compiled
 
 
 def job(tracker: str, **source) -> PipelineSpec:
@@ -109,19 +112,31 @@ def test_gaps_count_the_frames_skipped_and_start_over_when_a_source_does():
     assert gaps.tail(10) == (10 - 3) + (10 - 7)
 
 
-def test_the_stereo_job_s_preflight_prepares_the_compiled_kernels_once_and_says_so_when_it_compiles(
+def test_the_stereo_job_s_preflight_prepares_each_kind_s_compiled_kernels_once_and_says_so_when_it_compiles(
         monkeypatch, caplog):
-    calls: list[float] = []
-    monkeypatch.setattr(kernels, "LOADED_S", 0.05)
+    """Two blobs nodes and a bodies node: each kind's kernels prepared once; only a slow one is said compiling."""
+    calls: list[str] = []
+    monkeypatch.setattr(compiled, "LOADED_S", 0.05)
     spec = job("stereo", source=["synthetic:ir_rig"], frames=10)
-    monkeypatch.setattr(kernels, "warm", lambda: calls.append(0.0))
-    with caplog.at_level(logging.INFO, logger=kernels.__name__):
+    assert sorted(node.kind for node in spec.nodes.values()).count("blobs") == 2
+    monkeypatch.setattr(kernels, "warm", lambda: calls.append("bodies"))
+    monkeypatch.setattr(measure_kernel, "warm", lambda: calls.append("blobs"))
+    with caplog.at_level(logging.INFO, logger=compiled.__name__):
         preflight(spec, "job")
-    assert len(calls) == 1 and "compiling" not in caplog.text  # loaded from the cache: nothing said
-    monkeypatch.setattr(kernels, "warm", lambda: (time.sleep(0.3), calls.append(0.3)))
-    with caplog.at_level(logging.INFO, logger=kernels.__name__):
+    assert sorted(calls) == ["blobs", "bodies"] and "compiling" not in caplog.text  # loaded: nothing said
+    monkeypatch.setattr(kernels, "warm", lambda: (time.sleep(0.3), calls.append("bodies")))
+    with caplog.at_level(logging.INFO, logger=compiled.__name__):
         preflight(spec, "job")
-    assert len(calls) == 2 and "compiling the rigid bodies node's kernels" in caplog.text
+    assert sorted(calls) == ["blobs", "blobs", "bodies", "bodies"]
+    assert "compiling the rigid bodies node's kernels" in caplog.text and "blobs" not in caplog.text
+
+
+def test_every_kind_s_compiled_code_is_built_by_one_command(monkeypatch):
+    calls: list[str] = []
+    monkeypatch.setattr(kernels, "warm", lambda: calls.append("bodies"))
+    monkeypatch.setattr(measure_kernel, "warm", lambda: calls.append("blobs"))
+    assert launcher_kernels.prepare_all() == ["blobs", "rigid_bodies"]
+    assert calls == ["blobs", "bodies"]
 
 
 def test_a_stereo_job_on_a_missing_folder_names_the_folder_not_the_cameras_it_would_have_had(tmp_path):

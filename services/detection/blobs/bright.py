@@ -4,7 +4,7 @@ Pixels are those of the input image: x right, y down, the centre of the top-left
 
 ``detect_ir_blobs`` thresholds the image and finds its 8-connected components by border
 following (``cv2.findContours``, external borders only, so a component's holes count as
-inside it). Per component, in a small window around it:
+inside it). Per component, in a small window around it (measured in compiled code, ``measure_kernel``):
 
 * centroid: intensity-weighted, ``sum(w * p) / sum(w)`` with ``w = max(I - background, 0)``
   over the component grown by one pixel (the anti-aliased rim just below the threshold
@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.detection.blobs.measure_kernel import measure
 from services.detection.blobs.split import split_two_discs
 from services.geometry.shapes import check_shape
 
@@ -51,10 +52,6 @@ WINDOW_PAD = 2
 """Pixels around a component's bounding box in the window its centroid and shape are measured in."""
 BACKGROUND_STRIDE = 8
 """The estimated background is the median of every ``BACKGROUND_STRIDE``-th pixel along both axes."""
-_GROW = np.ones((3, 3), np.uint8)
-STACK_WASTE, STACK_SPARE = 4, 4096
-"""Windows are stacked in one tall image while it holds at most ``STACK_WASTE`` times their own pixels and
-``STACK_SPARE`` more (``stack_groups``)."""
 
 
 class BlobFlag(enum.IntFlag):
@@ -176,9 +173,9 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     """Bright blobs of ``image`` ((H, W) uint8 or uint16 grey levels, the scale of ``params.threshold``), in the
     order found.
 
-    The components' windows (bounding box grown by ``WINDOW_PAD``) are cut out together as the
-    slots of one tall image (``Windows``): their rims and weights are a few operations on it, and
-    only the moments and the shape are taken component by component."""
+    Every component is measured in its window (bounding box grown by ``WINDOW_PAD``) by one call of the
+    compiled ``measure_kernel.measure``, which holds no lock of Python's; the filters, the moments' shape and
+    the flags are then taken component by component."""
     image = check_mono(image)
     params = params or IrBlobParams()
     shape = shape or ShapeParams()
@@ -188,44 +185,31 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     else:
         binary = cv2.compare(image, params.threshold, cv2.CMP_GT)  # type: ignore[call-overload]
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    boxes = [cv2.boundingRect(c) for c in contours]
-    big = [k for k, (_, _, w, h) in enumerate(boxes) if w * h >= shape.min_area]
-    if not big:
+    if not contours:
         return Blobs.from_rows([])
+    starts = np.zeros(len(contours) + 1, np.int64)
+    np.cumsum([len(c) for c in contours], out=starts[1:])
     background = grid_median(image) if params.background is None else params.background
-    weights_of, origin_of, area_of = {}, {}, {}
-    for group in stack_groups([boxes[k] for k in big], (height, width)):
-        members = [big[g] for g in group]
-        windows = Windows.cut(image, [boxes[k] for k in members], [contours[k] for k in members])
-        weights = windows.weights(params.threshold, background)
-        areas = (windows.filled.reshape(len(members), -1).sum(axis=1, dtype=np.int64) // 255).tolist()
-        for slot, k in enumerate(members):
-            weights_of[k], origin_of[k], area_of[k] = weights[slot], (windows.x0[slot], windows.y0[slot]), areas[slot]
+    table, buffer = measure(image, binary, np.concatenate(contours).reshape(-1, 2), starts, float(background),
+                            WINDOW_PAD)
     rows = []
-    for k in big:
-        area = float(area_of[k])
+    for (x0, y0, h, w, offset, area, perimeter, polygon_area, hull_area, m00, m10, m01, mu20, mu11, mu02,
+         box_x, box_y, box_w, box_h) in table.tolist():
         radius = math.sqrt(area / math.pi)
-        if not (shape.min_area <= area <= shape.max_area and params.min_radius <= radius <= params.max_radius):
+        if not (box_w * box_h >= shape.min_area and shape.min_area <= area <= shape.max_area
+                and params.min_radius <= radius <= params.max_radius):
             continue
-        contour = contours[k]
-        perimeter = cv2.arcLength(contour, True)
-        polygon_area = cv2.contourArea(contour)
         circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
-        if circularity < shape.min_circularity:
+        if circularity < shape.min_circularity or m00 <= 0.0:
             continue
-        window = weights_of[k]
-        moments = cv2.moments(window)
-        if moments["m00"] <= 0.0:
-            continue
-        centroid, axis, roundness = moment_shape(moments)
-        hull_area = cv2.contourArea(cv2.convexHull(contour))
+        centroid, axis, roundness = moment_shape({"m00": m00, "m10": m10, "m01": m01, "mu20": mu20, "mu11": mu11,
+                                                  "mu02": mu02})
         solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
+        window = buffer[int(offset):int(offset + h * w)].reshape(int(h), int(w))
         irregular = roundness < shape.min_roundness or solidity < params.min_solidity
         flags = int(shape_flags(window, centroid, axis, True, shape.waist_depth)) if irregular else 0
-        x, y, w, h = boxes[k]
-        if x == 0 or y == 0 or x + w == width or y + h == height:
+        if box_x == 0 or box_y == 0 or box_x + box_w == width or box_y + box_h == height:
             flags |= CLIPPED
-        x0, y0 = origin_of[k]
         rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity, roundness * solidity,
                      flags))
         if flags & SPLITTABLE and (discs := split_two_discs(window, centroid, axis)) is not None:
@@ -244,71 +228,6 @@ def grid_median(image: np.ndarray) -> float:
         return float(np.partition(sample, middle)[middle])
     low, high = np.partition(sample, [middle - 1, middle])[middle - 1:middle + 1].tolist()
     return (low + high) / 2.0
-
-
-def stack_groups(boxes: Sequence[Sequence[int]], image_size: tuple[int, int]) -> list[list[int]]:
-    """The components with bounding boxes ``(x, y, w, h)`` px in an image of ``image_size`` (H, W), as groups
-    of indices whose windows are stacked together (``Windows``): all in one group unless the slots of the
-    largest window would be mostly padding (a stack over ``STACK_WASTE`` times the windows' own pixels and
-    ``STACK_SPARE`` more), then grouped by the powers of two of their windows' height and width."""
-    image_height, image_width = image_size
-    sizes = [(min(y + h + WINDOW_PAD, image_height) - max(y - WINDOW_PAD, 0) + 1,
-              min(x + w + WINDOW_PAD, image_width) - max(x - WINDOW_PAD, 0)) for x, y, w, h in boxes]
-    own = sum(h * w for h, w in sizes)
-    if len(sizes) * max(h for h, _ in sizes) * max(w for _, w in sizes) <= STACK_WASTE * own + STACK_SPARE:
-        return [list(range(len(sizes)))]
-    groups: dict[tuple[int, int], list[int]] = {}
-    for k, (h, w) in enumerate(sizes):
-        groups.setdefault((h.bit_length(), w.bit_length()), []).append(k)
-    return list(groups.values())
-
-
-@dataclass(frozen=True)
-class Windows:
-    """K components' windows cut out of an image as the slots of one tall image: slot k is rows
-    ``k * height`` to ``(k + 1) * height`` of ``pixels`` (its last row spare), its pixel (0, 0) the
-    image's pixel (``x0[k]``, ``y0[k]``), ``width`` columns, what lies outside the image 0.
-
-    ``pixels``: (K * height, width) the image's grey levels; ``filled``: (K, height, width) uint8,
-    255 inside each component's border (its pixels and its holes) in its slot."""
-
-    x0: list[int]
-    y0: list[int]
-    height: int
-    width: int
-    pixels: np.ndarray
-    filled: np.ndarray
-
-    @classmethod
-    def cut(cls, image: np.ndarray, boxes: Sequence[Sequence[int]],
-            contours: Sequence[np.ndarray]) -> Windows:
-        """The windows of components with bounding boxes ``(x, y, w, h)`` px and borders ``contours``
-        (image pixels), each box grown by ``WINDOW_PAD`` within ``image``."""
-        image_height, image_width = image.shape
-        corners = [(max(x - WINDOW_PAD, 0), max(y - WINDOW_PAD, 0), min(x + w + WINDOW_PAD, image_width),
-                    min(y + h + WINDOW_PAD, image_height)) for x, y, w, h in boxes]
-        height = max(y1 - y0 for _, y0, _, y1 in corners) + 1
-        width = max(x1 - x0 for x0, _, x1, _ in corners)
-        pixels = np.zeros((len(corners) * height, width), image.dtype)
-        filled = np.zeros(pixels.shape, np.uint8)
-        for k, ((x0, y0, x1, y1), contour) in enumerate(zip(corners, contours, strict=True)):
-            top = k * height
-            pixels[top:top + y1 - y0, :x1 - x0] = image[y0:y1, x0:x1]
-            cv2.drawContours(filled, [contour], 0, 255, cv2.FILLED, offset=(-x0, top - y0))
-        return cls([c[0] for c in corners], [c[1] for c in corners], height, width, pixels,
-                   filled.reshape(len(corners), height, width))
-
-    def weights(self, threshold: float, background: float) -> np.ndarray:
-        """(K, height, width) float32 centroid weights ``max(level - background, 0)`` over each component
-        grown by one pixel (8-neighbours), less the pixels above ``threshold`` outside it."""
-        own = self.filled.reshape(self.pixels.shape)
-        bright = cv2.compare(self.pixels, threshold, cv2.CMP_GT)  # type: ignore[call-overload]
-        rim = cv2.max(own, cv2.subtract(cv2.dilate(own, _GROW), bright))
-        weights = np.zeros(own.shape, np.float32)
-        cv2.subtract(self.pixels, background, dst=weights, mask=rim,  # type: ignore[call-overload]
-                     dtype=cv2.CV_32F)
-        np.maximum(weights, 0.0, out=weights)
-        return weights.reshape(self.filled.shape)
 
 
 def moment_shape(moments: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float], float]:

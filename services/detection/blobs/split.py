@@ -143,7 +143,7 @@ def split_two_discs(weights: np.ndarray, centroid: tuple[float, float], axis: tu
     """The two discs that best explain one blob, or None when the fit fails (no two distinct discs, or a
     residual RMS above ``MAX_RMS`` of the peak) or the blob has fewer than ``MIN_PIXELS`` lit pixels.
 
-    ``weights``: (h, w) float window of the blob's centroid weights (``bright.Windows.weights``: 0 off the
+    ``weights``: (h, w) float window of the blob's centroid weights (``measure_kernel.measure``: 0 off the
     blob); ``centroid``: its weighted centroid ``(x, y)`` px in the window; ``axis``: its major axis
     ``(cos, sin)``, a unit vector. The fitted centres come out in the order of their seeds along ``axis``."""
     rows, columns = np.nonzero(weights)

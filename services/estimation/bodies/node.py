@@ -64,11 +64,10 @@ from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
 from services.convert import CameraModels, transform_from_matrix
+from services.estimation.bodies import kernels
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
 from services.estimation.bodies.file import check_bodies, load_bodies
-from services.estimation.bodies.kernels import prepare as prepare_kernels
-from services.estimation.bodies.kernels import warm as warm_kernels
 from services.estimation.bodies.labelled import Found, track_blobs
 from services.estimation.bodies.rigid import Matching, MatchOptions, match_bodies
 from services.estimation.bodies.tracking import BodyTracker, TrackingOptions
@@ -76,6 +75,7 @@ from services.estimation.markers.tracking import TargetTracks
 from services.geometry.absolute_orientation import child_frame_covariance
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import TriangulatedPoint
+from services.runtime import compiled
 from services.runtime.kind import FrameSizes, NodeKind
 from services.runtime.node import Node, NodeError
 from services.runtime.params import Flat, NodeParams
@@ -291,7 +291,7 @@ def run(node: Node, params: Params) -> None:
     infos = {} if rig is not None else {
         name: node.inbox(keys.camera_info(name), CameraInfo, Role.RESULT, depth=INFO_DEPTH) for name in params.cameras}
     calibration = Calibration(params.cameras, rig, infos)
-    warm_kernels()
+    kernels.warm()
     sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.RESULT, by="seq",
                        depth=params.sync_depth)
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
@@ -338,6 +338,10 @@ def _check_frames(params: Params, sizes: Callable[[], FrameSizes]) -> None:
                              f"are in the frames' pixels), use one made at {size[0]}x{size[1]}")
 
 
+def _prepare() -> None:
+    compiled.prepare(kernels.warm, "the rigid bodies node's kernels")
+
+
 KIND = NodeKind(name="rigid_bodies", summary="rigid bodies' 6-DoF poses from the blobs of a calibrated rig's cameras",
                 params=Params, run=run, inputs=_inputs, outputs=("points", "pose/body/**"), check=_check,
-                check_frames=_check_frames, prepare=prepare_kernels)
+                check_frames=_check_frames, prepare=_prepare)
