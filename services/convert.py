@@ -48,7 +48,7 @@ def in_tree(tree: TransformTree, edges: Iterable[FrameTransform]) -> list[FrameT
 
 def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingState = TrackingState.TRACKING,
                  rms_px: float | None = None, inliers: int = 0, ambiguous: bool = False,
-                 covariance: np.ndarray | None = None) -> Pose:
+                 covariance: np.ndarray | None = None, residual_rms_m: float | None = None) -> Pose:
     """The ``Pose`` of a (4, 4) float64 rigid ``T_<header.frame_id>_<child>`` with its quality and (6, 6)
     ``covariance`` (None: none), as a tracker publishes it.
 
@@ -56,14 +56,16 @@ def pose_message(header: Header, child: str, T: np.ndarray, *, state: TrackingSt
     rather than the transform and the quality validated as models of their own first: a tracker node
     makes one for every pose of every frame. The result equals
     ``Pose(header=header, child_frame_id=child, state=state, transform=transform_from_matrix(T),
-    quality=PoseQuality(reprojection_rms_px=rms_px, inliers=inliers, ambiguous=ambiguous), covariance=...)``;
+    quality=PoseQuality(reprojection_rms_px=rms_px, residual_rms_m=residual_rms_m, inliers=inliers,
+    ambiguous=ambiguous), covariance=...)``;
     values the protocol refuses (a non-finite translation or covariance, a negative RMS) raise as there.
     """
     rows = np.asarray(T, dtype=np.float64).tolist()
     return Pose.model_validate({
         "header": header, "child_frame_id": child, "state": state,
         "transform": {"translation": (rows[0][3], rows[1][3], rows[2][3]), "rotation": quaternion_of_rows(rows)},
-        "quality": {"reprojection_rms_px": rms_px, "inliers": inliers, "ambiguous": ambiguous},
+        "quality": {"reprojection_rms_px": rms_px, "residual_rms_m": residual_rms_m, "inliers": inliers,
+                    "ambiguous": ambiguous},
         "covariance": None if covariance is None else np.asarray(covariance, dtype=np.float64).ravel().tolist(),
     })
 

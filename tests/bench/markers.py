@@ -1,8 +1,9 @@
 """Marker tracking speed: the live pipeline against the same work done in one process.
 
 * ``in_process``: the synthetic ``markers`` scene's frames (640x480, ``FRAMES`` of them) are
-  rendered first; then each is detected and its markers' poses estimated in this process,
-  with the pipeline's own settings, back to back. Per-frame time p50/p99.
+  rendered first; then each is detected (the corners refined with the calibration, as the node does once it
+  has one) and its markers' poses estimated in this process, with the pipeline's own settings, back to back.
+  Per-frame time p50/p99.
 * ``in_process_paced``: the same, one frame every 1/``FPS`` s as the live pipeline gets
   them. Idle gaps between frames cost the work itself cache and clock warmth, so this is the
   fair baseline for a paced pipeline; both are reported.
@@ -85,7 +86,7 @@ def in_process(settings: DetectorSettings, period_s: float = 0.0) -> dict[str, f
     times = []
     for image in at_rate(frames, period_s):
         started = time.perf_counter()
-        found = detector.detect(image)
+        found = detector.detect(image, camera.K, camera.dist)
         estimator.estimate(found.ids, found.corners, found.side_m, camera.K, camera.dist)
         times.append((time.perf_counter() - started) * 1e3)
     p50, p99 = np.percentile(times[WARMUP:], [50, 99])

@@ -243,3 +243,26 @@ def test_a_split_blobs_parts_go_only_to_exactly_two_predicted_spheres_inside_it(
     assert alone.tolist() == [[-1], [0]]
     taken = label_parts(projected, blobs, parts, np.array([[-1], [0], [-1]]), 3.0)[0]
     assert taken.tolist() == [[-1], [0], [-1]]
+
+
+def test_a_set_found_before_its_fits_are_learnt_is_the_set_of_a_whole_step():
+    """The node publishes a set's poses (``find``) before it takes the fits into the motions (``learn``): the sets
+    are those of ``__call__``, and ``find`` alone leaves every motion as it was."""
+    scene = make_scene("ir_rig")
+    indices = range(12)
+    names = tuple(c.name for c in scene.cameras)
+    whole = BodiesPerSet(scene.bodies, Params(cameras=names, sigma_px=SIGMA_PX))
+    split = BodiesPerSet(scene.bodies, Params(cameras=names, sigma_px=SIGMA_PX))
+    for index, frame in zip(indices, rendered_blobs(scene, indices), strict=True):
+        blobs = [pixels(b, flagged=False) for b in frame]
+        stamp_ns = round(scene.time_s(index) * 1e9)
+        expected, expected_bridged = whole(stamp_ns, list(scene.cameras), blobs)
+        velocities = {name: model.velocity() if model.ready else None for name, model in split.tracker.models.items()}
+        found, bridged = split.find(stamp_ns, list(scene.cameras), blobs)
+        for name, model in split.tracker.models.items():
+            assert (model.velocity() if model.ready else None) is velocities[name]  # nothing learnt yet
+        split.learn(stamp_ns, found)
+        assert set(found.matching.bodies) == set(expected.matching.bodies) and bridged.keys() == expected_bridged.keys()
+        for name, match in found.matching.bodies.items():
+            np.testing.assert_array_equal(match.fit.T_world_body, expected.matching.bodies[name].fit.T_world_body)
+    assert all(model.ready for model in split.tracker.models.values())

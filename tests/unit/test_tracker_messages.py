@@ -73,10 +73,11 @@ class Bench:
 
 def validated_pose(header: Header, child: str, T: np.ndarray, state: TrackingState = TrackingState.TRACKING,
                    rms_px: float | None = None, inliers: int = 0, ambiguous: bool = False,
-                   covariance: np.ndarray | None = None) -> Pose:
+                   covariance: np.ndarray | None = None, residual_rms_m: float | None = None) -> Pose:
     """The pose built part by part, each part validated on its own."""
     return Pose(header=header, child_frame_id=child, state=state, transform=transform_from_matrix(T),
-                quality=PoseQuality(reprojection_rms_px=rms_px, inliers=inliers, ambiguous=ambiguous),
+                quality=PoseQuality(reprojection_rms_px=rms_px, residual_rms_m=residual_rms_m, inliers=inliers,
+                                    ambiguous=ambiguous),
                 covariance=None if covariance is None else tuple(float(v) for v in np.ravel(covariance)))
 
 
@@ -101,7 +102,8 @@ def test_a_pose_message_is_the_pose_built_part_by_part():
         A = rng.normal(size=(6, 6))
         covariance = A @ A.T * 1e-6
         kwargs = {"state": (TrackingState.TRACKING, TrackingState.RECOGNISED)[n % 2], "rms_px": float(rng.random()),
-                  "inliers": n, "ambiguous": bool(n % 3 == 0), "covariance": covariance}
+                  "inliers": n, "ambiguous": bool(n % 3 == 0), "covariance": covariance,
+                  "residual_rms_m": (None, float(rng.random()) * 1e-3)[n % 2]}
         child = f"marker/{n}"
         assert_same(pose_message(HEADER, child, T, **kwargs), validated_pose(HEADER, child, T, **kwargs))
     bare = make_transform(rotations()[5], [0.1, -0.2, 0.7])
@@ -113,6 +115,7 @@ def test_a_pose_message_is_the_pose_built_part_by_part():
     {"covariance": np.full((6, 6), math.inf)},
     {"covariance": np.eye(5)},
     {"rms_px": -1.0},
+    {"residual_rms_m": -1e-3},
 ])
 def test_a_pose_message_refuses_what_the_protocol_refuses(change):
     args: dict[str, Any] = {"T": np.eye(4), "rms_px": 0.2, "covariance": np.eye(6), **change}

@@ -5,7 +5,8 @@ camera), joined by ``header.seq``: only the blobs of one instant are ever triang
 a camera's blobs that find no partners are counted as unjoined in the node's statistics
 (``NodeStats.synced``), never used. The rig (world = the rig frame) is the ``rig_file``
 (``services.calibration.rig``), else each camera's newest ``<camera>/camera_info``, whose
-``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so).
+``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so), taken in
+between sets, once a set's results are out.
 The bodies are the ``bodies`` file (``services.estimation.bodies.file``; ``artrack run`` gives a
 synthetic ``ir_rig`` source's own); what ``check_bodies`` finds doubtful about them is logged at
 start, one line each. Without a file the node looks for no body: every point is published
@@ -58,12 +59,12 @@ from protocol.detections import BLOB_SPLIT, Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
 from protocol.mocap import Points3D
-from protocol.poses import Pose, PoseQuality
+from protocol.poses import Pose
 from protocol.sensors import CameraInfo
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Publisher, Role
 from services.calibration.rig import Rig, read_rig
-from services.convert import CameraModels, transform_from_matrix
+from services.convert import CameraModels, pose_message
 from services.estimation.bodies import kernels
 from services.estimation.bodies.centroid_noise import CentroidNoise
 from services.estimation.bodies.correspondence import CorrespondenceOptions, triangulate_blobs
@@ -139,8 +140,10 @@ class Calibration:
         self._streams = {name: CameraModels(name) for name in cameras}
 
     def current(self) -> list[CameraModel] | None:
-        """The cameras in ``cameras`` order, None while one has no calibration yet."""
-        self.refresh()
+        """The cameras in ``cameras`` order, None while one has no calibration yet (the newest CameraInfo of each
+        then taken in: ``refresh``, which the node otherwise does once a set's results are out)."""
+        if len(self.models) < len(self.cameras):
+            self.refresh()
         if len(self.models) < len(self.cameras) and not self.waited:
             self.waited = True
             for name in self.cameras:
@@ -208,9 +211,16 @@ class BodiesPerSet:
 
     def __call__(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray],
                  parts: list[np.ndarray] | None = None) -> tuple[Found, dict[str, Prediction]]:
-        """The set's ``Found`` and name -> ``Prediction`` of the bodies bridged; ``blobs[c]``: (N_c, 2) pixels
-        of ``cameras[c]`` (``pixels``); ``parts[c]``: (P_c, 2, 2) its split blobs' parts (``split_parts``),
-        used by the bodies followed."""
+        """The set's ``Found`` and name -> ``Prediction`` of the bodies bridged (``find``), its fits then taken
+        into the bodies' motion (``learn``). ``blobs[c]``: (N_c, 2) pixels of ``cameras[c]`` (``pixels``);
+        ``parts[c]``: (P_c, 2, 2) its split blobs' parts (``split_parts``), used by the bodies followed."""
+        found, predicted = self.find(stamp_ns, cameras, blobs, parts)
+        self.learn(stamp_ns, found)
+        return found, predicted
+
+    def find(self, stamp_ns: int, cameras: list[CameraModel], blobs: list[np.ndarray],
+             parts: list[np.ndarray] | None = None) -> tuple[Found, dict[str, Prediction]]:
+        """``__call__`` but for ``learn``: what the node publishes, before it takes the fits in."""
         params = self.params
         if self.tracker is None:
             made = triangulate_blobs(cameras, blobs, params.correspondence)
@@ -220,7 +230,12 @@ class BodiesPerSet:
         forecasts = self.tracker.forecast(stamp_ns)
         found = track_blobs(cameras, blobs, self.bodies, {name: f.T_world_body for name, f in forecasts.items()},
                             self.noise.arrays, params.correspondence, params.match, params.tracking, parts)
-        return found, self.tracker.record(stamp_ns, found.matching, forecasts).predicted
+        return found, self.tracker.bridge(found.matching, forecasts).predicted
+
+    def learn(self, stamp_ns: int, found: Found) -> None:
+        """The bodies found at ``stamp_ns`` into their motion (with ``predict``), for the next set."""
+        if self.tracker is not None:
+            self.tracker.learn(stamp_ns, found.matching)
 
 
 def points_message(header: Header, found: list[TriangulatedPoint], names: list[str], matching: Matching,
@@ -239,22 +254,17 @@ def points_message(header: Header, found: list[TriangulatedPoint], names: list[s
 
 def body_poses(header: Header, matching: Matching) -> list[Pose]:
     """One ``tracking`` pose per body found."""
-    poses = []
-    for name, match in matching.bodies.items():
-        fit = match.fit
-        covariance = None if fit.covariance is None else child_frame_covariance(fit.covariance, fit.T_world_body)
-        poses.append(Pose(header=header, child_frame_id=f"body/{name}",
-                          transform=transform_from_matrix(fit.T_world_body),
-                          quality=PoseQuality(inliers=match.spheres_used, residual_rms_m=fit.residual_rms),
-                          covariance=None if covariance is None else tuple(covariance.ravel().tolist())))
-    return poses
+    return [pose_message(header, f"body/{name}", match.fit.T_world_body, inliers=match.spheres_used,
+                         residual_rms_m=match.fit.residual_rms,
+                         covariance=None if match.fit.covariance is None else
+                         child_frame_covariance(match.fit.covariance, match.fit.T_world_body))
+            for name, match in matching.bodies.items()]
 
 
 def predicted_poses(header: Header, predicted: Mapping[str, Prediction]) -> list[Pose]:
     """One ``predicted`` pose per body bridged: the predicted transform and its grown covariance, no inliers."""
-    return [Pose(header=header, child_frame_id=f"body/{name}", state=TrackingState.PREDICTED,
-                 transform=transform_from_matrix(p.T_world_body),
-                 covariance=tuple(child_frame_covariance(p.covariance, p.T_world_body).ravel().tolist()))
+    return [pose_message(header, f"body/{name}", p.T_world_body, state=TrackingState.PREDICTED,
+                         covariance=child_frame_covariance(p.covariance, p.T_world_body))
             for name, p in predicted.items()]
 
 
@@ -306,11 +316,13 @@ def run(node: Node, params: Params) -> None:
             node.report("no_calibration", f"no CameraInfo for {', '.join(calibration.missing())} and no rig file: "
                         "nothing triangulated", keys.camera_info(calibration.missing()[0]))
             continue
-        found, predicted = per_set(header.stamp_ns, cameras,
-                                   [pixels(joined[name], params.flagged) for name in params.cameras],
-                                   [split_parts(joined[name]) for name in params.cameras])
+        found, predicted = per_set.find(header.stamp_ns, cameras,
+                                        [pixels(joined[name], params.flagged) for name in params.cameras],
+                                        [split_parts(joined[name]) for name in params.cameras])
         poses.put(header, body_poses(header, found.matching) + predicted_poses(header, predicted))
         points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
+        per_set.learn(header.stamp_ns, found)
+        calibration.refresh()
 
 
 def _inputs(params: Params) -> tuple[str, ...]:

@@ -131,18 +131,27 @@ class BodyTracker:
 
     def record(self, stamp_ns: int, matching: Matching, forecasts: Mapping[str, Prediction]) -> Tracked:
         """Take in the bodies found at ``stamp_ns`` (``matching``; ``forecasts`` as ``forecast`` gave them):
-        update their motion and bridge those missing."""
-        bridged: dict[str, int] = {}
+        bridge those missing (``bridge``) and update the motion of those found (``learn``)."""
+        tracked = self.bridge(matching, forecasts)
+        self.learn(stamp_ns, matching)
+        return tracked
+
+    def bridge(self, matching: Matching, forecasts: Mapping[str, Prediction]) -> Tracked:
+        """The bodies found (``matching``) and those missing from it given their forecasts, while they may still
+        be bridged; the motions are left as they were (``learn`` takes the fits in)."""
+        bridged: dict[str, int] = {name: 0 for name in matching.bodies}
         predicted: dict[str, Prediction] = {}
-        for name, match in matching.bodies.items():
-            self.models[name].update(stamp_ns, match.fit.T_world_body, match.fit.covariance)
-            bridged[name] = 0
         for name, count in self.bridged.items():
             if name not in bridged and count < self.tracking.bridge and name in forecasts:
                 predicted[name] = forecasts[name]
                 bridged[name] = count + 1
         self.bridged = bridged
         return Tracked(matching, predicted)
+
+    def learn(self, stamp_ns: int, matching: Matching) -> None:
+        """Each body found at ``stamp_ns`` (``matching``) into its motion, for the next instant's forecast."""
+        for name, match in matching.bodies.items():
+            self.models[name].update(stamp_ns, match.fit.T_world_body, match.fit.covariance)
 
     def step(self, stamp_ns: int, points_world: np.ndarray, covariances: np.ndarray | None = None) -> Tracked:
         """One instant of points: ``forecast``, the bodies matched among the (M, 3) ``points_world`` (with (M, 3, 3)
