@@ -220,6 +220,7 @@ def _publish(node: Node, params: Params, rig: Rig) -> None:
         node.wait(SETTLE_S)
     if rig.calibration:
         _publish_static_transforms(node, rig)
+    node.settle()
     seq = 0
     stamped = _StampedInfos(rig)
     late = _Lateness(node, keys.image(rig.names[0]))

@@ -295,6 +295,7 @@ def replay(node: Node, params: Params) -> Replayed:
         _wait_for_subscriber(node, selection.probes, params.wait_s)
         if params.paused:
             node.log.info("paused; `artrack control %s resume` (or step) to go on", node.name)
+        node.settle()
         while node.running:
             result = play_pass(params.path, pacer, outputs.publish, select=selection, window=params.window(),
                                prepare=outputs.declare)

@@ -392,12 +392,21 @@ class Node:
         return credits
 
     def ready(self) -> None:
-        """Say, once, that the node's inputs are subscribed: ``serving`` is set, and an ack of -1 goes out
-        when it acknowledges frames."""
+        """Say, once, that the node's inputs are subscribed: what it built to get there is settled (``settle``),
+        ``serving`` is set, and an ack of -1 goes out when it acknowledges frames."""
+        if not self.serving.is_set():
+            self.settle()
         self.serving.set()
         if self.flow.acks and not self._ready:
             self._ready = True
             self.ack(-1)
+
+    def settle(self) -> None:
+        """The node's set-up is done (its inputs subscribed, or a source's first frame next): collect once and
+        leave every object alive now out of later collections (``memory.settle_heap``). What a node builds as it
+        starts (its scene, detectors, compiled kernels) would otherwise stay for the full collections to walk
+        again and again, each a pause of tens of milliseconds in the middle of its frames."""
+        settle_heap()
 
     def ack(self, seq: int) -> None:
         """Acknowledge every frame up to ``seq`` as dealt with (only when the flow plan asks for acks)."""
