@@ -4,7 +4,7 @@ The method of ``services.geometry.triangulation.triangulate_many``, one point at
 ``numba`` compiles to machine code: a DLT over the views on ideal pinhole pixels (each view's two rows
 scaled to unit norm, the right singular vector of least singular value), Gauss-Newton on the reprojection
 error through plumb_bob distortion (``services.geometry.camera_stack``'s model, written out), and the
-covariance ``(J^T J)^+ sigma_px^2``. For the few points of one instant of a motion-capture rig a NumPy
+covariance ``(J^T J)^+ sigma_px^2`` (the 3x3 systems in closed form, by the adjugate). For the few points of one instant of a motion-capture rig a NumPy
 batch costs more in calls than in arithmetic; here it costs the arithmetic alone. The compiled code is
 cached on disk beside this module (``cache=True``), so a process after the first loads it in milliseconds.
 
@@ -74,6 +74,38 @@ def _evaluate(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, pix
 
 
 @njit(cache=True, nogil=True)
+def _normal(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(J^T J (3, 3), J^T r (3,))`` of J (M, 3) and r (M,), summed row by row (no BLAS call for a few rows)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for m in range(J.shape[0]):
+        for i in range(3):
+            b[i] += J[m, i] * r[m]
+            for j in range(i, 3):
+                A[i, j] += J[m, i] * J[m, j]
+    for i in range(3):
+        for j in range(i):
+            A[i, j] = A[j, i]
+    return A, b
+
+
+@njit(cache=True, nogil=True)
+def _inverse(A: np.ndarray) -> np.ndarray:
+    """The inverse of the symmetric (3, 3) ``A`` by its adjugate, or its pseudo-inverse (``np.linalg.pinv``) when
+    its determinant is under 1e-12 of the product of its diagonal (singular to working precision)."""
+    adjugate = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            i1, i2 = (j + 1) % 3, (j + 2) % 3
+            j1, j2 = (i + 1) % 3, (i + 2) % 3
+            adjugate[i, j] = A[i1, j1] * A[i2, j2] - A[i1, j2] * A[i2, j1]
+    determinant = A[0, 0] * adjugate[0, 0] + A[0, 1] * adjugate[1, 0] + A[0, 2] * adjugate[2, 0]
+    if not abs(determinant) > 1e-12 * abs(A[0, 0] * A[1, 1] * A[2, 2]):
+        return np.ascontiguousarray(np.linalg.pinv(A))
+    return adjugate / determinant
+
+
+@njit(cache=True, nogil=True)
 def _dlt(projections: np.ndarray, ideal: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """(3,) DLT point of one point's ideal pixels (C, 2) in the cameras it is ``seen`` (C,) in; NaN at infinity."""
     cameras = len(seen)
@@ -139,13 +171,8 @@ def _triangulate(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, 
         finite = np.all(np.isfinite(X))
         if finite:
             for _ in range(iterations):
-                r = residuals[n].ravel()
-                A = J.T @ J
-                b = J.T @ r
-                try:
-                    step = -np.linalg.solve(A, b)
-                except Exception:  # noqa: BLE001 - numba raises LinAlgError as a plain exception
-                    step = -(np.linalg.pinv(A) @ b)
+                A, b = _normal(J, residuals[n].ravel())
+                step = -(_inverse(A) @ b)
                 if np.sqrt(np.sum(step**2)) < step_tolerance:
                     break
                 candidate = X + step
@@ -156,9 +183,9 @@ def _triangulate(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, 
                 residuals[n] = candidate_residuals
                 J[:] = candidate_J
         points[n] = X
-        information = J.T @ J
+        information, _ = _normal(J, residuals[n].ravel())
         if finite and np.all(np.isfinite(information)):
-            covariances[n] = np.linalg.pinv(information) * sigma_px**2
+            covariances[n] = _inverse(information) * sigma_px**2
             rms[n] = np.sqrt(error / max(np.sum(seen[n]), 1))
     return points, residuals, rms, covariances
 

@@ -1,7 +1,7 @@
 """The compiled triangulation against libraries: its points are the minimisers scipy's least_squares finds on the
 reprojection error through OpenCV's projection, its covariances the inverse of the Gauss-Newton information built
 from OpenCV's own derivatives, and its DLT start (no refinement) that of cv2.triangulatePoints
-(up to the rows' scaling) and of the NumPy batch."""
+(up to the rows' scaling) and of the NumPy batch; its closed-form 3x3 normal equations and inverse NumPy's."""
 
 import cv2
 import numpy as np
@@ -12,7 +12,7 @@ from services.geometry.camera import undistort_pixels
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import invert
 from services.geometry.triangulation import projection_matrix, reproject, triangulate_dlt_many
-from services.geometry.triangulation_kernel import triangulate_points
+from services.geometry.triangulation_kernel import _inverse, _normal, triangulate_points
 
 SIGMA_PX = 0.2
 
@@ -97,3 +97,15 @@ def test_a_given_start_reaches_the_dlt_s_minimum_and_a_point_seen_once_or_withou
     parallel = solve(cameras[:2], np.full((1, 2, 2), 300.0), np.full((1, 2, 2), 300.0), np.ones((1, 2), bool),
                      start=np.full((1, 3), np.nan))
     assert np.all(np.isnan(parallel[0])) and parallel[2][0] == np.inf
+
+
+def test_the_closed_form_3x3_inverse_is_numpys_and_the_pseudo_inverse_where_singular():
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        J = rng.normal(size=(6, 3)) * rng.uniform(1e-3, 1e3, size=3)
+        information = J.T @ J
+        np.testing.assert_allclose(_inverse(information), np.linalg.inv(information), rtol=1e-9)
+        np.testing.assert_allclose(_normal(J, J[:, 0])[0], information, rtol=1e-12)
+        np.testing.assert_allclose(_normal(J, J[:, 0])[1], J.T @ J[:, 0], rtol=1e-12)
+    ray = np.outer([1.0, 2.0, -1.0], [1.0, 2.0, -1.0]) + np.outer([0.0, 1.0, 2.0], [0.0, 1.0, 2.0])  # rank 2
+    np.testing.assert_allclose(_inverse(ray), np.linalg.pinv(ray), atol=1e-12)
