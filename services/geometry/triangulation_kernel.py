@@ -4,9 +4,10 @@ The method of ``services.geometry.triangulation.triangulate_many``, one point at
 ``numba`` compiles to machine code: a DLT over the views on ideal pinhole pixels (each view's two rows
 scaled to unit norm, the right singular vector of least singular value), Gauss-Newton on the reprojection
 error through plumb_bob distortion (``services.geometry.camera_stack``'s model, written out), and the
-covariance ``(J^T J)^+ sigma_px^2`` (the 3x3 systems in closed form, by the adjugate). For the few points of one instant of a motion-capture rig a NumPy
-batch costs more in calls than in arithmetic; here it costs the arithmetic alone. The compiled code is
-cached on disk beside this module (``cache=True``), so a process after the first loads it in milliseconds.
+covariance ``(J^T J)^+ sigma_px^2`` (the 3x3 systems in closed form, by the adjugate). For the few points
+of one instant of a motion-capture rig a NumPy batch costs more in calls than in arithmetic; here it costs
+the arithmetic alone. The compiled code is cached on disk beside this module (``cache=True``), so a process
+after the first loads it in milliseconds.
 
 World = the cameras' common frame; pixels in px, points in m.
 """
