@@ -152,3 +152,13 @@ def test_a_large_blob_among_small_ones_gives_the_reference_blobs():
     found = detect_ir_blobs(image)
     assert np.max(found.area) > 6000
     assert_same(found, reference_blobs(image, IrBlobParams(), ShapeParams()))
+
+
+def test_an_image_given_as_a_view_or_in_fortran_order_gives_the_blobs_of_its_copy():
+    """The kernel takes C-ordered images; any other layout is copied to one first, never measured as it is."""
+    image = scene_images()[0]
+    expected = detect_ir_blobs(np.ascontiguousarray(image[:, 40:600]))
+    assert len(expected) >= 5
+    for layout in (image[:, 40:600], np.asfortranarray(image[:, 40:600])):
+        assert not layout.flags.c_contiguous
+        assert_same(detect_ir_blobs(layout), expected)

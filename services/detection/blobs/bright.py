@@ -176,7 +176,7 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     Every component is measured in its window (bounding box grown by ``WINDOW_PAD``) by one call of the
     compiled ``measure_kernel.measure``, which holds no lock of Python's; the filters, the moments' shape and
     the flags are then taken component by component."""
-    image = check_mono(image)
+    image = np.ascontiguousarray(check_mono(image))  # the kernel is compiled for C-ordered images only
     params = params or IrBlobParams()
     shape = shape or ShapeParams()
     height, width = image.shape
