@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     os.environ[FORMAT_ENV] = chosen  # processes started from here (`up`'s nodes) log the same way
     setup_logging(log_format=chosen)
-    native_logs_to_stderr()
+    native_logs_to_stderr(chosen)
     tune_malloc()
     try:
         return args.func(args)

@@ -39,13 +39,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.runtime.logs import is_native_line
 from services.runtime.restarts import EXIT_CANNOT_RUN, RESTART_ENV
 
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
-ZENOH_LINE_START = "\x1b["
-"""How Zenoh's own log lines begin (a colour code before their timestamp)."""
 RELAY_JOIN_S = 2.0
 """How long to wait, once a child exited, for the last of its stderr to come through."""
 
@@ -168,14 +167,14 @@ def _reason(code: int, last_line: str) -> str:
 
 def _relay(child: _Child, pipe) -> None:
     """Copy the child's stderr to ours line by line, keeping its last non-blank line of its own (Zenoh's
-    log lines, which start with a terminal colour code, are copied but never taken as the reason)."""
+    log lines, in colour or as JSON records, are copied but never taken as the reason)."""
     with pipe:
         for raw in pipe:
             line = raw.decode(errors="replace")
             with contextlib.suppress(OSError, ValueError):  # our stderr gone: keep reading, so the child never blocks
                 sys.stderr.write(line)
                 sys.stderr.flush()
-            if line.strip() and not line.startswith(ZENOH_LINE_START):
+            if line.strip() and not is_native_line(line):
                 child.last_line = line.strip()
 
 

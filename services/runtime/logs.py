@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import sys
 import threading
 from datetime import UTC, datetime
@@ -70,7 +71,7 @@ class OthersBelowWarning(logging.Filter):
     """Lets through every record of artrack's own loggers and other loggers' from WARNING up."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        own = record.name.split(".", 1)[0] in OWN_LOGGERS
+        own = record.name.split(".", 1)[0] in OWN_LOGGERS or record.name == NATIVE_LOGGER
         return own or record.levelno >= logging.WARNING
 
 
@@ -102,16 +103,61 @@ def setup_logging(*, log_format: LogFormat = "text", level: str | None = None, n
         handler.addFilter(OthersBelowWarning())
 
 
-def native_logs_to_stderr() -> None:
+NATIVE_LOGGER = "zenoh"
+"""Logger of the lines native code writes to descriptor 1 (Zenoh's, in Rust) when logging JSON."""
+
+_COLOUR = re.compile(r"\x1b\[[0-9;]*m")
+_TRACING_LINE = re.compile(r"^\S+\s+(TRACE|DEBUG|INFO|WARN|ERROR)\s+(.*)$")
+_TRACING_LEVELS = {"TRACE": logging.DEBUG, "DEBUG": logging.DEBUG, "INFO": logging.INFO,
+                   "WARN": logging.WARNING, "ERROR": logging.ERROR}
+
+
+def native_record(line: str) -> tuple[int, str]:
+    """The level and message of one line written by native code: a Rust ``tracing`` line
+    (``<time> <LEVEL> <message>``, with or without terminal colours) keeps its level and loses its
+    time and colours; any other line is a warning as it stands."""
+    plain = _COLOUR.sub("", line).strip()
+    match = _TRACING_LINE.match(plain)
+    if match:
+        return _TRACING_LEVELS[match[1]], match[2]
+    return logging.WARNING, plain
+
+
+def is_native_line(line: str) -> bool:
+    """Whether a line a process wrote to stderr is native code's rather than its own: a Rust
+    ``tracing`` line in colour, or a JSON record of :data:`NATIVE_LOGGER`."""
+    if line.startswith("\x1b["):
+        return True
+    if not line.startswith("{"):
+        return False
+    try:
+        return json.loads(line).get("logger") == NATIVE_LOGGER
+    except (ValueError, AttributeError):
+        return False
+
+
+def _log_native_lines(fd: int) -> None:
+    logger = logging.getLogger(NATIVE_LOGGER)
+    with os.fdopen(fd, "rb") as pipe:
+        for raw in pipe:
+            level, message = native_record(raw.decode(errors="replace"))
+            if message:
+                logger.log(level, message)
+
+
+def native_logs_to_stderr(log_format: LogFormat = "text") -> None:
     """Send what native libraries write to file descriptor 1 to stderr, keeping ``sys.stdout`` on
     the process's real standard output.
 
     Zenoh's own log lines (Rust, enabled by ``RUST_LOG``, and errors such as a gossip message
     about an unknown link) are written to descriptor 1, where they would land in a command's
-    output (``status --json``, ``echo``, ``export``). After this call descriptor 1 is a copy of
-    stderr (and so is every child process's standard output), while Python's ``print`` writes to
-    a new descriptor on the original stdout. Does nothing when ``sys.stdout`` is not on
-    descriptor 1 (already moved, or replaced by a caller such as a test's capture)."""
+    output (``status --json``, ``echo``, ``export``). After this call descriptor 1 leads to stderr
+    (and so does every child process's standard output), while Python's ``print`` writes to a new
+    descriptor on the original stdout. In ``text`` format descriptor 1 becomes a copy of stderr; in
+    ``json`` format it becomes a pipe whose lines a thread logs as records of :data:`NATIVE_LOGGER`
+    (level from the line, every level let through, ``RUST_LOG`` choosing how many), so that stderr
+    holds JSON objects only. Does nothing when ``sys.stdout`` is not on descriptor 1 (already moved,
+    or replaced by a caller such as a test's capture)."""
     try:
         on_fd1 = sys.stdout is not None and sys.stdout.fileno() == 1
     except (AttributeError, OSError, ValueError):
@@ -120,5 +166,12 @@ def native_logs_to_stderr() -> None:
         return
     sys.stdout.flush()
     original = os.dup(1)
-    os.dup2(2, 1)
+    if log_format == "json":
+        read, write = os.pipe()
+        os.dup2(write, 1)
+        os.close(write)
+        logging.getLogger(NATIVE_LOGGER).setLevel(logging.DEBUG)
+        threading.Thread(target=_log_native_lines, args=(read,), name="native log lines", daemon=True).start()
+    else:
+        os.dup2(2, 1)
     sys.stdout = os.fdopen(original, "w", buffering=1, encoding=sys.stdout.encoding, errors=sys.stdout.errors)

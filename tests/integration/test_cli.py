@@ -14,6 +14,7 @@ import pytest
 
 from protocol.message import Header
 from services.cli import parser
+from services.runtime.logs import NATIVE_LOGGER
 
 from .support import START_S, json_lines, live_names, start_node, states, wait_live, wait_until
 
@@ -68,6 +69,15 @@ def test_zenoh_log_lines_go_to_stderr_and_leave_json_output_whole(bus, procs):
     assert "zenoh" in status.stderr  # Zenoh's own log lines were written, to stderr
     report = json.loads(status.stdout)  # stdout holds the JSON document alone
     assert report["healthy"] is False and report["pipelines"] == []
+
+
+def test_with_json_logs_zenoh_log_lines_are_json_records_too(bus, procs):
+    status = procs.run("--log-format", "json", "status", "--timeout", "1", "--json", env={"RUST_LOG": "info"})
+    records = json_lines(status.stderr)  # every line on stderr is one JSON object, Zenoh's included
+    native = [r for r in records if r["logger"] == NATIVE_LOGGER]
+    assert native and {r["level"] for r in native} <= {"info", "warning", "error"}, status.stderr
+    assert all("\x1b[" not in r["message"] for r in native)
+    assert json.loads(status.stdout)["pipelines"] == []
 
 
 def test_list_says_when_no_node_is_up(bus, procs):

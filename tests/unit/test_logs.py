@@ -1,11 +1,12 @@
 """Log set-up: artrack's own records at the chosen level, other libraries' only from WARNING up
 (everything at DEBUG)."""
 
+import json
 import logging
 
 import pytest
 
-from services.runtime.logs import setup_logging
+from services.runtime.logs import NATIVE_LOGGER, is_native_line, native_record, setup_logging
 
 
 @pytest.fixture
@@ -40,3 +41,23 @@ def test_everything_shows_at_debug(root_logger, capsys):
     err = capsys.readouterr().err
     for text in ("NumExpr", "a library's warning", "artrack's own line", "a module's line", "a debug line"):
         assert text in err, text
+
+
+RUST_LINE = ("\x1b[2m2026-11-29T06:55:16.142735Z\x1b[0m \x1b[31mERROR\x1b[0m acc-0 ThreadId(06) "
+             "\x1b[2mzenoh_transport::unicast::universal::transport\x1b[0m: link closed")
+
+
+def test_a_rust_tracing_line_keeps_its_level_and_loses_its_time_and_colours():
+    assert native_record(RUST_LINE) == (
+        logging.ERROR, "acc-0 ThreadId(06) zenoh_transport::unicast::universal::transport: link closed")
+    assert native_record("2026-11-29T06:55:16Z  WARN  a warning\n") == (logging.WARNING, "a warning")
+    assert native_record("something else\n") == (logging.WARNING, "something else")
+
+
+def test_native_lines_are_told_from_a_process_own_lines_in_either_format():
+    assert is_native_line(RUST_LINE)
+    assert is_native_line(json.dumps({"level": "error", "logger": NATIVE_LOGGER, "message": "x"}))
+    assert not is_native_line(json.dumps({"level": "error", "logger": "services.cli", "message": "x"}))
+    assert not is_native_line("job: nodes.capture: images:/nope: no such folder")
+    assert not is_native_line("{not json")
+
