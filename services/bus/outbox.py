@@ -8,13 +8,15 @@ before it could start. An ``Outbox`` takes such sends to one thread of its own: 
 returns at once, and the encoding overlaps the subscriber's work (OpenCV releases the interpreter
 while it detects).
 
-Sends leave in the order they were put, whichever publisher put them: a send that needs no deferring
-(nothing local took the message) still waits behind those queued. A node's end of stream, which goes to
-the bus directly, first waits for the outbox to empty (``runtime.node``), so it never leaves before the
-last frames it counts. At most ``DEPTH`` sends wait; a publisher that would queue one more
-blocks until one has left, as an inline send would have held it. ``flush`` returns once every send
-queued so far has left. A queued send that fails (the session closing under it) is logged and
-dropped; one run at once raises to its publisher as before.
+Each thread's sends leave in the order it put them: a send that needs no deferring (nothing local took
+the message) still waits behind those its own thread queued, so a source's CameraInfo never overtakes
+the image before it, nor its end of stream its last frames. Another thread's send does not wait for
+them: one node's result goes out while the outbox is still encoding another node's frame, and two
+nodes publishing at once (the blobs of two cameras) each put their own. A node's end of stream, which
+goes to the bus directly, first waits for the outbox to empty (``runtime.node``). At most ``DEPTH``
+sends wait; a publisher that would queue one more blocks until one has left, as an inline send would
+have held it. ``flush`` returns once every send queued so far has left. A queued send that fails (the
+session closing under it) is logged and dropped; one run at once raises to its publisher as before.
 """
 
 from __future__ import annotations
@@ -33,35 +35,32 @@ Send = Callable[[], None]
 
 
 class Outbox:
-    """Sends to the bus, in order, on one thread started with the first deferred send."""
+    """Sends to the bus, each thread's in order, on one thread started with the first deferred send."""
 
     def __init__(self, depth: int = DEPTH):
         self.depth = depth
         self.failed = 0
-        self._queue: deque[Send] = deque()
+        self._queue: deque[tuple[int, Send]] = deque()
+        self._pending: dict[int, int] = {}
         self._busy = False
         self._closed = False
         self._changed = threading.Condition()
         self._thread: threading.Thread | None = None
 
     def send(self, send: Send, defer: bool) -> None:
-        """Run ``send`` now when ``defer`` is false and nothing waits before it, else queue it for the thread
-        (after ``close``, always now)."""
+        """Run ``send`` now when ``defer`` is false and nothing this thread queued waits before it, else queue
+        it for the outbox's thread (after ``close``, always now)."""
+        me = threading.get_ident()
         with self._changed:
-            while not self._closed and (defer or self._queue or self._busy):
+            while not self._closed and (defer or self._pending.get(me)):
                 if len(self._queue) < self.depth:
-                    self._queue.append(send)
+                    self._queue.append((me, send))
+                    self._pending[me] = self._pending.get(me, 0) + 1
                     self._start()
                     self._changed.notify_all()
                     return
                 self._changed.wait()
-            self._busy = True
-        try:
-            send()
-        finally:
-            with self._changed:
-                self._busy = False
-                self._changed.notify_all()
+        send()
 
     def _start(self) -> None:
         if self._thread is None:
@@ -71,17 +70,20 @@ class Outbox:
     def _drain(self) -> None:
         while True:
             with self._changed:
-                while not self._queue or self._busy:
-                    if self._closed and not self._queue:
+                while not self._queue:
+                    if self._closed:
                         return
                     self._changed.wait()
-                send = self._queue.popleft()
+                owner, send = self._queue.popleft()
                 self._busy = True
             try:
                 self._run(send)
             finally:
                 with self._changed:
                     self._busy = False
+                    self._pending[owner] -= 1
+                    if not self._pending[owner]:
+                        del self._pending[owner]
                     self._changed.notify_all()
 
     def _run(self, send: Send) -> None:

@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["triangulate_points"]
+__all__ = ["project_point", "triangulate_points"]
 
 
 @njit(cache=True, nogil=True)
-def _project(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, c: int, X: np.ndarray,
+def project_point(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, c: int, X: np.ndarray,
              pixel: np.ndarray, jacobian: np.ndarray) -> None:
     """Camera c's observed pixel (2,) of world point X (3,), and its derivative (2, 3) px/m, written in place."""
     p0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
@@ -65,7 +65,7 @@ def _evaluate(K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, pix
             J[2 * c, :] = 0.0
             J[2 * c + 1, :] = 0.0
             continue
-        _project(K, dist, R, t, c, X, pixel, jacobian)
+        project_point(K, dist, R, t, c, X, pixel, jacobian)
         for k in range(2):
             residuals[c, k] = pixels[c, k] - pixel[k]
             total += residuals[c, k] ** 2

@@ -1,4 +1,4 @@
-"""The process's outbox: sends leave in the order put, off the publisher's thread when deferred."""
+"""The process's outbox: each thread's sends leave in the order it put them, off its thread when deferred."""
 
 from __future__ import annotations
 
@@ -37,6 +37,21 @@ def test_a_send_not_deferred_waits_behind_the_queued_ones_so_order_holds():
     gate.set()
     assert outbox.flush(2.0)
     assert order == ["frame 1", "frame 2", "end of stream"]
+    outbox.close()
+
+
+def test_another_threads_send_does_not_wait_behind_the_sends_this_thread_queued():
+    outbox = Outbox()
+    order: list[str] = []
+    gate = threading.Event()
+    outbox.send(lambda: (gate.wait(2.0), order.append("frame encoded for a recorder")), defer=True)
+    other = threading.Thread(target=lambda: outbox.send(lambda: order.append("another node's result"), defer=False))
+    other.start()
+    other.join(2.0)
+    assert order == ["another node's result"]  # sent on its own thread while the frame still waits
+    gate.set()
+    assert outbox.flush(2.0)
+    assert order == ["another node's result", "frame encoded for a recorder"]
     outbox.close()
 
 

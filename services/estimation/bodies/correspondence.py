@@ -147,14 +147,18 @@ class Views:
     """One instant's blobs of every camera, stacked once, and the points of clusters of them.
 
     ``blobs[c]``: (N_c, 2) observed pixels of camera c of ``stack``; ``ideal[c]``: the same undistorted
-    (ideal pinhole pixels). A cluster is ``[(camera, blob index)]``, cameras ascending, at least two.
-    The points' covariances are for a centroid noise of ``sigma_px``.
+    (ideal pinhole pixels), for the DLT; None when every point is started from a known position instead
+    (``solve``'s ``start``; ``drop_worst`` then starts each point again from where it was). A cluster is
+    ``[(camera, blob index)]``, cameras ascending, at least two. The points' covariances are for a
+    centroid noise of ``sigma_px``.
     """
 
-    def __init__(self, stack: CameraStack, blobs: Sequence[np.ndarray], ideal: Sequence[np.ndarray], sigma_px: float):
+    def __init__(self, stack: CameraStack, blobs: Sequence[np.ndarray], ideal: Sequence[np.ndarray] | None,
+                 sigma_px: float):
         self.stack, self.blobs, self.sigma_px = stack, blobs, sigma_px
         self.offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]])
-        self.every_blob, self.every_ideal = np.concatenate(blobs), np.concatenate(ideal)
+        self.every_blob = np.concatenate(blobs)
+        self.every_ideal = None if ideal is None else np.concatenate(ideal)
 
     def solve(self, clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
         """Each cluster's point over all its views (DLT, unless ``start`` (K, 3) has it, then Gauss-Newton), all
@@ -162,13 +166,19 @@ class Views:
         if not clusters:
             return []
         count = len(self.stack)
-        pixels, undistorted = np.zeros((len(clusters), count, 2)), np.zeros((len(clusters), count, 2))
+        pixels = np.zeros((len(clusters), count, 2))
         seen = np.zeros((len(clusters), count), bool)
         rows = [row for row, views in enumerate(clusters) for _ in views]
         cameras_seen, blob_indices = np.array([v for views in clusters for v in views], np.int64).T
         flat = self.offsets[cameras_seen] + blob_indices
-        pixels[rows, cameras_seen], undistorted[rows, cameras_seen] = self.every_blob[flat], self.every_ideal[flat]
+        pixels[rows, cameras_seen] = self.every_blob[flat]
         seen[rows, cameras_seen] = True
+        undistorted = None
+        if start is None:
+            if self.every_ideal is None:
+                raise ValueError("Views without ideal pixels solve from given start points only")
+            undistorted = np.zeros((len(clusters), count, 2))
+            undistorted[rows, cameras_seen] = self.every_ideal[flat]
         found = triangulate_many(self.stack, pixels, seen, self.sigma_px, undistorted, start)
         rms = found.rms_px.tolist()
         return [TriangulatedPoint(found.points[row], rms[row], found.covariances[row],
@@ -196,7 +206,8 @@ class Views:
                 k, worst = pending[row], int(np.argmax(errors[row]))
                 clusters[k] = [v for v in clusters[k] if v[0] != worst]
                 again.append(k)
-            for k, point in zip(again, self.solve([clusters[k] for k in again]), strict=True):
+            start = None if self.every_ideal is not None else np.array([solved[k].point for k in again]).reshape(-1, 3)
+            for k, point in zip(again, self.solve([clusters[k] for k in again], start), strict=True):
                 solved[k] = point
             pending = [k for k in again if len(clusters[k]) > 2]
         return solved
@@ -218,6 +229,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     rig = rig_geometry(cameras)
     stack, count = rig.stack, len(cameras)
     instant = Views(stack, blobs, ideal, options.covariance_sigma_px)
+    every_ideal = np.concatenate(ideal)
     gate = options.reprojection_gate_px
     unmatched = 1.0 + (count - 2)
 
@@ -252,7 +264,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             return cost, points_dlt, unconfirmed
         distance = np.full((len(free), len(single)), np.inf)
         single_cameras, single_blobs = np.array(single, np.int64).T
-        single_ideal = instant.every_ideal[instant.offsets[single_cameras] + single_blobs]
+        single_ideal = every_ideal[instant.offsets[single_cameras] + single_blobs]
         for a in set(single_cameras.tolist()):
             columns = np.flatnonzero(single_cameras == a)
             distance[:, columns] = epipolar_distances(rig.fundamental[(c, a)], single_ideal[columns],

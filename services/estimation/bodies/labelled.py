@@ -4,8 +4,8 @@ without a search; the other blobs through the full path.
 World = the rig frame. Blobs are (N_c, 2) observed pixel centroids per camera (with its distortion). Per
 instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.BodyTracker.forecast``):
 
-1. ``label_blobs``: every predicted sphere's world position is projected into every camera at once
-   (``CameraStack.project``, through the distortion). Per camera, the blobs are assigned one-to-one to the
+1. ``label_blobs``: every predicted sphere's world position is projected into every camera, through the
+   distortion (compiled: ``label_kernel.label``). Per camera, the blobs are assigned one-to-one to the
    projected spheres of all predicted bodies together (least total pixel distance, each pair closer than
    ``gate_px``: ``correspondence.gated_assignment``). A blob within ``gate_px`` of two predicted spheres or
    more (their images merged, or about to) is doubtful: none of those spheres takes a view in that camera
@@ -16,9 +16,10 @@ instant, given a predicted ``T_world_body`` (4, 4) for some bodies (``tracking.B
    where exactly two predicted spheres lie within ``gate_px`` of the parts and neither has a view in that
    camera yet.
 2. ``triangulate_labelled``: a sphere labelled in two cameras or more is triangulated over all its views,
-   every sphere in one batch (``correspondence.Views``: DLT, Gauss-Newton and covariance, the worst view
-   dropped while one breaks the reprojection gate and more than two remain): the point, residual and
-   covariance ``triangulate_blobs`` gives a cluster of the same views. A point whose RMS is above the gate,
+   every sphere in one batch (``correspondence.Views``: Gauss-Newton from the sphere's predicted position and
+   covariance, the worst view dropped while one breaks the reprojection gate and more than two remain): the
+   point, residual and covariance ``triangulate_blobs`` gives a cluster of the same views from its DLT (the
+   same minimum, to 1e-10 m), with no undistortion nor DLT for the labelled blobs. A point whose RMS is above the gate,
    or with fewer than ``min_views`` views, is left out. So a part that lies off its sphere's other views
    is the view dropped, and a sphere seen cleanly by two cameras keeps them whatever a third makes of it.
 3. ``track_blobs``: each predicted body is fitted to its labelled points (``rigid.fit_labelled``: no search,
@@ -38,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.estimation.bodies import label_kernel
 from services.estimation.bodies.correspondence import (
     CorrespondenceOptions,
     Views,
@@ -47,7 +49,7 @@ from services.estimation.bodies.correspondence import (
 )
 from services.estimation.bodies.rigid import Matching, MatchOptions, fit_labelled, with_the_rest
 from services.estimation.bodies.tracking import TrackingOptions, match_with_prediction
-from services.geometry.camera import CameraModel, undistort_pixels
+from services.geometry.camera import CameraModel
 from services.geometry.camera_stack import CameraStack
 from services.geometry.se3 import transform_points
 from services.geometry.triangulation import TriangulatedPoint
@@ -71,25 +73,18 @@ class Found:
 
 def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.ndarray, gate_px: float) -> np.ndarray:
     """(S, C) int64: for each predicted sphere (row of (S, 3) ``expected``, world) and camera of ``stack``, the
-    index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring)."""
-    labels = np.full((len(expected), len(stack)), -1, np.int64)
+    index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring; the gating is
+    ``label_kernel.label``'s, the crowded cameras' assignment ``gated_assignment``)."""
     widest = max(len(b) for b in blobs)
     if not widest:
-        return labels
-    observed = np.full((len(stack), widest, 2), np.nan)
+        return np.full((len(expected), len(stack)), -1, np.int64)
+    observed = np.zeros((len(stack), widest, 2))
     for c, b in enumerate(blobs):
         observed[c, :len(b)] = b
-    cost = np.linalg.norm(stack.project(expected)[:, :, None, :] - observed[None], axis=3)
-    with np.errstate(invalid="ignore"):
-        near = cost < gate_px
-    doubtful = np.count_nonzero(near, axis=0) >= 2
-    if np.any(doubtful):
-        near &= ~np.any(near & doubtful[None], axis=2)[:, :, None]
-        near &= ~doubtful[None]
-    crowded = np.any(np.count_nonzero(near, axis=2) > 1, axis=0)
-    spheres, cameras, columns = np.nonzero(near & ~crowded[None, :, None])
-    # A sphere near one blob only, that blob near no other sphere: the gated assignment takes every such pair.
-    labels[spheres, cameras] = columns
+    counts = np.array([len(b) for b in blobs], np.int64)
+    spheres = np.ascontiguousarray(expected, np.float64)
+    labels, crowded, near, cost, _ = label_kernel.label(stack.K, stack.dist, stack.R_camera_world, stack.t_camera_world,
+                                                        spheres, observed, counts, float(gate_px))
     for c in np.flatnonzero(crowded).tolist():
         for row, column in gated_assignment(np.where(near[:, c], cost[:, c], np.inf), gate_px):
             labels[row, c] = column
@@ -126,14 +121,15 @@ def label_parts(projected: np.ndarray, blobs: Sequence[np.ndarray], parts: Seque
     return labels, observed
 
 
-def triangulate_labelled(instant: Views, labels: np.ndarray, options: CorrespondenceOptions
+def triangulate_labelled(instant: Views, labels: np.ndarray, expected: np.ndarray, options: CorrespondenceOptions
                          ) -> tuple[np.ndarray, list[TriangulatedPoint]]:
     """``(spheres (K,) int64, points)``: the spheres (rows of (S, C) ``labels``) triangulated from the blobs they
-    label, and their points (see the module docstring)."""
+    label, each started from its predicted position (row of (S, 3) ``expected``, world), and their points (see
+    the module docstring)."""
     rows = np.flatnonzero(np.count_nonzero(labels >= 0, axis=1) >= 2)
     clusters = [[(c, i) for c, i in enumerate(row) if i >= 0] for row in labels[rows].tolist()]
     gate = options.reprojection_gate_px
-    solved = instant.drop_worst(clusters, instant.solve(clusters), gate)
+    solved = instant.drop_worst(clusters, instant.solve(clusters, expected[rows]), gate)
     kept = [k for k, point in enumerate(solved) if point.rms_px <= gate and point.views >= options.min_views]
     return rows[kept], [solved[k] for k in kept]
 
@@ -165,9 +161,8 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
         on_blobs = label_blobs(stack, blobs, expected, tracking.gate_px)
         if split:
             on_blobs, _ = label_parts(stack.project(expected), blobs, pairs, on_blobs, tracking.gate_px)
-        ideal = [undistort_pixels(b, c.K, c.dist) for c, b in zip(cameras, observed, strict=True)]
-        rows, labelled = triangulate_labelled(Views(stack, observed, ideal, correspondence.covariance_sigma_px),
-                                              on_blobs, correspondence)
+        rows, labelled = triangulate_labelled(Views(stack, observed, None, correspondence.covariance_sigma_px),
+                                              on_blobs, expected, correspondence)
         point_of_sphere = np.full(len(expected), -1, np.int64)
         point_of_sphere[rows] = np.arange(len(rows))
         first = np.cumsum([0] + [len(s) for s in spheres])
