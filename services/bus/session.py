@@ -21,6 +21,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import ClassVar
@@ -57,6 +58,26 @@ class BusConfig(BusSettings):
     router_wait_s: float = Field(default=5.0, ge=0)
     retry: bool = False
     """Wait for an unreachable router (client mode) instead of failing: for long-running processes."""
+
+
+CALLBACK_THREAD = "(pyo3-closure)"
+"""How the name of a thread on which Zenoh runs Python callbacks ends (``Thread-N (pyo3-closure)``)."""
+CALLBACK_JOIN_S = 2.0
+
+
+def close_session(session: zenoh.Session, timeout_s: float = CALLBACK_JOIN_S) -> None:
+    """Close ``session``, then wait (up to ``timeout_s``) for the threads on which Zenoh ran its callbacks to end.
+
+    Zenoh runs each subscriber's or queryable's Python callback on a thread of its own, a daemon when it was
+    declared from a daemon thread (a node's thread in a process group). Closing the session ends them, but
+    not at once: one still inside Zenoh, finishing a callback, when the interpreter finalises is torn down
+    there, and the process aborts (SIGABRT, "FATAL: exception not rethrown") instead of exiting with its code.
+    """
+    session.close()
+    deadline = time.monotonic() + timeout_s
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and thread.name.endswith(CALLBACK_THREAD):
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 def open_session(bus: BusConfig) -> zenoh.Session:

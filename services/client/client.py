@@ -34,6 +34,7 @@ from protocol.spatial import StaticTransforms
 from protocol.system import ClientState, NodeStats
 from services.bus.discovery import first_answers, live_nodes, node_states
 from services.bus.security import Security
+from services.bus.session import close_session
 from services.bus.settings import BusSettings
 from services.client.streams import DEFAULT_DEPTH, AsyncPoseStream, Feed, PoseStream, PoseUpdate
 from services.convert import frame_graph
@@ -163,7 +164,7 @@ class Client:
             feed.close()
         self._queryable.undeclare()
         self._token.undeclare()
-        self.session.close()
+        close_session(self.session)
 
 
 def connect(*, mode: str | None = None, connect: tuple[str, ...] | list[str] | str | None = None,

@@ -9,7 +9,7 @@ and reach the bus only when another session subscribes.
 from __future__ import annotations
 
 from services.bus.local import LocalBus
-from services.bus.session import BusConfig, open_session
+from services.bus.session import BusConfig, close_session, open_session
 
 
 class Host:
@@ -21,6 +21,7 @@ class Host:
         self.local = LocalBus()
 
     def close(self) -> None:
-        """Send what the nodes put (``LocalBus.close``), then close the session."""
+        """Send what the nodes put (``LocalBus.close``), then close the session and let its callbacks' threads
+        end (``close_session``)."""
         self.local.close()
-        self.session.close()
+        close_session(self.session)

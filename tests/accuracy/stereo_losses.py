@@ -262,8 +262,8 @@ def label_predicted(scene: IrRigScene, stack: CameraStack, blobs: list[np.ndarra
         return {}
     names = list(forecasts)
     expected = np.concatenate([transform_points(forecasts[name], scene.bodies[name]) for name in names])
-    labels, _ = label_parts(stack.project(expected), blobs, parts, label_blobs(stack, blobs, expected, gate_px),
-                            gate_px)
+    on_blobs, projected = label_blobs(stack, blobs, expected, gate_px)
+    labels, _ = label_parts(projected, blobs, parts, on_blobs, gate_px)
     first = np.cumsum([0] + [len(scene.bodies[name]) for name in names])
     return {name: labels[first[k]:first[k + 1]] for k, name in enumerate(names)}
 

@@ -60,7 +60,9 @@ def test_the_compiled_labels_are_the_array_versions(stack, seed):
         strays = rng.uniform([0.0, 0.0], [640.0, 480.0], (int(rng.integers(0, 4)), 2))
         blobs.append(rng.permutation(np.concatenate([kept, doubles, strays])))
     gate = float(rng.choice([2.0, 3.0, 6.0, 25.0]))
-    np.testing.assert_array_equal(label_blobs(stack, blobs, expected, gate), numpy_labels(stack, blobs, expected, gate))
+    labels, images = label_blobs(stack, blobs, expected, gate)
+    np.testing.assert_array_equal(labels, numpy_labels(stack, blobs, expected, gate))
+    np.testing.assert_allclose(images, projected, rtol=0, atol=1e-9)  # NaN where behind a camera, as projected
 
 
 def test_a_camera_without_blobs_labels_nothing_and_a_crowded_camera_is_assigned_pair_by_pair(stack):
@@ -68,7 +70,7 @@ def test_a_camera_without_blobs_labels_nothing_and_a_crowded_camera_is_assigned_
     projected = stack.project(expected)
     near_both = projected[:, 0] + np.array([[0.0, 0.4], [0.0, -0.4]])
     blobs = [near_both, np.zeros((0, 2)), projected[:, 2]]
-    labels = label_blobs(stack, blobs, expected, 25.0)
+    labels, _ = label_blobs(stack, blobs, expected, 25.0)
     assert labels[:, 1].tolist() == [-1, -1]
     np.testing.assert_array_equal(labels, numpy_labels(stack, blobs, expected, 25.0))
-    assert label_blobs(stack, [np.zeros((0, 2))] * 3, expected, 3.0).tolist() == [[-1] * 3] * 2
+    assert label_blobs(stack, [np.zeros((0, 2))] * 3, expected, 3.0)[0].tolist() == [[-1] * 3] * 2

@@ -71,24 +71,26 @@ class Found:
     matching: Matching
 
 
-def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.ndarray, gate_px: float) -> np.ndarray:
-    """(S, C) int64: for each predicted sphere (row of (S, 3) ``expected``, world) and camera of ``stack``, the
-    index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring; the gating is
-    ``label_kernel.label``'s, the crowded cameras' assignment ``gated_assignment``)."""
+def label_blobs(stack: CameraStack, blobs: Sequence[np.ndarray], expected: np.ndarray, gate_px: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``(labels, projected)``: (S, C) int64, for each predicted sphere (row of (S, 3) ``expected``, world) and
+    camera of ``stack``, the index of the blob it labels in ``blobs[c]``, -1 for none (see the module docstring;
+    the gating is ``label_kernel.label``'s, the crowded cameras' assignment ``gated_assignment``); and the
+    spheres' images (S, C, 2) px, NaN behind a camera (``CameraStack.project``'s)."""
     widest = max(len(b) for b in blobs)
     if not widest:
-        return np.full((len(expected), len(stack)), -1, np.int64)
+        return np.full((len(expected), len(stack)), -1, np.int64), stack.project(expected)
     observed = np.zeros((len(stack), widest, 2))
     for c, b in enumerate(blobs):
         observed[c, :len(b)] = b
     counts = np.array([len(b) for b in blobs], np.int64)
     spheres = np.ascontiguousarray(expected, np.float64)
-    labels, crowded, near, cost, _ = label_kernel.label(stack.K, stack.dist, stack.R_camera_world, stack.t_camera_world,
-                                                        spheres, observed, counts, float(gate_px))
+    labels, crowded, near, cost, projected = label_kernel.label(
+        stack.K, stack.dist, stack.R_camera_world, stack.t_camera_world, spheres, observed, counts, float(gate_px))
     for c in np.flatnonzero(crowded).tolist():
         for row, column in gated_assignment(np.where(near[:, c], cost[:, c], np.inf), gate_px):
             labels[row, c] = column
-    return labels
+    return labels, projected
 
 
 def label_parts(projected: np.ndarray, blobs: Sequence[np.ndarray], parts: Sequence[np.ndarray], labels: np.ndarray,
@@ -158,9 +160,9 @@ def track_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray], bod
         spheres = [np.asarray(bodies[name], np.float64) for name in predicted]
         expected = np.concatenate([transform_points(predictions[name], s) for name, s in zip(predicted, spheres,
                                                                                               strict=True)])
-        on_blobs = label_blobs(stack, blobs, expected, tracking.gate_px)
+        on_blobs, projected = label_blobs(stack, blobs, expected, tracking.gate_px)
         if split:
-            on_blobs, _ = label_parts(stack.project(expected), blobs, pairs, on_blobs, tracking.gate_px)
+            on_blobs, _ = label_parts(projected, blobs, pairs, on_blobs, tracking.gate_px)
         rows, labelled = triangulate_labelled(Views(stack, observed, None, correspondence.covariance_sigma_px),
                                               on_blobs, expected, correspondence)
         point_of_sphere = np.full(len(expected), -1, np.int64)
