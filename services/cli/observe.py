@@ -11,7 +11,7 @@ import socket
 import sys
 from pathlib import Path
 
-from services.bus.session import open_session
+from services.bus.session import close_session, open_session
 from services.cli.bus_options import add_bus_options, bus_config
 
 log = logging.getLogger("artrack")
@@ -29,7 +29,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     try:
         status = gather(session, bus.keys, args.timeout)
     finally:
-        session.close()
+        close_session(session)
     if args.here:
         status = status.on_host(socket.gethostname())
     print(json.dumps(status.to_json()) if args.json else format_status(status))
@@ -50,7 +50,7 @@ def cmd_config(args: argparse.Namespace) -> int:
     try:
         answer = request_change(session, bus.keys, args.node, values, args.timeout)
     finally:
-        session.close()
+        close_session(session)
     if answer is None:
         log.error("no node answered on %s within %.1f s (is %s running, and does its kind take live changes?)",
                   bus.keys.config(args.node), args.timeout, args.node)
@@ -75,7 +75,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         nodes = live_nodes(session, bus.keys, args.timeout)
         states = node_reports(session, bus.keys, args.timeout) if nodes else []
     finally:
-        session.close()
+        close_session(session)
     if not nodes:
         print(f"no artrack nodes are up in namespace {bus.namespace!r}", file=sys.stderr)
         return 0
@@ -98,7 +98,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
         return 0
     finally:
         signal.signal(signal.SIGTERM, stop_on)
-        session.close()
+        close_session(session)
     if not printed:
         log.error("nothing arrived on %s in %g s", key, args.timeout)
         return EXIT_NOTHING

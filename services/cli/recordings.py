@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, TypeVar
 from pydantic import BaseModel, ValidationError
 
 from protocol.system import ReplayCommand
-from services.bus.session import open_session
+from services.bus.session import close_session, open_session
 from services.cli.bus_options import add_bus_options, bus_config
 from services.cli.outputs import add_force_option, check_output_folder
 from services.cli.parsing import Parser
@@ -103,7 +103,7 @@ def cmd_control(args: argparse.Namespace) -> int:
     try:
         answer = send_control(session, bus.keys, args.node, ReplayCommand(args.command), args.timeout)
     finally:
-        session.close()
+        close_session(session)
     if answer is None:
         log.error("no node answered on %s within %.1f s", bus.keys.control(args.node), args.timeout)
         return 1

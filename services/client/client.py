@@ -61,7 +61,7 @@ class Client:
             self._token = self.session.liveliness().declare_token(self.keys.client(self.id))
             self._queryable = self.session.declare_queryable(self.keys.client_state(self.id), self._on_state_query)
         except Exception:
-            self.session.close()
+            close_session(self.session)
             raise
 
     def __enter__(self) -> Client:

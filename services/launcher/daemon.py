@@ -20,7 +20,7 @@ import zenoh
 
 from protocol.codec import encode
 from protocol.system import PipelineHealth
-from services.bus.session import BusConfig, BusError, open_session
+from services.bus.session import BusConfig, BusError, close_session, open_session
 from services.launcher.health import pipeline_health
 from services.launcher.pipeline import PipelineError, PipelineSpec, params_model, processes, read_pipeline
 from services.launcher.reload import plan_reload, request_change
@@ -70,7 +70,7 @@ class Daemon:
             return
         with self._lock:
             if self._left:
-                session.close()
+                close_session(session)
                 return
             self.session = session
             self._queryable = session.declare_queryable(self.bus.keys.supervisor(self.name), self._on_health)
@@ -81,7 +81,7 @@ class Daemon:
             if self._queryable is not None:
                 self._queryable.undeclare()
             if self.session is not None:
-                self.session.close()
+                close_session(self.session)
 
     def reload(self) -> bool:
         """Re-read the file and apply its live changes; False (everything logged) when refused."""

@@ -35,7 +35,7 @@ import numpy as np
 from protocol.poses import GroundTruth, Pose
 from protocol.tracking_state import TrackingState
 from services.bus.pubsub import Inbox, Role
-from services.bus.session import BusConfig, open_session
+from services.bus.session import BusConfig, close_session, open_session
 from services.convert import matrix_from_transform
 from services.geometry.evaluation import pose_error
 from services.launcher.job import RECORDING_SCHEME, JobExit, JobFile, Recording, build_job, run_job
@@ -147,7 +147,7 @@ def run_demo(bus: BusConfig, recording: Path = DEFAULT_RECORDING, runs: Path = D
     finally:
         stop.set()
         collector.join()
-        session.close()
+        close_session(session)
     played = sum(1 for seen, _ in card.truth if seen == camera)
     _summary(out, f"{played} of {frames}", card, record, rerun)
     if code == JobExit.INTERRUPTED:

@@ -37,7 +37,7 @@ import zenoh
 
 from protocol.codec import encode
 from services.bus.discovery import node_reports
-from services.bus.session import BusConfig, open_session
+from services.bus.session import BusConfig, close_session, open_session
 from services.launcher.flags import Flag
 from services.launcher.flow import finite
 from services.launcher.health import pipeline_health
@@ -261,7 +261,7 @@ def run_job(bus: BusConfig, spec: PipelineSpec, title: str = "run", display: Dis
         health.undeclare()
         if watch is not None:
             watch.close()
-        session.close()
+        close_session(session)
         if why is not None:
             log.error("%s", why)
 

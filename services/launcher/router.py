@@ -19,7 +19,7 @@ from pathlib import Path
 import zenoh
 
 from services.bus.security import Security
-from services.bus.session import BusError
+from services.bus.session import BusError, close_session
 from services.bus.settings import read_zenoh_config
 from services.bus.transport import session_config
 from services.launcher.access import access_control, read_access
@@ -67,4 +67,4 @@ def run_router(config: zenoh.Config, stop: threading.Event, idle_exit_s: float |
                 log.info("no session connected for %.0f s, leaving", idle_exit_s)
                 break
     finally:
-        session.close()
+        close_session(session)
