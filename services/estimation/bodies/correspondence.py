@@ -158,7 +158,8 @@ class Views:
         self.stack, self.blobs, self.sigma_px = stack, blobs, sigma_px
         self.offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]])
         self.every_blob = np.concatenate(blobs)
-        self.every_ideal = None if ideal is None else np.concatenate(ideal)
+        self.dlt = ideal is not None
+        self.every_ideal = np.concatenate(ideal) if ideal is not None else np.zeros((0, 2))
 
     def solve(self, clusters: list[list[tuple[int, int]]], start: np.ndarray | None = None) -> list[TriangulatedPoint]:
         """Each cluster's point over all its views (DLT, unless ``start`` (K, 3) has it, then Gauss-Newton), all
@@ -175,7 +176,7 @@ class Views:
         seen[rows, cameras_seen] = True
         undistorted = None
         if start is None:
-            if self.every_ideal is None:
+            if not self.dlt:
                 raise ValueError("Views without ideal pixels solve from given start points only")
             undistorted = np.zeros((len(clusters), count, 2))
             undistorted[rows, cameras_seen] = self.every_ideal[flat]
@@ -206,7 +207,7 @@ class Views:
                 k, worst = pending[row], int(np.argmax(errors[row]))
                 clusters[k] = [v for v in clusters[k] if v[0] != worst]
                 again.append(k)
-            start = None if self.every_ideal is not None else np.array([solved[k].point for k in again]).reshape(-1, 3)
+            start = None if self.dlt else np.array([solved[k].point for k in again]).reshape(-1, 3)
             for k, point in zip(again, self.solve([clusters[k] for k in again], start), strict=True):
                 solved[k] = point
             pending = [k for k in again if len(clusters[k]) > 2]
@@ -229,7 +230,6 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
     rig = rig_geometry(cameras)
     stack, count = rig.stack, len(cameras)
     instant = Views(stack, blobs, ideal, options.covariance_sigma_px)
-    every_ideal = np.concatenate(ideal)
     gate = options.reprojection_gate_px
     unmatched = 1.0 + (count - 2)
 
@@ -264,7 +264,7 @@ def triangulate_blobs(cameras: Sequence[CameraModel], blobs: Sequence[np.ndarray
             return cost, points_dlt, unconfirmed
         distance = np.full((len(free), len(single)), np.inf)
         single_cameras, single_blobs = np.array(single, np.int64).T
-        single_ideal = every_ideal[instant.offsets[single_cameras] + single_blobs]
+        single_ideal = instant.every_ideal[instant.offsets[single_cameras] + single_blobs]
         for a in set(single_cameras.tolist()):
             columns = np.flatnonzero(single_cameras == a)
             distance[:, columns] = epipolar_distances(rig.fundamental[(c, a)], single_ideal[columns],
