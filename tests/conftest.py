@@ -54,9 +54,14 @@ PROCESS_STARTS = ((subprocess.Popen, "__init__"), (multiprocessing.process.BaseP
 def pytest_configure(config):
     """Let Ctrl-C reach the processes the tests start, which inherit an ignored SIGINT: a suite run in the
     background of a shell without job control (CI scripts, ``make test &``) has SIGINT ignored, and a
-    Python program that starts so never turns Ctrl-C into KeyboardInterrupt."""
+    Python program that starts so never turns Ctrl-C into KeyboardInterrupt.
+
+    Then load matplotlib's font list: on a machine where it has never run, matplotlib lists the system's
+    fonts by running ``fc-list`` the first time a figure module is imported, which ``tiers`` would take for
+    a unit test (a marker sheet's PDF) starting a process."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    import matplotlib.font_manager  # noqa: F401
 
 
 @pytest.fixture(autouse=True)

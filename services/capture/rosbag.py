@@ -21,19 +21,17 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs
 
 import cv2
 import numpy as np
-from rosbags.rosbag2 import Reader
-from rosbags.typesys import Stores, get_typestore
 
 from services.geometry.camera import CameraModel
 from services.geometry.se3 import from_quaternion_translation
 
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_STATIC, TF_TYPE = "/tf_static", "tf2_msgs/msg/TFMessage"
@@ -43,6 +41,22 @@ _LAYOUTS = {"mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "mono16": (np.uint16,
             "bgr8": (np.uint8, 3), "8UC3": (np.uint8, 3), "rgb8": (np.uint8, 3), "bgra8": (np.uint8, 4),
             "8UC4": (np.uint8, 4), "rgba8": (np.uint8, 4)}
 _TO_BGR = {"rgb8": cv2.COLOR_RGB2BGR, "rgba8": cv2.COLOR_RGBA2BGRA}
+
+
+@cache
+def typestore() -> Any:
+    """The ROS 2 Jazzy message types (``rosbags``), built on first use: importing ``rosbags`` and building them takes
+    a few tenths of a second that a capture of any other source should not pay."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def reader(folder: Path) -> Any:
+    """A ``rosbags`` reader of the bag in ``folder`` (imported on first use, as ``typestore``)."""
+    from rosbags.rosbag2 import Reader
+
+    return Reader(folder)
 
 
 class BagError(ValueError):
@@ -133,9 +147,9 @@ class Bag:
             raise BagError("not a ROS 2 bag (no metadata.yaml)")
         self.folder = folder
         try:
-            with Reader(folder) as reader:
-                self.types = {c.topic: c.msgtype for c in reader.connections}
-                self.counts = {topic: info.msgcount for topic, info in reader.topics.items()}
+            with reader(folder) as bag:
+                self.types = {c.topic: c.msgtype for c in bag.connections}
+                self.counts = {topic: info.msgcount for topic, info in bag.topics.items()}
         except Exception as exc:  # rosbags raises its own errors and yaml's for a damaged metadata file
             raise BagError(f"cannot read the bag ({exc})") from exc
         images = sorted(topic for topic, msgtype in self.types.items() if msgtype in IMAGE_TYPES)
@@ -214,7 +228,7 @@ class Bag:
         """(topic, deserialized message) of the messages on ``topics``, in bag order."""
         if not topics:
             return
-        with Reader(self.folder) as reader:
-            connections = [c for c in reader.connections if c.topic in topics]
-            for connection, _, data in reader.messages(connections=connections):
-                yield connection.topic, TYPESTORE.deserialize_cdr(data, connection.msgtype)
+        with reader(self.folder) as bag:
+            connections = [c for c in bag.connections if c.topic in topics]
+            for connection, _, data in bag.messages(connections=connections):
+                yield connection.topic, typestore().deserialize_cdr(data, connection.msgtype)

@@ -7,7 +7,7 @@ times as far and fast as the default scene's so that spheres merge in some views
 ``stereo_losses.analyse`` as ``artrack run stereo`` runs the tracker, the seeds' frames pooled; and the bar of
 three cameras 0.3 m apart (``stereo_losses.BASE``), alone and with the bodies spinning, where two spheres merged in
 one view are merged in all. Requirements: no ghost; per body the tracked share of the trackable frames and the
-median position and rotation errors no worse than the floors below.
+median position and rotation errors no worse than the floors below; every frame lost given one cause and one stage.
 """
 
 from __future__ import annotations
@@ -39,6 +39,11 @@ def verdicts(condition: str = "all (hard)") -> list[Verdict]:
     return [v for seed in SEEDS for v in analyse(hard_scene(**{**changes, "seed": seed}), FRAMES)]
 
 
+def unexplained(found: list[Verdict]) -> list[Verdict]:
+    """The frames of ``found`` lost without one cause and one stage named."""
+    return [v for v in found if v.outcome == "lost" and not (v.cause and v.stage)]
+
+
 def test_the_hard_conditions_occur_in_the_frames():
     scene = hard_scene()
     stack = CameraStack.of(list(scene.cameras))
@@ -59,6 +64,7 @@ def test_the_hard_conditions_occur_in_the_frames():
 def test_the_defaults_track_the_hard_scene_without_a_ghost_above_the_floors():
     found = figures(verdicts())
     print(found)
+    assert not unexplained(verdicts())
     for name, floors in FLOORS.items():
         body = found[name]
         assert body["ghosts"] == 0, (name, body)
@@ -76,8 +82,10 @@ trackable frames of these seeds."""
 
 
 def test_seeds_the_defaults_were_not_tuned_on_are_tracked_without_a_ghost_above_the_floors():
-    found = figures([v for seed in UNSEEN_SEEDS for v in analyse(hard_scene(seed=seed), FRAMES)])
+    unseen = [v for seed in UNSEEN_SEEDS for v in analyse(hard_scene(seed=seed), FRAMES)]
+    found = figures(unseen)
     print(found)
+    assert not unexplained(unseen)
     for name, floors in FLOORS.items():
         body = found[name]
         assert body["ghosts"] == 0, (name, body)
@@ -90,15 +98,10 @@ def test_seeds_the_defaults_were_not_tuned_on_are_tracked_without_a_ghost_above_
 def test_the_defaults_track_the_bar_where_spheres_merge_in_every_view(condition):
     found = figures(verdicts(condition))
     print(condition, found)
+    assert not unexplained(verdicts(condition))
     for name, body in found.items():
         assert body["ghosts"] == 0, (name, body)
         assert body["trackable"] >= 0.9 * FRAMES * len(SEEDS), (name, body)
         assert body["tracked_percent"] >= BAR_FLOORS["tracked_percent"], (name, body)
         assert body["position_mm_median"] <= BAR_FLOORS["position_mm_median"], (name, body)
         assert body["rotation_deg_median"] <= BAR_FLOORS["rotation_deg_median"], (name, body)
-
-
-def test_every_lost_frame_has_one_cause_and_one_stage():
-    lost = [v for condition in ("all (hard)", "base", "spin alone") for v in verdicts(condition)
-            if v.outcome == "lost"]
-    assert all(v.cause and v.stage for v in lost)

@@ -4,7 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from services.estimation.bodies.centroid_noise import CentroidNoise, degrees_of_freedom, robust_variance
+from services.estimation.bodies.centroid_noise import (
+    CentroidNoise,
+    _chi2_constants,
+    degrees_of_freedom,
+    robust_variance,
+)
 from services.geometry.camera import CameraModel
 from services.geometry.triangulation import reproject, triangulate
 
@@ -100,3 +105,15 @@ def test_the_residuals_of_triangulated_points_give_back_the_pixel_noise():
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="floor_px"):
         CentroidNoise(floor_px=0.0)
+
+
+@pytest.mark.parametrize("dof", [1, 3, 5, 9])
+@pytest.mark.parametrize("keep", [0.9, 0.999])
+def test_the_chi2_constants_are_scipy_stats_chi2s(dof, keep):
+    """The median, the ``keep`` quantile and the mean below it (numerical integration) of ``scipy.stats.chi2``."""
+    from scipy.stats import chi2
+
+    median, limit, share = _chi2_constants(dof, keep)
+    assert median == pytest.approx(chi2.median(dof), rel=1e-12)
+    assert limit == pytest.approx(chi2.ppf(keep, dof), rel=1e-12)
+    assert share == pytest.approx(chi2.expect(args=(dof,), ub=limit, conditional=True), rel=1e-7)
