@@ -108,6 +108,9 @@ NATIVE_LOGGER = "zenoh"
 
 _COLOUR = re.compile(r"\x1b\[[0-9;]*m")
 _TRACING_LINE = re.compile(r"^\S+\s+(TRACE|DEBUG|INFO|WARN|ERROR)\s+(.*)$")
+_GLOG_SIGNAL_REPORT = re.compile(r"\*\*\* (Aborted at|SIG[A-Z]+ \(@)|PC: @ |\s+@\s+0x[0-9a-f]+ ")
+"""The lines of glog's report of a fatal signal: ``*** Aborted at ...``, ``*** SIGTERM (@0x...) received by PID
+...``, ``PC: @ ...`` and one ``    @     0x... function`` per stack frame."""
 _TRACING_LEVELS = {"TRACE": logging.DEBUG, "DEBUG": logging.DEBUG, "INFO": logging.INFO,
                    "WARN": logging.WARNING, "ERROR": logging.ERROR}
 
@@ -125,8 +128,9 @@ def native_record(line: str) -> tuple[int, str]:
 
 def is_native_line(line: str) -> bool:
     """Whether a line a process wrote to stderr is native code's rather than its own: a Rust
-    ``tracing`` line in colour, or a JSON record of :data:`NATIVE_LOGGER`."""
-    if line.startswith("\x1b["):
+    ``tracing`` line in colour, a JSON record of :data:`NATIVE_LOGGER`, or a line of the report glog's
+    signal handler (installed by pycolmap) prints when a fatal signal reaches the process."""
+    if line.startswith("\x1b[") or _GLOG_SIGNAL_REPORT.match(line):
         return True
     if not line.startswith("{"):
         return False

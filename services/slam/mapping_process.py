@@ -35,6 +35,7 @@ Costs: the changes are unpickled in the tracker's thread, the frame's ``map_sync
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import logging
 import multiprocessing
@@ -102,6 +103,19 @@ def prepare() -> None:
     with _spare_lock:
         if _spare is None or not _spare.process.is_alive():
             _spare = _Spawned()
+            atexit.unregister(_end_spare)
+            atexit.register(_end_spare)
+
+
+def _end_spare() -> None:
+    """At exit, kill the spare mapping process no map took (it holds nothing). Run before multiprocessing's own
+    exit handler (registered earlier, run later), whose SIGTERM would reach a spare still importing pycolmap,
+    whose signal handler (glog's) prints a stack trace for it."""
+    with _spare_lock:
+        spare = _spare
+    if spare is not None and spare.process.is_alive():
+        spare.process.kill()
+        spare.process.join()
 
 
 def _spawned() -> _Spawned:
@@ -280,8 +294,10 @@ def _camera(inbox: Any) -> tuple[Any, ...] | None:
 
 
 def _serve(inbox: Any, writer: Any) -> None:
-    """The mapping process: its camera, then keyframes in, changes out, until ``stop`` or the parent's end."""
+    """The mapping process: its camera, then keyframes in, changes out, until ``stop`` or the parent's end.
+    SIGTERM ends it quietly: importing pycolmap installed glog's handler, which prints a stack trace for it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
     def send(*message: Any) -> None:
         writer.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))

@@ -1,5 +1,6 @@
 """SLAM's mapping process lives and ends with the process that started it: a Ctrl-C on a running
-``artrack run slam`` stops it cleanly, and a tracker killed outright does not leave it behind."""
+``artrack run slam`` stops it cleanly, a tracker killed outright does not leave it behind, and a job whose
+source fails at once ends it without a word of its own."""
 
 from __future__ import annotations
 
@@ -78,3 +79,16 @@ def test_a_killed_tracker_does_not_leave_its_mapping_process_behind(procs):
     assert child in _spawned_under(tracker.pid), tracker.describe()
     os.kill(tracker.pid, signal.SIGKILL)
     wait_until(lambda: not _alive([child]), 5.0, f"the mapping process {child} to end after its tracker")
+
+
+def test_a_slam_job_whose_source_fails_at_once_ends_quietly_and_says_why(procs, tmp_path):
+    """The source fails while the mapping process spawned ahead of the first map still imports pycolmap: it is
+    ended without the stack trace pycolmap's signal handler prints for a SIGTERM, and the job's last line is
+    the source's reason."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    job = procs.artrack("run", "slam", "--source", f"images:{empty}", name="job")
+    assert job.wait(3 * START_S) == 2, job.describe()
+    assert "stack trace" not in job.stderr and "Aborted at" not in job.stderr, job.stderr
+    last = job.stderr.strip().splitlines()[-1]
+    assert f"images:{empty}: no image files in {empty}" in last, last

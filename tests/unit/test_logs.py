@@ -61,3 +61,18 @@ def test_native_lines_are_told_from_a_process_own_lines_in_either_format():
     assert not is_native_line("job: nodes.capture: images:/nope: no such folder")
     assert not is_native_line("{not json")
 
+
+
+GLOG_REPORT = """*** Aborted at 1795949955 (unix time) try "date -d @1795949955" if you are using GNU date ***
+PC: @     0x7f1ee74fcb74 _PyEval_EvalFrameDefault
+*** SIGTERM (@0xba5) received by PID 3019 (TID 0x7f1ee7a04b80) from PID 2981; stack trace: ***
+    @     0x7f1ee72ac057 (/usr/lib/x86_64-linux-gnu/libc.so.6+0x8e056)
+    @     0x7f1ee75a7332 cfunction_vectorcall_FASTCALL_KEYWORDS
+"""
+"""What glog's signal handler, which importing pycolmap installs, printed when a process got SIGTERM."""
+
+
+def test_the_lines_of_glogs_signal_report_are_native():
+    assert all(is_native_line(line) for line in GLOG_REPORT.splitlines())
+    assert not is_native_line("*** a line of the node's own ***")
+    assert not is_native_line("    @ the node's own line")
