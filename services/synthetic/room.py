@@ -27,6 +27,7 @@ the camera and inside the image (as the ``markers`` scene gives it).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -131,26 +132,34 @@ class RoomScene(SyntheticScene):
     def __init__(self, options: RoomOptions | None = None):
         super().__init__(options)
         o = self.options
-        rng = scene_rng(o.seed, TEXTURE_PURPOSE)
-        self.faces = []
-        for name, centre, normal, size in self.layout():
-            T_world_face = face_pose(centre, normal)
-            image = procedural_texture(rng, *(max(round(side * TEXELS_PER_M), 1) for side in size))
-            if name == "wall_north":
-                self.checker_corners = transform_points(T_world_face, paint_checker(image, size))
-            self.faces.append(Face(name, T_world_face, PlaneTexture(image, *size)))
+        north = next((centre, normal, size) for name, centre, normal, size in self.layout() if name == "wall_north")
+        self.checker_corners = transform_points(face_pose(*north[:2]), checker_layout(north[2])[2])
         self.T_world_marker: np.ndarray | None = None
         self.marker_corners = rectangle_corners(o.marker_length, o.marker_length)
         if o.marker:
             self.T_world_marker = face_pose(np.array([MARKER_CENTRE_M[0], WIDTH_M / 2 - MARKER_OFFSET_M,
                                                       MARKER_CENTRE_M[1]]), np.array([0.0, -1.0, 0.0]))
-            self.faces.append(Face("marker", self.T_world_marker, marker_sheet(o)))
         path_rng = scene_rng(o.seed, PATH_PURPOSE)
         self.eye = SinePath.random(path_rng, (0.0, 0.0, 1.5), (1.2, 0.9, 0.15), (8.0, 16.0))
         self.heading = SinePath.random(path_rng, (0.0, -0.25), (2.5, 0.2), (14.0, 30.0))
         """(yaw about world z from +x, pitch) in radians."""
         self.cameras = (CameraModel("cam0", o.width, o.height, intrinsics(o.width, o.height, HFOV_DEG),
                                     np.zeros(5), np.eye(4)),)
+
+    @cached_property
+    def faces(self) -> list[Face]:
+        """The textured faces, drawn on first use: a scene built for its cameras or fixtures alone (as the
+        launcher's checks build it) never draws them, which takes about half a second."""
+        rng = scene_rng(self.options.seed, TEXTURE_PURPOSE)
+        faces = []
+        for name, centre, normal, size in self.layout():
+            image = procedural_texture(rng, *(texels(side) for side in size))
+            if name == "wall_north":
+                paint_checker(image, size)
+            faces.append(Face(name, face_pose(centre, normal), PlaneTexture(image, *size)))
+        if self.T_world_marker is not None:
+            faces.append(Face("marker", self.T_world_marker, marker_sheet(self.options)))
+        return faces
 
     def fixtures(self) -> Fixtures:
         """The rig and, with the marker, its side and dictionary, as a marker tracker takes them."""
@@ -217,11 +226,15 @@ def marker_sheet(options: RoomOptions) -> PlaneTexture:
     return PlaneTexture(image, side, side)
 
 
-def paint_checker(image: np.ndarray, size: tuple[float, float]) -> np.ndarray:
-    """Paint the chessboard poster into the north wall's texture ``image`` (covering ``size`` metres).
+def texels(side_m: float) -> int:
+    """Texels of a face's texture along a side of ``side_m`` metres."""
+    return max(round(side_m * TEXELS_PER_M), 1)
 
-    Returns the poster's inner corners, (N, 3) in the wall's face frame, row by row from the top left.
-    """
+
+def checker_layout(size: tuple[float, float]) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
+    """The chessboard poster of the north wall, whose texture covers ``size`` (width, height) metres: its
+    (H, W) uint8 texels, the texel ``(left, top)`` of its top-left corner in the wall's texture, and its inner
+    corners, (N, 3) in the wall's face frame, row by row from the top left."""
     columns, rows = CHECKER_INNER
     square = round(CHECKER_SQUARE_M * TEXELS_PER_M)
     poster = np.full(((rows + 3) * square, (columns + 3) * square), 255, np.uint8)
@@ -229,14 +242,20 @@ def paint_checker(image: np.ndarray, size: tuple[float, float]) -> np.ndarray:
         for c in range(columns + 1):
             if (r + c) % 2 == 0:
                 poster[(r + 1) * square:(r + 2) * square, (c + 1) * square:(c + 2) * square] = 0
-    from_plane = texel_from_plane(image.shape, *size)
+    from_plane = texel_from_plane((texels(size[1]), texels(size[0])), *size)
     centre = from_plane @ (CHECKER_CENTRE_M[0], CHECKER_CENTRE_M[1] - HEIGHT_M / 2, 1.0)
     # texel (i, j) spans [i - 0.5, i + 0.5]: put the poster's edges on texel edges
     left = int(round(centre[0] + 0.5 - poster.shape[1] / 2))
     top = int(round(centre[1] + 0.5 - poster.shape[0] / 2))
-    image[top:top + poster.shape[0], left:left + poster.shape[1]] = poster
     cs, rs = np.meshgrid(np.arange(columns), np.arange(rows))
-    texels = np.stack([left + (cs.ravel() + 2) * square - 0.5, top + (rs.ravel() + 2) * square - 0.5,
-                       np.ones(cs.size)], axis=1)
-    plane = np.linalg.solve(from_plane, texels.T).T
-    return np.column_stack([plane[:, :2], np.zeros(len(plane))])
+    corners = np.stack([left + (cs.ravel() + 2) * square - 0.5, top + (rs.ravel() + 2) * square - 0.5,
+                        np.ones(cs.size)], axis=1)
+    plane = np.linalg.solve(from_plane, corners.T).T
+    return poster, (left, top), np.column_stack([plane[:, :2], np.zeros(len(plane))])
+
+
+def paint_checker(image: np.ndarray, size: tuple[float, float]) -> None:
+    """Paint the chessboard poster (``checker_layout``) into the north wall's texture ``image``, which covers
+    ``size`` metres."""
+    poster, (left, top), _ = checker_layout(size)
+    image[top:top + poster.shape[0], left:left + poster.shape[1]] = poster

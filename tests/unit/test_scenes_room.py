@@ -152,3 +152,12 @@ def test_marker_corners_match_ground_truth():
 def test_invalid_marker_options_are_rejected(options, message):
     with pytest.raises(ValueError, match=f"option {message}"):
         make_scene("room", **options)
+
+
+def test_a_room_asked_for_its_cameras_and_fixtures_draws_no_texture():
+    """The launcher's checks build the scene for its cameras and fixtures; its textures wait for a frame."""
+    room = make_scene("room", marker=True)
+    assert room.cameras[0].name == "cam0" and room.fixtures().settings
+    assert "faces" not in vars(room)
+    room.render(0)
+    assert [face.name for face in vars(room)["faces"]][-1] == "marker"
