@@ -21,6 +21,7 @@ they are.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -75,10 +76,7 @@ class PlanarTargetScene(SyntheticScene):
     def __init__(self, options: PlanarTargetOptions | None = None):
         super().__init__(options)
         o = self.options
-        texture_height = max(round(o.texture_px * o.target_height / o.target_width), 1)
-        self.texture = procedural_texture(scene_rng(o.seed, TEXTURE_PURPOSE), o.texture_px, texture_height)
         self.size_m = (o.target_width, o.target_height)
-        self.target = PlaneTexture(self.texture, o.target_width, o.target_height)
         w = o.target_width
         near, far = 0.7 * w, 2.4 * w
         self.focus_m = (near + far) / 2
@@ -87,6 +85,19 @@ class PlanarTargetScene(SyntheticScene):
         self.light = Lighting(scene_rng(o.seed, LIGHT_PURPOSE), o.lighting)
         K = intrinsics(o.width, o.height, HFOV_DEG)
         self.cameras = (CameraModel("cam0", o.width, o.height, K, np.zeros(5), np.eye(4)),)
+
+    @cached_property
+    def texture(self) -> np.ndarray:
+        """(H, W) uint8, the target's image, drawn on first use (a scene built for its cameras alone never draws
+        it)."""
+        o = self.options
+        texture_height = max(round(o.texture_px * o.target_height / o.target_width), 1)
+        return procedural_texture(scene_rng(o.seed, TEXTURE_PURPOSE), o.texture_px, texture_height)
+
+    @cached_property
+    def target(self) -> PlaneTexture:
+        """The target's plane, ``size_m`` (width, height) metres, textured with ``texture``."""
+        return PlaneTexture(self.texture, *self.size_m)
 
     def fixtures(self) -> Fixtures:
         """The rig and the printed target: the texture, ``target_width`` wide, named after the scene."""
