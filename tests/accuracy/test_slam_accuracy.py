@@ -9,7 +9,8 @@ figures do not depend on the load). The same figures come from mapping inline, h
 
 Two trajectories are scored. The final one (``SlamSystem.trajectory``: each tracked frame through its
 reference keyframe's bundle-adjusted pose, what SLAM benchmarks score and what a user exports at the
-end) is held to the bars: the synthetic ``room`` (600 frames) within 1 % of its path length; KITTI 06
+end) is held to the bars: the synthetic ``room``'s first ``ROOM_TEST_FRAMES`` frames within 1 % of their path
+length (all ``ROOM_FRAMES`` of it are ``python -m tests.accuracy.slam_sequences room``'s); KITTI 06
 frames 0-50 within 0.05 m; TUM fr3 long_office_household at about 1 Hz within 0.02 m. The online
 poses (each frame's as tracked, what the bus carries live) have looser bars near their measured
 figures, so that a regression shows: the room within 1 % too, KITTI within 0.08 m (measured
@@ -37,6 +38,8 @@ from tests.data import data_dir
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 JITTER_SEEDS = range(100, 106)
+ROOM_TEST_FRAMES = 300
+"""10 s of the room, 3.45 m of path (0.56 % final and 0.51 % online ATE measured): half its frames."""
 FIRST_TRACKED_BY = 4
 """Every sequence is tracked from this frame or earlier (room 4, KITTI 2, TUM 1)."""
 
@@ -51,7 +54,7 @@ def check(result: SlamRun, final_bar_m: float, online_bar_m: float) -> None:
 
 
 def test_room_trajectory_within_one_percent_of_its_length():
-    result = run(room())
+    result = run(first(room(), ROOM_TEST_FRAMES))
     check(result, 0.01 * result.length_m, 0.01 * result.length_m)
 
 

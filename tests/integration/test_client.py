@@ -42,12 +42,14 @@ def test_the_example_app_prints_marker_poses_with_their_latency(bus, procs, sess
     start_pipeline(procs, session, bus.keys)
     app = procs.start([sys.executable, str(EXAMPLE), "cam0/**", "--count", "20"], name="example")
     assert app.wait(START_S) == 0, app.describe()
-    pattern = re.compile(r"(cam0/marker/\d+) frame (\d+): tracking t = \(([-+.\d]+), ([-+.\d]+), ([-+.\d]+)\) m, "
-                         r"latency ([.\d]+) ms")
+    pattern = re.compile(r"(cam0/marker/\d+) frame (\d+): (tracking|predicted|lost) t = \(([-+.\d]+), ([-+.\d]+), "
+                         r"([-+.\d]+)\) m, latency ([.\d]+) ms")
     rows = [pattern.fullmatch(line) for line in app.stdout.splitlines()]
     assert len(rows) == 20 and all(rows), app.stdout
-    depths = [float(row[5]) for row in rows]
-    latencies = [float(row[6]) for row in rows]
+    tracked = [row for row in rows if row[3] == "tracking"]
+    assert len(tracked) >= 15, app.stdout  # a marker at the edge of the view may be lost a frame
+    depths = [float(row[6]) for row in tracked]
+    latencies = [float(row[7]) for row in rows]
     assert all(0.05 < z < 5.0 for z in depths), depths  # the scene's camera stays 0.2-2 m from its board
     assert all(0.0 < ms < 2000.0 for ms in latencies), latencies
 

@@ -69,16 +69,24 @@ def test_a_real_time_job_too_fast_for_its_source_says_so_and_its_summary_matches
         assert int(poses[target]["POSES"]) == sum(counts.values())
         assert int(poses[target]["TRACKING"]) == counts["tracking"]
 
+    # Real-time frames go out latest-wins (Zenoh's congestion control DROP): on a busy machine the transport may
+    # drop one, and the recorder counts it as missing. Every frame is in the file or in those counts.
     images = sum(len(ms) for key, ms in messages.items() if key.endswith("/cam0/image"))
-    assert int(nodes["capture"]["OUT"]) >= images == 60
+    assert int(nodes["capture"]["OUT"]) >= 60
+    assert images + int(nodes["recorder"]["MISSING"]) + int(nodes["recorder"]["DROPPED"]) == 60, nodes["recorder"]
     dropped = int(nodes["marker-cam0"]["DROPPED"])
     advice = [line for line in lines if line.strip().startswith("marker-cam0 dropped")]
     assert bool(advice) == (dropped > 0), lines
     if dropped:
         assert f"marker-cam0 dropped {dropped} of " in advice[0] and "--depth N" in advice[0]
     assert f"recording: {out}" in lines[-2]
-    lost = f"frames lost: dropped {dropped} (marker-cam0 {dropped})" if dropped else "every frame accounted for"
-    assert lines[-1].strip().startswith(lost), lines[-1]
+    losses = {(name, column): int(row[column]) for name, row in nodes.items() for column in ("DROPPED", "MISSING")
+              if int(row[column])}
+    if not losses:
+        assert lines[-1].strip().startswith("every frame accounted for"), lines[-1]
+    else:
+        assert lines[-1].strip().startswith("frames lost: "), lines[-1]
+        assert all(f"{name} {count}" in lines[-1] for (name, _), count in losses.items()), (losses, lines[-1])
 
 
 def test_a_lossless_job_takes_every_frame_sends_none_late_and_says_every_frame_is_accounted_for(procs, tmp_path):
