@@ -1,6 +1,6 @@
 # Two commands on a fresh clone: `make demo` and `make test`. Each creates .venv and
 # installs the project into it (editable, with the dev extra) when missing or stale, then fills numba's
-# cache beside the compiled kernels' modules (about 20 s), so that no process compiles them.
+# cache beside the compiled kernels' modules (30 s to a minute on 2 cores), so that no process compiles them.
 # `make bench BENCH="routing apps"` runs only the benchmarks named (see tests/bench/__main__.py).
 PYTHON ?= python3
 VENV := .venv

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from services.bus.stats import SeqGaps
-from services.detection.blobs import measure_kernel
+from services.detection.blobs import measure_kernel, merged_kernel
 from services.estimation.bodies import kernels
 from services.launcher import kernels as launcher_kernels
 from services.launcher.flow import FlowSettings, lossless
@@ -121,13 +121,14 @@ def test_the_stereo_job_s_preflight_prepares_each_kind_s_compiled_kernels_once_a
     assert sorted(node.kind for node in spec.nodes.values()).count("blobs") == 2
     monkeypatch.setattr(kernels, "warm", lambda: calls.append("bodies"))
     monkeypatch.setattr(measure_kernel, "warm", lambda: calls.append("blobs"))
+    monkeypatch.setattr(merged_kernel, "warm", lambda: calls.append("merged blobs"))
     with caplog.at_level(logging.INFO, logger=compiled.__name__):
         preflight(spec, "job")
-    assert sorted(calls) == ["blobs", "bodies"] and "compiling" not in caplog.text  # loaded: nothing said
+    assert sorted(calls) == ["blobs", "bodies", "merged blobs"] and "compiling" not in caplog.text  # loaded: quiet
     monkeypatch.setattr(kernels, "warm", lambda: (time.sleep(0.3), calls.append("bodies")))
     with caplog.at_level(logging.INFO, logger=compiled.__name__):
         preflight(spec, "job")
-    assert sorted(calls) == ["blobs", "blobs", "bodies", "bodies"]
+    assert sorted(calls) == ["blobs", "blobs", "bodies", "bodies", "merged blobs", "merged blobs"]
     assert "compiling the rigid bodies node's kernels" in caplog.text and "blobs" not in caplog.text
 
 
@@ -135,8 +136,9 @@ def test_every_kind_s_compiled_code_is_built_by_one_command(monkeypatch):
     calls: list[str] = []
     monkeypatch.setattr(kernels, "warm", lambda: calls.append("bodies"))
     monkeypatch.setattr(measure_kernel, "warm", lambda: calls.append("blobs"))
+    monkeypatch.setattr(merged_kernel, "warm", lambda: calls.append("merged blobs"))
     assert launcher_kernels.prepare_all() == ["blobs", "rigid_bodies"]
-    assert calls == ["blobs", "bodies"]
+    assert calls == ["blobs", "merged blobs", "bodies"]
 
 
 def test_a_stereo_job_on_a_missing_folder_names_the_folder_not_the_cameras_it_would_have_had(tmp_path):

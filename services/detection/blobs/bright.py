@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.detection.blobs import merged_kernel
 from services.detection.blobs.measure_kernel import measure
 from services.detection.blobs.split import split_two_discs
 from services.geometry.shapes import check_shape
@@ -256,17 +257,7 @@ def shape_flags(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[
 
 def has_waist(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], depth: float) -> bool:
     """Whether the weight summed across ``axis`` in 1 px slices (each pixel shared linearly between
-    the two nearest slices) dips, somewhere inside, below ``1 - depth`` of the heaviest slice on each side."""
-    ys, xs = np.nonzero(weights)
-    along = (xs - centroid[0]) * axis[0] + (ys - centroid[1]) * axis[1]
-    along -= along.min()
-    index = along.astype(np.intp)
-    share = along - index
-    values = weights[ys, xs]
-    size = int(index.max()) + 2
-    profile = (np.bincount(index, values * (1.0 - share), size) + np.bincount(index + 1, values * share, size))
-    if size < 3:
-        return False
-    left = np.maximum.accumulate(profile)[:-2]
-    right = np.maximum.accumulate(profile[::-1])[::-1][2:]
-    return bool(np.any(profile[1:-1] < (1.0 - depth) * np.minimum(left, right)))
+    the two nearest slices) dips, somewhere inside, below ``1 - depth`` of the heaviest slice on each side
+    (compiled: ``merged_kernel.has_waist``)."""
+    return bool(merged_kernel.has_waist(np.ascontiguousarray(weights, np.float64), centroid[0], centroid[1], axis[0],
+                                        axis[1], depth))

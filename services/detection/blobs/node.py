@@ -11,8 +11,9 @@ the frame's header unchanged, zero rows when nothing was found. ``method`` picks
 * ``colour`` (``services.detection.blobs.colour``): pixels whose hue is near ``hue_deg``; needs
   bgr8 (or bgra8) frames. A mono frame gets an empty Blobs and is reported as skipped.
 
-The ``ir`` method's measurements are compiled (``measure_kernel``), loaded before the first frame; the launcher's
-preflight builds them into numba's cache when it lacks them (``NodeKind.prepare``).
+The ``ir`` method's measurements and the waist test and split of merged blobs (also the ``colour`` method's) are
+compiled (``measure_kernel``, ``merged_kernel``), loaded before the first frame; the launcher's preflight builds
+them into numba's cache when it lacks them (``NodeKind.prepare``).
 
 A frame the method cannot work on is counted as skipped and reported
 (``services.runtime.frame_detection``). One frame may wait while another is searched (``depth``).
@@ -30,7 +31,7 @@ from protocol.detections import BlobMethod, Blobs
 from protocol.keys import KeyName
 from protocol.message import Header
 from services.bus.pubsub import Role
-from services.detection.blobs import measure_kernel
+from services.detection.blobs import measure_kernel, merged_kernel
 from services.detection.blobs.bright import Blobs as FoundBlobs
 from services.detection.blobs.bright import IrBlobParams, ShapeParams, detect_ir_blobs
 from services.detection.blobs.colour import ColourBlobParams, HueModel, HueWindow, detect_colour_blobs
@@ -105,13 +106,20 @@ def run(node: Node, params: Params) -> None:
     find = detector(params)
     if params.method == "ir":
         measure_kernel.warm()
+    if params.method in ("ir", "colour"):
+        merged_kernel.warm()
     out = node.publisher(node.keys.blobs(params.camera), Blobs, Role.RESULT)
     for image, found in detect_frames(node, params.camera, params.depth, find, lambda: FoundBlobs.from_rows([])):
         out.put(as_message(image.header, params.method, found))
 
 
+def _warm() -> None:
+    measure_kernel.warm()
+    merged_kernel.warm()
+
+
 def _prepare() -> None:
-    compiled.prepare(measure_kernel.warm, "the blobs node's kernel")
+    compiled.prepare(_warm, "the blobs node's kernels")
 
 
 KIND = NodeKind(name="blobs", summary="bright spots (IR), scale-space or coloured blobs of a camera's frames",
