@@ -51,7 +51,8 @@ def reference_blobs(image: np.ndarray, params: IrBlobParams, shape: ShapeParams)
             continue
         perimeter = cv2.arcLength(contour, True)
         polygon_area = cv2.contourArea(contour)
-        circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
+        square = perimeter * perimeter  # rounded once (Python's ** calls the C library's pow)
+        circularity = min(4.0 * math.pi * polygon_area / square, 1.0) if perimeter > 0 else 0.0
         if circularity < shape.min_circularity:
             continue
         others = (binary[y0:y1, x0:x1] > 0) & (mask == 0)

@@ -42,9 +42,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from services.detection.blobs import merged_kernel
-from services.detection.blobs.measure_kernel import measure
-from services.detection.blobs.split import split_two_discs
+from services.detection.blobs import measure_kernel, merged_kernel
 from services.geometry.shapes import check_shape
 
 __all__ = ["BlobFlag", "Blobs", "IrBlobParams", "ShapeParams", "detect_ir_blobs", "moment_shape", "shape_flags"]
@@ -58,19 +56,14 @@ BACKGROUND_STRIDE = 8
 class BlobFlag(enum.IntFlag):
     """Why a blob's centroid may not be the centre of one round spot (bits of ``Blobs.flags``)."""
 
-    MERGED = 1
+    MERGED = measure_kernel.MERGED
     """Two or more blobs run together: the centroid lies between them."""
-    OCCLUDED = 2
+    OCCLUDED = measure_kernel.OCCLUDED
     """Not round and no waist: partly hidden or cut, the centroid is off the spot's centre."""
-    CLIPPED = 4
+    CLIPPED = measure_kernel.CLIPPED
     """Touches the image border: part of the blob may lie outside the image."""
-    SPLIT = 8
+    SPLIT = measure_kernel.SPLIT
     """One of two discs fitted to the MERGED or OCCLUDED blob in the row before the pair (``split``)."""
-
-
-CLIPPED = int(BlobFlag.CLIPPED)
-SPLIT = int(BlobFlag.SPLIT)
-SPLITTABLE = int(BlobFlag.MERGED | BlobFlag.OCCLUDED)
 
 
 @dataclass(frozen=True)
@@ -101,9 +94,10 @@ class Blobs:
         return len(self.centroids)
 
     @classmethod
-    def from_rows(cls, rows: Sequence[tuple[float, ...]]) -> Blobs:
-        """Blobs from ``(x, y, area, radius, perimeter, circularity, quality, flags)`` rows."""
-        table = np.array(rows, np.float64).reshape(-1, 8)
+    def from_rows(cls, rows: Sequence[tuple[float, ...]] | np.ndarray) -> Blobs:
+        """Blobs from ``(x, y, area, radius, perimeter, circularity, quality, flags)`` rows (or an (N, 8) array of
+        them)."""
+        table = np.asarray(rows, np.float64).reshape(-1, 8)
         return cls(table[:, :2].copy(), table[:, 2].copy(), table[:, 3].copy(), table[:, 4].copy(),
                    table[:, 5].copy(), table[:, 6].copy(), table[:, 7].astype(np.uint8))
 
@@ -175,8 +169,8 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     order found.
 
     Every component is measured in its window (bounding box grown by ``WINDOW_PAD``) by one call of the
-    compiled ``measure_kernel.measure``, which holds no lock of Python's; the filters, the moments' shape and
-    the flags are then taken component by component."""
+    compiled ``measure_kernel.measure``, then filtered, shaped, flagged and split by one of ``blob_rows``; neither
+    holds Python's lock."""
     image = np.ascontiguousarray(check_mono(image))  # the kernel is compiled for C-ordered images only
     params = params or IrBlobParams()
     shape = shape or ShapeParams()
@@ -191,33 +185,11 @@ def detect_ir_blobs(image: np.ndarray, params: IrBlobParams | None = None, shape
     starts = np.zeros(len(contours) + 1, np.int64)
     np.cumsum([len(c) for c in contours], out=starts[1:])
     background = grid_median(image) if params.background is None else params.background
-    table, buffer = measure(image, binary, np.concatenate(contours).reshape(-1, 2), starts, float(background),
-                            WINDOW_PAD)
-    rows = []
-    for (x0, y0, h, w, offset, area, perimeter, polygon_area, hull_area, m00, m10, m01, mu20, mu11, mu02,
-         box_x, box_y, box_w, box_h) in table.tolist():
-        radius = math.sqrt(area / math.pi)
-        if not (box_w * box_h >= shape.min_area and shape.min_area <= area <= shape.max_area
-                and params.min_radius <= radius <= params.max_radius):
-            continue
-        circularity = min(4.0 * math.pi * polygon_area / perimeter**2, 1.0) if perimeter > 0 else 0.0
-        if circularity < shape.min_circularity or m00 <= 0.0:
-            continue
-        centroid, axis, roundness = moment_shape({"m00": m00, "m10": m10, "m01": m01, "mu20": mu20, "mu11": mu11,
-                                                  "mu02": mu02})
-        solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
-        window = buffer[int(offset):int(offset + h * w)].reshape(int(h), int(w))
-        irregular = roundness < shape.min_roundness or solidity < params.min_solidity
-        flags = int(shape_flags(window, centroid, axis, True, shape.waist_depth)) if irregular else 0
-        if box_x == 0 or box_y == 0 or box_x + box_w == width or box_y + box_h == height:
-            flags |= CLIPPED
-        rows.append((x0 + centroid[0], y0 + centroid[1], area, radius, perimeter, circularity, roundness * solidity,
-                     flags))
-        if flags & SPLITTABLE and (discs := split_two_discs(window, centroid, axis)) is not None:
-            rows += [(x0 + x, y0 + y, math.pi * r * r, r, 2.0 * math.pi * r, 1.0, 1.0 - discs.rms,
-                      SPLIT | (flags & CLIPPED)) for (x, y), r in zip(discs.centres.tolist(), discs.radii.tolist(),
-                                                                       strict=True)]
-    return Blobs.from_rows(rows)
+    table, weights = measure_kernel.measure(image, binary, np.concatenate(contours).reshape(-1, 2), starts,
+                                            float(background), WINDOW_PAD)
+    return Blobs.from_rows(measure_kernel.blob_rows(
+        table, weights, width, height, shape.min_area, shape.max_area, params.min_radius, params.max_radius,
+        shape.min_circularity, shape.min_roundness, params.min_solidity, shape.waist_depth))
 
 
 def grid_median(image: np.ndarray) -> float:
@@ -233,14 +205,11 @@ def grid_median(image: np.ndarray) -> float:
 
 def moment_shape(moments: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float], float]:
     """From ``cv2.moments`` of a weight window: the centroid ``(x, y)`` px in the window, the major
-    axis ``(cos, sin)`` (a unit vector) and the roundness ``sqrt(l_min / l_max)`` of the covariance."""
-    m00 = moments["m00"]
-    a, b, c = moments["mu20"] / m00, moments["mu11"] / m00, moments["mu02"] / m00
-    half_gap = math.hypot((a - c) / 2.0, b)
-    l_max, l_min = (a + c) / 2.0 + half_gap, max((a + c) / 2.0 - half_gap, 0.0)
-    angle = 0.5 * math.atan2(2.0 * b, a - c)
-    roundness = math.sqrt(l_min / l_max) if l_max > 0 else 1.0
-    return (moments["m10"] / m00, moments["m01"] / m00), (math.cos(angle), math.sin(angle)), roundness
+    axis ``(cos, sin)`` (a unit vector) and the roundness ``sqrt(l_min / l_max)`` of the covariance
+    (``measure_kernel.moment_shape``)."""
+    x, y, cos, sin, roundness = measure_kernel.moment_shape(moments["m00"], moments["m10"], moments["m01"],
+                                                            moments["mu20"], moments["mu11"], moments["mu02"])
+    return (x, y), (cos, sin), roundness
 
 
 def shape_flags(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float], irregular: bool,

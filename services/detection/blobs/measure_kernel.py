@@ -22,10 +22,17 @@ rig's cameras measure in parallel on the cores rather than one at a time. Cached
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
-__all__ = ["COLUMNS", "measure", "warm"]
+from services.detection.blobs.merged_kernel import has_waist, split
+
+__all__ = ["CLIPPED", "COLUMNS", "MERGED", "OCCLUDED", "SPLIT", "blob_rows", "measure", "moment_shape", "warm"]
+
+MERGED, OCCLUDED, CLIPPED, SPLIT = 1, 2, 4, 8
+"""The bits of ``bright.BlobFlag``."""
 
 COLUMNS = ("x0", "y0", "height", "width", "offset", "area", "perimeter", "polygon_area", "hull_area", "m00", "m10",
            "m01", "mu20", "mu11", "mu02", "box_x", "box_y", "box_w", "box_h")
@@ -172,11 +179,70 @@ def measure(image: np.ndarray, binary: np.ndarray, points: np.ndarray, starts: n
     return table, weights
 
 
+@njit(cache=True, nogil=True)
+def moment_shape(m00: float, m10: float, m01: float, mu20: float, mu11: float,
+                 mu02: float) -> tuple[float, float, float, float, float]:
+    """From the raw and central moments of a weight window (``m00`` > 0): the centroid ``(x, y)`` px in the
+    window, the major axis ``(cos, sin)`` (a unit vector) and the roundness ``sqrt(l_min / l_max)`` of the
+    covariance, as ``(x, y, cos, sin, roundness)``."""
+    a, b, c = mu20 / m00, mu11 / m00, mu02 / m00
+    half_gap = math.hypot((a - c) / 2.0, b)
+    l_max, l_min = (a + c) / 2.0 + half_gap, max((a + c) / 2.0 - half_gap, 0.0)
+    angle = 0.5 * math.atan2(2.0 * b, a - c)
+    roundness = math.sqrt(l_min / l_max) if l_max > 0 else 1.0
+    return m10 / m00, m01 / m00, math.cos(angle), math.sin(angle), roundness
+
+
+@njit(cache=True, nogil=True)
+def blob_rows(table: np.ndarray, weights: np.ndarray, image_width: int, image_height: int, min_area: float,
+              max_area: float, min_radius: float, max_radius: float, min_circularity: float, min_roundness: float,
+              min_solidity: float, waist_depth: float) -> np.ndarray:
+    """(M, 8) float64 rows ``(x, y, area, radius, perimeter, circularity, quality, flags)`` of the blobs of
+    ``measure``'s ``(table, weights)`` in an image of ``image_width`` x ``image_height`` px, in the table's order,
+    each split blob followed by its two discs: the filters, shape, flags and splits ``bright.detect_ir_blobs``
+    states, with its ``IrBlobParams`` and ``ShapeParams`` settings."""
+    rows = np.empty((3 * len(table), 8))
+    count = 0
+    for k in range(len(table)):
+        (x0, y0, height, width, offset, area, perimeter, polygon_area, hull_area, m00, m10, m01, mu20, mu11, mu02,
+         box_x, box_y, box_w, box_h) = table[k]
+        radius = math.sqrt(area / math.pi)
+        if not (box_w * box_h >= min_area and min_area <= area <= max_area and min_radius <= radius <= max_radius):
+            continue
+        circularity = min(4.0 * math.pi * polygon_area / (perimeter * perimeter), 1.0) if perimeter > 0 else 0.0
+        if circularity < min_circularity or m00 <= 0.0:
+            continue
+        cx, cy, ax, ay, roundness = moment_shape(m00, m10, m01, mu20, mu11, mu02)
+        solidity = min(polygon_area / hull_area, 1.0) if hull_area > 0 else 1.0
+        start = int(offset)
+        window = weights[start:start + int(height) * int(width)].reshape(int(height), int(width))
+        flags = 0
+        if roundness < min_roundness or solidity < min_solidity:
+            flags = MERGED if has_waist(window, cx, cy, ax, ay, waist_depth) else OCCLUDED
+        if box_x == 0 or box_y == 0 or box_x + box_w == image_width or box_y + box_h == image_height:
+            flags |= CLIPPED
+        rows[count] = (x0 + cx, y0 + cy, area, radius, perimeter, circularity, roundness * solidity, float(flags))
+        count += 1
+        if flags & (MERGED | OCCLUDED) == 0:
+            continue
+        fitted, params, rms = split(window, cx, cy, ax, ay)
+        if fitted:
+            for disc in range(2):
+                r = params[4 + disc]
+                rows[count] = (x0 + params[2 * disc], y0 + params[2 * disc + 1], math.pi * r * r, r,
+                               2.0 * math.pi * r, 1.0, 1.0 - rms, float(SPLIT | (flags & CLIPPED)))
+                count += 1
+    return rows[:count].copy()
+
+
 def warm() -> None:
-    """``measure`` run once on a tiny input of each image depth: compiled, or loaded from the cache."""
+    """``measure`` and ``blob_rows`` run once on a tiny input of each image depth, and ``moment_shape`` once:
+    compiled, or loaded from the cache."""
+    moment_shape(1.0, 0.0, 0.0, 1.0, 0.0, 1.0)
     binary = np.zeros((8, 8), np.uint8)
     binary[3:5, 3:5] = 255
     points = np.array([[3, 3], [3, 4], [4, 4], [4, 3]], np.int32)
     starts = np.array([0, 4], np.int64)
     for depth in (np.uint8, np.uint16):
-        measure(binary.astype(depth), binary, points, starts, 0.0, 2)
+        table, weights = measure(binary.astype(depth), binary, points, starts, 0.0, 2)
+        blob_rows(table, weights, 8, 8, 1.0, 100.0, 0.0, math.inf, 0.3, 0.8, 0.85, 0.05)

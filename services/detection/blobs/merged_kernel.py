@@ -14,20 +14,38 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["cholesky_solve", "has_waist", "split", "warm"]
+__all__ = ["MAX_RMS", "MIN_GAP_PX", "cholesky_solve", "has_waist", "split", "warm"]
 
 PARAMETERS = 7
 """The two-disc model's numbers: ``(x1, y1, x2, y2, r1, r2, peak)``."""
+MEANS_ROUNDS = 4
+"""Rounds of the two-means seed."""
+MAX_RMS = 0.08
+"""Largest residual RMS of an accepted fit, as a fraction of its ``peak``."""
+MIN_GAP_PX = 0.5
+"""Closest the two fitted centres may lie, px: nearer, the blob is one spot."""
+MIN_PIXELS = 12
+"""Fewest pixels in the box a blob is split in (two discs are seven numbers)."""
+MAX_STEPS = 40
+"""Most Levenberg-Marquardt steps tried (accepted or not) before the fit is given up."""
+STEP_TOLERANCE = 1e-4
+"""A step moving no centre or radius by more than this, px, ends the fit."""
+MAX_MOVE_PX = 0.5
+"""Farthest one step moves a centre or a radius, px: a longer step is shortened to this, its direction kept."""
+DAMPING = (1e-3, 10.0, 1e8)
+"""Levenberg-Marquardt damping: its start (a fraction of the normal matrix's diagonal at the start), the factor it
+grows by after a step that raises the cost and shrinks by after one that lowers it, and the largest it may grow
+to before the fit stops where it is."""
 PIVOT_EPSILON = np.finfo(np.float64).eps
 """A Cholesky pivot below this means the matrix is not positive definite (``cv2.solve``'s rule)."""
 
 
 @njit(cache=True, nogil=True)
 def has_waist(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float, depth: float) -> bool:
-    """Whether the weight of (h, w) float64 ``weights`` (0 off the blob), summed across the unit axis ``(ax, ay)``
-    in 1 px slices (each pixel shared linearly between the two nearest slices, its position along the axis
-    measured from the centroid ``(cx, cy)`` px), dips somewhere inside below ``1 - depth`` of the heaviest slice
-    on each side."""
+    """Whether the weight of (h, w) float32 or float64 ``weights`` (0 off the blob), summed across the unit axis
+    ``(ax, ay)`` in 1 px slices (each pixel shared linearly between the two nearest slices, its position along
+    the axis measured from the centroid ``(cx, cy)`` px), dips somewhere inside below ``1 - depth`` of the
+    heaviest slice on each side."""
     height, width = weights.shape
     count = 0
     lowest = math.inf
@@ -134,12 +152,11 @@ def _gram(rows: np.ndarray, products: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _fit(start: np.ndarray, xs: np.ndarray, ys: np.ndarray, values: np.ndarray, max_steps: int,
-         step_tolerance: float, max_move: float, damping: float, factor: float,
-         most: float) -> tuple[bool, np.ndarray, np.ndarray]:
+def _fit(start: np.ndarray, xs: np.ndarray, ys: np.ndarray, values: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:
     """``(settled, params, residuals)``: the parameters (7,) nearest ``start`` minimising the squared residuals of
-    ``_model`` by Levenberg-Marquardt, and the residuals (N,) there (``split.split_two_discs`` states the steps
-    and the settings); ``settled`` False when ``max_steps`` steps do not settle them."""
+    ``_model`` by Levenberg-Marquardt, and the residuals (N,) there (``split`` states the steps); ``settled`` False
+    when ``MAX_STEPS`` steps do not settle them."""
+    damping, factor, most = DAMPING
     count = len(values)
     params = start.copy()
     rows, trial_rows = np.empty((8, count)), np.empty((8, count))
@@ -154,7 +171,7 @@ def _fit(start: np.ndarray, xs: np.ndarray, ys: np.ndarray, values: np.ndarray, 
         scaling[i] = max(products[i, i], 1e-12 * largest)
     normal = np.empty((PARAMETERS, PARAMETERS))
     gradient = np.empty(PARAMETERS)
-    for _ in range(max_steps):
+    for _ in range(MAX_STEPS):
         for i in range(PARAMETERS):
             for j in range(PARAMETERS):
                 normal[i, j] = products[i, j]
@@ -165,10 +182,10 @@ def _fit(start: np.ndarray, xs: np.ndarray, ys: np.ndarray, values: np.ndarray, 
             move = 0.0
             for i in range(6):
                 move = max(move, abs(step[i]))
-            if move < step_tolerance:
+            if move < STEP_TOLERANCE:
                 return True, params, rows[7].copy()
-            if move > max_move:
-                step *= max_move / move
+            if move > MAX_MOVE_PX:
+                step *= MAX_MOVE_PX / move
             trial = params + step
             _model(trial, xs, ys, values, trial_rows)
             _gram(trial_rows, trial_products)
@@ -185,10 +202,9 @@ def _fit(start: np.ndarray, xs: np.ndarray, ys: np.ndarray, values: np.ndarray, 
 
 
 @njit(cache=True, nogil=True)
-def _seed(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float,
-          rounds: int) -> tuple[bool, np.ndarray]:
+def _seed(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float) -> tuple[bool, np.ndarray]:
     """``(seeded, start)``: the fit's start (7,) from the lit pixels of (h, w) ``weights``, two means along the
-    unit axis ``(ax, ay)`` from the centroid ``(cx, cy)`` (``split.split_two_discs`` states the rule);
+    unit axis ``(ax, ay)`` from the centroid ``(cx, cy)`` (``split`` states the rule);
     ``seeded`` False when a round leaves a mean without pixels."""
     height, width = weights.shape
     along = np.empty(height * width)
@@ -208,7 +224,7 @@ def _seed(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float,
     moment = np.cumsum(mass[:count][order] * sorted_along)
     low, high = -1.0, 1.0
     near, total = 0.0, heavy[count - 1]
-    for _ in range(rounds):
+    for _ in range(MEANS_ROUNDS):
         cut = np.searchsorted(sorted_along, 0.5 * (low + high), side="right")
         if cut == 0 or cut == count:
             return False, np.zeros(PARAMETERS)
@@ -220,13 +236,15 @@ def _seed(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float,
 
 
 @njit(cache=True, nogil=True)
-def split(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float, min_pixels: int, rounds: int,
-          max_steps: int, step_tolerance: float, max_move: float, damping: float, factor: float,
-          most: float) -> tuple[bool, np.ndarray, float]:
-    """``(fitted, params, rms)``: two discs fitted to (h, w) float64 ``weights`` (0 off the blob), ``params``
-    ``(x1, y1, x2, y2, r1, r2, peak)`` px in the window and ``rms`` the residual RMS over the lit pixels'
-    bounding box as a fraction of ``peak``; ``fitted`` False with fewer than ``min_pixels`` lit pixels, no seed,
-    or no settled fit. ``split.split_two_discs`` states the method and passes its settings."""
+def split(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float) -> tuple[bool, np.ndarray, float]:
+    """``(fitted, params, rms)``: two discs fitted to (h, w) ``weights`` (0 off the blob; float32 or float64) from
+    the blob's centroid ``(cx, cy)`` px and unit major axis ``(ax, ay)``, ``params`` ``(x1, y1, x2, y2, r1, r2,
+    peak)`` px in the window (the centres in the order of their seeds along the axis) and ``rms`` the residual
+    RMS over the lit pixels' bounding box as a fraction of ``peak``.
+
+    ``fitted`` is False with fewer than ``MIN_PIXELS`` lit pixels, no seed, no settled fit, a residual RMS above
+    ``MAX_RMS``, a radius not above 0 or the centres nearer than ``MIN_GAP_PX``. The method:
+    ``split.split_two_discs``'s docstring."""
     height, width = weights.shape
     top, bottom, left, right, lit = height, -1, width, -1, 0
     for y in range(height):
@@ -235,9 +253,9 @@ def split(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float, min_p
                 top, bottom = min(top, y), max(bottom, y)
                 left, right = min(left, x), max(right, x)
                 lit += 1
-    if lit < min_pixels:
+    if lit < MIN_PIXELS:
         return False, np.zeros(PARAMETERS), math.inf
-    seeded, start = _seed(weights, cx, cy, ax, ay, rounds)
+    seeded, start = _seed(weights, cx, cy, ax, ay)
     if not seeded:
         return False, start, math.inf
     box = (bottom + 1 - top) * (right + 1 - left)
@@ -247,19 +265,19 @@ def split(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float, min_p
         for x in range(left, right + 1):
             xs[i], ys[i], values[i] = x, y, weights[y, x]
             i += 1
-    settled, params, residuals = _fit(start, xs, ys, values, max_steps, step_tolerance, max_move, damping, factor,
-                                      most)
-    if not settled:
-        return False, params, math.inf
+    settled, params, residuals = _fit(start, xs, ys, values)
     peak = params[6]
     rms = math.sqrt(np.dot(residuals, residuals) / box) / peak if peak > 0.0 else math.inf
-    return True, params, rms
+    fitted = (settled and rms <= MAX_RMS and min(params[4], params[5]) > 0.0
+              and math.hypot(params[2] - params[0], params[3] - params[1]) >= MIN_GAP_PX)
+    return fitted, params, rms
 
 
 def warm() -> None:
-    """``has_waist``, ``cholesky_solve`` and ``split`` run once on a tiny blob of two discs: compiled, or loaded from
-    the cache."""
+    """``has_waist`` and ``split`` (with ``cholesky_solve``) run once on a tiny blob of two discs in each float
+    depth: compiled, or loaded from the cache."""
     yy, xx = np.mgrid[0:9, 0:14]
     weights = 100.0 * ((np.hypot(xx - 4.0, yy - 4.0) <= 3.0) | (np.hypot(xx - 9.0, yy - 4.0) <= 3.0))
-    has_waist(weights, 6.5, 4.0, 1.0, 0.0, 0.05)
-    split(weights, 6.5, 4.0, 1.0, 0.0, 12, 4, 40, 1e-4, 0.5, 1e-3, 10.0, 1e8)
+    for depth in (np.float32, np.float64):
+        has_waist(weights.astype(depth), 6.5, 4.0, 1.0, 0.0, 0.05)
+        split(weights.astype(depth), 6.5, 4.0, 1.0, 0.0)

@@ -11,7 +11,7 @@ the frame's header unchanged, zero rows when nothing was found. ``method`` picks
 * ``colour`` (``services.detection.blobs.colour``): pixels whose hue is near ``hue_deg``; needs
   bgr8 (or bgra8) frames. A mono frame gets an empty Blobs and is reported as skipped.
 
-The ``ir`` method's measurements and the waist test and split of merged blobs (also the ``colour`` method's) are
+The ``ir`` method's measurements, and the shape, waist test and split of merged blobs it shares with ``colour``, are
 compiled (``measure_kernel``, ``merged_kernel``), loaded before the first frame; the launcher's preflight builds
 them into numba's cache when it lacks them (``NodeKind.prepare``).
 
@@ -104,10 +104,8 @@ def as_message(header: Header, method: BlobMethod, found: FoundBlobs) -> Blobs:
 
 def run(node: Node, params: Params) -> None:
     find = detector(params)
-    if params.method == "ir":
-        measure_kernel.warm()
     if params.method in ("ir", "colour"):
-        merged_kernel.warm()
+        _warm()
     out = node.publisher(node.keys.blobs(params.camera), Blobs, Role.RESULT)
     for image, found in detect_frames(node, params.camera, params.depth, find, lambda: FoundBlobs.from_rows([])):
         out.put(as_message(image.header, params.method, found))

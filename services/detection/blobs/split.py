@@ -14,38 +14,18 @@ each step one pass over the box's pixels for the residuals and their Jacobian, t
 equations ``(J J^T + damping D) step = -J r`` solved by Cholesky (``D`` the diagonal of ``J J^T`` at the
 start), each step shortened to move a centre or radius ``MAX_MOVE_PX`` at most; the fit ends before a step
 that would move none by ``STEP_TOLERANCE``, or where no step lowers the cost before the damping passes its
-largest, and fails after ``MAX_STEPS`` steps. The seed and the fit run in compiled code
-(``merged_kernel.split``); two or three steps settle most blobs (``docs/stereo-tracking.md``, Speed).
+largest, and fails after ``MAX_STEPS`` steps. The seed, the fit and the checks of ``split_two_discs`` run in
+compiled code (``merged_kernel.split``, which holds these settings); two or three steps settle most blobs
+(``docs/stereo-tracking.md``, Speed).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from services.detection.blobs.merged_kernel import split
+from services.detection.blobs.merged_kernel import MAX_RMS, MIN_GAP_PX, split
 
-__all__ = ["MAX_RMS", "TwoDiscs", "split_two_discs"]
-
-MEANS_ROUNDS = 4
-"""Rounds of the two-means seed."""
-MAX_RMS = 0.08
-"""Largest residual RMS of an accepted fit, as a fraction of its ``peak``."""
-MIN_GAP_PX = 0.5
-"""Closest the two fitted centres may lie, px: nearer, the blob is one spot."""
-MIN_PIXELS = 12
-"""Fewest pixels in the box a blob is split in (two discs are seven numbers)."""
-MAX_STEPS = 40
-"""Most Levenberg-Marquardt steps tried (accepted or not) before the fit is given up."""
-STEP_TOLERANCE = 1e-4
-"""A step moving no centre or radius by more than this, px, ends the fit."""
-MAX_MOVE_PX = 0.5
-"""Farthest one step moves a centre or a radius, px: a longer step is shortened to this, its direction kept."""
-DAMPING = (1e-3, 10.0, 1e8)
-"""Levenberg-Marquardt damping: its start (a fraction of the normal matrix's diagonal at the start), the factor it grows
-by after a step that raises the cost and shrinks by after one that lowers it, and the largest it may grow
-to before the fit stops where it is."""
+__all__ = ["MAX_RMS", "MIN_GAP_PX", "TwoDiscs", "split_two_discs"]
 
 
 class TwoDiscs:
@@ -59,17 +39,13 @@ class TwoDiscs:
 
 
 def split_two_discs(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[float, float]) -> TwoDiscs | None:
-    """The two discs that best explain one blob, or None when the fit fails (no two distinct discs, or a
-    residual RMS above ``MAX_RMS`` of the peak) or the blob has fewer than ``MIN_PIXELS`` lit pixels.
+    """The two discs that best explain one blob, or None when the fit fails (no two distinct discs ``MIN_GAP_PX``
+    apart or more, or a residual RMS above ``MAX_RMS`` of the peak) or the blob has fewer than ``MIN_PIXELS`` lit
+    pixels.
 
     ``weights``: (h, w) float window of the blob's centroid weights (``measure_kernel.measure``: 0 off the
     blob); ``centroid``: its weighted centroid ``(x, y)`` px in the window; ``axis``: its major axis
     ``(cos, sin)``, a unit vector. The fitted centres come out in the order of their seeds along ``axis``."""
-    fitted, params, rms = split(np.ascontiguousarray(weights, np.float64), centroid[0], centroid[1], axis[0], axis[1],
-                                MIN_PIXELS, MEANS_ROUNDS, MAX_STEPS, STEP_TOLERANCE, MAX_MOVE_PX, *DAMPING)
-    if not fitted:
-        return None
-    x1, y1, x2, y2, r1, r2, peak = params.tolist()
-    if rms > MAX_RMS or min(r1, r2) <= 0.0 or math.hypot(x2 - x1, y2 - y1) < MIN_GAP_PX:
-        return None
-    return TwoDiscs(params[:4].reshape(2, 2), params[4:6], peak, rms)
+    depth = np.float32 if weights.dtype == np.float32 else np.float64  # the depths the kernel is built for
+    fitted, params, rms = split(np.ascontiguousarray(weights, depth), centroid[0], centroid[1], axis[0], axis[1])
+    return TwoDiscs(params[:4].reshape(2, 2), params[4:6], float(params[6]), rms) if fitted else None
