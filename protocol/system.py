@@ -74,7 +74,8 @@ class SyncStats(Struct):
 class NodeStats(Message):
     """A node's health, published periodically and answered on its state queryable.
 
-    ``dropped`` counts frames a latest-wins input replaced before they were processed;
+    ``dropped`` counts frames a latest-wins input replaced before they were processed, and the complete
+    sets a latest-wins join replaced so (``SyncStats.dropped``);
     ``decode_errors`` payloads that failed to decode or validate; ``processing_ms_p50``
     and ``_p99`` are over the last window of processed inputs; ``latency_ms_p50`` and ``_p99``
     over the same window are each input's age when the node was done with it (its outputs

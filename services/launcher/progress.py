@@ -354,6 +354,9 @@ def _drop_advice(kind_name: str) -> str:
 
 
 def _drop_detail(stats: NodeStats) -> str:
-    """``N of M frames on KEY, ...`` for each input of ``stats`` that dropped some."""
-    return ", ".join(f"{s.dropped} of {s.messages} on {s.key}" for s in stats.streams
-                     if s.direction == "in" and s.dropped)
+    """``N of M frames on KEY, ...`` for each input of ``stats`` that dropped some, then ``N of M sets of KEY + KEY``
+    for each latest-wins join that did."""
+    inputs = [f"{s.dropped} of {s.messages} on {s.key}" for s in stats.streams if s.direction == "in" and s.dropped]
+    joins = [f"{group.dropped} of {group.sets} sets of {' + '.join(i.key for i in group.inputs)}"
+             for group in stats.synced if group.dropped]
+    return ", ".join(inputs + joins)

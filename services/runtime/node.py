@@ -334,14 +334,15 @@ class Node:
 
     def synced(self, inputs: Mapping[str, str], cls: type[M] | Mapping[str, type[Message] | None] | None,
                role: Role = Role.FRAME, *, by: JoinBy = "seq", tolerance_s: float = 0.0,
-               depth: int = DEFAULT_SYNC_DEPTH) -> Synced:
+               depth: int = DEFAULT_SYNC_DEPTH, backlog: int = 1) -> Synced:
         """Sets of one message from each of ``inputs`` ({name: key}), joined on their headers.
 
         ``by="seq"`` joins messages with equal ``header.seq``; ``by="stamp"`` joins those whose
         ``header.stamp_ns`` lies within ``tolerance_s`` of the first input's. ``cls`` is one
         message type for all inputs or one per name. Each input keeps up to ``depth`` messages
         waiting for partners. ``role=Role.FRAME`` is latest-wins: each input queues up to
-        ``depth`` messages, and only the newest complete set is handed out. Any other role
+        ``depth`` messages, and only the newest ``backlog`` complete sets wait, handed out oldest
+        first (the older ones dropped and counted); in a lossless flow every set is. Any other role
         hands out every set in order, its inputs queueing as that role does. Iterate the result
         for ``{name: message}`` dicts in ``inputs``' order, as ``inputs`` hands out messages;
         what could not be joined is counted in ``NodeStats.synced`` (``services.runtime.sync``
@@ -354,7 +355,8 @@ class Node:
         latest = role is Role.FRAME and not self.flow.lossless
         if role is Role.FRAME and self.flow.lossless:
             depth = LOSSLESS_DEPTH
-        joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth, ready=1 if latest else depth)
+        joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth,
+                                   ready=backlog if latest else depth)
         inboxes = {name: self.inbox(key, types[name], role, depth if latest else None) for name, key in inputs.items()}
         synced = Synced(self, inboxes, joiner, by, latest)
         self._syncs.append(synced)
@@ -522,6 +524,7 @@ class Node:
         outputs = [pub.counter.snapshot() for pub in self._publishers] + [s for s in tracked if s.direction == "out"]
         p50, p99 = self._processing.percentiles_ms(50, 99)
         age_p50, age_p99 = self._ages.percentiles_ms(50, 99)
+        synced = tuple(group.stats() for group in self._syncs)
         self._stats_seq += 1
         return NodeStats(
             header=Header(stamp_ns=time.time_ns(), seq=self._stats_seq),
@@ -529,13 +532,13 @@ class Node:
             state=self._state if self.running else "stopping",
             uptime_s=time.monotonic() - self._started,
             received=sum(s.messages for s in inputs), published=sum(s.messages for s in outputs),
-            processed=self._processed, dropped=sum(s.dropped for s in inputs),
+            processed=self._processed, dropped=sum(s.dropped for s in inputs) + sum(group.dropped for group in synced),
             missing=sum(s.missing for s in inputs), decode_errors=sum(s.decode_errors for s in inputs),
             ended=self._ended is not None,
             processing_ms_p50=p50, processing_ms_p99=p99, latency_ms_p50=age_p50, latency_ms_p99=age_p99,
             skipped=self.skipped(),
             streams=tuple(inputs + outputs),
-            synced=tuple(synced.stats() for synced in self._syncs),
+            synced=synced,
         )
 
     def _stats_loop(self) -> None:
