@@ -113,7 +113,7 @@ def test_joined_by_stamp_within_the_tolerance_and_skewed_frames_left_out(bus, pr
 def test_a_two_camera_capture_joined_latest_wins_gives_only_matching_pairs(bus, procs, session):
     keys = bus.keys
     frames = 30
-    node, outs = start_pairs(procs, session, keys, "--by", "stamp", "--role", "frame", depth=8)
+    node, outs = start_pairs(procs, session, keys, "--by", "stamp", "--role", "frame", "--backlog", "2", depth=8)
     capture = start_node(procs, "capture", "rig", source="synthetic:ir_rig", cameras=["cam0", "cam1"],
                          frames=frames, fps=30, wait_for_subscriber=True)
 
@@ -144,4 +144,38 @@ def test_a_two_camera_capture_joined_latest_wins_gives_only_matching_pairs(bus, 
     cam0, cam1 = group.inputs
     assert cam0.joined == cam1.joined == group.sets >= 1
     assert group.sets + cam0.unjoined <= frames and group.sets + cam1.unjoined <= frames
+    inputs_dropped = sum(s.dropped for s in stats.streams if s.direction == "in")
+    assert stats.dropped == inputs_dropped + group.dropped  # the sets let go count as the node's drops
+    assert node.poll() is None
+
+
+def test_a_slow_node_joined_latest_wins_takes_the_newest_sets_and_counts_the_rest_dropped(bus, procs, session):
+    """A node spending 100 ms on each pair of a 30 Hz rig, with a backlog of two sets: the pairs it takes match
+    and come in order up to the last one, and every set it let go counts in its drops."""
+    keys = bus.keys
+    node, outs = start_pairs(procs, session, keys, "--by", "seq", "--role", "frame", "--backlog", "2",
+                             "--work-ms", "100")
+    start_cameras(procs)
+
+    def settled():
+        stats = states(session, keys).get("pairs")
+        if stats is None or len(stats.synced) != 1:
+            return None
+        (group,) = stats.synced
+        done = (tuple(i.received for i in group.inputs) == (FRAMES, FRAMES) and group.sets == FRAMES
+                and stats.processed == group.sets - group.dropped)
+        return stats if done else None
+
+    stats = wait_until(settled, 30.0, "the slow node to take its last set", interval_s=0.2)
+    (group,) = stats.synced
+    try:
+        left, right = (collect(inbox, group.sets - group.dropped) for inbox in outs)
+    finally:
+        for inbox in outs:
+            inbox.close()
+    seqs = [a.header.seq for a in left]
+    assert seqs == sorted(set(seqs)) and [b.header.seq for b in right] == seqs
+    assert seqs[-1] == FRAMES - 1  # the newest sets wait: the last one is never dropped
+    assert group.dropped >= FRAMES // 3, group  # 30 sets a second into a node that takes 10
+    assert stats.dropped == group.dropped + sum(s.dropped for s in stats.streams if s.direction == "in")
     assert node.poll() is None

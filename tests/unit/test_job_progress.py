@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from protocol.message import Header
-from protocol.system import NodeStats, StreamStats
+from protocol.system import NodeStats, StreamStats, SyncInputStats, SyncStats
 from services.capture.node import LATE_S, _Lateness, _Pacer
 from services.launcher.pipeline import NodeSpec
-from services.launcher.progress import Display, JobFigures, delivered_rate, frames_expected, frames_sent
+from services.launcher.progress import Display, JobFigures, _drop_detail, delivered_rate, frames_expected, frames_sent
 
 
 def _stats(node: str, stamp_ns: int, sent: int = 0) -> NodeStats:
@@ -49,6 +49,17 @@ def test_a_capture_knows_its_total_from_frames_a_folder_or_a_video_and_none_when
 
 def test_frames_sent_are_the_image_messages_not_the_other_streams():
     assert frames_sent(_stats("capture", 1, sent=12)) == 12
+
+
+def test_the_drops_of_a_node_are_told_per_input_and_per_latest_wins_join():
+    """A bodies node drops the sets of blobs it could not follow (a latest-wins join) and an input its frames."""
+    inputs = (SyncInputStats(name="cam0", key="ar/r/cam0/blobs", received=100, joined=100),
+              SyncInputStats(name="cam1", key="ar/r/cam1/blobs", received=100, joined=100))
+    stats = NodeStats(header=Header(stamp_ns=1), node="bodies", kind="rigid_bodies", host="h", pid=1, uptime_s=1.0,
+                      dropped=9, streams=(StreamStats(key="ar/r/cam0/camera_info", direction="in", messages=50,
+                                                      dropped=2),),
+                      synced=(SyncStats(by="seq", sets=100, dropped=7, inputs=inputs),))
+    assert _drop_detail(stats) == "2 of 50 on ar/r/cam0/camera_info, 7 of 100 sets of ar/r/cam0/blobs + ar/r/cam1/blobs"
 
 
 def test_the_newest_statistics_of_a_node_win_whatever_order_they_come_in():
