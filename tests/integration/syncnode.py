@@ -5,10 +5,10 @@
 
 Runs as node NAME on the bus of the ``ARTRACK_*`` environment, joins ``cam0/image`` and
 ``cam1/image`` with ``Node.synced`` (role ``result``: every complete pair is handed out, in
-order; ``frame``: only the newest ``--backlog``), spends ``--work-ms`` on each as a slow node would, and publishes the two images of each pair on
-``<NAME>/cam0`` and ``<NAME>/cam1`` (role RESULT), so the i-th message of each forms the
-i-th pair. What it could not join shows in its
-``NodeStats.synced``.
+order; ``frame``: only the newest ``--backlog``), spends ``--work-ms`` on each pair as a slow
+node would, and publishes the two images of each pair on ``<NAME>/cam0`` and ``<NAME>/cam1``
+(role RESULT), so the i-th message of each forms the i-th pair. What it could not join shows
+in its ``NodeStats.synced``.
 """
 
 from __future__ import annotations
