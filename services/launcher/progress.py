@@ -346,11 +346,12 @@ def _pose_table(poses: dict[str, Counter[str]], errors: int) -> str:
 def _drop_advice(kind_name: str) -> str:
     """How to have a node of ``kind_name`` take every frame."""
     try:
-        queues = "depth" in kind(kind_name).params.model_fields
+        fields = kind(kind_name).params.model_fields
     except ValueError:
-        queues = False
+        fields = {}
+    queue = next((name for name in ("depth", "backlog") if name in fields), None)
     slower = "ask a lower --fps"
-    return f"for every frame, {slower} or queue more of them (--depth N)" if queues else f"for every frame, {slower}"
+    return f"for every frame, {slower} or queue more of them (--{queue} N)" if queue else f"for every frame, {slower}"
 
 
 def _drop_detail(stats: NodeStats) -> str:

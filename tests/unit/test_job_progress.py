@@ -11,7 +11,15 @@ from protocol.message import Header
 from protocol.system import NodeStats, StreamStats, SyncInputStats, SyncStats
 from services.capture.node import LATE_S, _Lateness, _Pacer
 from services.launcher.pipeline import NodeSpec
-from services.launcher.progress import Display, JobFigures, _drop_detail, delivered_rate, frames_expected, frames_sent
+from services.launcher.progress import (
+    Display,
+    JobFigures,
+    _drop_advice,
+    _drop_detail,
+    delivered_rate,
+    frames_expected,
+    frames_sent,
+)
 
 
 def _stats(node: str, stamp_ns: int, sent: int = 0) -> NodeStats:
@@ -60,6 +68,12 @@ def test_the_drops_of_a_node_are_told_per_input_and_per_latest_wins_join():
                                                       dropped=2),),
                       synced=(SyncStats(by="seq", sets=100, dropped=7, inputs=inputs),))
     assert _drop_detail(stats) == "2 of 50 on ar/r/cam0/camera_info, 7 of 100 sets of ar/r/cam0/blobs + ar/r/cam1/blobs"
+
+
+def test_the_advice_on_drops_names_the_queue_a_node_kind_has():
+    assert _drop_advice("marker_pose").endswith("queue more of them (--depth N)")
+    assert _drop_advice("rigid_bodies").endswith("queue more of them (--backlog N)")
+    assert _drop_advice("viewer") == "for every frame, ask a lower --fps"
 
 
 def test_the_newest_statistics_of_a_node_win_whatever_order_they_come_in():

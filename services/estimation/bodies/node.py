@@ -6,10 +6,11 @@ a camera's blobs that find no partners are counted as unjoined in the node's sta
 (``NodeStats.synced``), never used. The blobs are a frame's, and go as frames go (``Node.synced`` with
 ``Role.FRAME``): in a lossless run every set is taken in order; in real time a node that falls behind (a busy
 machine, more cameras than it can follow) lets the newest ``backlog`` complete sets wait and counts the older
-ones dropped, so the poses never queue behind it for more than that. The rig (world = the rig frame) is the ``rig_file``
-(``services.calibration.rig``), else each camera's newest ``<camera>/camera_info``, whose
-``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes its cameras so), taken in
-between sets, once a set's results are out.
+ones dropped, so the poses never queue behind it for more than that.
+
+The rig (world = the rig frame) is the ``rig_file`` (``services.calibration.rig``), else each camera's newest
+``<camera>/camera_info``, whose ``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes
+its cameras so), taken in between sets, once a set's results are out.
 The bodies are the ``bodies`` file (``services.estimation.bodies.file``; ``artrack run`` gives a
 synthetic ``ir_rig`` source's own); what ``check_bodies`` finds doubtful about them is logged at
 start, one line each. Without a file the node looks for no body: every point is published
