@@ -168,19 +168,17 @@ def resolved(spec: PipelineSpec, where: str = "pipeline") -> PipelineSpec:
 
 
 def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
-    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name) and each
-    kind's ``prepare`` once (compiled code built before a node needs it), then hold each node's own calibration
-    against the frame sizes the sources tell before they start (``NodeKind.check_frames``, ``SourceRole.sizes``),
-    so a pipeline that cannot start, or whose node would stop at its first frame, is refused before any process
-    starts: PipelineError naming ``where``, the node and the reason."""
+    """Run every node kind's ``check`` on its node (files, folders, dictionaries the parameters name), hold each
+    node's own calibration against the frame sizes the sources tell before they start (``NodeKind.check_frames``,
+    ``SourceRole.sizes``), then run each kind's ``prepare`` once (compiled code built before a node needs it), so
+    a pipeline that cannot start, or whose node would stop at its first frame, is refused before any process
+    starts, and before any code is compiled: PipelineError naming ``where``, the node and the reason."""
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)
         try:
             node_kind.preflight(node_kind.validate(node.params))
         except (ValueError, OSError) as exc:
             raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
-    for prepare in dict.fromkeys(k.prepare for k in map(kind, (n.kind for n in spec.nodes.values())) if k.prepare):
-        prepare()
     sizes = functools.cache(functools.partial(_frame_sizes, spec, where))
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)
@@ -192,6 +190,8 @@ def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
             raise  # a source that could not tell its sizes: already named
         except (ValueError, OSError) as exc:
             raise PipelineError(f"{where}: nodes.{name}: {exc}") from exc
+    for prepare in dict.fromkeys(k.prepare for k in map(kind, (n.kind for n in spec.nodes.values())) if k.prepare):
+        prepare()
 
 
 def _frame_sizes(spec: PipelineSpec, where: str) -> dict[str, tuple[int, int]]:

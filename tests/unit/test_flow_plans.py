@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from services.bus.stats import SeqGaps
+from services.calibration.rig import Rig, write_rig
 from services.detection.blobs import measure_kernel, merged_kernel
 from services.estimation.bodies import kernels
 from services.launcher import kernels as launcher_kernels
@@ -18,11 +21,13 @@ from services.launcher.layout import SINGLE, laid_out
 from services.launcher.pipeline import NodeSpec, PipelineError, PipelineSpec, preflight, read_pipeline, to_toml
 from services.launcher.tracker import Tracker
 from services.runtime import compiled
+from services.synthetic import make_scene
 
 
-def job(tracker: str, **source) -> PipelineSpec:
+def job(tracker: str, options: dict | None = None, **source) -> PipelineSpec:
+    """The job of ``artrack run TRACKER`` on a capture of ``source`` with ``options`` ({field: value})."""
     chosen = Tracker.load(tracker)
-    return build_job(chosen, NodeSpec(kind="capture", **source), {}, chosen.flags({}), Path("run.mcap"),
+    return build_job(chosen, NodeSpec(kind="capture", **source), options or {}, chosen.flags({}), Path("run.mcap"),
                      JobFile(Path("run.rrd")))
 
 
@@ -130,6 +135,24 @@ def test_the_stereo_job_s_preflight_prepares_each_kind_s_compiled_kernels_once_a
         preflight(spec, "job")
     assert sorted(calls) == ["blobs", "blobs", "bodies", "bodies", "merged blobs", "merged blobs"]
     assert "compiling the rigid bodies node's kernels" in caplog.text and "blobs" not in caplog.text
+
+
+def test_a_job_refused_for_a_rig_made_at_another_frame_size_compiles_nothing(monkeypatch, tmp_path):
+    """The calibrations are held against the frames before any kernel is loaded or compiled: a wrong file is
+    told at once, not after a minute of compiling."""
+    calls: list[str] = []
+    monkeypatch.setattr(kernels, "warm", lambda: calls.append("bodies"))
+    monkeypatch.setattr(measure_kernel, "warm", lambda: calls.append("blobs"))
+    monkeypatch.setattr(merged_kernel, "warm", lambda: calls.append("merged blobs"))
+    rig = tmp_path / "rig.yaml"
+    doubled = np.diag([2.0, 2.0, 1.0])
+    write_rig(rig, Rig("bar", tuple(dataclasses.replace(camera, width=2 * camera.width, height=2 * camera.height,
+                                                        K=doubled @ camera.K)
+                                    for camera in make_scene("ir_rig").cameras)))
+    spec = job("stereo", {"rig_file": str(rig)}, source=["synthetic:ir_rig"], frames=10)
+    with pytest.raises(PipelineError, match="camera cam0 is calibrated for 1280x960, its frames are 640x480"):
+        preflight(spec, "job")
+    assert calls == []
 
 
 def test_every_kind_s_compiled_code_is_built_by_one_command(monkeypatch):
