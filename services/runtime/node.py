@@ -334,17 +334,18 @@ class Node:
 
     def synced(self, inputs: Mapping[str, str], cls: type[M] | Mapping[str, type[Message] | None] | None,
                role: Role = Role.FRAME, *, by: JoinBy = "seq", tolerance_s: float = 0.0,
-               depth: int = DEFAULT_SYNC_DEPTH, backlog: int = 1) -> Synced:
+               depth: int = DEFAULT_SYNC_DEPTH, backlog: int | None = None) -> Synced:
         """Sets of one message from each of ``inputs`` ({name: key}), joined on their headers.
 
         ``by="seq"`` joins messages with equal ``header.seq``; ``by="stamp"`` joins those whose
         ``header.stamp_ns`` lies within ``tolerance_s`` of the first input's. ``cls`` is one
         message type for all inputs or one per name. Each input keeps up to ``depth`` messages
         waiting for partners. ``role=Role.FRAME`` is latest-wins: each input queues up to
-        ``depth`` messages, and only the newest ``backlog`` complete sets wait, handed out oldest
-        first (the older ones dropped and counted); in a lossless flow every set is. Any other role
-        hands out every set in order, its inputs queueing as that role does. Iterate the result
-        for ``{name: message}`` dicts in ``inputs``' order, as ``inputs`` hands out messages;
+        ``depth`` messages, and only the newest complete set is handed out. Any other role
+        hands out every set in order, its inputs queueing as that role does. A ``backlog`` makes
+        any role's sets latest-wins in real time: the newest ``backlog`` complete sets wait, handed
+        out oldest first, and older ones are dropped and counted; a lossless flow hands out every set.
+        Iterate the result for ``{name: message}`` dicts in ``inputs``' order, as ``inputs`` hands out messages;
         what could not be joined is counted in ``NodeStats.synced`` (``services.runtime.sync``
         says how).
         """
@@ -352,12 +353,13 @@ class Node:
         types = cls if isinstance(cls, Mapping) else dict.fromkeys(inputs, cls)
         if set(types) != set(inputs):
             raise ValueError(f"cls names {sorted(types)}, but the inputs are {sorted(inputs)}")
-        latest = role is Role.FRAME and not self.flow.lossless
+        latest = (role is Role.FRAME or backlog is not None) and not self.flow.lossless
         if role is Role.FRAME and self.flow.lossless:
             depth = LOSSLESS_DEPTH
         joiner: Joiner[M] = Joiner(list(inputs), tolerance=tolerance_ns, depth=depth,
-                                   ready=backlog if latest else depth)
-        inboxes = {name: self.inbox(key, types[name], role, depth if latest else None) for name, key in inputs.items()}
+                                   ready=(backlog or 1) if latest else depth)
+        queued = depth if latest and role is Role.FRAME else None
+        inboxes = {name: self.inbox(key, types[name], role, queued) for name, key in inputs.items()}
         synced = Synced(self, inboxes, joiner, by, latest)
         self._syncs.append(synced)
         return synced

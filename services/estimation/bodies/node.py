@@ -3,10 +3,10 @@
 Inputs: ``<camera>/blobs`` of each of ``cameras`` (``protocol.detections.Blobs``, one blobs node per
 camera), joined by ``header.seq``: only the blobs of one instant are ever triangulated together;
 a camera's blobs that find no partners are counted as unjoined in the node's statistics
-(``NodeStats.synced``), never used. The blobs are a frame's, and go as frames go (``Node.synced`` with
-``Role.FRAME``): in a lossless run every set is taken in order; in real time a node that falls behind (a busy
-machine, more cameras than it can follow) lets the newest ``backlog`` complete sets wait and counts the older
-ones dropped, so the poses never queue behind it for more than that.
+(``NodeStats.synced``), never used. In a lossless run every set is taken in order; in real time a node that
+falls behind (a busy machine, more cameras than it can follow) lets the newest ``backlog`` complete sets wait
+and counts the older ones dropped (``Node.synced``'s ``backlog``), so the poses never queue behind it for
+more than that. The blobs come as results: a frame a blobs node dropped is counted there, not again here.
 
 The rig (world = the rig frame) is the ``rig_file`` (``services.calibration.rig``), else each camera's newest
 ``<camera>/camera_info``, whose ``T_rig_camera`` places it on the rig (a synthetic ``ir_rig`` scene publishes
@@ -308,7 +308,7 @@ def run(node: Node, params: Params) -> None:
         name: node.inbox(keys.camera_info(name), CameraInfo, Role.RESULT, depth=INFO_DEPTH) for name in params.cameras}
     calibration = Calibration(params.cameras, rig, infos)
     kernels.warm()
-    sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.FRAME, by="seq",
+    sets = node.synced({name: keys.blobs(name) for name in params.cameras}, Blobs, Role.RESULT, by="seq",
                        depth=params.sync_depth, backlog=params.backlog)
     points_out = node.publisher(keys.points(), Points3D, Role.RESULT)
     poses = PosePublishers(node)
