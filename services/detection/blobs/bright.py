@@ -228,5 +228,5 @@ def has_waist(weights: np.ndarray, centroid: tuple[float, float], axis: tuple[fl
     """Whether the weight summed across ``axis`` in 1 px slices (each pixel shared linearly between
     the two nearest slices) dips, somewhere inside, below ``1 - depth`` of the heaviest slice on each side
     (compiled: ``merged_kernel.has_waist``)."""
-    return bool(merged_kernel.has_waist(np.ascontiguousarray(weights, np.float64), centroid[0], centroid[1], axis[0],
-                                        axis[1], depth))
+    return bool(merged_kernel.has_waist(merged_kernel.as_weights(weights), centroid[0], centroid[1], axis[0], axis[1],
+                                        depth))

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["MAX_RMS", "MIN_GAP_PX", "cholesky_solve", "has_waist", "split", "warm"]
+__all__ = ["MAX_RMS", "MIN_GAP_PX", "as_weights", "cholesky_solve", "has_waist", "split", "warm"]
 
 PARAMETERS = 7
 """The two-disc model's numbers: ``(x1, y1, x2, y2, r1, r2, peak)``."""
@@ -271,6 +271,11 @@ def split(weights: np.ndarray, cx: float, cy: float, ax: float, ay: float) -> tu
     fitted = (settled and rms <= MAX_RMS and min(params[4], params[5]) > 0.0
               and math.hypot(params[2] - params[0], params[3] - params[1]) >= MIN_GAP_PX)
     return fitted, params, rms
+
+
+def as_weights(weights: np.ndarray) -> np.ndarray:
+    """``weights`` as a C-ordered float32 (kept so) or float64 array: the depths these kernels are built for."""
+    return np.ascontiguousarray(weights, np.float32 if weights.dtype == np.float32 else np.float64)
 
 
 def warm() -> None:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.detection.blobs.merged_kernel import MAX_RMS, MIN_GAP_PX, split
+from services.detection.blobs.merged_kernel import MAX_RMS, MIN_GAP_PX, as_weights, split
 
 __all__ = ["MAX_RMS", "MIN_GAP_PX", "TwoDiscs", "split_two_discs"]
 
@@ -46,6 +46,5 @@ def split_two_discs(weights: np.ndarray, centroid: tuple[float, float], axis: tu
     ``weights``: (h, w) float window of the blob's centroid weights (``measure_kernel.measure``: 0 off the
     blob); ``centroid``: its weighted centroid ``(x, y)`` px in the window; ``axis``: its major axis
     ``(cos, sin)``, a unit vector. The fitted centres come out in the order of their seeds along ``axis``."""
-    depth = np.float32 if weights.dtype == np.float32 else np.float64  # the depths the kernel is built for
-    fitted, params, rms = split(np.ascontiguousarray(weights, depth), centroid[0], centroid[1], axis[0], axis[1])
+    fitted, params, rms = split(as_weights(weights), centroid[0], centroid[1], axis[0], axis[1])
     return TwoDiscs(params[:4].reshape(2, 2), params[4:6], float(params[6]), rms) if fitted else None
