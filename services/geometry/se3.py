@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from services.geometry.rotation import matrix_from_quaternion, quaternion_from_matrix
@@ -50,18 +52,22 @@ def check_transform(T: np.ndarray, name: str = "T", tolerance: float = 1e-6) -> 
 
     Proper rigid: finite, ``R^T R = I`` and ``det R = +1`` for the rotation block ``R = T[:3, :3]``
     (each within ``tolerance``), and last row ``(0, 0, 0, 1)``. A reflection (det -1), a scaled
-    or sheared block, or a projective last row is refused.
+    or sheared block, or a projective last row is refused. Worked on the 16 numbers as Python floats: a
+    check made on every fitted pose costs a few microseconds so, against some 30 in numpy calls.
     """
     T = check_shape(T, "4,4", name, np.float64)
-    if not np.all(np.isfinite(T)):
+    rows = T.tolist()
+    if not all(map(math.isfinite, rows[0] + rows[1] + rows[2] + rows[3])):
         raise ValueError(f"{name} must be finite, got NaN or infinity")
-    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:
-        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {tuple(float(v) for v in T[3])}")
-    R = T[:3, :3]
-    off = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    last = rows[3]
+    if max(abs(last[0]), abs(last[1]), abs(last[2]), abs(last[3] - 1.0)) > tolerance:
+        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {tuple(last)}")
+    (a, b, c, _), (d, e, f, _), (g, h, i, _) = rows[0], rows[1], rows[2]
+    off = max(abs(a * a + d * d + g * g - 1.0), abs(b * b + e * e + h * h - 1.0), abs(c * c + f * f + i * i - 1.0),
+              abs(a * b + d * e + g * h), abs(a * c + d * f + g * i), abs(b * c + e * f + h * i))
     if off > tolerance:
         raise ValueError(f"{name}[:3, :3] must be orthonormal (R^T R = I), off by {off:.3g}")
-    det = float(np.linalg.det(R))
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
     if abs(det - 1.0) > tolerance:
         raise ValueError(f"{name}[:3, :3] must be a proper rotation (det +1), got det {det:.6g}")
     return T

@@ -1,5 +1,5 @@
 """The stereo tracker's defaults on the hard ``ir_rig`` scene (``stereo_losses.HARD``): seeds 0 to 5, 360 frames
-each at 120 Hz.
+each at 120 Hz (the bar's two conditions: seeds 0 to 2).
 
 Three arc cameras at different distances, each with its distortion; the tool (4 spheres) and the head (5),
 15 mm spheres; a sphere hidden from one camera now and then, two stray reflections, the bodies turning four
@@ -23,6 +23,7 @@ from tests.accuracy.stereo_losses import FRAMES, Discs, Verdict, analyse, condit
 pytestmark = pytest.mark.slow
 
 SEEDS = range(6)
+BAR_SEEDS = range(3)
 FLOORS = {"tool": {"tracked_percent": 99.5, "position_mm_median": 0.06, "rotation_deg_median": 0.06},
           "head": {"tracked_percent": 99.5, "position_mm_median": 0.06, "rotation_deg_median": 0.06}}
 """Floors of the hard scene under today's figures (every body tracked in all its 2160 trackable frames, tool 0.041 mm
@@ -30,13 +31,14 @@ and 0.043 deg, head 0.037 mm and 0.034 deg), with a margin for a change that mov
 BAR_FLOORS = {"tracked_percent": 99.0, "position_mm_median": 0.3, "rotation_deg_median": 0.3}
 """The bar of three cameras 0.3 m apart (``base``, and ``spin alone``: two spheres merged in every view at once):
 the requirement itself (tracked in at least 99 % of the trackable frames, medians within 0.3 mm and 0.3 deg); today
-every body is tracked in all 2160 trackable frames of either, at 0.075 to 0.088 mm and 0.079 to 0.102 deg."""
+every body is tracked in all 1080 trackable frames of ``BAR_SEEDS`` in either, at 0.078 to 0.090 mm and 0.084 to
+0.098 deg (in all 2160 of seeds 0 to 5 too, at 0.075 to 0.088 mm and 0.079 to 0.102 deg)."""
 
 
 @cache
-def verdicts(condition: str = "all (hard)") -> list[Verdict]:
+def verdicts(condition: str = "all (hard)", seeds: range = SEEDS) -> list[Verdict]:
     changes = dict(conditions("all", {}))[condition]
-    return [v for seed in SEEDS for v in analyse(hard_scene(**{**changes, "seed": seed}), FRAMES)]
+    return [v for seed in seeds for v in analyse(hard_scene(**{**changes, "seed": seed}), FRAMES)]
 
 
 def unexplained(found: list[Verdict]) -> list[Verdict]:
@@ -96,12 +98,12 @@ def test_seeds_the_defaults_were_not_tuned_on_are_tracked_without_a_ghost_above_
 
 @pytest.mark.parametrize("condition", ["base", "spin alone"])
 def test_the_defaults_track_the_bar_where_spheres_merge_in_every_view(condition):
-    found = figures(verdicts(condition))
+    found = figures(verdicts(condition, BAR_SEEDS))
     print(condition, found)
-    assert not unexplained(verdicts(condition))
+    assert not unexplained(verdicts(condition, BAR_SEEDS))
     for name, body in found.items():
         assert body["ghosts"] == 0, (name, body)
-        assert body["trackable"] >= 0.9 * FRAMES * len(SEEDS), (name, body)
+        assert body["trackable"] >= 0.9 * FRAMES * len(BAR_SEEDS), (name, body)
         assert body["tracked_percent"] >= BAR_FLOORS["tracked_percent"], (name, body)
         assert body["position_mm_median"] <= BAR_FLOORS["position_mm_median"], (name, body)
         assert body["rotation_deg_median"] <= BAR_FLOORS["rotation_deg_median"], (name, body)
