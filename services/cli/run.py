@@ -74,6 +74,11 @@ def _display_options(group: argparse._ArgumentGroup) -> None:
                        "single: every node but the sinks (recorder, viewer, foxglove) in one process")
     group.add_argument("--process", action="append", default=[], metavar="NODE=NAME", help="run NODE in process "
                        "NAME, with the nodes placed there (NODE= alone: a process of its own); repeatable")
+    group.add_argument("--nice", action="append", default=[], metavar="[NODE=]N", help="the priority of NODE's "
+                       "process, -20 (most urgent) to 19 (without NODE=: every node but the sinks); below the "
+                       "launcher's own it needs CAP_SYS_NICE or a nice limit (ulimit -e); repeatable")
+    group.add_argument("--cpus", action="append", default=[], metavar="[NODE=]LIST", help="the CPUs NODE's process "
+                       "may run on, such as 1 or 0,2-3 (without NODE=: every node but the sinks); repeatable")
     group.add_argument("--strict", action="store_true", help="exit 4 when any frame was dropped or went missing")
     group.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
                        help="a progress line redrawn on standard error (auto: when it is a terminal)")
@@ -102,7 +107,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from services.launcher.flags import given_values
     from services.launcher.job import JobFile, run_job
     from services.launcher.kinds import catalogue
-    from services.launcher.layout import laid_out
+    from services.launcher.layout import laid_out, scheduled
     from services.launcher.pipeline import read_pipeline, save_pipeline
     from services.launcher.tracker import Tracker
 
@@ -118,6 +123,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         run_args = _pipeline_job_parser(args.tracker).parse_args(args.rest, namespace=args)
         spec = laid_out(with_flow(read_pipeline(Path(args.tracker)), _flow_given(run_args)), run_args.processes,
                         run_args.process)
+        spec = scheduled(spec, run_args.nice, run_args.cpus)
         bus = bus_config(run_args, defaults=spec.bus, source=args.tracker)
         return run_job(bus, spec, args.tracker, _display(run_args), run_args.strict)
     p, source_flags, own_flags = _run_parser(args.tracker)
@@ -132,7 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         source_flags=source_flags, record=run_args.record, flow=_flow_given(run_args),
         rerun=None if run_args.rerun is None else JobFile(run_args.rerun, run_args.force),
         foxglove=None if run_args.record_foxglove is None else JobFile(run_args.record_foxglove, run_args.force)))
-    spec = laid_out(spec, run_args.processes, run_args.process)
+    spec = scheduled(laid_out(spec, run_args.processes, run_args.process), run_args.nice, run_args.cpus)
     if run_args.save_pipeline is not None:
         check_output(run_args.save_pipeline, run_args.force)
         made_by = _command_line(["run", args.tracker, *args.rest], without="--save-pipeline")

@@ -25,6 +25,8 @@ a tracker template and flags (``--save-pipeline FILE.toml`` writes it out); both
     kind = "echo"
     process = "cam"     # optional: run in the process of that name, beside the nodes that name it too
     inputs = ["cam0/image"]                                      # optional: the keys it reads
+    nice = -5           # optional: its process's priority, and the CPUs it may run on
+    cpus = [1]          # (``services.launcher.scheduling``)
 
 Each node runs in a process of its own unless ``process`` names a process group: the nodes that
 name the same one run in one process, where the messages between them pass by reference
@@ -54,11 +56,12 @@ from protocol.keys import check_name
 from services.bus.session import BusConfig
 from services.launcher.flow import FlowSettings, plans
 from services.launcher.kinds import kind
+from services.launcher.scheduling import NICE_RANGE, Scheduling, check_scheduling
 from services.launcher.supervisor import ProcessSpec, SupervisorSettings
 from services.runtime.flow import FlowPlan
 from services.runtime.params import flat_dump
 
-RESERVED = ("kind", "restart", "process", "inputs", "outputs")
+RESERVED = ("kind", "restart", "process", "inputs", "outputs", "nice", "cpus")
 """Keys of a node table that are not parameters of its kind."""
 
 
@@ -67,8 +70,8 @@ class PipelineError(ValueError):
 
 
 class NodeSpec(BaseModel):
-    """One node of a pipeline: its kind, restart policy, process group, declared keys and the kind's parameters
-    (extra keys)."""
+    """One node of a pipeline: its kind, restart policy, process group, declared keys, the priority and CPUs it
+    asks for its process (``services.launcher.scheduling``) and the kind's parameters (extra keys)."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
 
@@ -77,6 +80,15 @@ class NodeSpec(BaseModel):
     process: str | None = None
     inputs: tuple[str, ...] | None = None
     outputs: tuple[str, ...] | None = None
+    nice: int | None = Field(None, ge=NICE_RANGE[0], le=NICE_RANGE[1])
+    cpus: tuple[int, ...] | None = None
+
+    @field_validator("cpus")
+    @classmethod
+    def _cpus(cls, cpus: tuple[int, ...] | None) -> tuple[int, ...] | None:
+        if cpus is not None and (not cpus or min(cpus) < 0 or len(set(cpus)) != len(cpus)):
+            raise ValueError(f"give one or more different CPU numbers, 0 or more, got {list(cpus)}")
+        return None if cpus is None else tuple(sorted(cpus))
 
     @property
     def params(self) -> dict[str, Any]:
@@ -101,6 +113,14 @@ class PipelineSpec(BaseModel):
                 if node.process in nodes and nodes[node.process].process not in (None, node.process):
                     raise ValueError(f"nodes.{name}.process: {node.process!r} is the name of a node in another "
                                      f"process (a lone node's process is named after it): name the group otherwise")
+        placed: dict[str, tuple[str, tuple[int, ...]]] = {}
+        for name, node in nodes.items():
+            if node.cpus is None:
+                continue
+            other, cpus = placed.setdefault(node.process or name, (name, node.cpus))
+            if cpus != node.cpus:
+                raise ValueError(f"nodes.{name}.cpus {list(node.cpus)}: node {other} of the same process asks for "
+                                 f"{list(cpus)}: the nodes of one process share its CPUs")
         return nodes
 
     def groups(self) -> dict[str, tuple[str, ...]]:
@@ -114,6 +134,14 @@ class PipelineSpec(BaseModel):
     def process_of(self, node: str) -> str:
         """The name of the process node ``node`` runs in."""
         return self.nodes[node].process or node
+
+    def scheduling(self, process: str) -> Scheduling:
+        """What process ``process`` asks of the scheduler: the most urgent ``nice`` of its nodes and their
+        ``cpus`` (one set, or none)."""
+        members = [self.nodes[name] for name in self.groups()[process]]
+        nices = [node.nice for node in members if node.nice is not None]
+        cpus = next((node.cpus for node in members if node.cpus is not None), None)
+        return Scheduling(min(nices) if nices else None, cpus)
 
     def sources(self) -> list[str]:
         """The nodes that read nothing from the bus (captures, replays): where data enters."""
@@ -172,7 +200,12 @@ def preflight(spec: PipelineSpec, where: str = "pipeline") -> None:
     node's own calibration against the frame sizes the sources tell before they start (``NodeKind.check_frames``,
     ``SourceRole.sizes``), then run each kind's ``prepare`` once (compiled code built before a node needs it), so
     a pipeline that cannot start, or whose node would stop at its first frame, is refused before any process
-    starts, and before any code is compiled: PipelineError naming ``where``, the node and the reason."""
+    starts, and before any code is compiled: PipelineError naming ``where``, the node and the reason. First of
+    all, a priority or CPUs asked for that this machine does not allow are refused (``check_scheduling``)."""
+    try:
+        check_scheduling({name: Scheduling(node.nice, node.cpus) for name, node in spec.nodes.items()})
+    except ValueError as exc:
+        raise PipelineError(f"{where}: {exc}") from exc
     for name, node in spec.nodes.items():
         node_kind = kind(node.kind)
         try:
@@ -241,7 +274,9 @@ def to_toml(spec: PipelineSpec, header: str = "") -> str:
     for name, node in spec.nodes.items():
         params = flat_dump(kind(node.kind).validate(node.params), mode="json", exclude_unset=True, exclude_none=True)
         table: dict[str, Any] = {"kind": node.kind, **({} if node.restart else {"restart": False}),
-                                 **({} if node.process is None else {"process": node.process}), **params}
+                                 **({} if node.process is None else {"process": node.process}),
+                                 **({} if node.nice is None else {"nice": node.nice}),
+                                 **({} if node.cpus is None else {"cpus": list(node.cpus)}), **params}
         for field in ("inputs", "outputs"):
             if getattr(node, field) is not None:
                 table[field] = list(getattr(node, field))
@@ -294,8 +329,8 @@ def params_model(kind_name: str) -> type[BaseModel]:
 
 def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None) -> list[ProcessSpec]:
     """One ProcessSpec per process of the pipeline (or per process of ``names``), sharing ``bus``, each node with
-    its flow plan (``spec`` is resolved). A process restarts when it dies unless one of its nodes says
-    ``restart = false``."""
+    its flow plan (``spec`` is resolved) and its process the scheduling its nodes ask for. A process restarts when
+    it dies unless one of its nodes says ``restart = false``."""
     env = bus.to_env()
     flow = spec.flow_plans()
     sources = set(spec.sources())
@@ -304,14 +339,15 @@ def processes(spec: PipelineSpec, bus: BusConfig, names: list[str] | None = None
         if names is not None and process not in names:
             continue
         restart = all(spec.nodes[name].restart for name in members)
+        scheduling = spec.scheduling(process)
         if members == (process,):
             node = spec.nodes[process]
             found.append(ProcessSpec(process, node_command(node.kind, process, node.params, flow[process]), env,
-                                     restart))
+                                     restart, scheduling))
             continue
         listed = [GroupMember(name=name, kind=spec.nodes[name].kind, params=spec.nodes[name].params, flow=flow[name],
                               source=name in sources) for name in members]
-        found.append(ProcessSpec(process, group_command(process, listed), env, restart))
+        found.append(ProcessSpec(process, group_command(process, listed), env, restart, scheduling))
     return found
 
 

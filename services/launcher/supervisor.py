@@ -17,13 +17,15 @@ last line a child wrote before it exited is kept as the reason it exited (``reas
 line reduced to its message; the signal, when one killed it): a job can say why a node
 ended in one line. Every child
 is started with ``ARTRACK_RESTART`` set to the number of times it was restarted before
-(``services.runtime.restarts``).
+(``services.runtime.restarts``), and with the priority and CPUs its ``ProcessSpec`` asks for
+(``services.launcher.scheduling``), set before its command runs.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import json
 import logging
 import os
@@ -39,6 +41,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.launcher.scheduling import Scheduling, apply_scheduling
 from services.runtime.logs import is_native_line
 from services.runtime.restarts import EXIT_CANNOT_RUN, RESTART_ENV
 
@@ -90,12 +93,14 @@ class RestartBudget:
 
 @dataclass(frozen=True)
 class ProcessSpec:
-    """A command to keep running: ``argv`` with ``env`` added to the supervisor's environment."""
+    """A command to keep running: ``argv`` with ``env`` added to the supervisor's environment, started with
+    ``scheduling`` (its priority and CPUs)."""
 
     name: str
     argv: tuple[str, ...]
     env: dict[str, str] = field(default_factory=dict)
     restart: bool = True
+    scheduling: Scheduling = Scheduling()
 
 
 @dataclass(frozen=True)
@@ -183,6 +188,12 @@ def _die_with_parent() -> None:
     libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def _before_exec(scheduling: Scheduling) -> None:
+    """In the child, before it runs its command: it dies with the supervisor, and runs as ``scheduling`` says."""
+    _die_with_parent()
+    apply_scheduling(scheduling)
+
+
 class Supervisor:
     """Keeps a set of processes running (see the module docstring). Call from the main thread."""
 
@@ -230,7 +241,8 @@ class Supervisor:
         env = {**os.environ, **child.spec.env, RESTART_ENV: str(child.restarts)}
         child.process = subprocess.Popen(
             child.spec.argv, env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            preexec_fn=functools.partial(_before_exec, child.spec.scheduling) if sys.platform.startswith("linux")
+            else None,
         )
         child.last_line = ""
         child.relay = threading.Thread(target=_relay, args=(child, child.process.stderr),

@@ -22,9 +22,10 @@ and condition: runs with 0 frames dropped out of ``RUNS`` (the target: all of th
 processing p50 / p99 (its stats, ms) per run, and the ATE's min / median / max over the runs.
 
 ``python -m tests.bench.slam_realtime [--runs N] [--sequences room kitti] [--conditions idle loaded]
-[--processes given|separate|single] [--flow realtime|lossless]`` prints the lines (``--runs`` lowers the ten
-runs for a quick look; ``--flow lossless``: the same runs lossless, every frame taken, stamped on the source's
-clock); ``python -m tests.bench slam_realtime`` runs the default.
+[--processes given|separate|single] [--flow realtime|lossless] [--nice N]`` prints the lines (``--runs`` lowers
+the ten runs for a quick look; ``--flow lossless``: the same runs lossless, every frame taken, stamped on the
+source's clock; ``--nice``: the job's nodes but the recorder at that priority, ``artrack run --nice``);
+``python -m tests.bench slam_realtime`` runs the default.
 """
 
 from __future__ import annotations
@@ -162,11 +163,11 @@ def _condition(name: str) -> AbstractContextManager[Any]:
 
 def runs(sequence: str, flags: tuple[str, ...], condition: str, count: int, folder: Path,
          layout: str = "given", truth: dict[int, np.ndarray] | None = None,
-         flow: str = "realtime") -> Iterator[dict[str, Any]]:
+         flow: str = "realtime", nice: int | None = None) -> Iterator[dict[str, Any]]:
     """``count`` runs of one sequence under one condition: a line per run, then the summary line (with the
     ATE's min / median / max over the runs)."""
     common = {"bench": "slam_realtime", "sequence": sequence, "condition": condition, "processes": layout,
-              "flow": flow}
+              "flow": flow, **({} if nice is None else {"nice": nice})}
     lines = []
     for run in range(count):
         load_before = os.getloadavg()[0]
@@ -195,7 +196,7 @@ def _spread(values: list[float | None]) -> list[float] | None:
 
 def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room", "kitti"),
                         conditions: tuple[str, ...] = CONDITIONS, layout: str = "given",
-                        flow: str = "realtime") -> list[dict[str, Any]]:
+                        flow: str = "realtime", nice: int | None = None) -> list[dict[str, Any]]:
     lines: list[dict[str, Any]] = []
     known = truths()
     with tempfile.TemporaryDirectory(prefix="artrack-slam-realtime-") as tmp:
@@ -206,8 +207,8 @@ def bench_slam_realtime(count: int = RUNS, sequences: tuple[str, ...] = ("room",
                               "skipped": f"data set {KITTI!r} not found at {data_root() / KITTI}"})
                 continue
             for condition in conditions:
-                lines += runs(sequence, (*flags, "--processes", layout), condition, count, Path(tmp), layout,
-                              known[sequence], flow)
+                asked = (*flags, "--processes", layout, *(() if nice is None else ("--nice", str(nice))))
+                lines += runs(sequence, asked, condition, count, Path(tmp), layout, known[sequence], flow, nice)
     return lines
 
 
@@ -220,9 +221,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="how the nodes share processes (artrack run --processes; default: the template's)")
     parser.add_argument("--flow", choices=("realtime", "lossless"), default="realtime",
                         help="artrack run --flow (default realtime: frames latest-wins)")
+    parser.add_argument("--nice", type=int, help="artrack run --nice: the priority of every node but the recorder")
     args = parser.parse_args(argv)
     for line in bench_slam_realtime(args.runs, tuple(args.sequences), tuple(args.conditions), args.processes,
-                                    args.flow):
+                                    args.flow, args.nice):
         print(json.dumps(line), flush=True)
 
 
