@@ -19,7 +19,11 @@ process's CPU while the frames flowed (``cores``, 1.0 = one busy core, by proces
   in one process paced alike (``tests.bench.features_bus.in_process``): target 0 dropped, p50 <= in-process
   + 0.5 ms.
 
-``python -m tests.bench.layouts [stereo|marker|features ...] [--seconds S]`` prints the lines.
+* ``priority`` (not in the default run): the stereo target's job for ``STEREO_SECONDS`` idle, then ``ROUNDS``
+  times under ``tests.load.busy()`` (a spinning process on each core) without and with ``--nice NICE`` (every
+  node but the recorder ahead of the load; a ``skipped`` line where this user may not raise a priority).
+
+``python -m tests.bench.layouts [stereo|marker|features|priority ...] [--seconds S]`` prints the lines.
 """
 
 from __future__ import annotations
@@ -38,9 +42,11 @@ import numpy as np
 
 from protocol.system import NodeStats
 from services.bus.pubsub import Listener
+from services.launcher.scheduling import may_raise_priority
 from tests.bench import features_bus, markers
 from tests.bench.link import cpu_seconds
 from tests.bench.live import LiveBus
+from tests.load import busy
 
 WARMUP = 20
 PRERENDER = 240
@@ -51,6 +57,8 @@ LAYOUTS = ("given", "separate", "single")
 DONE_S = 120.0
 STEREO_TARGET = {"updates_per_s": 240.0, "p50_ms": 3.0, "p99_ms": 6.0}
 OVERHEAD_TARGET_MS = 0.5
+ROUNDS = 2
+NICE = -10
 
 
 def children(pid: int) -> list[int]:
@@ -154,9 +162,23 @@ def bench_features_layouts(seconds: float = SECONDS) -> list[dict[str, Any]]:
     return _against({"p50_ms": paced["p50_ms"]}, lines)
 
 
+def bench_stereo_priority(seconds: float = STEREO_SECONDS) -> list[dict[str, Any]]:
+    """The stereo target's job idle, then ``ROUNDS`` times busy without and with ``--nice NICE``, alternated."""
+    if not may_raise_priority(NICE):
+        return [{"bench": "layouts", "variant": "priority", "skipped": f"this user may not give nice {NICE}"}]
+    frames = int(240 * seconds)
+    lines = [{"condition": "idle", **run_job("stereo", "ir_rig", 240.0, frames, "given")}]
+    for _ in range(ROUNDS):
+        for condition, extra in (("busy", ()), (f"busy, nice {NICE}", ("--nice", str(NICE)))):
+            with busy():
+                lines.append({"condition": condition, **run_job("stereo", "ir_rig", 240.0, frames, "given", *extra)})
+    return [{"bench": "layouts", "variant": "priority", **line} for line in lines]
+
+
 def bench_layouts(which: tuple[str, ...] = ("stereo", "marker", "features"),
                   seconds: float | None = None) -> list[dict[str, Any]]:
-    runs = {"stereo": bench_stereo_layouts, "marker": bench_marker_layouts, "features": bench_features_layouts}
+    runs = {"stereo": bench_stereo_layouts, "marker": bench_marker_layouts, "features": bench_features_layouts,
+            "priority": bench_stereo_priority}
     lines = []
     for name in which:
         lines += runs[name](seconds) if seconds else runs[name]()
@@ -167,7 +189,7 @@ def bench_layouts(which: tuple[str, ...] = ("stereo", "marker", "features"),
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(prog="python -m tests.bench.layouts")
-    parser.add_argument("which", nargs="*", choices=("stereo", "marker", "features"))
+    parser.add_argument("which", nargs="*", choices=("stereo", "marker", "features", "priority"))
     parser.add_argument("--seconds", type=float)
     args = parser.parse_args()
     for line in bench_layouts(tuple(args.which) or ("stereo", "marker", "features"), args.seconds):
