@@ -3,8 +3,8 @@
 ``plan_reload`` compares a running pipeline with its re-read file (SIGHUP to ``artrack
 up``): the reloadable field changes it yields are pushed to the nodes with
 ``request_change``; anything else (a node added, removed or of another kind, a changed
-non-reloadable field, ``[bus]`` or ``[supervisor]``) refuses the reload with reasons naming
-node and field. The node's side is ``services.runtime.reconfig``.
+non-reloadable field, its process, priority or CPUs, ``[bus]`` or ``[supervisor]``) refuses the
+reload with reasons naming node and field. The node's side is ``services.runtime.reconfig``.
 """
 
 from __future__ import annotations
@@ -61,8 +61,9 @@ def plan_reload(running: PipelineSpec, wanted: PipelineSpec,
         plan.refused.append(f"node {name}: removed: needs a restart of `artrack up`")
     for name in sorted(running.nodes.keys() & wanted.nodes.keys()):
         old, new = running.nodes[name], wanted.nodes[name]
-        if (old.kind, old.restart, old.process) != (new.kind, new.restart, new.process):
-            what = "kind" if old.kind != new.kind else "restart" if old.restart != new.restart else "process"
+        what = next((field for field in ("kind", "restart", "process", "nice", "cpus")
+                     if getattr(old, field) != getattr(new, field)), None)
+        if what is not None:
             plan.refused.append(f"node {name}: {what} changed: needs a restart of `artrack up`")
             continue
         before, after = old.params, new.params

@@ -133,6 +133,12 @@ def test_plan_reload_refuses_what_needs_a_restart_naming_node_and_field(tmp_path
     assert "node markers: field camera is not reloadable (markers): needs a restart" in plan.refused
     assert not any("marker_length" in reason for reason in plan.refused)  # dropped -> back to default: reloadable
 
+    for field, value in (("nice", 5), ("cpus", (0,))):
+        moved = running.model_copy(update={"nodes": {**running.nodes, "cam": running.nodes["cam"].model_copy(
+            update={field: value})}})
+        assert plan_reload(running, moved, params_model).refused == \
+            [f"node cam: {field} changed: needs a restart of `artrack up`"]
+
     more = wanted.model_copy(update={"nodes": {"cam": wanted.nodes["cam"], "echo": wanted.nodes["cam"]}})
     reasons = plan_reload(running, more, params_model).refused
     assert "node echo: new node: needs a restart of `artrack up`" in reasons
