@@ -18,7 +18,9 @@ line reduced to its message; the signal, when one killed it): a job can say why 
 ended in one line. Every child
 is started with ``ARTRACK_RESTART`` set to the number of times it was restarted before
 (``services.runtime.restarts``), and with the priority and CPUs its ``ProcessSpec`` asks for
-(``services.launcher.scheduling``), set before its command runs.
+(``services.launcher.scheduling``), set before its command runs. A child whose command cannot be
+started at all (a missing program, a priority or CPUs the machine no longer allows) is marked
+failed at once, with that reason, and the others go on.
 """
 
 from __future__ import annotations
@@ -239,11 +241,15 @@ class Supervisor:
 
     def _spawn(self, child: _Child) -> None:
         env = {**os.environ, **child.spec.env, RESTART_ENV: str(child.restarts)}
-        child.process = subprocess.Popen(
-            child.spec.argv, env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            preexec_fn=functools.partial(_before_exec, child.spec.scheduling) if sys.platform.startswith("linux")
-            else None,
-        )
+        try:
+            child.process = subprocess.Popen(
+                child.spec.argv, env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                preexec_fn=functools.partial(_before_exec, child.spec.scheduling) if sys.platform.startswith("linux")
+                else None,
+            )
+        except (OSError, subprocess.SubprocessError) as exc:
+            self._not_started(child, exc)
+            return
         child.last_line = ""
         child.relay = threading.Thread(target=_relay, args=(child, child.process.stderr),
                                        name=f"stderr of {child.spec.name}", daemon=True)
@@ -251,6 +257,19 @@ class Supervisor:
         child.started = time.monotonic()
         child.restart_at = None
         log.info("started %s (pid %d)", child.spec.name, child.process.pid)
+
+    def _not_started(self, child: _Child, error: Exception) -> None:
+        """Mark ``child`` failed: its command could not be started (``error``), and would not be next time."""
+        child.process, child.failed, child.exit_code = None, True, EXIT_CANNOT_RUN
+        scheduling = child.spec.scheduling
+        asked = [f"nice {scheduling.nice}"] * (scheduling.nice is not None) + \
+            [f"CPUs {list(scheduling.cpus)}"] * (scheduling.cpus is not None)
+        if isinstance(error, subprocess.SubprocessError) and asked:
+            child.reason = f"its process could not be given {' and '.join(asked)}: this machine does not allow it now"
+        else:
+            child.reason = f"it could not be started: {error}"
+        log.error("%s: FAILED, left down: %s", child.spec.name, child.reason,
+                  extra={"child": child.spec.name, "exit_code": EXIT_CANNOT_RUN, "restarts": child.restarts})
 
     def step(self) -> bool:
         """Reap exited children and restart those that are due; False once nothing is left to run."""

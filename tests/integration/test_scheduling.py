@@ -104,3 +104,23 @@ def test_a_priority_this_user_may_not_give_is_refused_before_anything_starts(pro
         f"capability or a nice limit that allows it (`ulimit -e`, systemd's LimitNICE=); this user has neither: give "
         f"nice {own} or more"), job.stderr
     assert "started" not in job.stderr, "a process was started before the refusal"
+
+
+def test_a_process_that_cannot_be_given_its_cpus_is_failed_and_the_others_go_on(tmp_path):
+    missing = max(os.sched_getaffinity(0)) + 64
+    done = tmp_path / "done.txt"
+    supervisor = Supervisor([
+        ProcessSpec("pinned", (sys.executable, "-c", "pass"), scheduling=Scheduling(None, (missing,))),
+        ProcessSpec("other", (sys.executable, "-c", f"open({str(done)!r}, 'w').write('ran')"), restart=False)])
+    supervisor.start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while supervisor.step() and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        supervisor.stop()
+    health = {child.name: child for child in supervisor.health()}
+    assert health["pinned"].state == "failed" and health["pinned"].exit_code == 2
+    why = supervisor.failure("pinned")
+    assert why.endswith(f"its process could not be given CPUs [{missing}]: this machine does not allow it now"), why
+    assert done.read_text() == "ran" and health["other"].state != "failed"
