@@ -262,8 +262,8 @@ class Supervisor:
         """Mark ``child`` failed: its command could not be started (``error``), and would not be next time."""
         child.process, child.failed, child.exit_code = None, True, EXIT_CANNOT_RUN
         scheduling = child.spec.scheduling
-        asked = [f"nice {scheduling.nice}"] * (scheduling.nice is not None) + \
-            [f"CPUs {list(scheduling.cpus)}"] * (scheduling.cpus is not None)
+        asked = ([] if scheduling.nice is None else [f"nice {scheduling.nice}"]) + \
+            ([] if scheduling.cpus is None else [f"CPUs {list(scheduling.cpus)}"])
         if isinstance(error, subprocess.SubprocessError) and asked:
             child.reason = f"its process could not be given {' and '.join(asked)}: this machine does not allow it now"
         else:

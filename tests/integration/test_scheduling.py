@@ -19,13 +19,9 @@ from tests.integration.support import START_S, wait_until
 pytestmark = pytest.mark.integration
 
 
-def test_each_child_starts_at_its_priority_on_its_cpus(tmp_path):
-    cpu = max(os.sched_getaffinity(0))
-    shown = tmp_path / "shown.txt"
-    code = (f"import os; open({str(shown)!r}, 'w').write(f'{{os.getpriority(os.PRIO_PROCESS, 0)}} "
-            f"{{sorted(os.sched_getaffinity(0))}}')")
-    supervisor = Supervisor([ProcessSpec("child", (sys.executable, "-c", code), restart=False,
-                                         scheduling=Scheduling(13, (cpu,)))])
+def supervised(specs: list[ProcessSpec]) -> Supervisor:
+    """A supervisor of ``specs`` run until every child has finished or failed (30 s at most), then stopped."""
+    supervisor = Supervisor(specs)
     supervisor.start()
     try:
         deadline = time.monotonic() + 30.0
@@ -33,6 +29,15 @@ def test_each_child_starts_at_its_priority_on_its_cpus(tmp_path):
             time.sleep(0.05)
     finally:
         supervisor.stop()
+    return supervisor
+
+
+def test_each_child_starts_at_its_priority_on_its_cpus(tmp_path):
+    cpu = max(os.sched_getaffinity(0))
+    shown = tmp_path / "shown.txt"
+    code = (f"import os; open({str(shown)!r}, 'w').write(f'{{os.getpriority(os.PRIO_PROCESS, 0)}} "
+            f"{{sorted(os.sched_getaffinity(0))}}')")
+    supervised([ProcessSpec("child", (sys.executable, "-c", code), restart=False, scheduling=Scheduling(13, (cpu,)))])
     assert shown.read_text() == f"13 [{cpu}]"
 
 
@@ -109,16 +114,9 @@ def test_a_priority_this_user_may_not_give_is_refused_before_anything_starts(pro
 def test_a_process_that_cannot_be_given_its_cpus_is_failed_and_the_others_go_on(tmp_path):
     missing = max(os.sched_getaffinity(0)) + 64
     done = tmp_path / "done.txt"
-    supervisor = Supervisor([
+    supervisor = supervised([
         ProcessSpec("pinned", (sys.executable, "-c", "pass"), scheduling=Scheduling(None, (missing,))),
         ProcessSpec("other", (sys.executable, "-c", f"open({str(done)!r}, 'w').write('ran')"), restart=False)])
-    supervisor.start()
-    try:
-        deadline = time.monotonic() + 30.0
-        while supervisor.step() and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        supervisor.stop()
     health = {child.name: child for child in supervisor.health()}
     assert health["pinned"].state == "failed" and health["pinned"].exit_code == 2
     why = supervisor.failure("pinned")
