@@ -190,6 +190,12 @@ def _die_with_parent() -> None:
     libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def _asked(scheduling: Scheduling) -> list[str]:
+    """What ``scheduling`` asks for, in words (``nice -10``, ``CPUs [1]``); empty when nothing."""
+    return ([] if scheduling.nice is None else [f"nice {scheduling.nice}"]) + \
+        ([] if scheduling.cpus is None else [f"CPUs {list(scheduling.cpus)}"])
+
+
 def _before_exec(scheduling: Scheduling) -> None:
     """In the child, before it runs its command: it dies with the supervisor, and runs as ``scheduling`` says."""
     _die_with_parent()
@@ -256,14 +262,13 @@ class Supervisor:
         child.relay.start()
         child.started = time.monotonic()
         child.restart_at = None
-        log.info("started %s (pid %d)", child.spec.name, child.process.pid)
+        log.info("started %s (pid %d%s)", child.spec.name, child.process.pid,
+                 "".join(f", {what}" for what in _asked(child.spec.scheduling)))
 
     def _not_started(self, child: _Child, error: Exception) -> None:
         """Mark ``child`` failed: its command could not be started (``error``), and would not be next time."""
         child.process, child.failed, child.exit_code = None, True, EXIT_CANNOT_RUN
-        scheduling = child.spec.scheduling
-        asked = ([] if scheduling.nice is None else [f"nice {scheduling.nice}"]) + \
-            ([] if scheduling.cpus is None else [f"CPUs {list(scheduling.cpus)}"])
+        asked = _asked(child.spec.scheduling)
         if isinstance(error, subprocess.SubprocessError) and asked:
             child.reason = f"its process could not be given {' and '.join(asked)}: this machine does not allow it now"
         else:

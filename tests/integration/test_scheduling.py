@@ -73,6 +73,7 @@ def test_a_job_runs_each_process_as_its_nodes_ask_and_restarts_it_alike(procs, t
     wait_until(lambda: "node capture (capture) up" in job.stderr, START_S, "the job's source to be up (it starts last)")
     pids = children(job.pid)
     assert set(pids) == {"rig", "bodies", "recorder"}, pids
+    assert f"started bodies (pid {pids['bodies']}, nice {min(own + 4, 19)}, CPUs [{cpu}])" in job.stderr, job.stderr
     assert {nice for nice, _ in threads(pids["rig"])} >= {min(own + 9, 19)}, threads(pids["rig"])
     assert all(cpus == f"{cpu}" for _, cpus in threads(pids["bodies"])), threads(pids["bodies"])
     assert int(Path(f"/proc/{pids['bodies']}/stat").read_text().rsplit(")", 1)[1].split()[16]) == min(own + 4, 19)
