@@ -19,9 +19,10 @@ process's CPU while the frames flowed (``cores``, 1.0 = one busy core, by proces
   in one process paced alike (``tests.bench.features_bus.in_process``): target 0 dropped, p50 <= in-process
   + 0.5 ms.
 
-* ``priority`` (not in the default run): the stereo target's job for ``STEREO_SECONDS`` idle, then ``ROUNDS``
-  times under ``tests.load.busy()`` (a spinning process on each core) without and with ``--nice NICE`` (every
-  node but the recorder ahead of the load; a ``skipped`` line where this user may not raise a priority).
+* ``priority`` (not in the default run): the stereo target's job for ``STEREO_SECONDS``, ``ROUNDS`` times idle
+  and under ``tests.load.busy()`` (a spinning process on each core), each without and with ``--nice NICE``
+  (every node but the recorder ahead of the rest; a ``skipped`` line where this user may not raise a
+  priority).
 
 ``python -m tests.bench.layouts [stereo|marker|features|priority ...] [--seconds S]`` prints the lines.
 """
@@ -29,6 +30,7 @@ process's CPU while the frames flowed (``cores``, 1.0 = one busy core, by proces
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -163,15 +165,17 @@ def bench_features_layouts(seconds: float = SECONDS) -> list[dict[str, Any]]:
 
 
 def bench_stereo_priority(seconds: float = STEREO_SECONDS) -> list[dict[str, Any]]:
-    """The stereo target's job idle, then ``ROUNDS`` times busy without and with ``--nice NICE``, alternated."""
+    """The stereo target's job ``ROUNDS`` times idle and busy, each without and with ``--nice NICE``, alternated."""
     if not may_raise_priority(NICE):
         return [{"bench": "layouts", "variant": "priority", "skipped": f"this user may not give nice {NICE}"}]
     frames = int(240 * seconds)
-    lines = [{"condition": "idle", **run_job("stereo", "ir_rig", 240.0, frames, "given")}]
+    lines = []
     for _ in range(ROUNDS):
-        for condition, extra in (("busy", ()), (f"busy, nice {NICE}", ("--nice", str(NICE)))):
-            with busy():
-                lines.append({"condition": condition, **run_job("stereo", "ir_rig", 240.0, frames, "given", *extra)})
+        for load in ("idle", "busy"):
+            for extra in ((), ("--nice", str(NICE))):
+                with busy() if load == "busy" else contextlib.nullcontext():
+                    found = run_job("stereo", "ir_rig", 240.0, frames, "given", *extra)
+                lines.append({"condition": load + (f", nice {NICE}" if extra else ""), **found})
     return [{"bench": "layouts", "variant": "priority", **line} for line in lines]
 
 
