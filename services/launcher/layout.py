@@ -60,8 +60,9 @@ def scheduled(spec: PipelineSpec, nice: Sequence[str] = (), cpus: Sequence[str] 
                 parsed = parse(value)
             except ValueError as exc:
                 raise PipelineError(f"--{flag} {text!r}: {exc}") from exc
-            for node in [name] if sep else [n for n, node in spec.nodes.items() if kind(node.kind).sink is None]:
-                asked[node][flag] = parsed
+            targets = [name] if sep else [n for n, node in spec.nodes.items() if kind(node.kind).sink is None]
+            for target in targets:
+                asked[target][flag] = parsed
     nodes = {name: node.model_copy(update=asked[name]) for name, node in spec.nodes.items()}
     try:
         return PipelineSpec.model_validate({**spec.model_dump(), "nodes": nodes})

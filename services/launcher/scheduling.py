@@ -78,7 +78,7 @@ def check_scheduling(asked: Mapping[str, Scheduling]) -> None:
 
 def may_raise_priority(nice: int) -> bool:
     """Whether this process may give a process ``nice``: tried on a thread of its own that then ends (Linux keeps
-    a nice per thread, so no other thread's changes)."""
+    a nice per thread, so the process's other threads keep theirs)."""
     allowed: list[bool] = []
 
     def probe() -> None:
