@@ -5,10 +5,10 @@
 
 Runs as node NAME on the bus of the ``ARTRACK_*`` environment, joins ``cam0/image`` and
 ``cam1/image`` with ``Node.synced`` (role ``result``: every complete pair is handed out, in
-order; ``frame``: only the newest ``--backlog``), spends ``--work-ms`` on each pair as a slow
-node would, and publishes the two images of each pair on ``<NAME>/cam0`` and ``<NAME>/cam1``
-(role RESULT), so the i-th message of each forms the i-th pair. What it could not join shows
-in its ``NodeStats.synced``.
+order; ``frame``, or any role given ``--backlog``: only the newest ``--backlog``, 1 by default),
+spends ``--work-ms`` on each pair as a slow node would, and publishes the two images of each pair
+on ``<NAME>/cam0`` and ``<NAME>/cam1`` (role RESULT), so the i-th message of each forms the i-th
+pair. What it could not join shows in its ``NodeStats.synced``.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tolerance-ms", type=float, default=0.0)
     parser.add_argument("--depth", type=int, default=8)
     parser.add_argument("--role", choices=["result", "frame"], default="result")
-    parser.add_argument("--backlog", type=int, default=1)
+    parser.add_argument("--backlog", type=int)
     parser.add_argument("--work-ms", type=float, default=0.0)
     args = parser.parse_args(argv)
     setup_logging()
