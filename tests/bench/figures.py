@@ -18,6 +18,7 @@ from importlib.metadata import version
 from typing import Any, TypeVar
 
 from tests.bench.runs import Run
+from tests.bench.scenes import yardstick
 
 THROUGHPUT_RATIO_TARGET = 0.9
 LATENCY_DELTA_TARGET_US = 100.0
@@ -88,6 +89,13 @@ def machine_line(malloc: str, load_before: float) -> dict[str, Any]:
         "loadavg_1m_before": round(load_before, 2),
         "loadavg_1m_after": round(os.getloadavg()[0], 2),
     }
+
+
+def host(**common: Any) -> dict[str, Any]:
+    """The machine line of a benchmark that runs pipelines: ``common``, the CPU model and count, the load
+    average, and the ``room_fps`` yardstick (``tests.bench.scenes.yardstick``) to compare days by."""
+    return {**common, "variant": "machine", "cpu": _cpu_model(), "cpus": os.cpu_count(),
+            "load_average": [round(v, 2) for v in os.getloadavg()], "room_fps": yardstick()}
 
 
 def _cpu_model() -> str:

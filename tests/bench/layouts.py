@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -46,6 +45,7 @@ from protocol.system import NodeStats
 from services.bus.pubsub import Listener
 from services.launcher.scheduling import may_raise_priority
 from tests.bench import features_bus, markers
+from tests.bench.figures import host
 from tests.bench.link import cpu_seconds
 from tests.bench.live import LiveBus
 from tests.load import busy
@@ -186,8 +186,7 @@ def bench_layouts(which: tuple[str, ...] = ("stereo", "marker", "features"),
     lines = []
     for name in which:
         lines += runs[name](seconds) if seconds else runs[name]()
-    lines.append({"bench": "layouts", "variant": "machine", "load_average": [round(v, 2) for v in os.getloadavg()],
-                  "cpus": os.cpu_count()})
+    lines.append(host(bench="layouts"))
     return lines
 
 

@@ -54,6 +54,14 @@ def bench_scenes() -> list[dict[str, Any]]:
         return lines
 
 
+def yardstick() -> float:
+    """The room scene's render rate, one OpenCV thread, in frames per second: how fast this machine runs
+    CPU-bound work at the moment (the shared VM's speed moves from day to day), printed beside figures of
+    other benchmarks so runs of different days can be compared."""
+    with one_opencv_thread():
+        return round(frames_per_second(make_scene("room", width=WIDTH, height=HEIGHT), FRAMES["room"]), 1)
+
+
 if __name__ == "__main__":
     for line in bench_scenes():
         print(json.dumps(line), flush=True)

@@ -39,7 +39,6 @@ The ``ir_rig`` scene, two 640x480 cameras, ``BODIES`` bodies; the ``stereo`` tra
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -62,6 +61,7 @@ from services.estimation.bodies.rigid import Matching, match_bodies
 from services.geometry.absolute_orientation import least_squares_transforms, pose_covariances
 from services.geometry.triangulation import triangulate_many
 from services.synthetic import make_scene
+from tests.bench.figures import host
 from tests.bench.link import at_rate, cpu_seconds
 from tests.bench.live import LiveBus
 
@@ -245,8 +245,7 @@ def bench_stereo(rates: tuple[float, ...] = RATES) -> list[dict[str, Any]]:
         lines += [{**common, "variant": "in_process_paced", "rate_hz": rate, "stages": paced},
                   {**common, "variant": "pipeline", "hops": 3, **live,
                    "ratio_p50": round(live["p50_ms"] / paced["total"]["p50_ms"], 2), "target": TARGET, "met": met}]
-    lines.append({**common, "variant": "machine", "load_average": [round(v, 2) for v in os.getloadavg()],
-                  "cpus": os.cpu_count()})
+    lines.append(host(**common))
     return lines
 
 

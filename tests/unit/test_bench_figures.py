@@ -1,12 +1,13 @@
-"""The benchmarks' pure helpers: measuring order and paired medians."""
+"""The benchmarks' pure helpers: measuring order and paired medians; the machine line."""
 
 from __future__ import annotations
 
 import operator
+import os
 
 import pytest
 
-from tests.bench.figures import alternating, paired_median
+from tests.bench.figures import alternating, host, paired_median
 
 
 def test_alternating_reverses_the_order_every_other_round() -> None:
@@ -33,3 +34,13 @@ def test_paired_median_of_an_even_count_is_the_mean_of_the_middle_two() -> None:
 def test_paired_median_refuses_unpaired_figures(first: list[float], second: list[float]) -> None:
     with pytest.raises(ValueError, match="equally long"):
         paired_median(first, second)
+
+
+def test_host_line_names_the_machine_and_how_fast_it_runs_now() -> None:
+    line = host(bench="layouts")
+    with open("/proc/cpuinfo") as cpuinfo:
+        models = {row.split(":", 1)[1].strip() for row in cpuinfo if row.startswith("model name")}
+    assert line["bench"] == "layouts" and line["variant"] == "machine"
+    assert line["cpu"] in models and line["cpus"] == os.cpu_count()
+    assert len(line["load_average"]) == 3
+    assert 1.0 < line["room_fps"] < 100_000.0
