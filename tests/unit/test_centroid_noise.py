@@ -7,6 +7,8 @@ import pytest
 from services.estimation.bodies.centroid_noise import (
     CentroidNoise,
     _chi2_constants,
+    _chi2_table,
+    _median,
     degrees_of_freedom,
     robust_variance,
 )
@@ -117,3 +119,16 @@ def test_the_chi2_constants_are_scipy_stats_chi2s(dof, keep):
     assert median == pytest.approx(chi2.median(dof), rel=1e-12)
     assert limit == pytest.approx(chi2.ppf(keep, dof), rel=1e-12)
     assert share == pytest.approx(chi2.expect(args=(dof,), ub=limit, conditional=True), rel=1e-7)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4, 1299, 1300])
+def test_the_median_is_numpys_to_the_bit(size):
+    values = np.random.default_rng(size).exponential(0.01, size)
+    assert _median(values) == float(np.median(values))
+
+
+@pytest.mark.parametrize("largest", [1, 15, 16, 40])
+def test_the_constants_table_holds_each_dofs_constants(largest):
+    table = _chi2_table(largest, 0.999)
+    assert table.shape[0] > largest and not table.flags.writeable
+    assert all(tuple(table[dof]) == _chi2_constants(dof, 0.999) for dof in range(1, largest + 1))

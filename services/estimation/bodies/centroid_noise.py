@@ -44,21 +44,51 @@ def _usable_table(squares: np.ndarray, dof: np.ndarray, keep: float) -> np.ndarr
     """(4, K) float64: the points with positive ``dof`` and a finite sum of squares, in order, as columns
     ``(sum of squares, chi2 median, chi2 keep quantile, expected share)`` (``_chi2_constants`` of their dof)."""
     usable = (dof > 0) & np.isfinite(squares)
-    constants = [_chi2_constants(d, keep) for d in dof[usable].tolist()]
-    return np.vstack([squares[usable], np.array(constants, np.float64).reshape(-1, 3).T])
+    kept = dof[usable]
+    constants = _chi2_table(int(kept.max(initial=0)), keep)[kept]
+    return np.vstack([squares[usable], constants.T])
 
 
 def _pooled_variance(table: np.ndarray) -> float:
     """The robust pooled ``sigma_px^2`` of the points of a ``_usable_table`` (at least one)."""
     squares, median, limit, expected = table
-    scale = float(np.median(squares / median))
+    scale = _median(squares / median)
     if scale <= 0.0:
         return 0.0
     kept = squares <= scale * limit
     return float(np.sum(squares[kept]) / np.sum(expected[kept]))
 
 
+def _median(values: np.ndarray) -> float:
+    """The median of (N,) finite ``values``, N >= 1 (``np.median``'s, without its checks and dispatch)."""
+    middle = values.size // 2
+    if values.size % 2:
+        return float(np.partition(values, middle)[middle])
+    lower, upper = np.partition(values, (middle - 1, middle))[middle - 1:middle + 1]
+    return 0.5 * float(lower + upper)
+
+
+def _chi2_table(largest: int, keep: float) -> np.ndarray:
+    """(D, 3) float64 with D > ``largest``: row ``d`` the ``_chi2_constants`` of ``d`` (row 0 unused, zeros)."""
+    rows = _TABLE_ROWS
+    while rows <= largest:
+        rows *= 2
+    return _chi2_rows(rows, keep)
+
+
+_TABLE_ROWS = 16
+"""Rows of the constants' table made at first (degrees of freedom up to 15: a point seen in nine views)."""
+
+
 @cache
+def _chi2_rows(rows: int, keep: float) -> np.ndarray:
+    table = np.zeros((rows, 3))
+    for dof in range(1, rows):
+        table[dof] = _chi2_constants(dof, keep)
+    table.flags.writeable = False
+    return table
+
+
 def _chi2_constants(dof: int, keep: float) -> tuple[float, float, float]:
     """For ``chi2(dof)``: its median, its ``keep`` quantile, and its mean below that quantile over ``keep``
     (the expected share of a kept point's sum of squares). ``scipy.special``'s chi-square functions, the ones

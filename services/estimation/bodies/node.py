@@ -34,6 +34,8 @@ the full path alone: all blobs put in correspondence and triangulated
 * ``points``: ``Points3D``, every point with its residual, views, covariance and body (-1: none); the
   covariances are for centroid noise of ``sigma_px``, by default (``auto``) the running estimate of
   ``services.estimation.bodies.centroid_noise.CentroidNoise`` from the points' reprojection residuals;
+  built and published only while something subscribes to it (a recorder, a viewer, an app), as it costs
+  about a tenth of a set's work and the poses do not need it;
 * ``pose/body/<name>``: ``Pose`` ``T_world_body`` (child ``body/<name>``) per body found, state
   ``tracking``, with the spheres used (``quality.inliers``), the fit's residual RMS
   (``quality.residual_rms_m``) and its 6x6 covariance (``Pose``'s convention: perturbation
@@ -326,7 +328,8 @@ def run(node: Node, params: Params) -> None:
                                         [pixels(joined[name], params.flagged) for name in params.cameras],
                                         [split_parts(joined[name]) for name in params.cameras])
         poses.put(header, body_poses(header, found.matching) + predicted_poses(header, predicted))
-        points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
+        if points_out.matched():
+            points_out.put(points_message(header, found.points, names, found.matching, found.covariances))
         per_set.learn(header.stamp_ns, found)
         calibration.refresh()
 
