@@ -360,7 +360,7 @@ class _StampedInfos:
 
 class _Pacer:
     """Sleeps so frames leave at ``fps()``, or at the source's own pace (its frame times); ``fps()`` 0:
-    no pacing at all.
+    no pacing at all. The sleeps are ``Node.wait_until``'s, with the thread's timer slack at 1 ns.
 
     ``fps()`` is asked before every frame: when it changes, pacing starts over from that frame.
     With ``ceiling`` (a lossless run) the pace starts over whenever a frame went out late: frames
@@ -396,7 +396,7 @@ class _Pacer:
         if self.ceiling and due < now and self.count > 1:
             self.start_wall, self.start_source, self.count = now, time_s, 1
             return 0.0
-        node.wait(due - now)
+        node.wait_until(due)
         return max(0.0, now - due)
 
 

@@ -29,7 +29,8 @@ and ``run`` returns ``EXIT_DAMAGED`` (3).
 Flow (``services.runtime.flow``): in a lossless run each image of a new frame waits for the
 credits of the nodes taking the images before it goes out, and frames block rather than drop on
 a congested bus. A replay that is not looping ends with an end of stream carrying the ``seq`` of
-the last image it sent.
+the last image it sent. The thread that plays waits for each message with a timer slack of 1 ns
+(``services.runtime.pacing``), so messages go out closer to their due times.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from services.recorder.reading import EXIT_DAMAGED, Damage, NotMcap, Recorded, S
 from services.recorder.writing import RECORDING_METADATA
 from services.runtime.kind import NodeKind, SourceRole
 from services.runtime.node import Node, NodeError
+from services.runtime.pacing import sharpen
 from services.runtime.stamps import SourceClock
 
 SETTLE_S = 0.2
@@ -296,6 +298,7 @@ def replay(node: Node, params: Params) -> Replayed:
         if params.paused:
             node.log.info("paused; `artrack control %s resume` (or step) to go on", node.name)
         node.settle()
+        sharpen()
         while node.running:
             result = play_pass(params.path, pacer, outputs.publish, select=selection, window=params.window(),
                                prepare=outputs.declare)

@@ -58,6 +58,7 @@ from services.bus.stats import AgeWindow, LatencyWindow, StreamCounter
 from services.runtime.flow import Credits, Ends, FlowPlan, end_message
 from services.runtime.host import Host
 from services.runtime.memory import settle_heap
+from services.runtime.pacing import wait_until
 from services.runtime.reconfig import LiveParams
 from services.runtime.restarts import EXIT_CANNOT_RUN
 from services.runtime.sync import JoinBy, Joiner, join_key, key_tolerance
@@ -241,6 +242,11 @@ class Node:
         if seconds > 0:
             self._stop.wait(seconds)
         return self.running
+
+    def wait_until(self, due: float) -> bool:
+        """Sleep until ``time.monotonic()`` reaches ``due``, the calling thread's timer slack out of the way
+        (``services.runtime.pacing``), waking early when stopped; return whether still running."""
+        return wait_until(due, self._stop)
 
     def publisher(self, key: str, cls: type[M], role: Role = Role.RESULT) -> Publisher[M]:
         publisher = Publisher(self.session, key, cls, role, StreamCounter(key, "out"), self.flow.lossless,

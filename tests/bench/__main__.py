@@ -2,7 +2,7 @@
 line per figure, then the machine. Names, in running order: ``transport``, ``codec``,
 ``routing``, ``scenes``, ``recorder``, ``viewer``, ``markers``, ``apps``, ``accuracy``, ``blobs``,
 ``keypoints``, ``features``, ``features_bus``, ``stereo``, ``slam``, ``slam_tracking``, ``slam_bus``,
-``slam_realtime``, ``refusals``, ``stops``, ``lossless``, ``layouts``.
+``slam_realtime``, ``refusals``, ``stops``, ``lossless``, ``layouts``, ``pacing``.
 
 Images: for each size, ``RUNS`` rounds; each round measures typed and raw back to back,
 the order alternating from round to round (typed first, raw first, ...). Both variants use
@@ -26,7 +26,8 @@ node's poses over the bus against in process (``slam_bus``), the SLAM tracker's 
 how long ``artrack`` takes to refuse a command that cannot work (``refusals``) and a node or ``artrack up``
 to stop on SIGTERM (``stops``), and each tracker's lossless runs idle and under load against its node's work
 in one process, with the credits' cost (``lossless``), and the trackers run as ``artrack run`` runs them
-with their nodes grouped into processes three ways (``layouts``) (each module's docstring says what it
+with their nodes grouped into processes three ways (``layouts``), and how late a paced source's waits end,
+with the kernel's default timer slack and with 1 ns (``pacing``) (each module's docstring says what it
 measures).
 Progress goes to stderr.
 """
@@ -55,6 +56,7 @@ from tests.bench.layouts import bench_layouts
 from tests.bench.link import Sink
 from tests.bench.lossless import bench_lossless
 from tests.bench.markers import bench_markers
+from tests.bench.pacing import bench_pacing
 from tests.bench.recorder import bench_recorder
 from tests.bench.refusals import bench_refusals
 from tests.bench.routing import bench_routing
@@ -130,6 +132,7 @@ BENCHES: dict[str, Callable[[], list[dict[str, Any]]]] = {
     "features_bus": bench_features_bus, "stereo": bench_stereo, "slam": bench_slam,
     "slam_tracking": bench_slam_tracking, "slam_bus": bench_slam_bus, "slam_realtime": bench_slam_realtime,
     "refusals": bench_refusals, "stops": bench_stops, "lossless": bench_lossless, "layouts": bench_layouts,
+    "pacing": bench_pacing,
 }
 
 
