@@ -27,6 +27,9 @@ from scipy.special import chdtr, chdtri
 
 __all__ = ["CentroidNoise", "degrees_of_freedom", "robust_variance"]
 
+_TABLE_ROWS = 16
+"""Rows of the constants' table made at first (degrees of freedom up to 15: a point seen in nine views)."""
+
 
 def degrees_of_freedom(views: np.ndarray) -> np.ndarray:
     """(N,) int64 ``2 v - 3`` of (N,) view counts ``v`` (0 for fewer than two views)."""
@@ -76,12 +79,9 @@ def _chi2_table(largest: int, keep: float) -> np.ndarray:
     return _chi2_rows(rows, keep)
 
 
-_TABLE_ROWS = 16
-"""Rows of the constants' table made at first (degrees of freedom up to 15: a point seen in nine views)."""
-
-
 @cache
 def _chi2_rows(rows: int, keep: float) -> np.ndarray:
+    """(rows, 3) read-only float64: ``_chi2_constants`` of 1 to ``rows - 1`` degrees of freedom, row 0 zeros."""
     table = np.zeros((rows, 3))
     for dof in range(1, rows):
         table[dof] = _chi2_constants(dof, keep)
