@@ -1,6 +1,7 @@
 """What a job says while it runs and at its end: frame totals, rates, the newest statistics, lateness."""
 
 import io
+import threading
 import time
 
 import cv2
@@ -20,6 +21,7 @@ from services.launcher.progress import (
     frames_expected,
     frames_sent,
 )
+from services.runtime.pacing import wait_until
 
 
 def _stats(node: str, stamp_ns: int, sent: int = 0) -> NodeStats:
@@ -156,10 +158,8 @@ class _Node:
 
     info = warning
 
-    def wait(self, seconds: float) -> bool:
-        if seconds > 0:
-            time.sleep(seconds)
-        return True
+    def wait_until(self, due: float) -> bool:
+        return wait_until(due, threading.Event())
 
 
 def test_a_pacer_asked_more_than_its_source_gives_says_how_late_each_frame_is():
