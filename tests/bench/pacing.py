@@ -2,12 +2,11 @@
 
 A thread waits for ``FRAMES`` due times ``1 / rate`` apart, two ways, alternated over ``ROUNDS`` rounds
 (``plain`` first in even rounds, ``sharp`` first in odd ones), each on a new thread: ``plain``, a sleep on an
-event until the due time (``threading.Event.wait``) with the kernel's default timer slack, as sources waited
-before ``services.runtime.pacing``, and ``sharp``, ``services.runtime.pacing.wait_until`` (the same sleep, the
-thread's timer slack 1 ns). Figures per way, rate and condition (``idle``, or ``busy``: a
-process spinning on each core, ``tests.load.busy``): how late the waits returned (p50 / p90 / p99 us over
-the rounds' waits) and the waiting thread's CPU as a share of one core. ``python -m tests.bench.pacing``
-prints the lines.
+event until the due time (``threading.Event.wait``) with the kernel's default timer slack, and ``sharp``,
+``services.runtime.pacing.wait_until`` (the same sleep, the thread's timer slack 1 ns). Figures per way, rate
+and condition (``idle``, or ``busy``: a process spinning on each core, ``tests.load.busy``): how late the
+waits returned (p50 / p90 / p99 us over the rounds' waits) and the waiting thread's CPU as a share of one
+core. ``python -m tests.bench.pacing`` prints the lines.
 """
 
 from __future__ import annotations
